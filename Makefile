@@ -1,0 +1,31 @@
+# Two commands do everything on a fresh machine with Python >= 3.11 and make:
+#   make demo   -- create .venv if missing, install, run the main experiments into results/
+#   make test   -- create .venv if missing, install with test extras, run the whole suite
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test bench venv clean
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+
+$(STAMP): $(PY) pyproject.toml
+	$(PY) -m pip install --quiet -e ".[test]"
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m experiments.section_6_1 --out results/section_6_1
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) -m experiments.benchmark --out results/benchmark
+
+clean:
+	rm -rf results .pytest_cache

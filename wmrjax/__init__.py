@@ -1,0 +1,14 @@
+"""wmrjax: wheeled mobile robots under feedback-linearizing control, in JAX.
+
+Implements d'Andrea-Novel, Campion & Bastin, "Control of nonholonomic wheeled mobile
+robots by state feedback linearization", IJRR 14(6), 1995. Float64 is not enabled on
+import; call ``jax.config.update("jax_enable_x64", True)`` in your entry point.
+"""
+
+from wmrjax import controllers, linearize, references, robots  # noqa: F401
+from wmrjax.controllers import DynamicLinearization, Gains, dynamic_linearization  # noqa: F401
+from wmrjax.references import Reference  # noqa: F401
+from wmrjax.robots import Geometry, RobotType, robot_type  # noqa: F401
+from wmrjax.simulate import Diagnostics, Trajectory, batch_map, batch_mesh, rk4_step, shard_batch, simulate  # noqa: F401
+
+__version__ = "0.1.0"

@@ -1,0 +1,52 @@
+"""Argument checks that run on concrete values before anything is traced or compiled.
+
+Every check is skipped for tracers (values inside ``jit``/``vmap``/``grad``): there the
+caller has already been validated at the outer entry point.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from jax import core
+
+
+def is_concrete(x) -> bool:
+    return not isinstance(x, core.Tracer)
+
+
+def concrete(x):
+    """``np.asarray(x)`` if ``x`` is concrete, else ``None``."""
+    if isinstance(x, core.Tracer):
+        return None
+    try:
+        return np.asarray(x)
+    except Exception:  # pragma: no cover - exotic array types
+        return None
+
+
+def check_shape(name: str, x, shape: tuple, what: str = "") -> None:
+    """Raise ``ValueError`` unless ``x`` has exactly ``shape``."""
+    got = tuple(np.shape(x))
+    if got != tuple(shape):
+        extra = f" ({what})" if what else ""
+        raise ValueError(f"{name} must have shape {tuple(shape)}{extra}, got shape {got}")
+
+
+def check_finite(name: str, x) -> None:
+    v = concrete(x)
+    if v is not None and not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} must be finite, got {v!r}")
+
+
+def check_positive(name: str, x) -> None:
+    v = concrete(x)
+    if v is None:
+        return
+    if not np.all(np.isfinite(v)) or not np.all(v > 0):
+        raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+
+
+def check_int(name: str, x, minimum: int = 1) -> int:
+    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {x!r}")
+    return int(x)

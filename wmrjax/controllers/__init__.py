@@ -1,0 +1,10 @@
+"""Feedback-linearizing controllers of d'Andrea-Novel, Campion & Bastin (1995)."""
+
+from wmrjax.controllers.dynamic import (  # noqa: F401
+    EXTENSIONS,
+    DynamicExtension,
+    DynamicLinearization,
+    DynamicParams,
+    Gains,
+    dynamic_linearization,
+)

@@ -1,0 +1,402 @@
+r"""Dynamic feedback linearization for posture tracking (paper §5, Table 4, Props 7-9).
+
+Each row of Table 4 is a :class:`DynamicExtension`: the linearizing outputs, the
+compensator states that delay some input combinations, and how the new inputs U drive
+the plant. Everything else -- the diffeomorphism :math:`\zeta = \Psi(X_e)`, the
+decoupling matrix :math:`K(X_e)` and drift, the auxiliary law (49) -- is produced by the
+generic engine of :mod:`wmrjax.linearize`, at velocity level (kinematic model 5) and at
+torque level (model 8) by the cascade of Lemma 1: the torque-level extension appends the
+velocity-level new inputs U to the state and takes :math:`V = \dot U` as input, with the
+same outputs, relative degrees one higher, and the same decoupling matrix.
+
+Extended state ``z`` (unbatched vector):
+
+* velocity level: ``z = (X, c)``; plant input ``u = plant_input(X, c, U)``;
+* torque level: ``z = (X, c, U)``; plant input ``v = du/dt`` along the flow.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wmrjax import _math, linearize, robots
+from wmrjax._validate import check_finite, check_positive, check_shape, concrete
+from wmrjax.references import Reference, taylor
+from wmrjax.robots import Geometry, RobotType
+
+# |det K| below this is treated as singular inside the law (the division is clamped);
+# runs report the true margin so such events are flagged.
+DET_FLOOR = 1e-12
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicExtension:
+    """One row of Table 4 (static description).
+
+    Attributes:
+      robot: the robot type.
+      n_comp: number of compensator states c.
+      comp_names: their names (for reports).
+      relative_degree: r of every output at velocity level.
+      outputs: ``(xi, geometry) -> Y`` linearizing outputs, function of the posture only.
+      plant_input: ``(X, c, U, geometry) -> u``, affine in U.
+      compensator: ``(X, c, U, geometry) -> dc/dt``, affine in U.
+      regularity: Table 4's condition (with errata), for messages.
+      psi_inverse: optional closed form ``(zeta, branch, geometry) -> z`` (velocity level).
+    """
+
+    robot: RobotType
+    n_comp: int
+    comp_names: tuple
+    relative_degree: int
+    outputs: Callable = dataclasses.field(repr=False)
+    plant_input: Callable = dataclasses.field(repr=False)
+    compensator: Callable = dataclasses.field(repr=False)
+    regularity: str = ""
+    psi_inverse: Optional[Callable] = dataclasses.field(default=None, repr=False)
+
+    @property
+    def n_outputs(self) -> int:
+        return self.robot.n_input  # square: m outputs, m new inputs
+
+
+# --- Table 4 rows --------------------------------------------------------------------
+
+def _out_axle_point(xi, g):
+    s, c = _math.sincos(xi[2])
+    return jnp.stack([xi[0] + g.e * c, xi[1] + g.e * s])
+
+
+def _pi_20(X, c, U, g):  # (eta1, eta2) = (chi1 - e eta2, eta2), new inputs U = (U1, eta2)
+    return jnp.stack([c[0] - g.e * U[1], U[1]])
+
+
+def _comp_20(X, c, U, g):  # chi1' = U1 (eq 37)
+    return U[:1]
+
+
+def _psi_inv_20(zeta, branch, g):
+    """Lemma 3 with the errata: theta = atan2(-h1', h2') on S+, chi1 = +-|h'|."""
+    hd = zeta[1]
+    theta = jnp.arctan2(-branch * hd[0], branch * hd[1])
+    s, c = _math.sincos(theta)
+    chi1 = branch * jnp.sqrt(hd[0] ** 2 + hd[1] ** 2)
+    return jnp.stack([zeta[0, 0] - g.e * c, zeta[0, 1] - g.e * s, theta, chi1])
+
+
+def _out_posture(xi, g):
+    del g
+    return xi
+
+
+def _pi_21(X, c, U, g):  # u = (eta1, eta2, zeta1); compensator (eta1, eta2), U = (eta1', eta2', zeta1)
+    return jnp.stack([c[0], c[1], U[2]])
+
+
+def _comp_21(X, c, U, g):
+    return U[:2]
+
+
+def _pi_11(X, c, U, g):  # u = (eta1, zeta1); compensator (eta1, chi2); U = (U2 = chi2', zeta1)
+    return jnp.stack([c[0], U[1]])
+
+
+def _comp_11(X, c, U, g):
+    s, co = _math.sincos(X[3])
+    lever = g.L * s + g.e * co          # chi1 = eta1 * lever
+    dlever = g.L * co - g.e * s
+    eta1_dot = (c[1] - c[0] * U[1] * dlever) / lever   # Table 4 footnote, solved for U1
+    return jnp.stack([eta1_dot, U[0]])
+
+
+def _out_12(xi, g):
+    s, c = _math.sincos(xi[2] + g.delta)
+    return jnp.stack([xi[0] + g.e * c, xi[1] + g.e * s, xi[2]])
+
+
+def _pi_12(X, c, U, g):  # u = (eta1, zeta1, zeta2); compensator eta1; U = (eta1', zeta1, zeta2)
+    return jnp.stack([c[0], U[1], U[2]])
+
+
+def _comp_12(X, c, U, g):
+    return U[:1]
+
+
+EXTENSIONS: dict[str, DynamicExtension] = {
+    "(2,0)": DynamicExtension(robots.TYPES["(2,0)"], 1, ("chi1",), 2, _out_axle_point, _pi_20, _comp_20,
+                              "chi1 = eta1 + e eta2 != 0", _psi_inv_20),
+    "(2,1)": DynamicExtension(robots.TYPES["(2,1)"], 2, ("eta1", "eta2"), 2, _out_posture, _pi_21, _comp_21,
+                              "eta1 != 0"),
+    "(1,1)": DynamicExtension(robots.TYPES["(1,1)"], 2, ("eta1", "chi2"), 3, _out_axle_point, _pi_11, _comp_11,
+                              "eta1 (L sin beta + e cos beta) != 0 (errata: Table 4 prints only eta1 != 0)"),
+    "(1,2)": DynamicExtension(robots.TYPES["(1,2)"], 1, ("eta1",), 2, _out_12, _pi_12, _comp_12,
+                              "L eta1 sin(beta1) sin(beta2) != 0"),
+}
+
+
+# --- gains and parameters -----------------------------------------------------------
+
+class Gains(NamedTuple):
+    """Closed-loop poles of the linear error dynamics (Prop 8, eq 49 with the errata sign).
+
+    Attributes:
+      poles: (m, r) positive reals; output i's error obeys
+        :math:`\\prod_j (d/dt + \\lambda_{ij}) \\tilde Y_i = 0`: Hurwitz by construction.
+    """
+
+    poles: jnp.ndarray
+
+    def coefficients(self):
+        """(m, r) coefficients ``k[i, j]`` of ``d^j/dt^j`` (eq 49 errata, eq 13 for r = 2)."""
+        return linearize.monic_coefficients(self.poles)
+
+
+class DynamicParams(NamedTuple):
+    """Everything array-valued the closed loop depends on (a pytree: vmap/grad it)."""
+
+    gains: Gains
+    reference: Reference
+    geometry: Geometry
+
+
+class Aux(NamedTuple):
+    """What a closed-loop evaluation reports besides the state derivative."""
+
+    control: jnp.ndarray   # plant input: u (velocity level) or v (torque level)
+    margin: jnp.ndarray    # |det K(X_e)|, the singularity margin (Remark 14)
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicLinearization:
+    """A dynamic linearizing posture-tracking controller (static, hashable).
+
+    Build it with :func:`dynamic_linearization`. Its :meth:`vector_field` is what
+    :func:`wmrjax.simulate` integrates; the extended state ``z`` holds the plant state
+    and the compensator (and at torque level the plant velocities through U).
+    """
+
+    extension: DynamicExtension
+    level: str  # "velocity" | "torque"
+
+    # -- static sizes --
+    @property
+    def robot(self) -> RobotType:
+        return self.extension.robot
+
+    @property
+    def m(self) -> int:
+        return self.extension.n_outputs
+
+    @property
+    def relative_degree(self) -> int:
+        return self.extension.relative_degree + (1 if self.level == "torque" else 0)
+
+    @property
+    def n_state(self) -> int:
+        n = self.robot.n_state + self.extension.n_comp
+        return n + (self.m if self.level == "torque" else 0)
+
+    @property
+    def state_names(self) -> tuple:
+        X = ("x", "y", "theta") + (("beta",) if self.robot.delta_s == 1 else ("beta1", "beta2")[: self.robot.delta_s])
+        names = X + self.extension.comp_names
+        return names + tuple(f"U{i + 1}" for i in range(self.m)) if self.level == "torque" else names
+
+    # -- dynamics of the extended system --
+    def _velocity_field(self, zv, U, g):
+        n = self.robot.n_state
+        X, c = zv[:n], zv[n:]
+        u = self.extension.plant_input(X, c, U, g)
+        return jnp.concatenate([robots.kinematic(self.robot, X, u, g), self.extension.compensator(X, c, U, g)])
+
+    def field(self, z, U, g):
+        """Extended dynamics ``dz/dt = F(z) + G(z) U`` (U: new inputs of this level)."""
+        if self.level == "velocity":
+            return self._velocity_field(z, U, g)
+        nv = self.n_state - self.m
+        return jnp.concatenate([self._velocity_field(z[:nv], z[nv:], g), U])
+
+    def plant_control(self, z, U, g):
+        """The physical input: u (velocity level) or v = du/dt (torque level, by jvp)."""
+        n = self.robot.n_state
+        pi = lambda X, c, Uv: self.extension.plant_input(X, c, Uv, g)
+        if self.level == "velocity":
+            return pi(z[:n], z[n:], U)
+        nv = self.n_state - self.m
+        zdot = self.field(z, U, g)
+        return jax.jvp(pi, (z[:n], z[n:nv], z[nv:]), (zdot[:n], zdot[n:nv], U))[1]
+
+    def outputs(self, z, g):
+        return self.extension.outputs(z[:3], g)
+
+    def jet(self, z, g):
+        """``(zeta, a, K)`` of :func:`wmrjax.linearize.output_jet` at ``z``."""
+        return linearize.output_jet(lambda x, U: self.field(x, U, g), lambda x: self.outputs(x, g),
+                                    z, self.m, self.relative_degree)
+
+    def psi(self, z, g):
+        r"""The diffeomorphism :math:`\zeta = \Psi(X_e)` (eq 35), shape (r, m)."""
+        return self.jet(z, g)[0]
+
+    def reference_jet(self, t, params: DynamicParams):
+        """``Y_ref, Y_ref', ..., Y_ref^{(r)}`` at time t, shape (r + 1, m), by autodiff."""
+        ref, g = params.reference, params.geometry
+        return taylor(lambda s: self.extension.outputs(ref.posture(s), g), t, self.relative_degree)
+
+    def control(self, t, z, params: DynamicParams):
+        """New input U (Prop 8) and the margin ``|det K|``.
+
+        Returns:
+          ``(U, margin)``; the division by ``det K`` is clamped at :data:`DET_FLOOR`.
+        """
+        g = params.geometry
+        zeta, a, K = self.jet(z, g)
+        yref = self.reference_jet(t, params)
+        r = self.relative_degree
+        k = params.gains.coefficients()            # (m, r)
+        err = zeta - yref[:r]                      # (r, m)
+        w = yref[r]
+        for j in range(r):                         # eq (49), errata sign
+            w = w - k[:, j] * err[j]
+        num, det = _math.adjugate_solve(K, w - a)
+        return num / _math.safe_divisor(det, DET_FLOOR), jnp.abs(det)
+
+    def vector_field(self, t, z, params: DynamicParams):
+        """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin)."""
+        U, margin = self.control(t, z, params)
+        g = params.geometry
+        return self.field(z, U, g), Aux(self.plant_control(z, U, g), margin)
+
+    # -- error coordinates --
+    def error(self, t, z, params: DynamicParams):
+        r""":math:`\tilde\zeta = \Psi(z) - \zeta_{ref}(t)`, shape (r, m)."""
+        return self.psi(z, params.geometry) - self.reference_jet(t, params)[: self.relative_degree]
+
+    def error_matrix(self, gains: Gains):
+        """Matrix A with :math:`\\dot{\\tilde\\zeta} = A \\tilde\\zeta` on ``error(...).reshape(-1)``."""
+        return linearize.companion(gains.coefficients())
+
+    # -- parameters and initial states --
+    def params(self, reference: Reference, poles=1.0, geometry: Geometry = Geometry()) -> DynamicParams:
+        """Build and validate :class:`DynamicParams`.
+
+        Args:
+          reference: a :class:`wmrjax.references.Reference`.
+          poles: scalar, (r,), or (m, r) positive pole magnitudes (poles at ``-poles``).
+          geometry: :class:`wmrjax.Geometry`.
+        """
+        robots.check_geometry(geometry)
+        if not isinstance(reference, Reference):
+            raise ValueError(f"reference must be a wmrjax.references.Reference, got {type(reference).__name__}")
+        r, m = self.relative_degree, self.m
+        p = jnp.asarray(poles, dtype=jnp.result_type(float))
+        if p.ndim == 0:
+            p = jnp.full((m, r), p)
+        elif p.shape == (r,):
+            p = jnp.broadcast_to(p, (m, r))
+        check_shape("poles", p, (m, r), f"one pole magnitude per output and derivative order, r = {r}")
+        check_positive("poles (closed-loop poles are at -poles; they must be > 0 for a Hurwitz error dynamics)", p)
+        self._check_geometry_regular(geometry)
+        return DynamicParams(Gains(p), reference, geometry)
+
+    def _check_geometry_regular(self, g: Geometry) -> None:
+        v = {k: concrete(x) for k, x in g._asdict().items()}
+        if self.robot.name in ("(1,1)", "(1,2)") and v["L"] is not None and float(v["L"]) == 0.0:
+            raise ValueError(f"geometry.L must be non-zero for type {self.robot.name} (Table 4: {self.extension.regularity})")
+
+    def initial_state(self, zeta0, params: DynamicParams, branch=None):
+        r"""Extended state from an initial output jet, :math:`X_e(0) = \Psi^{-1}(\zeta(0))`.
+
+        Args:
+          zeta0: (r, m) initial outputs and derivatives; for (2,0) at velocity level
+            ``[[x', y'], [x'_dot, y'_dot]]`` of the point P' (= (x, y, xdot, ydot) for e = 0).
+          params: the closed loop's :class:`DynamicParams` (geometry, reference).
+          branch: +1 or -1 (sign of chi1, Lemma 3); default: the reference's branch at
+            t = 0 (Remark 17: robot and reference must share it).
+
+        Raises:
+          ValueError: if ``zeta0`` is on the singular set or on the other branch than the reference.
+        """
+        ext = self.extension
+        if ext.psi_inverse is None or self.level != "velocity":
+            raise NotImplementedError(
+                f"closed-form Psi^-1 is available for (2,0) at velocity level; got {self.robot.name}/{self.level}")
+        zeta0 = jnp.asarray(zeta0, dtype=jnp.result_type(float))
+        check_shape("zeta0", zeta0, (self.relative_degree, self.m), "(Y, Y', ...) stacked by derivative order")
+        check_finite("zeta0", zeta0)
+        ref_branch = self.reference_branch(params)
+        if branch is None:
+            branch = ref_branch
+        if branch not in (1, -1):
+            raise ValueError(f"branch must be +1 or -1 (sign of chi1), got {branch!r}")
+        if ref_branch is not None and branch != ref_branch:
+            raise ValueError(
+                f"branch {branch:+d} differs from the reference's branch {ref_branch:+d} (sign of (chi1)_ref(0)); "
+                "Remark 17: robot and reference must be on the same branch")
+        z0 = ext.psi_inverse(zeta0, float(branch), params.geometry)
+        self.check_regular(z0, params)
+        return z0
+
+    def reference_branch(self, params: DynamicParams, t=0.0):
+        """Sign of the reference's singular quantity (chi1_ref for (2,0)) at t, or None if traced."""
+        zref = self.reference_state(t, params)
+        if zref is None:
+            return None
+        n = self.robot.n_state
+        val = float(np.asarray(zref)[n])  # first compensator state
+        return 1 if val >= 0 else -1
+
+    def reference_state(self, t, params: DynamicParams):
+        r""":math:`(X_e)_{ref}(t) = \Psi^{-1}(\zeta_{ref}(t))` (eq 48), on the reference's own branch."""
+        ext = self.extension
+        if ext.psi_inverse is None or self.level != "velocity":
+            raise NotImplementedError(f"closed-form Psi^-1 not available for {self.robot.name}/{self.level}")
+        t = jnp.asarray(t, dtype=jnp.result_type(float))
+        zeta = self.reference_jet(t, params)[: self.relative_degree]
+        # the virtual robot moves forward along its tangent heading: chi1_ref has the sign
+        # of cos(heading_offset) (+1 for the paper's references)
+        off = concrete(params.reference.heading_offset)
+        branch = 1.0 if off is None or np.cos(float(off)) >= 0 else -1.0
+        return ext.psi_inverse(zeta, branch, params.geometry)
+
+    def check_regular(self, z, params: DynamicParams, name: str = "initial state") -> None:
+        """Raise ValueError if ``z`` is on (or numerically at) the singular set of Table 4."""
+        zc = concrete(z)
+        if zc is None:
+            return
+        check_shape(name, zc, (self.n_state,), " ".join(self.state_names))
+        check_finite(name, zc)
+        _, _, K = self.jet(jnp.asarray(zc), params.geometry)
+        det = abs(float(np.linalg.det(np.asarray(K))))
+        if not det > 1e3 * DET_FLOOR:
+            raise ValueError(
+                f"{name} is on the singular set of the dynamic linearizing law for type {self.robot.name}: "
+                f"|det K(X_e)| = {det:.3g}; Table 4 requires {self.extension.regularity}")
+
+
+LEVELS = ("velocity", "torque")
+
+
+def dynamic_linearization(robot, level: str = "velocity") -> DynamicLinearization:
+    """The dynamic linearizing posture-tracking controller of Table 4 for a robot type.
+
+    Args:
+      robot: one of "(2,0)", "(2,1)", "(1,1)", "(1,2)" (or a :class:`RobotType`).
+      level: "velocity" (kinematic model 5) or "torque" (model 8, via Lemma 1).
+
+    Raises:
+      ValueError: unknown type or level, or type (3,0), which needs no dynamic extension
+        (Prop 3: static linearization solves posture tracking).
+    """
+    rt = robots.robot_type(robot)
+    if rt.name not in EXTENSIONS:
+        raise ValueError(f"type {rt.name} has no dynamic extension in Table 4; "
+                         f"expected one of {sorted(EXTENSIONS)} (type (3,0) is statically linearizable, Prop 3)")
+    if level not in LEVELS:
+        raise ValueError(f"level must be one of {LEVELS}, got {level!r}")
+    return DynamicLinearization(EXTENSIONS[rt.name], level)

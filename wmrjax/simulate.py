@@ -1,0 +1,281 @@
+r"""Fixed-step RK4 under ``lax.scan``, with per-run diagnostics.
+
+:func:`simulate` integrates one unbatched closed loop; batch it with ``jax.vmap`` over
+initial states, references, gains or geometry, and differentiate it with ``jax.grad``.
+It is jitted once at this entry point (the closed-loop object, the step count and the
+saving stride are static).
+
+Two implementation choices matter for speed on CPUs (measured in
+``experiments/benchmark.py``):
+
+* the scan carry is a tuple of scalars, one per state component, so that under
+  ``vmap`` each component is a contiguous batch array (structure of arrays) and the
+  whole RK4 step fuses into one vectorised loop;
+* the vector fields use :func:`wmrjax._math.sincos`, which XLA vectorises.
+
+A run *fails* when its state becomes non-finite or its singularity margin drops to
+``margin_floor`` or below. From then on its state is frozen at the last good value and
+its samples are marked invalid (``Trajectory.valid``), so batch statistics can exclude
+it explicitly instead of averaging NaN or a runaway value.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wmrjax._validate import check_finite, check_int, concrete
+
+
+class Diagnostics(NamedTuple):
+    """Per-run summary (scalars; batched under vmap).
+
+    Attributes:
+      nonfinite: the state or the control became NaN/Inf.
+      singular: the margin reached ``margin_floor``.
+      failed: ``nonfinite | singular``; samples from the failure on are invalid.
+      t_failure: time of the first failure [s] (``inf`` if none).
+      min_margin: smallest margin over valid RK4 steps (first stage of each step).
+      t_min_margin: when it occurred [s].
+    """
+
+    nonfinite: jnp.ndarray
+    singular: jnp.ndarray
+    failed: jnp.ndarray
+    t_failure: jnp.ndarray
+    min_margin: jnp.ndarray
+    t_min_margin: jnp.ndarray
+
+
+class Trajectory(NamedTuple):
+    """A simulated run.
+
+    Attributes:
+      t: saved times, shape (T,) [s]; T = n_steps // save_every + 1 (t0 included).
+      state: (T, n) states at those times.
+      control: (T, p) plant input evaluated at those states (at the final time: at the
+        last state, for completeness).
+      margin: (T,) singularity margin at those states.
+      valid: (T,) False from the first failure on.
+      final_state: (n,) state after the last step (frozen value if the run failed).
+      diagnostics: :class:`Diagnostics`.
+    """
+
+    t: Any
+    state: Any
+    control: Any
+    margin: Any
+    valid: Any
+    final_state: Any
+    diagnostics: Diagnostics
+
+
+def rk4_step(field, t, z, dt):
+    """One classical RK4 step of ``dz/dt = field(t, z)[0]``; returns ``(z_next, aux_at_t)``."""
+    k1, aux = field(t, z)
+    k2, _ = field(t + 0.5 * dt, z + (0.5 * dt) * k1)
+    k3, _ = field(t + 0.5 * dt, z + (0.5 * dt) * k2)
+    k4, _ = field(t + dt, z + dt * k3)
+    return z + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), aux
+
+
+def _all_finite(tree):
+    leaves = jax.tree_util.tree_leaves(tree)
+    ok = jnp.array(True)
+    for leaf in leaves:
+        ok = ok & jnp.all(jnp.isfinite(leaf))
+    return ok
+
+
+@functools.partial(jax.jit, static_argnames=("system", "n_steps", "save_every"))
+def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
+    dtype = jnp.result_type(z0)
+    dt = jnp.asarray(dt, dtype)
+    t0 = jnp.asarray(t0, dtype)
+    field = lambda t, z: system.vector_field(t, z, params)
+
+    def step(carry, i):
+        zt, alive, diag = carry
+        z = jnp.stack(zt)
+        t = t0 + i * dt
+        z_next, aux = rk4_step(field, t, z, dt)
+        margin = jnp.asarray(aux.margin, dtype)
+        finite = _all_finite((z_next, aux.control, margin))
+        regular = margin > margin_floor
+        ok = alive & finite & regular
+        newly_failed = alive & ~ok
+        better = alive & (margin < diag.min_margin)
+        diag = Diagnostics(
+            nonfinite=diag.nonfinite | (alive & ~finite),
+            singular=diag.singular | (alive & finite & ~regular),
+            failed=diag.failed | newly_failed,
+            t_failure=jnp.where(newly_failed, t, diag.t_failure),
+            min_margin=jnp.where(better, margin, diag.min_margin),
+            t_min_margin=jnp.where(better, t, diag.t_min_margin),
+        )
+        z_keep = jnp.where(ok, jnp.where(finite, z_next, z), z)  # double where: no NaN leaks into grads
+        zt_next = tuple(z_keep[j] for j in range(z.shape[0]))
+        return (zt_next, ok, diag), (z, aux.control, margin, alive)
+
+    # initial flags derived from z0 so they carry its sharding/varying type (shard_map)
+    bad0 = ~jnp.isfinite(z0[0])
+    inf = jnp.where(bad0, jnp.inf, jnp.inf * jnp.ones_like(z0[0]))
+    diag0 = Diagnostics(bad0, bad0 & False, bad0, jnp.where(bad0, t0, inf), inf, t0 + 0.0 * z0[0])
+    carry = (tuple(z0[j] for j in range(z0.shape[0])), ~bad0, diag0)
+
+    n_saves = n_steps // save_every
+    idx = jnp.arange(n_saves * save_every).reshape(n_saves, save_every)
+
+    def chunk(carry, ids):
+        carry, _ = jax.lax.scan(step, carry, ids[1:]) if save_every > 1 else (carry, None)
+        return carry, None
+
+    def saved_chunk(carry, ids):
+        carry, rec = step(carry, ids[0])
+        carry, _ = chunk(carry, ids)
+        return carry, rec
+
+    carry, recs = jax.lax.scan(saved_chunk, carry, idx)
+    # remaining steps (n_steps not a multiple of save_every) run without saving
+    rest = jnp.arange(n_saves * save_every, n_steps)
+    if rest.shape[0]:
+        carry, _ = jax.lax.scan(step, carry, rest)
+    zt, alive, diag = carry
+    z_final = jnp.stack(zt)
+    t_final = t0 + n_steps * dt
+    _, aux_f = field(t_final, z_final)
+    states, controls, margins, valids = recs
+    t_saved = t0 + dt * jnp.arange(n_saves + 1, dtype=dtype) * save_every
+    t_saved = t_saved.at[-1].set(t_final)
+    traj = Trajectory(
+        t=t_saved,
+        state=jnp.concatenate([states, z_final[None]]),
+        control=jnp.concatenate([controls, jnp.asarray(aux_f.control)[None]]),
+        margin=jnp.concatenate([margins, jnp.asarray(aux_f.margin, dtype)[None]]),
+        valid=jnp.concatenate([valids, alive[None]]),
+        final_state=z_final,
+        diagnostics=diag,
+    )
+    return traj
+
+
+def batch_mesh(axis_name: str = "batch", devices=None):
+    """A 1-D ``jax.sharding.Mesh`` over all (or the given) devices, for the batch axis."""
+    devs = np.asarray(jax.devices() if devices is None else devices)
+    return jax.sharding.Mesh(devs, (axis_name,))
+
+
+def shard_batch(tree, mesh=None):
+    """Place a pytree of batched arrays (leading axis = batch) across ``mesh``'s devices.
+
+    ``jax.jit(jax.vmap(...))`` applied to the result runs each device's share of the
+    batch in parallel (GSPMD); results are identical to the unsharded run. On a CPU host,
+    several devices exist only if ``XLA_FLAGS=--xla_force_host_platform_device_count=N``
+    was set before JAX started (the experiments' ``--devices`` option does that).
+    The batch size must be divisible by the number of devices.
+    """
+    mesh = batch_mesh() if mesh is None else mesh
+    n = mesh.devices.size
+    spec = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(mesh.axis_names[0]))
+    for leaf in jax.tree_util.tree_leaves(tree):
+        if np.ndim(leaf) == 0 or np.shape(leaf)[0] % n:
+            raise ValueError(f"shard_batch needs a leading batch axis divisible by {n} devices, got shape {np.shape(leaf)}")
+    return jax.device_put(tree, spec)
+
+
+def batch_map(fn, *args, chunk: int = 512, mesh=None):
+    """Map a per-example function over the leading axis of ``args``, fast on CPUs.
+
+    Equivalent to ``jax.vmap(fn)(*args)`` (same results, tested), but the batch is split
+    across ``mesh``'s devices with ``jax.shard_map`` (one device per core: run with
+    ``--xla_force_host_platform_device_count``) and, on each device, processed in chunks
+    of ``chunk`` examples with ``lax.map`` so that a chunk's working set stays in cache
+    for the whole time loop. The batch is padded (with copies of its first example) to a
+    multiple of ``devices * chunk``; the padding is dropped from the result.
+
+    Call it inside ``jax.jit``. Differentiable like ``vmap``.
+
+    Args:
+      fn: function of unbatched arguments returning a pytree.
+      *args: pytrees whose leaves share the leading batch size B.
+      chunk: examples per chunk (static).
+      mesh: a 1-D mesh (default: :func:`batch_mesh` over all devices).
+
+    Returns:
+      ``fn``'s output pytree with a leading axis of size B.
+    """
+    mesh = batch_mesh() if mesh is None else mesh
+    n_dev = mesh.devices.size
+    leaves = jax.tree_util.tree_leaves(args)
+    if not leaves:
+        raise ValueError("batch_map needs at least one batched argument")
+    b = leaves[0].shape[0]
+    if any(leaf.shape[:1] != (b,) for leaf in leaves):
+        raise ValueError(f"batch_map: every leaf needs the same leading batch size, got {[l.shape for l in leaves]}")
+    chunk = max(1, min(int(chunk), -(-b // n_dev)))
+    per = n_dev * chunk
+    padded = -(-b // per) * per
+
+    def pad(x):
+        if padded == b:
+            return x
+        return jnp.concatenate([x, jnp.broadcast_to(x[:1], (padded - b,) + x.shape[1:])])
+
+    args = jax.tree_util.tree_map(pad, args)
+    axis = mesh.axis_names[0]
+    spec = jax.sharding.PartitionSpec(axis)
+
+    def local(*a):
+        blocks = jax.tree_util.tree_map(lambda x: x.reshape((-1, chunk) + x.shape[1:]), a)
+        out = jax.lax.map(lambda blk: jax.vmap(fn)(*blk), blocks)
+        return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
+
+    out = jax.shard_map(local, mesh=mesh, in_specs=spec, out_specs=spec)(*args)
+    return jax.tree_util.tree_map(lambda x: x[:b], out)
+
+
+def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 1, margin_floor=1e-9) -> Trajectory:
+    """Simulate one closed loop with fixed-step RK4.
+
+    Args:
+      system: a closed-loop object (static, hashable) with
+        ``vector_field(t, z, params) -> (dz/dt, aux)``, ``aux`` having ``control`` and
+        ``margin`` (e.g. :class:`wmrjax.controllers.DynamicLinearization`).
+      z0: initial state, shape (n,), unbatched (``vmap`` to batch).
+      params: pytree of arrays the closed loop depends on (gains, reference, geometry).
+      dt: step [s], > 0.
+      n_steps: number of steps (static).
+      t0: initial time [s].
+      save_every: keep every k-th state (static); the final state is always kept.
+        With ``save_every = n_steps`` only the initial and final states are stored.
+      margin_floor: a run fails when its margin is ``<= margin_floor``.
+
+    Returns:
+      :class:`Trajectory`.
+
+    Raises:
+      ValueError: on a non-positive ``dt``, ``n_steps`` or ``save_every``, or a non-finite
+        or wrongly-shaped ``z0`` (checked before compilation).
+    """
+    n_steps = check_int("n_steps", n_steps, 1)
+    save_every = check_int("save_every", save_every, 1)
+    if save_every > n_steps:
+        raise ValueError(f"save_every must be <= n_steps ({n_steps}), got {save_every}")
+    dtv = concrete(dt)
+    if dtv is not None and not (np.ndim(dtv) == 0 and np.isfinite(dtv) and dtv > 0):
+        raise ValueError(f"dt must be a finite scalar > 0 [s], got {dt!r}")
+    z0 = jnp.asarray(z0)
+    if not jnp.issubdtype(z0.dtype, jnp.floating):
+        z0 = z0.astype(jnp.result_type(float))
+    n = getattr(system, "n_state", None)
+    if z0.ndim != 1 or (n is not None and z0.shape != (n,)):
+        names = getattr(system, "state_names", None)
+        raise ValueError(f"z0 must be an unbatched state of shape ({n},)"
+                         + (f" = ({', '.join(names)})" if names else "")
+                         + f"; got shape {z0.shape} (use jax.vmap to batch)")
+    check_finite("z0", z0)
+    return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor)
