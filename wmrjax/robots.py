@@ -192,7 +192,7 @@ def rotate_to_world(theta, v_body):
 
 
 def kinematic(robot: RobotType, X, u, geometry: Geometry):
-    """Kinematic model (5): ``Xdot = B(X) u``.
+    r"""Kinematic model (5): ``Xdot = B(X) u``.
 
     Computed as :math:`R^T(\theta)\Sigma(\beta)\eta` and :math:`\dot\beta = \zeta`
     without forming B(X) (which :func:`input_matrix` returns): small matrices under

@@ -1,0 +1,33 @@
+"""Test configuration: float64 everywhere, shared (module-scoped) closed loops."""
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import math  # noqa: E402
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+import wmrjax as w  # noqa: E402
+from wmrjax import references  # noqa: E402
+
+S2 = math.sqrt(2.0)
+
+
+@pytest.fixture(scope="session")
+def rng():
+    return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session")
+def paper61():
+    """The §6.1 set-up: (2,0) robot, e = 0, reference (62), poles at -1, IC (63)."""
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    params = ctrl.params(references.paper_62(), poles=1.0, geometry=w.Geometry(e=0.0))
+    zref = ctrl.reference_state(0.0, params)
+    vel = -(2 * S2 + S2 / 2)  # xdot_ref(0) = ydot_ref(0) = -3.5355 m/s
+    zeta0 = jnp.array([[zref[0] - 0.54, zref[1] + 0.54], [vel, vel]])
+    z0 = ctrl.initial_state(zeta0, params)
+    return ctrl, params, z0

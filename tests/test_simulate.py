@@ -1,0 +1,268 @@
+"""Simulator and the (2,0) dynamic linearizing closed loop (§6.1)."""
+
+import dataclasses
+import math
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+from scipy.integrate import solve_ivp
+from scipy.linalg import expm
+
+import wmrjax as w
+from wmrjax import references as R
+from wmrjax.controllers.dynamic import Aux
+
+S2 = math.sqrt(2.0)
+A62 = S2 * 1e-2 / 3
+
+
+def numpy_closed_loop(t, s):
+    """§6.1 closed loop written by hand from eq (39) (independent of the engine)."""
+    x, y, th, chi = s
+    u = 10 - 2 * t
+    p = A62 * u**3 - S2 / 2 * t + 5 * S2 / 6
+    pd = -6 * A62 * u**2 - S2 / 2
+    pdd = 24 * A62 * u
+    sn, cs = np.sin(th), np.cos(th)
+    hd1, hd2 = -chi * sn, chi * cs
+    w1 = pdd - 2 * (hd1 - pd) - (x - p)
+    w2 = pdd - 2 * (hd2 - pd) - (y - p)
+    # [h1'', h2''] = [[-s, -chi c], [c, -chi s]] [U1, eta2]  ->  solve
+    U1 = -sn * w1 + cs * w2
+    eta2 = -(cs * w1 + sn * w2) / chi
+    return np.array([hd1, hd2, eta2, U1])
+
+
+@pytest.fixture(scope="module")
+def run61(paper61):
+    ctrl, params, z0 = paper61
+    return w.simulate(ctrl, z0, params, dt=0.01, n_steps=1000)
+
+
+def test_vector_field_matches_hand_written_law(paper61, rng):
+    ctrl, params, _ = paper61
+    for _ in range(10):
+        t = rng.uniform(0, 10)
+        s = np.array([*rng.uniform(3, 7, 2), rng.uniform(-3, 3), rng.uniform(0.5, 5)])
+        zdot, aux = ctrl.vector_field(jnp.asarray(t), jnp.asarray(s), params)
+        np.testing.assert_allclose(zdot, numpy_closed_loop(t, s), rtol=1e-11, atol=1e-11)
+        np.testing.assert_allclose(aux.margin, abs(s[3]), rtol=1e-13)
+        np.testing.assert_allclose(aux.control, [s[3], numpy_closed_loop(t, s)[2]], rtol=1e-11)  # (eta1, eta2), e = 0
+
+
+def test_rk4_is_fourth_order_against_dop853(paper61):
+    ctrl, params, z0 = paper61
+    T = 2.0
+    ref = solve_ivp(numpy_closed_loop, (0, T), np.asarray(z0), method="DOP853", rtol=1e-11, atol=1e-12).y[:, -1]
+    errs = []
+    for n in (25, 50, 100):
+        tr = w.simulate(ctrl, z0, params, dt=T / n, n_steps=n, save_every=n)
+        errs.append(np.max(np.abs(np.asarray(tr.final_state) - ref)))
+    orders = np.log2(np.array(errs[:-1]) / np.array(errs[1:]))
+    assert np.all((orders > 3.7) & (orders < 4.4)), (errs, orders)
+    assert errs[-1] < 1e-7
+
+
+def test_error_follows_exact_linear_dynamics(paper61, run61):
+    """e'' + 2 e' + e = 0 per axis: the simulated error equals expm(A t) err(0)."""
+    ctrl, params, _ = paper61
+    err = jax.vmap(lambda t, z: ctrl.error(t, z, params))(run61.t, run61.state).reshape(len(run61.t), -1)
+    A = np.asarray(ctrl.error_matrix(params.gains))
+    exact = np.stack([expm(A * t) @ np.asarray(err[0]) for t in np.asarray(run61.t)])
+    resid = np.max(np.abs(np.asarray(err) - exact))
+    assert resid < 1e-8, resid
+    assert np.max(np.abs(err[0])) > 0.5  # a real initial error (0.54 m per axis)
+    assert np.max(np.abs(err[-1])) < 1e-3  # converged (e^{-t}(1 + t) at 10 s ~ 5e-4)
+
+
+def test_nonholonomic_constraint_along_run(run61):
+    """Type (2,0): no sideways motion of P, xdot cos(theta) + ydot sin(theta) = 0."""
+    s = np.asarray(run61.state)
+    dt = float(run61.t[1] - run61.t[0])
+    xd = (s[2:, 0] - s[:-2, 0]) / (2 * dt)
+    yd = (s[2:, 1] - s[:-2, 1]) / (2 * dt)
+    th = s[1:-1, 2]
+    lateral = xd * np.cos(th) + yd * np.sin(th)
+    speed = np.hypot(xd, yd)
+    assert np.max(np.abs(lateral)) < 1e-3 * np.max(speed)
+    assert np.max(speed) > 1.0
+
+
+def test_run61_diagnostics(run61):
+    d = run61.diagnostics
+    assert not bool(d.failed) and not bool(d.nonfinite) and not bool(d.singular)
+    assert bool(jnp.all(run61.valid))
+    assert 0.9 < float(d.min_margin) < 5.0
+    assert run61.state.shape == (1001, 4) and run61.control.shape == (1001, 2)
+
+
+def test_vmap_equals_python_loop_and_jit_equals_nojit(paper61):
+    ctrl, params, z0 = paper61
+    z0s = jnp.stack([z0 + jnp.array([0.1 * i, -0.05 * i, 0.0, 0.0]) for i in range(3)])
+    sim = lambda z: w.simulate(ctrl, z, params, dt=0.02, n_steps=4, save_every=2)
+    batched = jax.jit(jax.vmap(sim))(z0s)
+    for i in range(3):
+        single = sim(z0s[i])
+        np.testing.assert_allclose(batched.state[i], single.state, rtol=1e-13, atol=1e-13)
+    with jax.disable_jit():  # op by op, no XLA fusion: same numbers to rounding
+        nojit = sim(z0s[1])
+    np.testing.assert_allclose(nojit.state, batched.state[1], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(nojit.control, batched.control[1], rtol=1e-11, atol=1e-11)
+
+
+def test_vmap_over_references_and_gains(paper61):
+    ctrl, params, z0 = paper61
+    poles = jnp.array([1.0, 2.0])
+    batched = jax.vmap(lambda p: w.simulate(ctrl, z0, params._replace(gains=w.Gains(jnp.full((2, 2), p))),
+                                            dt=0.02, n_steps=50, save_every=50).final_state)(poles)
+    for i, p in enumerate([1.0, 2.0]):
+        one = w.simulate(ctrl, z0, ctrl.params(params.reference, poles=p, geometry=params.geometry),
+                         dt=0.02, n_steps=50, save_every=50).final_state
+        assert float(jnp.abs(one - z0).max()) > 0.1
+        np.testing.assert_allclose(batched[i], one, rtol=1e-13)
+
+
+def test_gradients_through_rollout(paper61):
+    ctrl, params, z0 = paper61
+
+    @jax.jit
+    def loss(poles, z0):
+        p = params._replace(gains=w.Gains(poles))
+        tr = w.simulate(ctrl, z0, p, dt=0.1, n_steps=8, save_every=4)
+        err = jax.vmap(lambda t, z: ctrl.error(t, z, p))(tr.t, tr.state)
+        return jnp.sum(err**2)
+
+    check_grads(loss, (jnp.full((2, 2), 1.3), z0), order=1, modes=["fwd", "rev"], eps=1e-6, atol=1e-5, rtol=1e-5)
+    g = jax.grad(loss)(jnp.full((2, 2), 1.3), z0)
+    assert np.all(np.isfinite(np.asarray(g))) and float(jnp.abs(g).sum()) > 0
+
+
+def test_batch_map_equals_vmap(paper61):
+    ctrl, params, z0 = paper61
+    z0s = z0 + jnp.linspace(-0.2, 0.2, 7)[:, None] * jnp.array([1.0, 1.0, 0.0, 0.0])
+    sim = lambda z: w.simulate(ctrl, z, params, dt=0.05, n_steps=20, save_every=20).final_state
+    a = jax.jit(jax.vmap(sim))(z0s)
+    b = jax.jit(lambda z: w.batch_map(sim, z, chunk=3))(z0s)  # 7 -> padded to 9, 3 chunks
+    np.testing.assert_allclose(a, b, rtol=1e-14)
+
+
+def test_several_devices_agree_with_one():
+    """batch_map and sharded vmap on 4 forced host devices equal the single-device run."""
+    code = textwrap.dedent("""
+        import jax, jax.numpy as jnp, numpy as np
+        jax.config.update("jax_enable_x64", True)
+        import wmrjax as w
+        from wmrjax import references as R
+        assert len(jax.devices()) == 4
+        c = w.dynamic_linearization("(2,0)")
+        p = c.params(R.paper_62(), poles=1.0)
+        z0 = c.reference_state(0.0, p)
+        z0s = z0 + jnp.linspace(-0.3, 0.3, 10)[:, None] * jnp.array([1.0, -1.0, 0.0, 0.0])
+        sim = lambda z: w.simulate(c, z, p, dt=0.05, n_steps=20, save_every=20).final_state
+        a = jax.jit(lambda z: w.batch_map(sim, z, chunk=2))(z0s)
+        b = jax.jit(jax.vmap(sim))(w.shard_batch(z0s[:8]))
+        np.save("out.npy", np.concatenate([np.asarray(a), np.asarray(b)]))
+    """)
+    import tempfile
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+        subprocess.run([sys.executable, "-c", code], cwd=tmp, env=env, check=True, timeout=300)
+        multi = np.load(os.path.join(tmp, "out.npy"))
+    c = w.dynamic_linearization("(2,0)")
+    p = c.params(R.paper_62(), poles=1.0)
+    z0 = c.reference_state(0.0, p)
+    z0s = z0 + jnp.linspace(-0.3, 0.3, 10)[:, None] * jnp.array([1.0, -1.0, 0.0, 0.0])
+    single = jax.vmap(lambda z: w.simulate(c, z, p, dt=0.05, n_steps=20, save_every=20).final_state)(z0s)
+    np.testing.assert_allclose(multi[:10], single, rtol=1e-14)
+    np.testing.assert_allclose(multi[10:], single[:8], rtol=1e-14)
+
+
+def test_on_reference_stays_on_reference(paper61):
+    """Property 3 of §3.1: started on the reference (with matching chi1) it stays there."""
+    ctrl, params, _ = paper61
+    zref0 = ctrl.reference_state(0.0, params)
+    tr = w.simulate(ctrl, zref0, params, dt=0.01, n_steps=500, save_every=50)
+    for t, z in zip(tr.t, tr.state):
+        np.testing.assert_allclose(z, ctrl.reference_state(float(t), params), atol=1e-9)
+
+
+# --- failure handling -------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class _Falling:
+    """z' = -1 from z = 1: margin |z| hits zero at t = 1; control log(z) is NaN after."""
+    n_state: int = 1
+
+    def vector_field(self, t, z, params):
+        return -jnp.ones_like(z), Aux(jnp.log(z), jnp.abs(z[0]))
+
+
+def test_singular_run_is_flagged_and_frozen():
+    tr = w.simulate(_Falling(), jnp.array([1.0]), (), dt=0.1, n_steps=20, margin_floor=0.25)
+    d = tr.diagnostics
+    assert bool(d.singular) and bool(d.failed) and not bool(d.nonfinite)
+    np.testing.assert_allclose(d.t_failure, 0.8, atol=1e-12)   # z(0.7) = 0.3 > 0.25, z(0.8) = 0.2
+    valid = np.asarray(tr.valid)
+    assert valid[:8].all() and not valid[8:].any()
+    np.testing.assert_allclose(d.min_margin, 0.3, atol=1e-12)
+    assert np.all(np.isfinite(np.asarray(tr.state)))
+    assert float(tr.final_state[0]) > 0.2  # frozen, never ran past the singularity
+
+
+def test_nonfinite_run_is_flagged():
+    tr = w.simulate(_Falling(), jnp.array([1.0]), (), dt=0.1, n_steps=20, margin_floor=-1.0)
+    d = tr.diagnostics
+    assert bool(d.nonfinite) and bool(d.failed)
+    assert np.all(np.isfinite(np.asarray(tr.state)))
+    assert not bool(tr.valid[-1])
+
+
+# --- bad input --------------------------------------------------------------------
+
+def test_bad_simulate_arguments(paper61):
+    ctrl, params, z0 = paper61
+    with pytest.raises(ValueError, match="n_steps must be an integer >= 1"):
+        w.simulate(ctrl, z0, params, dt=0.01, n_steps=0)
+    with pytest.raises(ValueError, match="dt must be a finite scalar > 0"):
+        w.simulate(ctrl, z0, params, dt=-0.01, n_steps=10)
+    with pytest.raises(ValueError, match=r"z0 must be an unbatched state of shape \(4,\)"):
+        w.simulate(ctrl, jnp.zeros((2, 4)), params, dt=0.01, n_steps=10)
+    with pytest.raises(ValueError, match=r"x, y, theta, chi1"):
+        w.simulate(ctrl, jnp.zeros(3), params, dt=0.01, n_steps=10)
+    with pytest.raises(ValueError, match="z0 must be finite"):
+        w.simulate(ctrl, z0.at[0].set(jnp.nan), params, dt=0.01, n_steps=10)
+    with pytest.raises(ValueError, match="save_every must be <= n_steps"):
+        w.simulate(ctrl, z0, params, dt=0.01, n_steps=10, save_every=11)
+
+
+def test_bad_controller_arguments(paper61):
+    ctrl, params, z0 = paper61
+    with pytest.raises(ValueError, match="on the singular set"):  # chi1 = 0: robot at rest
+        ctrl.initial_state(jnp.array([[5.0, 6.0], [0.0, 0.0]]), params)
+    with pytest.raises(ValueError, match="Remark 17"):
+        ctrl.initial_state(jnp.array([[5.0, 6.0], [-3.5, -3.5]]), params, branch=-1)
+    with pytest.raises(ValueError, match="zeta0 must have shape"):
+        ctrl.initial_state(jnp.zeros(4), params)
+    with pytest.raises(ValueError, match="zeta0 must be finite"):
+        ctrl.initial_state(jnp.array([[5.0, jnp.inf], [-3.5, -3.5]]), params)
+    with pytest.raises(ValueError, match="poles"):
+        ctrl.params(params.reference, poles=-1.0)
+    with pytest.raises(ValueError, match="poles"):
+        ctrl.params(params.reference, poles=jnp.ones((3, 2)))
+    with pytest.raises(ValueError, match="reference must be"):
+        ctrl.params(lambda t: t, poles=1.0)
+    with pytest.raises(ValueError, match="no dynamic extension"):
+        w.dynamic_linearization("(3,0)")
+    with pytest.raises(ValueError, match="level must be one of"):
+        w.dynamic_linearization("(2,0)", level="acceleration")
+    with pytest.raises(ValueError, match="geometry.L must be non-zero"):
+        w.dynamic_linearization("(1,1)").params(params.reference, geometry=w.Geometry(L=0.0))
