@@ -125,6 +125,10 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
         zt_next = tuple(z_keep[j] for j in range(z.shape[0]))
         return (zt_next, ok, diag), (z, aux.control, margin, sample_ok)
 
+    # Reverse mode: rematerialise each step instead of storing its intermediates (the
+    # jet of the linearizing law has hundreds); the backward pass then stays in cache.
+    step = jax.checkpoint(step, prevent_cse=False)
+
     # initial flags derived from z0 so they carry its sharding/varying type (shard_map)
     bad0 = ~jnp.isfinite(z0[0])
     inf = jnp.where(bad0, jnp.inf, jnp.inf * jnp.ones_like(z0[0]))

@@ -1,0 +1,143 @@
+r"""§6.1 of the paper: posture tracking of the non-singular reference (62) by a (2,0) robot.
+
+Dynamic feedback linearization at velocity level (Table 4, eq 39), e = 0, both error
+poles at -1 per axis, initial conditions (63), 10 s, RK4 with dt = 0.01 s.
+
+    python -m experiments.section_6_1 --out results/section_6_1
+
+Writes ``summary.json``, ``trajectories.npz`` (t, state, control, reference; no pickle),
+``fig8_paths.png`` and ``fig9_errors.png``.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+
+from experiments import _common
+
+
+def setup():
+    """The paper's closed loop and initial state (importable by other experiments/tests)."""
+    import jax.numpy as jnp
+
+    import wmrjax as w
+    from wmrjax import references
+
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    params = ctrl.params(references.paper_62(), poles=1.0, geometry=w.Geometry(e=0.0))
+    p0 = params.reference.position(jnp.asarray(0.0))
+    v0 = params.reference.velocity(jnp.asarray(0.0))
+    # (63): x(0) = x_ref(0) - 0.54, y(0) = y_ref(0) + 0.54, velocities equal to the reference's
+    zeta0 = jnp.array([[p0[0] - 0.54, p0[1] + 0.54], [v0[0], v0[1]]])
+    z0 = ctrl.initial_state(zeta0, params)
+    return ctrl, params, z0, zeta0
+
+
+def run(out, dt: float = 0.01, t_final: float = 10.0) -> dict:
+    _common.enable_x64()
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import wmrjax as w
+
+    ctrl, params, z0, zeta0 = setup()
+    n_steps = int(round(t_final / dt))
+    traj = w.simulate(ctrl, z0, params, dt=dt, n_steps=n_steps)
+    t = np.asarray(traj.t)
+    state = np.asarray(traj.state)
+    control = np.asarray(traj.control)
+    ref_post = np.asarray(jax.vmap(params.reference.posture)(traj.t))
+    zref = np.asarray(jax.vmap(lambda s: ctrl.reference_state(s, params))(traj.t))
+    eta1 = control[:, 0]
+    eta1_ref = zref[:, 3]  # chi1_ref = eta1_ref for e = 0
+    pos_err = np.hypot(state[:, 0] - ref_post[:, 0], state[:, 1] - ref_post[:, 1])
+    err = np.asarray(jax.vmap(lambda s, z: ctrl.error(s, z, params))(traj.t, traj.state)).reshape(len(t), -1)
+    A = ctrl.error_matrix(params.gains)
+    exact = np.asarray(jax.vmap(lambda s: jax.scipy.linalg.expm(A * s) @ jnp.asarray(err[0]))(traj.t))
+    resid = float(np.max(np.abs(err - exact)))
+    i_min = int(np.argmin(np.abs(eta1)))
+    d = traj.diagnostics
+
+    summary = {
+        "experiment": "section_6_1",
+        "paper": "d'Andrea-Novel, Campion & Bastin, IJRR 14(6) 1995, section 6.1",
+        "robot": "(2,0)", "controller": "dynamic feedback linearization, velocity level (Table 4, eq 39)",
+        "geometry": {"e": 0.0},
+        "reference": "eq (62): x_ref = y_ref = sqrt(2) 1e-2 / 3 (10 - 2t)^3 - sqrt(2)/2 t + 5 sqrt(2)/6",
+        "gains": {"poles_per_axis": [-1.0, -1.0], "k1": 2.0, "k0": 1.0},
+        "initial_state": {
+            "x": float(z0[0]), "y": float(z0[1]), "theta": float(z0[2]), "chi1": float(z0[3]),
+            "xdot": float(zeta0[1, 0]), "ydot": float(zeta0[1, 1]),
+        },
+        "reference_initial_state": {"x": float(ref_post[0, 0]), "y": float(ref_post[0, 1]),
+                                    "theta": float(ref_post[0, 2]), "chi1": float(zref[0, 3])},
+        "simulation": {
+            "integrator": "RK4, fixed step",
+            "dt": dt, "t_final": float(t[-1]),
+            "min_eta1": float(eta1[i_min]), "t_min_eta1": float(t[i_min]),
+            "max_position_error": float(pos_err.max()),
+            "final_position_error": float(pos_err[-1]),
+            "final_heading_error": float(np.angle(np.exp(1j * (state[-1, 2] - ref_post[-1, 2])))),
+            "max_linear_error_residual": resid,
+            "max_linear_error_residual_definition":
+                "max over t and components of |zeta_err(t) - expm(A t) zeta_err(0)|, zeta_err = Psi(X_e) - zeta_ref",
+            "min_margin_abs_det_K": float(d.min_margin), "failed": bool(d.failed),
+        },
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    _common.write_npz(out / "trajectories.npz", t=t, state=state, control=control, reference=ref_post,
+                      state_names=np.array(ctrl.state_names), control_names=np.array(["eta1", "eta2"]))
+    _figures(out, t, state, ref_post, eta1, eta1_ref)
+    _common.write_json(out / "summary.json", summary)
+    return summary
+
+
+def _figures(out, t, state, ref, eta1, eta1_ref):
+    plt = _common.pyplot()
+    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    ax.plot(ref[:, 0], ref[:, 1], "k--", lw=1.2, label="reference (62)")
+    ax.plot(state[:, 0], state[:, 1], "C0", lw=1.6, label="robot")
+    ax.plot(state[0, 0], state[0, 1], "C0o", ms=5)
+    ax.plot(ref[0, 0], ref[0, 1], "ko", ms=4)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title("Fig. 8: reference and robot trajectories")
+    ax.axis("equal")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    _common.save_figure(fig, out / "fig8_paths.png")
+    plt.close(fig)
+
+    fig, axs = plt.subplots(3, 1, figsize=(6.5, 6.5), sharex=True)
+    for a, y, lab in zip(axs, [state[:, 0] - ref[:, 0], state[:, 1] - ref[:, 1], eta1 - eta1_ref],
+                         ["x - x_ref [m]", "y - y_ref [m]", "eta1 - eta1_ref [m/s]"]):
+        a.plot(t, y)
+        a.axhline(0.0, color="k", lw=0.6)
+        a.set_ylabel(lab)
+        a.grid(alpha=0.3)
+    axs[-1].set_xlabel("t [s]")
+    axs[0].set_title("Fig. 9: errors in x, y and eta1")
+    _common.save_figure(fig, out / "fig9_errors.png")
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = _common.parser(__doc__.splitlines()[0], "results/section_6_1")
+    p.add_argument("--dt", type=float, default=0.01, help="RK4 step [s] (default 0.01)")
+    p.add_argument("--t-final", type=float, default=10.0, help="horizon [s] (default 10)")
+    a = p.parse_args(argv)
+    if not (a.dt > 0 and a.t_final > 0 and math.isfinite(a.dt) and math.isfinite(a.t_final)):
+        p.error("--dt and --t-final must be finite and > 0")
+    s = run(a.out, a.dt, a.t_final)
+    sim = s["simulation"]
+    print(f"section 6.1: min eta1 = {sim['min_eta1']:.4f} m/s at t = {sim['t_min_eta1']:.2f} s; "
+          f"position error max {sim['max_position_error']:.4f} m, final {sim['final_position_error']:.2e} m; "
+          f"linear-error residual {sim['max_linear_error_residual']:.2e}")
+    print(f"wrote {a.out}/summary.json, trajectories.npz, fig8_paths.png, fig9_errors.png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
