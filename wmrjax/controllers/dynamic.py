@@ -47,7 +47,15 @@ class DynamicExtension:
       plant_input: ``(X, c, U, geometry) -> u``, affine in U.
       compensator: ``(X, c, U, geometry) -> dc/dt``, affine in U.
       regularity: Table 4's condition (with errata), for messages.
-      psi_inverse: optional closed form ``(zeta, branch, geometry) -> z`` (velocity level).
+      psi_inverse: closed form ``(zeta, branch, geometry) -> z`` at velocity level, on the
+        branch where :attr:`branch_quantity` has the sign ``branch`` (+1 or -1).
+      from_physical: ``(X, u, geometry) -> (c, U)``: compensator state and new inputs
+        matching a physical state (posture, steering angles, wheel velocities u) with the
+        compensator at rest (its time derivative zero).
+      branch_quantity: ``(z, geometry) -> scalar`` whose sign labels the branch of Psi^-1
+        (Remark 17): chi1 for (2,0) and (1,1), eta1 for (2,1) and (1,2).
+      extra_margin: optional ``(z, geometry) -> scalar`` multiplying |det K| in the
+        singularity margin (the (1,1) lever L sin(beta) + e cos(beta), errata).
     """
 
     robot: RobotType
@@ -59,6 +67,9 @@ class DynamicExtension:
     compensator: Callable = dataclasses.field(repr=False)
     regularity: str = ""
     psi_inverse: Optional[Callable] = dataclasses.field(default=None, repr=False)
+    from_physical: Optional[Callable] = dataclasses.field(default=None, repr=False)
+    branch_quantity: Optional[Callable] = dataclasses.field(default=None, repr=False)
+    extra_margin: Optional[Callable] = dataclasses.field(default=None, repr=False)
 
     @property
     def n_outputs(self) -> int:
@@ -89,6 +100,10 @@ def _psi_inv_20(zeta, branch, g):
     return jnp.stack([zeta[0, 0] - g.e * c, zeta[0, 1] - g.e * s, theta, chi1])
 
 
+def _phys_20(X, u, g):
+    return jnp.stack([u[0] + g.e * u[1]]), jnp.stack([jnp.zeros_like(u[0]), u[1]])
+
+
 def _out_posture(xi, g):
     del g
     return xi
@@ -102,16 +117,58 @@ def _comp_21(X, c, U, g):
     return U[:2]
 
 
+def _psi_inv_21(zeta, branch, g):
+    """(x, y, theta) and their rates: theta + beta is the direction of motion of P."""
+    del g
+    x, y, th = zeta[0]
+    xd, yd, thd = zeta[1]
+    course = jnp.arctan2(-branch * xd, branch * yd)
+    beta = _math.wrap_angle(course - th)
+    return jnp.stack([x, y, th, beta, branch * jnp.sqrt(xd**2 + yd**2), thd])
+
+
+def _phys_21(X, u, g):
+    return u[:2], jnp.stack([jnp.zeros_like(u[0]), jnp.zeros_like(u[0]), u[2]])
+
+
 def _pi_11(X, c, U, g):  # u = (eta1, zeta1); compensator (eta1, chi2); U = (U2 = chi2', zeta1)
     return jnp.stack([c[0], U[1]])
 
 
+def _lever_11(beta, g):
+    s, co = _math.sincos(beta)
+    return g.L * s + g.e * co, g.L * co - g.e * s   # chi1 = eta1 * lever, and d lever / d beta
+
+
 def _comp_11(X, c, U, g):
-    s, co = _math.sincos(X[3])
-    lever = g.L * s + g.e * co          # chi1 = eta1 * lever
-    dlever = g.L * co - g.e * s
-    eta1_dot = (c[1] - c[0] * U[1] * dlever) / lever   # Table 4 footnote, solved for U1
+    lever, dlever = _lever_11(X[3], g)
+    eta1_dot = (c[1] - c[0] * U[1] * dlever) / _math.safe_divisor(lever, DET_FLOOR)  # Table 4 footnote
     return jnp.stack([eta1_dot, U[0]])
+
+
+def _psi_inv_11(zeta, branch, g):
+    """h = P' on the fixed axle: chi1 = +-|h'|, theta from h', then beta and eta1 from
+    theta' = eta1 cos(beta) and chi1 - e theta' = eta1 L sin(beta), with eta1 > 0."""
+    hd, hdd = zeta[1], zeta[2]
+    th = jnp.arctan2(-branch * hd[0], branch * hd[1])
+    s, c = _math.sincos(th)
+    chi1 = branch * jnp.sqrt(hd[0] ** 2 + hd[1] ** 2)
+    chi2 = -s * hdd[0] + c * hdd[1]                  # h'' = chi2 (-s, c) - chi1 theta' (c, s)
+    thd = -(c * hdd[0] + s * hdd[1]) / chi1
+    a, b = (chi1 - g.e * thd) / g.L, thd             # eta1 sin(beta), eta1 cos(beta)
+    beta = jnp.arctan2(a, b)
+    eta1 = jnp.sqrt(a**2 + b**2)
+    return jnp.stack([zeta[0, 0] - g.e * c, zeta[0, 1] - g.e * s, th, beta, eta1, chi2])
+
+
+def _phys_11(X, u, g):
+    lever, dlever = _lever_11(X[3], g)
+    # chi2 = eta1' lever + eta1 zeta1 dlever with eta1' = 0
+    return jnp.stack([u[0], u[0] * u[1] * dlever]), jnp.stack([jnp.zeros_like(u[0]), u[1]])
+
+
+def _margin_11(z, g):
+    return _lever_11(z[3], g)[0]
 
 
 def _out_12(xi, g):
@@ -127,15 +184,53 @@ def _comp_12(X, c, U, g):
     return U[:1]
 
 
+def _psi_inv_12(zeta, branch, g):
+    """Wheel i sits at body (+-L, 0) and moves along (-sin beta_i, cos beta_i) with speed
+    2 L eta1 sin(beta_other); angles are taken in (-pi/2, pi/2] and eta1 follows."""
+    h1, h2, th = zeta[0]
+    hd1, hd2, thd = zeta[1]
+    sp, cp = _math.sincos(th + g.delta)
+    x, y = h1 - g.e * cp, h2 - g.e * sp
+    xd, yd = hd1 + g.e * sp * thd, hd2 - g.e * cp * thd
+    s, c = _math.sincos(th)
+    vb1, vb2 = c * xd + s * yd, -s * xd + c * yd          # body-frame velocity of P
+    v1x, v1y = vb1, vb2 + thd * g.L                        # wheel 1 at (L, 0)
+    v2x, v2y = vb1, vb2 - thd * g.L                        # wheel 2 at (-L, 0)
+    b1 = jnp.arctan(-v1x / v1y)                            # direction mod pi, in (-pi/2, pi/2)
+    b2 = jnp.arctan(-v2x / v2y)
+    s1, c1 = _math.sincos(b1)
+    s2, c2 = _math.sincos(b2)
+    mu1 = -s1 * v1x + c1 * v1y                             # signed speed of wheel 1 = 2 L eta1 sin b2
+    eta1 = mu1 / (2.0 * g.L * s2)
+    # branch: flipping beta1 by pi flips the sign of eta1 (Sigma -> -Sigma)
+    flip = jnp.sign(eta1) != branch
+    b1 = jnp.where(flip, b1 - jnp.pi * jnp.sign(b1 + 1e-300), b1)
+    eta1 = jnp.where(flip, -eta1, eta1)
+    return jnp.stack([x, y, th, b1, b2, eta1])
+
+
+def _phys_12(X, u, g):
+    return u[:1], jnp.stack([jnp.zeros_like(u[0]), u[1], u[2]])
+
+
+def _first_comp(n_x):
+    return lambda z, g: z[n_x]          # first compensator state: chi1 (2,0), eta1 otherwise
+
+
+def _chi1_11(z, g):
+    return z[4] * _lever_11(z[3], g)[0]
+
+
 EXTENSIONS: dict[str, DynamicExtension] = {
     "(2,0)": DynamicExtension(robots.TYPES["(2,0)"], 1, ("chi1",), 2, _out_axle_point, _pi_20, _comp_20,
-                              "chi1 = eta1 + e eta2 != 0", _psi_inv_20),
+                              "chi1 = eta1 + e eta2 != 0", _psi_inv_20, _phys_20, _first_comp(3)),
     "(2,1)": DynamicExtension(robots.TYPES["(2,1)"], 2, ("eta1", "eta2"), 2, _out_posture, _pi_21, _comp_21,
-                              "eta1 != 0"),
+                              "eta1 != 0", _psi_inv_21, _phys_21, _first_comp(4)),
     "(1,1)": DynamicExtension(robots.TYPES["(1,1)"], 2, ("eta1", "chi2"), 3, _out_axle_point, _pi_11, _comp_11,
-                              "eta1 (L sin beta + e cos beta) != 0 (errata: Table 4 prints only eta1 != 0)"),
+                              "eta1 (L sin beta + e cos beta) != 0 (errata: Table 4 prints only eta1 != 0)",
+                              _psi_inv_11, _phys_11, _chi1_11, _margin_11),
     "(1,2)": DynamicExtension(robots.TYPES["(1,2)"], 1, ("eta1",), 2, _out_12, _pi_12, _comp_12,
-                              "L eta1 sin(beta1) sin(beta2) != 0"),
+                              "L eta1 sin(beta1) sin(beta2) != 0", _psi_inv_12, _phys_12, _first_comp(5)),
 }
 
 
@@ -264,7 +359,17 @@ class DynamicLinearization:
         for j in range(r):                         # eq (49), errata sign
             w = w - k[:, j] * err[j]
         num, det = _math.adjugate_solve(K, w - a)
-        return num / _math.safe_divisor(det, DET_FLOOR), jnp.abs(det)
+        return num / _math.safe_divisor(det, DET_FLOOR), self._margin(z, det, g)
+
+    def _margin(self, z, det, g):
+        m = jnp.abs(det)
+        if self.extension.extra_margin is not None:
+            m = m * jnp.abs(self.extension.extra_margin(z, g))
+        return m
+
+    def margin(self, z, g):
+        """Singularity margin at ``z``: |det K(X_e)| (times |L sin b + e cos b| for (1,1)); 0 on the singular set."""
+        return self._margin(z, jnp.linalg.det(self.jet(z, g)[2]), g)
 
     def vector_field(self, t, z, params: DynamicParams):
         """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin)."""
@@ -309,6 +414,50 @@ class DynamicLinearization:
         if self.robot.name in ("(1,1)", "(1,2)") and v["L"] is not None and float(v["L"]) == 0.0:
             raise ValueError(f"geometry.L must be non-zero for type {self.robot.name} (Table 4: {self.extension.regularity})")
 
+    @property
+    def velocity_level(self) -> "DynamicLinearization":
+        return DynamicLinearization(self.extension, "velocity")
+
+    def inverse_psi(self, zeta, geometry: Geometry, branch=1.0):
+        r""":math:`X_e = \Psi^{-1}(\zeta)` on a branch (Lemma 3 for (2,0); closed forms for the others).
+
+        At torque level the first r - 1 rows give the velocity-level state, and the last
+        row :math:`Y^{(r-1)} = a + K U` gives the new inputs U by the engine.
+
+        Args:
+          zeta: (r, m) output jet.
+          geometry: :class:`Geometry`.
+          branch: +1 or -1, sign of :meth:`branch_quantity`.
+        """
+        ext = self.extension
+        if self.level == "velocity":
+            return ext.psi_inverse(zeta, branch, geometry)
+        vel = self.velocity_level
+        zv = ext.psi_inverse(zeta[:-1], branch, geometry)
+        _, a, K = vel.jet(zv, geometry)
+        num, det = _math.adjugate_solve(K, zeta[-1] - a)
+        return jnp.concatenate([zv, num / _math.safe_divisor(det, DET_FLOOR)])
+
+    def branch_quantity(self, z, geometry: Geometry):
+        """The quantity whose sign is the branch (chi1 for (2,0), (1,1); eta1 for (2,1), (1,2))."""
+        return self.extension.branch_quantity(z, geometry)
+
+    def reference_branch(self, params: DynamicParams) -> int:
+        """Branch of the reference's virtual robot: +1 (it moves forward along its tangent).
+
+        For (2,0) and (1,1), a heading offset of pi (moving backwards) gives -1.
+        """
+        off = concrete(params.reference.heading_offset)
+        if self.robot.name in ("(2,0)", "(1,1)") and off is not None and np.cos(float(off)) < 0:
+            return -1
+        return 1
+
+    def reference_state(self, t, params: DynamicParams):
+        r""":math:`(X_e)_{ref}(t) = \Psi^{-1}(\zeta_{ref}(t))` (eq 48), on the reference's branch."""
+        t = jnp.asarray(t, dtype=jnp.result_type(float))
+        zeta = self.reference_jet(t, params)[: self.relative_degree]
+        return self.inverse_psi(zeta, params.geometry, float(self.reference_branch(params)))
+
     def initial_state(self, zeta0, params: DynamicParams, branch=None):
         r"""Extended state from an initial output jet, :math:`X_e(0) = \Psi^{-1}(\zeta(0))`.
 
@@ -316,53 +465,54 @@ class DynamicLinearization:
           zeta0: (r, m) initial outputs and derivatives; for (2,0) at velocity level
             ``[[x', y'], [x'_dot, y'_dot]]`` of the point P' (= (x, y, xdot, ydot) for e = 0).
           params: the closed loop's :class:`DynamicParams` (geometry, reference).
-          branch: +1 or -1 (sign of chi1, Lemma 3); default: the reference's branch at
-            t = 0 (Remark 17: robot and reference must share it).
+          branch: +1 or -1 (sign of chi1 or eta1, Lemma 3); default: the reference's
+            branch (Remark 17: robot and reference must share it).
 
         Raises:
           ValueError: if ``zeta0`` is on the singular set or on the other branch than the reference.
         """
-        ext = self.extension
-        if ext.psi_inverse is None or self.level != "velocity":
-            raise NotImplementedError(
-                f"closed-form Psi^-1 is available for (2,0) at velocity level; got {self.robot.name}/{self.level}")
         zeta0 = jnp.asarray(zeta0, dtype=jnp.result_type(float))
         check_shape("zeta0", zeta0, (self.relative_degree, self.m), "(Y, Y', ...) stacked by derivative order")
         check_finite("zeta0", zeta0)
         ref_branch = self.reference_branch(params)
         if branch is None:
             branch = ref_branch
-        if branch not in (1, -1):
-            raise ValueError(f"branch must be +1 or -1 (sign of chi1), got {branch!r}")
-        if ref_branch is not None and branch != ref_branch:
-            raise ValueError(
-                f"branch {branch:+d} differs from the reference's branch {ref_branch:+d} (sign of (chi1)_ref(0)); "
-                "Remark 17: robot and reference must be on the same branch")
-        z0 = ext.psi_inverse(zeta0, float(branch), params.geometry)
+        self._check_branch(branch, ref_branch)
+        z0 = self.inverse_psi(zeta0, params.geometry, float(branch))
         self.check_regular(z0, params)
         return z0
 
-    def reference_branch(self, params: DynamicParams, t=0.0):
-        """Sign of the reference's singular quantity (chi1_ref for (2,0)) at t, or None if traced."""
-        zref = self.reference_state(t, params)
-        if zref is None:
-            return None
-        n = self.robot.n_state
-        val = float(np.asarray(zref)[n])  # first compensator state
-        return 1 if val >= 0 else -1
+    def initial_state_from_physical(self, X, u, params: DynamicParams):
+        """Extended state from a physical state: posture and steering X, wheel velocities u.
 
-    def reference_state(self, t, params: DynamicParams):
-        r""":math:`(X_e)_{ref}(t) = \Psi^{-1}(\zeta_{ref}(t))` (eq 48), on the reference's own branch."""
-        ext = self.extension
-        if ext.psi_inverse is None or self.level != "velocity":
-            raise NotImplementedError(f"closed-form Psi^-1 not available for {self.robot.name}/{self.level}")
-        t = jnp.asarray(t, dtype=jnp.result_type(float))
-        zeta = self.reference_jet(t, params)[: self.relative_degree]
-        # the virtual robot moves forward along its tangent heading: chi1_ref has the sign
-        # of cos(heading_offset) (+1 for the paper's references)
-        off = concrete(params.reference.heading_offset)
-        branch = 1.0 if off is None or np.cos(float(off)) >= 0 else -1.0
-        return ext.psi_inverse(zeta, branch, params.geometry)
+        The compensator starts at rest (its derivative zero); at torque level the plant's
+        velocities are part of the state.
+
+        Raises:
+          ValueError: wrong shapes, non-finite values, a singular state, or a branch that
+            differs from the reference's (Remark 17).
+        """
+        X = jnp.asarray(X, dtype=jnp.result_type(float))
+        u = jnp.asarray(u, dtype=jnp.result_type(float))
+        check_shape("X", X, (self.robot.n_state,), "(x, y, theta, beta...)")
+        check_shape("u", u, (self.robot.n_input,), "(eta..., zeta...) wheel velocities")
+        check_finite("X", X)
+        check_finite("u", u)
+        c, U = self.extension.from_physical(X, u, params.geometry)
+        z = jnp.concatenate([X, c] + ([U] if self.level == "torque" else []))
+        self.check_regular(z, params)
+        q = float(self.branch_quantity(z, params.geometry))
+        self._check_branch(1 if q >= 0 else -1, self.reference_branch(params))
+        return z
+
+    def _check_branch(self, branch, ref_branch):
+        if branch not in (1, -1, 1.0, -1.0):
+            raise ValueError(f"branch must be +1 or -1 (sign of the longitudinal velocity), got {branch!r}")
+        if int(branch) != ref_branch:
+            raise ValueError(
+                f"initial branch {int(branch):+d} differs from the reference's branch {ref_branch:+d} "
+                f"(sign of {'chi1' if self.robot.name in ('(2,0)', '(1,1)') else 'eta1'}); "
+                "Remark 17: robot and reference must be on the same branch")
 
     def check_regular(self, z, params: DynamicParams, name: str = "initial state") -> None:
         """Raise ValueError if ``z`` is on (or numerically at) the singular set of Table 4."""
@@ -371,12 +521,33 @@ class DynamicLinearization:
             return
         check_shape(name, zc, (self.n_state,), " ".join(self.state_names))
         check_finite(name, zc)
-        _, _, K = self.jet(jnp.asarray(zc), params.geometry)
-        det = abs(float(np.linalg.det(np.asarray(K))))
-        if not det > 1e3 * DET_FLOOR:
+        m = float(self.margin(jnp.asarray(zc), params.geometry))
+        if not m > 1e3 * DET_FLOOR:
             raise ValueError(
                 f"{name} is on the singular set of the dynamic linearizing law for type {self.robot.name}: "
-                f"|det K(X_e)| = {det:.3g}; Table 4 requires {self.extension.regularity}")
+                f"margin |det K(X_e)| = {m:.3g}; Table 4 requires {self.extension.regularity}")
+
+    def reference_margins(self, params: DynamicParams, t_final, n: int = 201, t0=0.0):
+        """Margin and branch quantity of :math:`(X_e)_{ref}(t)` on a uniform grid of n times."""
+        ts = jnp.linspace(t0, t_final, n)
+        zr = jax.vmap(lambda t: self.reference_state(t, params))(ts)
+        g = params.geometry
+        return ts, jax.vmap(lambda z: self.margin(z, g))(zr), jax.vmap(lambda z: self.branch_quantity(z, g))(zr)
+
+    def check_reference(self, params: DynamicParams, t_final, n: int = 201, floor: float = 1e-6) -> None:
+        """Raise ValueError if the reference reaches the singular set on [0, t_final].
+
+        The reference's own extended state must stay regular (Lemma 2, condition 2) and
+        on one branch (Remark 17); a reference that stops (zero speed) fails.
+        """
+        ts, m, q = (np.asarray(a) for a in self.reference_margins(params, t_final, n))
+        bad = ~np.isfinite(m) | (m <= floor) | (np.sign(q) != self.reference_branch(params))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(
+                f"reference {params.reference.name!r} reaches the singular set of type {self.robot.name} at "
+                f"t = {ts[i]:.3g} s (margin {m[i]:.3g}); Table 4 requires {self.extension.regularity} along "
+                "the reference (it must not stop or reverse)")
 
 
 LEVELS = ("velocity", "torque")

@@ -1,0 +1,182 @@
+"""Dynamic linearization of every restricted type at both levels (Table 4, Lemma 1, Prop 8)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.linalg import expm
+
+import wmrjax as w
+from wmrjax import references as R
+
+KINDS = ["(2,0)", "(2,1)", "(1,1)", "(1,2)"]
+GEOM = w.Geometry(L=0.8, e=0.3, delta=0.4)
+
+
+def _reference(kind):
+    # heading offsets only for types whose heading is free of the velocity direction
+    return R.circle(radius=3.0, omega=0.4, heading_offset=0.3 if kind in ("(2,1)", "(1,2)") else 0.0)
+
+
+def _twin_11(z):
+    """(1,1): (beta + pi, -eta1) is the same wheel motion."""
+    t = np.array(z, dtype=float)
+    t[3] += np.pi
+    t[4] = -t[4]
+    return t
+
+
+def _equivalents(kind, z):
+    """States describing the same motion: (1,1) (beta + pi, -eta1); (1,2) beta_i + pi pairs."""
+    out = [np.array(z)]
+    if kind == "(1,1)":
+        out.append(_twin_11(z))
+    if kind == "(1,2)":
+        for f1, f2 in [(1, 0), (0, 1), (1, 1)]:
+            t = np.array(z)
+            t[3] += np.pi * f1
+            t[4] += np.pi * f2
+            t[5] *= (-1.0) ** (f1 + f2)
+            out.append(t)
+    return out
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("level", ["velocity", "torque"])
+def test_psi_inverse_round_trip_both_branches(kind, level, rng):
+    ctrl = w.dynamic_linearization(kind, level)
+    n_angles = 1 + ctrl.robot.delta_s
+    zs = rng.uniform(-1.2, 1.2, size=(64, ctrl.n_state))
+
+    @jax.jit
+    def round_trip(z):
+        q = ctrl.branch_quantity(z, GEOM)
+        branch = jnp.where(q >= 0, 1.0, -1.0)
+        back = ctrl.inverse_psi(ctrl.psi(z, GEOM), GEOM, branch)
+        return q, ctrl.margin(z, GEOM), back, ctrl.branch_quantity(back, GEOM)
+
+    q, m, back, q_back = (np.asarray(a) for a in jax.vmap(round_trip)(jnp.asarray(zs)))
+    keep = (np.abs(q) > 0.05) & (m > 1e-2)
+    assert keep.sum() > 20 and set(np.sign(q[keep])) == {1.0, -1.0}  # both branches exercised
+    for z, b in zip(zs[keep], back[keep]):
+        errs = []
+        for c in _equivalents(kind, z):
+            d = b - c
+            d[2:2 + n_angles] = np.angle(np.exp(1j * d[2:2 + n_angles]))
+            errs.append(np.max(np.abs(d)))
+        assert min(errs) < 1e-9, (z, b)
+    np.testing.assert_array_equal(np.sign(q_back[keep]), np.sign(q[keep]))
+
+
+@pytest.fixture(scope="module", params=[(k, lv) for k in KINDS for lv in ("velocity", "torque")],
+                ids=lambda p: f"{p[0]}-{p[1]}")
+def runs(request):
+    """Per (type, level): a run from a perturbed start and one from the reference itself."""
+    kind, level = request.param
+    ctrl = w.dynamic_linearization(kind, level)
+    r = ctrl.relative_degree
+    poles = jnp.linspace(1.0, 2.0, r)  # distinct poles per derivative, same for every output
+    params = ctrl.params(_reference(kind), poles=poles, geometry=GEOM)
+    zref = ctrl.reference_state(0.0, params)
+    n_post = ctrl.robot.n_state
+    pert = jnp.zeros(ctrl.n_state).at[:2].set(jnp.array([0.15, -0.1])).at[2].set(0.05)
+    z0s = jnp.stack([zref + pert, zref])
+    sim = jax.jit(jax.vmap(lambda z: w.simulate(ctrl, z, params, dt=0.01, n_steps=600, save_every=20)))
+    return ctrl, params, z0s, sim(z0s), n_post
+
+
+def test_error_follows_chosen_linear_dynamics(runs):
+    ctrl, params, _, tr, _ = runs
+    A = np.asarray(ctrl.error_matrix(params.gains))
+    err = np.asarray(jax.vmap(lambda t, z: ctrl.error(t, z, params))(tr.t[0], tr.state[0])).reshape(len(tr.t[0]), -1)
+    exact = np.stack([expm(A * t) @ err[0] for t in np.asarray(tr.t[0])])
+    assert np.max(np.abs(err[0])) > 0.05
+    assert np.max(np.abs(err - exact)) < 1e-6
+    assert not bool(tr.diagnostics.failed[0])
+
+
+def test_posture_converges_and_reference_is_invariant(runs):
+    ctrl, params, _, tr, _ = runs
+    post_ref = np.asarray(jax.vmap(params.reference.posture)(tr.t[0]))
+    perturbed, onref = np.asarray(tr.state[0]), np.asarray(tr.state[1])
+    # property 2 of §3.1: posture error -> 0 (6 s with poles in [-2, -1])
+    e_end = perturbed[-1, :3] - post_ref[-1]
+    e_end[2] = np.angle(np.exp(1j * e_end[2]))
+    e_start = perturbed[0, :3] - post_ref[0]
+    assert np.max(np.abs(e_end)) < 0.05 * np.max(np.abs(e_start))
+    # property 3: started on the reference, stays on it
+    dev = onref[:, :3] - post_ref
+    dev[:, 2] = np.angle(np.exp(1j * dev[:, 2]))
+    assert np.max(np.abs(dev)) < 1e-7
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_gradients_through_closed_loop(kind, rng):
+    """Reverse-mode gradient w.r.t. poles and initial state vs central differences."""
+    ctrl = w.dynamic_linearization(kind, "velocity")
+    params = ctrl.params(_reference(kind), poles=1.3, geometry=GEOM)
+    z0 = ctrl.reference_state(0.0, params) + jnp.zeros(ctrl.n_state).at[0].set(0.1)
+
+    def loss(poles, z0):
+        p = params._replace(gains=w.Gains(poles))
+        tr = w.simulate(ctrl, z0, p, dt=0.1, n_steps=4, save_every=4)
+        return jnp.sum(ctrl.error(tr.t[-1], tr.final_state, p) ** 2)
+
+    f = jax.jit(loss)
+    g = jax.jit(jax.grad(loss, argnums=(0, 1)))(params.gains.poles, z0)
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in g)
+    for _ in range(2):
+        dp = jnp.asarray(rng.normal(size=params.gains.poles.shape))
+        dz = jnp.asarray(rng.normal(size=z0.shape))
+        h = 1e-5
+        fd = (f(params.gains.poles + h * dp, z0 + h * dz) - f(params.gains.poles - h * dp, z0 - h * dz)) / (2 * h)
+        ad = jnp.sum(g[0] * dp) + jnp.sum(g[1] * dz)
+        np.testing.assert_allclose(ad, fd, rtol=1e-6, atol=1e-9)
+        assert abs(float(ad)) > 1e-6
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_initial_state_from_physical(kind):
+    ctrl = w.dynamic_linearization(kind, "torque")
+    params = ctrl.params(_reference(kind), poles=1.0, geometry=GEOM)
+    zref = np.asarray(ctrl.reference_state(0.0, params))
+    n = ctrl.robot.n_state
+    X = zref[:n]
+    # the reference's own wheel velocities, read back through the plant input map
+    u = np.asarray(ctrl.extension.plant_input(jnp.asarray(X), jnp.asarray(zref[n:n + ctrl.extension.n_comp]),
+                                              jnp.asarray(zref[n + ctrl.extension.n_comp:]), GEOM))
+    z = ctrl.initial_state_from_physical(X, u, params)
+    nv = n + ctrl.extension.n_comp
+    u_back = ctrl.extension.plant_input(z[:n], z[n:nv], z[nv:], GEOM)
+    np.testing.assert_allclose(u_back, u, atol=1e-12)
+    np.testing.assert_allclose(z[:n], X)
+    with pytest.raises(ValueError, match="Remark 17"):  # driving backwards: the other branch
+        ctrl.initial_state_from_physical(X, u * np.r_[-1.0, np.ones(len(u) - 1)] if kind != "(2,0)" else -u, params)
+
+
+def test_singular_initial_conditions_raise():
+    for kind in KINDS:
+        ctrl = w.dynamic_linearization(kind, "velocity")
+        params = ctrl.params(_reference(kind), poles=1.0, geometry=GEOM)
+        X = np.zeros(ctrl.robot.n_state)
+        X[3:] = 0.7
+        with pytest.raises(ValueError, match="singular set"):
+            ctrl.initial_state_from_physical(X, np.zeros(ctrl.robot.n_input), params)  # at rest
+    ctrl = w.dynamic_linearization("(1,1)", "velocity")
+    g = w.Geometry(L=1.0, e=0.0)
+    params = ctrl.params(_reference("(1,1)"), poles=1.0, geometry=g)
+    with pytest.raises(ValueError, match=r"L sin beta \+ e cos beta"):  # beta = 0: lever vanishes, eta1 != 0
+        ctrl.initial_state_from_physical(np.zeros(4), np.array([1.0, 0.0]), params)
+
+
+def test_reference_reaching_singular_set_raises():
+    ctrl = w.dynamic_linearization("(2,0)")
+    params = ctrl.params(R.paper_66(), poles=1.0)
+    ctrl.check_reference(params, 9.0)          # moving until t = 10 s
+    with pytest.raises(ValueError, match="reaches the singular set"):
+        ctrl.check_reference(params, 10.0)     # it stops at the origin at t = 10 s
+    for kind in ("(2,1)", "(1,2)"):
+        c = w.dynamic_linearization(kind)
+        p = c.params(R.line(velocity=(0.0, 0.0)), poles=1.0, geometry=GEOM)
+        with pytest.raises(ValueError, match="reaches the singular set"):
+            c.check_reference(p, 1.0)
