@@ -20,9 +20,10 @@ venv: $(STAMP)
 
 demo: $(STAMP)
 	$(PY) -m experiments.section_6_1 --out results/section_6_1
+	$(PY) -m experiments.posture_tracking --out results/posture_tracking
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 bench: $(STAMP)
 	$(PY) -m experiments.benchmark --out results/benchmark

@@ -180,3 +180,18 @@ def test_reference_reaching_singular_set_raises():
         p = c.params(R.line(velocity=(0.0, 0.0)), poles=1.0, geometry=GEOM)
         with pytest.raises(ValueError, match="reaches the singular set"):
             c.check_reference(p, 1.0)
+
+
+def test_heading_reference_crossing_pi_is_tracked_without_a_turn():
+    """theta_ref from atan2 jumps by 2 pi; the law wraps the heading error, so the robot
+    keeps turning smoothly (errata: integrate angles unwrapped, wrap only errors)."""
+    ctrl = w.dynamic_linearization("(2,1)", "velocity")
+    params = ctrl.params(R.circle(radius=2.0, omega=1.0, heading_offset=0.3), poles=1.0, geometry=GEOM)
+    z0 = ctrl.reference_state(0.0, params).at[2].add(0.2)
+    tr = w.simulate(ctrl, z0, params, dt=0.01, n_steps=800, save_every=10)
+    theta = np.asarray(tr.state[:, 2])
+    theta_ref = np.unwrap(np.asarray(jax.vmap(params.reference.posture)(tr.t))[:, 2])
+    assert theta_ref[-1] - theta_ref[0] > 2 * np.pi  # the reference heading went once around
+    err = theta - theta_ref - (theta[0] - theta_ref[0]) * 0.0
+    assert abs(err[-1]) < 1e-2 and np.max(np.abs(err)) <= 0.2 + 1e-9  # no 2 pi excursion
+    assert np.all(np.abs(np.diff(theta)) < 0.2)  # continuous, never wrapped

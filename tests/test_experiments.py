@@ -48,3 +48,16 @@ def test_benchmark_cli_smoke(tmp_path):
     assert row["wmrjax_batch_map"] > 0 and row["numpy_vectorised"] > 0
     assert s["machine"]["jax_devices"] == 2
     assert s["gradient"]["grad_finite"] and s["gradient"]["max_abs_diff_reverse_vs_forward_mode"] < 1e-9
+
+
+def test_posture_tracking_smoke(tmp_path):
+    from experiments import posture_tracking
+
+    s = posture_tracking.run(tmp_path, n_random=16, t_final=4.0, dt=0.02, kinds=("(2,1)",), levels=("velocity",))
+    for level in ("velocity",):
+        r = s["cases"][f"(2,1) {level}"]["random"]
+        assert r["n_runs"] == 16 and r["fraction_references_regular"] == 1.0
+        assert 0.0 <= r["fraction_converged"] <= 1.0 and r["fraction_flagged_singular"] == 0.0
+        assert r["final_position_error_m"]["max"] < 0.5
+    assert (tmp_path / "posture_21.png").read_bytes()[:4] == b"\x89PNG"
+    assert json.loads((tmp_path / "summary.json").read_text())["cases"].keys() == s["cases"].keys()

@@ -56,6 +56,9 @@ class DynamicExtension:
         (Remark 17): chi1 for (2,0) and (1,1), eta1 for (2,1) and (1,2).
       extra_margin: optional ``(z, geometry) -> scalar`` multiplying |det K| in the
         singularity margin (the (1,1) lever L sin(beta) + e cos(beta), errata).
+      angle_outputs: which outputs are angles (theta for (2,1), (1,2)): their zeroth-order
+        error is wrapped to [-pi, pi) so a reference heading given modulo 2 pi is tracked
+        without a spurious turn (errata: integrate angles unwrapped, wrap only errors).
     """
 
     robot: RobotType
@@ -70,6 +73,7 @@ class DynamicExtension:
     from_physical: Optional[Callable] = dataclasses.field(default=None, repr=False)
     branch_quantity: Optional[Callable] = dataclasses.field(default=None, repr=False)
     extra_margin: Optional[Callable] = dataclasses.field(default=None, repr=False)
+    angle_outputs: tuple = ()
 
     @property
     def n_outputs(self) -> int:
@@ -225,12 +229,13 @@ EXTENSIONS: dict[str, DynamicExtension] = {
     "(2,0)": DynamicExtension(robots.TYPES["(2,0)"], 1, ("chi1",), 2, _out_axle_point, _pi_20, _comp_20,
                               "chi1 = eta1 + e eta2 != 0", _psi_inv_20, _phys_20, _first_comp(3)),
     "(2,1)": DynamicExtension(robots.TYPES["(2,1)"], 2, ("eta1", "eta2"), 2, _out_posture, _pi_21, _comp_21,
-                              "eta1 != 0", _psi_inv_21, _phys_21, _first_comp(4)),
+                              "eta1 != 0", _psi_inv_21, _phys_21, _first_comp(4), angle_outputs=(2,)),
     "(1,1)": DynamicExtension(robots.TYPES["(1,1)"], 2, ("eta1", "chi2"), 3, _out_axle_point, _pi_11, _comp_11,
                               "eta1 (L sin beta + e cos beta) != 0 (errata: Table 4 prints only eta1 != 0)",
                               _psi_inv_11, _phys_11, _chi1_11, _margin_11),
     "(1,2)": DynamicExtension(robots.TYPES["(1,2)"], 1, ("eta1",), 2, _out_12, _pi_12, _comp_12,
-                              "L eta1 sin(beta1) sin(beta2) != 0", _psi_inv_12, _phys_12, _first_comp(5)),
+                              "L eta1 sin(beta1) sin(beta2) != 0", _psi_inv_12, _phys_12, _first_comp(5),
+                              angle_outputs=(2,)),
 }
 
 
@@ -354,7 +359,7 @@ class DynamicLinearization:
         yref = self.reference_jet(t, params)
         r = self.relative_degree
         k = params.gains.coefficients()            # (m, r)
-        err = zeta - yref[:r]                      # (r, m)
+        err = self._wrap_error(zeta - yref[:r])    # (r, m)
         w = yref[r]
         for j in range(r):                         # eq (49), errata sign
             w = w - k[:, j] * err[j]
@@ -378,9 +383,14 @@ class DynamicLinearization:
         return self.field(z, U, g), Aux(self.plant_control(z, U, g), margin)
 
     # -- error coordinates --
+    def _wrap_error(self, err):
+        for i in self.extension.angle_outputs:
+            err = err.at[0, i].set(_math.wrap_angle(err[0, i]))
+        return err
+
     def error(self, t, z, params: DynamicParams):
-        r""":math:`\tilde\zeta = \Psi(z) - \zeta_{ref}(t)`, shape (r, m)."""
-        return self.psi(z, params.geometry) - self.reference_jet(t, params)[: self.relative_degree]
+        r""":math:`\tilde\zeta = \Psi(z) - \zeta_{ref}(t)`, shape (r, m); angle outputs wrapped."""
+        return self._wrap_error(self.psi(z, params.geometry) - self.reference_jet(t, params)[: self.relative_degree])
 
     def error_matrix(self, gains: Gains):
         """Matrix A with :math:`\\dot{\\tilde\\zeta} = A \\tilde\\zeta` on ``error(...).reshape(-1)``."""
@@ -407,6 +417,12 @@ class DynamicLinearization:
         check_shape("poles", p, (m, r), f"one pole magnitude per output and derivative order, r = {r}")
         check_positive("poles (closed-loop poles are at -poles; they must be > 0 for a Hurwitz error dynamics)", p)
         self._check_geometry_regular(geometry)
+        return DynamicParams(Gains(p), reference, geometry)
+
+    def params_unchecked(self, reference: Reference, poles, geometry: Geometry) -> DynamicParams:
+        """Like :meth:`params` without validation: for use inside ``vmap``/``jit`` (traced values)."""
+        r, m = self.relative_degree, self.m
+        p = jnp.broadcast_to(jnp.asarray(poles, dtype=jnp.result_type(float)), (m, r))
         return DynamicParams(Gains(p), reference, geometry)
 
     def _check_geometry_regular(self, g: Geometry) -> None:
