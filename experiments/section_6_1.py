@@ -5,8 +5,9 @@ poles at -1 per axis, initial conditions (63), 10 s, RK4 with dt = 0.01 s.
 
     python -m experiments.section_6_1 --out results/section_6_1
 
-Writes ``summary.json``, ``trajectories.npz`` (t, state, control, reference; no pickle),
-``fig8_paths.png`` and ``fig9_errors.png``.
+Writes ``summary.json`` (with a ``lemma2`` block: certified radii for three K2 bounds and
+an empirical check over 4096 initial errors), ``trajectories.npz`` (t, state, control,
+reference; no pickle), ``fig7_F.png``, ``fig8_paths.png`` and ``fig9_errors.png``.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ def setup():
     return ctrl, params, z0, zeta0
 
 
-def run(out, dt: float = 0.01, t_final: float = 10.0) -> dict:
+def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096) -> dict:
     _common.enable_x64()
     import jax
     import jax.numpy as jnp
@@ -86,12 +87,82 @@ def run(out, dt: float = 0.01, t_final: float = 10.0) -> dict:
             "min_margin_abs_det_K": float(d.min_margin), "failed": bool(d.failed),
         },
     }
+    summary["lemma2"], cert = _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical)
     out.mkdir(parents=True, exist_ok=True)
+    _fig7(out, cert, summary["lemma2"])
     _common.write_npz(out / "trajectories.npz", t=t, state=state, control=control, reference=ref_post,
                       state_names=np.array(ctrl.state_names), control_names=np.array(["eta1", "eta2"]))
     _figures(out, t, state, ref_post, eta1, eta1_ref)
     _common.write_json(out / "summary.json", summary)
     return summary
+
+
+def _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, eps=1e-2):
+    """Lemma 2 with the paper's K2 (64), the automatic Lyapunov K2 and the exact ||e^{At}||,
+    plus an empirical check of (53) and regularity over n_empirical initial errors."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from wmrjax import certify as C
+
+    cert = C.lemma2(ctrl, params, t_final, eps, n_t=int(round(t_final / dt)) + 1)
+    e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0, params)))
+    paper = cert["paper"]
+    block = {
+        "eps": eps, "zeta0_norm": e0, "m1": cert["m1_method"], "k2_paper": "eq (64)",
+        "min_F": float(paper.radius), "argmin_F": float(paper.argmin),
+        "condition_52": bool(e0 <= float(paper.radius)),
+        "radius_paper": float(paper.radius),
+        "radius_lyapunov": float(cert["lyapunov"].radius),
+        "radius_exact_norm": float(cert["exact_norm"].radius),
+        "lyapunov_K1_r1": [float(x) for x in C.lyapunov_bound(ctrl.error_matrix(params.gains))[:2]],
+        "not_computed": ["radius_exact_map", "radius_exact_map_position_slice", "empirical_radius_position_slice",
+                         "falsified_full", "falsified_position_slice"],
+    }
+    if n_empirical:
+        A = ctrl.error_matrix(params.gains)
+        key_d, key_r = jax.random.split(jax.random.PRNGKey(0))
+        dirs = C.sample_sphere(key_d, n_empirical, A.shape[0])
+        r_max = 2.0 * block["radius_exact_norm"]
+        radii = r_max * jax.random.uniform(key_r, (n_empirical,))
+        k2s = {"paper": C.k2_paper, "lyapunov": lambda ts: C.k2_lyapunov(A, ts),
+               "exact_norm": lambda ts: C.k2_exact(A, ts)}
+        emp = {"n_runs": n_empirical, "radius_range": [0.0, r_max], "sampling": "uniform direction, uniform radius"}
+        for name, k2 in k2s.items():
+            res = C.verify(ctrl, params, dirs * radii[:, None], k2, dt=dt, n_steps=int(round(t_final / dt)),
+                           save_every=10)
+            n0 = np.asarray(res["norm0"])
+            inside = n0 <= block[f"radius_{name}"]
+            sing, viol = np.asarray(res["singular"]), np.asarray(res["violation_53"])
+            emp[name] = {"runs_inside": int(inside.sum()), "violations_53_inside": int((viol & inside).sum()),
+                         "singular_inside": int((sing & inside).sum()), "singular_total": int(sing.sum()),
+                         "smallest_singular_radius": float(n0[sing].min()) if sing.any() else None}
+            if (viol & inside).any() or (sing & inside).any():
+                print(f"LEMMA 2 VIOLATED inside the {name} certificate: {emp[name]}", flush=True)
+        block["empirical"] = emp
+    return block, cert
+
+
+def _fig7(out, cert, block):
+    import numpy as np
+
+    plt = _common.pyplot()
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for name, lab, c in [("paper", "F(t), K2 of eq (64)", "k"), ("lyapunov", "F(t), Lyapunov K2", "C0"),
+                         ("exact_norm", "F(t), K2 = ||exp(At)||", "C3")]:
+        cc = cert[name]
+        ax.plot(np.asarray(cc.ts), np.asarray(cc.F), color=c, lw=1.6 if name == "paper" else 1.2, label=lab)
+        ax.plot(float(cc.argmin), float(cc.radius), "o", color=c, ms=4)
+    ax.axhline(block["zeta0_norm"], color="C2", ls="--", lw=1.0, label="||zeta_err(0)|| of (63)")
+    ax.set_yscale("log")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("F(t) = (M1(t) - eps) / K2(t)  [m, m/s]")
+    ax.set_title("Fig. 7: the function F(t) (eps = 0.01)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    _common.save_figure(fig, out / "fig7_F.png")
+    plt.close(fig)
 
 
 def _figures(out, t, state, ref, eta1, eta1_ref):
@@ -135,7 +206,10 @@ def main(argv=None) -> int:
     print(f"section 6.1: min eta1 = {sim['min_eta1']:.4f} m/s at t = {sim['t_min_eta1']:.2f} s; "
           f"position error max {sim['max_position_error']:.4f} m, final {sim['final_position_error']:.2e} m; "
           f"linear-error residual {sim['max_linear_error_residual']:.2e}")
-    print(f"wrote {a.out}/summary.json, trajectories.npz, fig8_paths.png, fig9_errors.png")
+    l2 = s["lemma2"]
+    print(f"lemma 2 (eps = {l2['eps']}): |zeta_err(0)| = {l2['zeta0_norm']:.4f}; certified radius paper {l2['radius_paper']:.4f} "
+          f"(condition 52: {l2['condition_52']}), Lyapunov {l2['radius_lyapunov']:.4f}, exact norm {l2['radius_exact_norm']:.4f}")
+    print(f"wrote {a.out}/summary.json, trajectories.npz, fig7_F.png, fig8_paths.png, fig9_errors.png")
     return 0
 
 

@@ -13,7 +13,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_section_6_1_outputs(tmp_path):
-    s = section_6_1.run(tmp_path, dt=0.01, t_final=10.0)
+    s = section_6_1.run(tmp_path, dt=0.01, t_final=10.0, n_empirical=64)
     on_disk = json.loads((tmp_path / "summary.json").read_text())
     assert on_disk["simulation"]["dt"] == 0.01 and on_disk["simulation"]["t_final"] == 10.0
     init = on_disk["initial_state"]
@@ -30,7 +30,13 @@ def test_section_6_1_outputs(tmp_path):
     assert sim["final_position_error"] < 1e-3 < sim["max_position_error"]
     with np.load(tmp_path / "trajectories.npz", allow_pickle=False) as z:
         assert z["t"].shape == (1001,) and z["state"].shape == (1001, 4) and z["control"].shape == (1001, 2)
-    for fig in ["fig8_paths.png", "fig9_errors.png"]:
+    l2 = on_disk["lemma2"]
+    assert l2["condition_52"] is True and l2["eps"] == 0.01
+    assert l2["zeta0_norm"] <= l2["radius_paper"] <= l2["radius_lyapunov"] <= l2["radius_exact_norm"]
+    assert abs(l2["argmin_F"] - 3.92) < 0.05 and abs(l2["min_F"] - 0.768) < 1e-3
+    for name in ("paper", "lyapunov", "exact_norm"):
+        assert l2["empirical"][name]["violations_53_inside"] == 0 and l2["empirical"][name]["singular_inside"] == 0
+    for fig in ["fig7_F.png", "fig8_paths.png", "fig9_errors.png"]:
         assert (tmp_path / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert s["simulation"] == on_disk["simulation"]
 

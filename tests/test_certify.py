@@ -1,0 +1,97 @@
+"""Lemma 2 certificates: closed forms vs numerics, K2 bounds, and simulation."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import wmrjax as w
+from wmrjax import certify as C
+from wmrjax import references as R
+from wmrjax.linearize import companion, monic_coefficients
+
+
+@pytest.fixture(scope="module")
+def cert61(paper61):
+    ctrl, params, z0 = paper61
+    return C.lemma2(ctrl, params, 10.0, 1e-2, n_t=1001)
+
+
+def test_m1_lemma3_equals_eq65_and_numerical(paper61):
+    ctrl, params, _ = paper61
+    ts = jnp.linspace(0.0, 10.0, 11)
+    closed = np.asarray(C.m1_closed_form(ctrl, params, ts))
+    np.testing.assert_allclose(closed, 0.04 * (10 - 2 * np.asarray(ts)) ** 2 + 1.0, rtol=1e-12)   # eq (65)
+    np.testing.assert_allclose(C.m1_numerical(ctrl, params, ts), closed, rtol=1e-6)                # Remark 16
+
+
+@pytest.mark.parametrize("kind", ["(2,1)"])  # (1,1) agrees too (checked by hand); 50 s to compile
+def test_m1_numerical_matches_closed_form(kind):
+    ctrl = w.dynamic_linearization(kind)
+    params = ctrl.params(R.figure_eight(size=4.0, omega=0.25, heading_offset=0.3 if kind == "(2,1)" else 0.0),
+                         geometry=w.Geometry(L=0.8, e=0.3))
+    ts = jnp.linspace(0.0, 5.0, 6)
+    np.testing.assert_allclose(C.m1_numerical(ctrl, params, ts), C.m1_closed_form(ctrl, params, ts), rtol=1e-5)
+
+
+def test_k2_bounds_hold(rng):
+    ts = jnp.linspace(0.0, 20.0, 401)
+    A = companion(monic_coefficients(jnp.ones((2, 2))))
+    exact = np.asarray(C.k2_exact(A, ts))
+    assert np.all(np.asarray(C.k2_paper(ts)) >= exact - 1e-12)          # eq (64) is valid, and conservative
+    assert np.all(np.asarray(C.k2_lyapunov(A, ts)) >= exact - 1e-12)
+    for _ in range(20):                                                # random Hurwitz gains, r = 2 or 3
+        r = int(rng.integers(2, 4))
+        A = companion(monic_coefficients(jnp.asarray(rng.uniform(0.2, 4.0, size=(2, r)))))
+        b = C.lyapunov_bound(A)
+        assert np.all(np.asarray(b.K1 * np.exp(-b.r1 * np.asarray(ts))) >= np.asarray(C.k2_exact(A, ts)) - 1e-10)
+        assert float(b.r1) > 0 and float(b.K1) >= 1.0
+
+
+def test_section61_condition_52_and_ordering(paper61, cert61):
+    ctrl, params, z0 = paper61
+    e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0, params)))
+    np.testing.assert_allclose(e0, 0.54 * math.sqrt(2), rtol=1e-12)
+    paper = cert61["paper"]
+    # the paper: "with our choice (63), condition (52) is satisfied"
+    assert e0 <= float(paper.radius) < 1.01 * e0
+    np.testing.assert_allclose(paper.F, (paper.m1 - 1e-2) / paper.k2)
+    assert float(paper.radius) <= float(cert61["lyapunov"].radius) <= float(cert61["exact_norm"].radius)
+
+
+def test_inside_certified_ball_no_violations(paper61, cert61):
+    """4 directions x radii up to the exact-norm certificate: (53) holds and no run is singular."""
+    ctrl, params, _ = paper61
+    A = ctrl.error_matrix(params.gains)
+    rad = float(cert61["exact_norm"].radius)
+    dirs = C.sample_sphere(jax.random.PRNGKey(1), 32, 4)
+    errs = dirs * jnp.linspace(0.2, 1.0, 32)[:, None] * rad
+    res = C.verify(ctrl, params, errs, lambda ts: C.k2_exact(A, ts), dt=0.02, n_steps=500, save_every=10)
+    assert not np.any(np.asarray(res["singular"]))
+    assert not np.any(np.asarray(res["violation_53"]))
+    assert float(np.max(res["max_ratio"])) <= 1.0 + 1e-6
+
+
+def test_far_outside_becomes_singular(paper61):
+    """A planted unsafe initial error: cancel the reference velocity at t = 0 (chi1(0) ~ 0)."""
+    ctrl, params, _ = paper61
+    A = ctrl.error_matrix(params.gains)
+    href = ctrl.reference_jet(jnp.asarray(0.0), params)
+    e0 = jnp.concatenate([jnp.zeros(2), -0.999 * href[1]])[None]
+    res = C.verify(ctrl, params, e0, lambda ts: C.k2_exact(A, ts), dt=0.02, n_steps=500, save_every=10)
+    assert float(res["min_margin"][0]) < 0.01 or bool(res["singular"][0])
+
+
+def test_bad_lemma2_arguments(paper61):
+    ctrl, params, _ = paper61
+    with pytest.raises(ValueError, match="eps must be > 0"):
+        C.lemma2(ctrl, params, 10.0, 0.0)
+    with pytest.raises(ValueError, match="horizon must be > 0"):
+        C.lemma2(ctrl, params, -1.0, 1e-2)
+    stop = ctrl.params(R.paper_66(), poles=1.0)
+    with pytest.raises(ValueError, match="within eps"):
+        C.lemma2(ctrl, stop, 10.0, 1e-2)
+    with pytest.raises(ValueError, match="not Hurwitz"):
+        C.lyapunov_bound(jnp.array([[0.0, 1.0], [1.0, -1.0]]))
