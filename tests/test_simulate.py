@@ -1,7 +1,6 @@
 """Simulator and the (2,0) dynamic linearizing closed loop (§6.1)."""
 
 import dataclasses
-import math
 import os
 import subprocess
 import sys
@@ -16,28 +15,16 @@ from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
 import wmrjax as w
+from experiments.benchmark import numpy_rollout_rhs
 from wmrjax import references as R
 from wmrjax.controllers.dynamic import Aux
 
-S2 = math.sqrt(2.0)
-A62 = S2 * 1e-2 / 3
 
 
 def numpy_closed_loop(t, s):
-    """§6.1 closed loop written by hand from eq (39) (independent of the engine)."""
-    x, y, th, chi = s
-    u = 10 - 2 * t
-    p = A62 * u**3 - S2 / 2 * t + 5 * S2 / 6
-    pd = -6 * A62 * u**2 - S2 / 2
-    pdd = 24 * A62 * u
-    sn, cs = np.sin(th), np.cos(th)
-    hd1, hd2 = -chi * sn, chi * cs
-    w1 = pdd - 2 * (hd1 - pd) - (x - p)
-    w2 = pdd - 2 * (hd2 - pd) - (y - p)
-    # [h1'', h2''] = [[-s, -chi c], [c, -chi s]] [U1, eta2]  ->  solve
-    U1 = -sn * w1 + cs * w2
-    eta2 = -(cs * w1 + sn * w2) / chi
-    return np.array([hd1, hd2, eta2, U1])
+    """§6.1 closed loop written by hand from eq (39) in NumPy (independent of the engine);
+    the same law the benchmark's NumPy baseline runs."""
+    return np.array(numpy_rollout_rhs(t, s))
 
 
 @pytest.fixture(scope="module")

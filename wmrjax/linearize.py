@@ -22,22 +22,6 @@ import jax.numpy as jnp
 from wmrjax import _math
 
 
-def lie_derivatives(h: Callable, drift: Callable, z, order: int) -> list:
-    r"""``[h(z), L_F h(z), ..., L_F^order h(z)]`` for the vector field ``drift``.
-
-    Args:
-      h: ``z -> (m,)`` output map.
-      drift: ``z -> (n,)`` vector field F.
-      z: point, shape (n,).
-      order: highest Lie derivative (static).
-    """
-    fns = [h]
-    for _ in range(order):
-        prev = fns[-1]
-        fns.append(lambda x, prev=prev: jax.jvp(prev, (x,), (drift(x),))[1])
-    return [fn(z) for fn in fns]
-
-
 def output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: int):
     r"""Output derivatives and the decoupling pair of an affine system.
 
