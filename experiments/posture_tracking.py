@@ -144,28 +144,23 @@ def figure(out_dir, kind, per_level):
         ax.axis("equal")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    ax = axs[1, 0]
+    ax_t, ax_h = axs[1, 0], axs[1, 1]
     for lvl, c in zip(("velocity", "torque"), ("C0", "C3")):
         if lvl not in per_level:
             continue
+        traces, (ep_random, _) = per_level[lvl]
         for name, ls in (("circle", "-"), ("figure_eight", ":")):
-            tr = per_level[lvl][0][name]
-            ax.semilogy(tr["t"], np.maximum(tr["ep"], 1e-12), c + ls, label=f"{name.replace('_', '-')}, {lvl}")
-    ax.set_xlabel("t [s]")
-    ax.set_ylabel("position error |(x, y) - (x, y)_ref| [m]")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    ax = axs[1, 1]
-    for lvl, c in zip(("velocity", "torque"), ("C0", "C3")):
-        if lvl not in per_level:
-            continue
-        ep = per_level[lvl][1][0]
-        if ep.size:
-            ax.hist(np.log10(np.maximum(ep, 1e-16)), bins=40, color=c, alpha=0.6, label=f"{lvl} level")
-    ax.set_xlabel("log10 final position error [m] (random references)")
-    ax.set_ylabel("runs")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+            tr = traces[name]
+            ax_t.semilogy(tr["t"], np.maximum(tr["ep"], 1e-12), c + ls, label=f"{name.replace('_', '-')}, {lvl}")
+        if ep_random.size:
+            ax_h.hist(np.log10(np.maximum(ep_random, 1e-16)), bins=40, color=c, alpha=0.6, label=f"{lvl} level")
+    ax_t.set_xlabel("t [s]")
+    ax_t.set_ylabel("position error |(x, y) - (x, y)_ref| [m]")
+    ax_h.set_xlabel("log10 final position error [m] (random references)")
+    ax_h.set_ylabel("runs")
+    for ax in (ax_t, ax_h):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
     fig.tight_layout()
     _common.save_figure(fig, out_dir / f"posture_{kind.strip('()').replace(',', '')}.png")
     plt.close(fig)

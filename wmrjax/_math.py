@@ -67,16 +67,6 @@ def _sincos_jvp(primals, tangents):
     return (s, c), (c * dx, -s * dx)
 
 
-def sin(x):
-    """Vectorisable sine (see :func:`sincos`)."""
-    return sincos(x)[0]
-
-
-def cos(x):
-    """Vectorisable cosine (see :func:`sincos`)."""
-    return sincos(x)[1]
-
-
 def wrap_angle(a):
     """Map angles to [-pi, pi). Use it on errors only; states stay unwrapped."""
     return jnp.mod(a + jnp.pi, 2.0 * jnp.pi) - jnp.pi
