@@ -35,7 +35,8 @@ def setup():
     return ctrl, params, z0, zeta0
 
 
-def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096) -> dict:
+def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096, n_directions: int = 256,
+        n_starts: int = 16) -> dict:
     _common.enable_x64()
     import jax
     import jax.numpy as jnp
@@ -87,7 +88,8 @@ def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096) -
             "min_margin_abs_det_K": float(d.min_margin), "failed": bool(d.failed),
         },
     }
-    summary["lemma2"], cert = _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical)
+    summary["lemma2"], cert = _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, n_directions=n_directions,
+                                            n_starts=n_starts)
     out.mkdir(parents=True, exist_ok=True)
     _fig7(out, cert, summary["lemma2"])
     _common.write_npz(out / "trajectories.npz", t=t, state=state, control=control, reference=ref_post,
@@ -97,51 +99,21 @@ def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096) -
     return summary
 
 
-def _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, eps=1e-2):
-    """Lemma 2 with the paper's K2 (64), the automatic Lyapunov K2 and the exact ||e^{At}||,
-    plus an empirical check of (53) and regularity over n_empirical initial errors."""
-    import jax
+def _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, eps=1e-2, n_directions=256, n_starts=16):
+    """Lemma 2 with the paper's K2 (64), the automatic Lyapunov K2 and the exact ||e^{At}||; the
+    exact-map radii; empirical checks and the falsifier (see :mod:`experiments.certify`)."""
     import jax.numpy as jnp
-    import numpy as np
 
+    from experiments.certify import analyse
     from wmrjax import certify as C
 
-    cert = C.lemma2(ctrl, params, t_final, eps, n_t=int(round(t_final / dt)) + 1)
     e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0, params)))
-    paper = cert["paper"]
-    block = {
-        "eps": eps, "zeta0_norm": e0, "m1": cert["m1_method"], "k2_paper": "eq (64)",
-        "min_F": float(paper.radius), "argmin_F": float(paper.argmin),
-        "condition_52": bool(e0 <= float(paper.radius)),
-        "radius_paper": float(paper.radius),
-        "radius_lyapunov": float(cert["lyapunov"].radius),
-        "radius_exact_norm": float(cert["exact_norm"].radius),
-        "lyapunov_K1_r1": [float(x) for x in C.lyapunov_bound(ctrl.error_matrix(params.gains))[:2]],
-        "not_computed": ["radius_exact_map", "radius_exact_map_position_slice", "empirical_radius_position_slice",
-                         "falsified_full", "falsified_position_slice"],
-    }
-    if n_empirical:
-        A = ctrl.error_matrix(params.gains)
-        key_d, key_r = jax.random.split(jax.random.PRNGKey(0))
-        dirs = C.sample_sphere(key_d, n_empirical, A.shape[0])
-        r_max = 2.0 * block["radius_exact_norm"]
-        radii = r_max * jax.random.uniform(key_r, (n_empirical,))
-        k2s = {"paper": C.k2_paper, "lyapunov": lambda ts: C.k2_lyapunov(A, ts),
-               "exact_norm": lambda ts: C.k2_exact(A, ts)}
-        emp = {"n_runs": n_empirical, "radius_range": [0.0, r_max], "sampling": "uniform direction, uniform radius"}
-        for name, k2 in k2s.items():
-            res = C.verify(ctrl, params, dirs * radii[:, None], k2, dt=dt, n_steps=int(round(t_final / dt)),
-                           save_every=10)
-            n0 = np.asarray(res["norm0"])
-            inside = n0 <= block[f"radius_{name}"]
-            sing, viol = np.asarray(res["singular"]), np.asarray(res["violation_53"])
-            emp[name] = {"runs_inside": int(inside.sum()), "violations_53_inside": int((viol & inside).sum()),
-                         "singular_inside": int((sing & inside).sum()), "singular_total": int(sing.sum()),
-                         "smallest_singular_radius": float(n0[sing].min()) if sing.any() else None}
-            if (viol & inside).any() or (sing & inside).any():
-                print(f"LEMMA 2 VIOLATED inside the {name} certificate: {emp[name]}", flush=True)
-        block["empirical"] = emp
-    return block, cert
+    block, data = analyse(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_empirical=n_empirical,
+                          n_directions=n_directions, n_starts=n_starts, zeta0_norm=e0,
+                          log=lambda msg: print(msg, flush=True))
+    block["k2_paper"] = "eq (64)"
+    block["lyapunov_K1_r1"] = [float(x) for x in C.lyapunov_bound(ctrl.error_matrix(params.gains))[:2]]
+    return block, data["cert"]
 
 
 def _fig7(out, cert, block):
@@ -155,6 +127,10 @@ def _fig7(out, cert, block):
         ax.plot(np.asarray(cc.ts), np.asarray(cc.F), color=c, lw=1.6 if name == "paper" else 1.2, label=lab)
         ax.plot(float(cc.argmin), float(cc.radius), "o", color=c, ms=4)
     ax.axhline(block["zeta0_norm"], color="C2", ls="--", lw=1.0, label="||zeta_err(0)|| of (63)")
+    for key, lab, c in [("radius_exact_map", "exact-map radius (full)", "C4"),
+                        ("radius_exact_map_position_slice", "exact-map radius (position slice)", "C5")]:
+        if block.get(key) is not None:
+            ax.axhline(block[key], color=c, ls=":", lw=1.2, label=f"{lab}: {block[key]:.3g}")
     ax.set_yscale("log")
     ax.set_xlabel("t [s]")
     ax.set_ylabel("F(t) = (M1(t) - eps) / K2(t)  [m, m/s]")
@@ -208,7 +184,10 @@ def main(argv=None) -> int:
           f"linear-error residual {sim['max_linear_error_residual']:.2e}")
     l2 = s["lemma2"]
     print(f"lemma 2 (eps = {l2['eps']}): |zeta_err(0)| = {l2['zeta0_norm']:.4f}; certified radius paper {l2['radius_paper']:.4f} "
-          f"(condition 52: {l2['condition_52']}), Lyapunov {l2['radius_lyapunov']:.4f}, exact norm {l2['radius_exact_norm']:.4f}")
+          f"(condition 52: {l2['condition_52']}), Lyapunov {l2['radius_lyapunov']:.4f}, exact norm {l2['radius_exact_norm']:.4f}; "
+          f"exact map {l2['radius_exact_map']:.4f} (position slice {l2['radius_exact_map_position_slice']:.4f}, "
+          f"empirical {l2['empirical_radius_position_slice']}); falsified full {l2['falsified_full']['radius']}, "
+          f"position slice {l2['falsified_position_slice']['radius']}")
     print(f"wrote {a.out}/summary.json, trajectories.npz, fig7_F.png, fig8_paths.png, fig9_errors.png")
     return 0
 

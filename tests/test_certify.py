@@ -95,3 +95,78 @@ def test_bad_lemma2_arguments(paper61):
         C.lemma2(ctrl, stop, 10.0, 1e-2)
     with pytest.raises(ValueError, match="not Hurwitz"):
         C.lyapunov_bound(jnp.array([[0.0, 1.0], [1.0, -1.0]]))
+
+
+# --- beyond Lemma 2: exact map, empirical radius, falsifier --------------------------------
+
+@pytest.fixture(scope="module")
+def exact61(paper61):
+    ctrl, params, _ = paper61
+    return {b: C.exact_map_radius(ctrl, params, 10.0, 1e-2, basis=b) for b in ("full", "position")}
+
+
+def test_min_norm_to_ball_matches_boundary_search(rng):
+    """Independent oracle: min over the eps-circle y = -a + eps (cos p, sin p) of ||M^+ y||."""
+    for _ in range(5):
+        M = rng.normal(size=(2, 4))
+        a = rng.normal(size=2) * 3.0
+        eps = 0.1
+        ph = np.linspace(0.0, 2 * np.pi, 20001)
+        Y = -a[None] + eps * np.stack([np.cos(ph), np.sin(ph)], 1)
+        brute = np.min(np.linalg.norm(Y @ np.linalg.pinv(M).T, axis=1))
+        rho, x = C._min_norm_to_ball(jnp.asarray(M), jnp.asarray(a), eps)
+        np.testing.assert_allclose(float(rho), brute, rtol=1e-6)
+        np.testing.assert_allclose(np.linalg.norm(a + M @ np.asarray(x)), eps, rtol=1e-8)   # on the boundary
+    rho, _ = C._min_norm_to_ball(jnp.zeros((2, 2)), jnp.array([1.0, 0.0]), 0.1)            # unreachable
+    assert float(rho) == np.inf
+
+
+def test_exact_map_radius_is_tight_and_above_lemma2(paper61, cert61, exact61):
+    ctrl, params, _ = paper61
+    full, pos = exact61["full"], exact61["position"]
+    # full ball: at t = 0 the worst error cancels the reference velocity, ||h'_ref(0)|| = M1(0) = 5
+    np.testing.assert_allclose(float(full.radius), 5.0 - 1e-2, rtol=1e-9)
+    assert float(cert61["exact_norm"].radius) <= float(full.radius) <= float(pos.radius)
+    w = pos.worst_error
+    assert np.allclose(np.asarray(w)[2:], 0.0) and abs(float(jnp.linalg.norm(w)) - float(pos.radius)) < 1e-9
+    d, s = C.min_distance(ctrl, params, jnp.stack([0.99 * w, 1.01 * w]), dt=0.01, n_steps=1000)
+    assert float(d[0]) > 1e-2 > float(d[1]) and not np.any(np.asarray(s))   # the real closed loop agrees
+
+
+def test_empirical_radius_finds_the_exact_one(paper61, exact61):
+    ctrl, params, _ = paper61
+    pos = exact61["position"]
+    wd = pos.worst_error / jnp.linalg.norm(pos.worst_error)
+    er = C.empirical_radius(ctrl, params, jnp.stack([wd, -wd]), 12.0, 1e-2, dt=0.01, n_steps=1000, n_grid=16,
+                            n_golden=20, n_bisect=16)
+    np.testing.assert_allclose(er["per_direction"][0], float(pos.radius), rtol=1e-3)
+    assert er["per_direction"][1] == np.inf and er["radius"] == er["per_direction"][0]
+
+
+def test_falsifier_finds_planted_failure_and_respects_certificates(paper61, exact61):
+    """Just outside the exact radius (position slice) the falsifier, from random directions, finds a
+    run within eps of the singular set; just inside, nothing it finds is (every certificate is below)."""
+    ctrl, params, _ = paper61
+    rad = float(exact61["position"].radius)
+    ang = jnp.linspace(0.0, 2 * np.pi, 16, endpoint=False) + 0.1      # none of them on the unsafe diagonal
+    starts = jnp.stack([jnp.cos(ang), jnp.sin(ang)], 1)
+    out = C.falsify(ctrl, params, 1.03 * rad, starts, dt=0.02, n_steps=500, basis="position", steps=40, n_windows=2)
+    assert float(jnp.min(out.distance)) < 1e-2
+    e = out.initial_errors[int(out.best)]
+    assert abs(float(jnp.linalg.norm(e)) - 1.03 * rad) < 1e-9 and np.allclose(np.asarray(e)[2:], 0.0)
+    inside = C.falsify(ctrl, params, 0.97 * rad, starts, dt=0.02, n_steps=500, basis="position", steps=40, n_windows=2)
+    assert float(jnp.min(inside.distance)) > 1e-2
+
+
+def test_bad_exact_map_arguments(paper61):
+    ctrl, params, _ = paper61
+    with pytest.raises(ValueError, match="orthonormal"):
+        C.slice_basis(ctrl, jnp.ones((4, 2)))
+    with pytest.raises(ValueError, match="unknown slice"):
+        C.slice_basis(ctrl, "velocity-ish")
+    with pytest.raises(ValueError, match="eps must be > 0"):
+        C.exact_map_radius(ctrl, params, 10.0, -1.0)
+    c12 = w.dynamic_linearization("(1,2)")
+    p12 = c12.params(R.circle(), geometry=w.Geometry(L=0.5, e=0.3, delta=0.5))
+    with pytest.raises(ValueError, match="curved singular set"):
+        C.exact_map_radius(c12, p12, 5.0, 1e-2)
