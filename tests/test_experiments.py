@@ -1,11 +1,13 @@
 """The experiment entry points run and write what the README promises."""
 
 import json
+import math
 import os
 import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from experiments import section_6_1
 
@@ -13,7 +15,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_section_6_1_outputs(tmp_path):
-    s = section_6_1.run(tmp_path, dt=0.01, t_final=10.0, n_empirical=64)
+    s = section_6_1.run(tmp_path, dt=0.01, t_final=10.0, n_empirical=64, n_directions=8, n_starts=0)
     on_disk = json.loads((tmp_path / "summary.json").read_text())
     assert on_disk["simulation"]["dt"] == 0.01 and on_disk["simulation"]["t_final"] == 10.0
     init = on_disk["initial_state"]
@@ -34,6 +36,10 @@ def test_section_6_1_outputs(tmp_path):
     assert l2["condition_52"] is True and l2["eps"] == 0.01
     assert l2["zeta0_norm"] <= l2["radius_paper"] <= l2["radius_lyapunov"] <= l2["radius_exact_norm"]
     assert abs(l2["argmin_F"] - 3.92) < 0.05 and abs(l2["min_F"] - 0.768) < 1e-3
+    assert abs(l2["radius_exact_map"] - 4.99) < 1e-9 and 8.7 < l2["radius_exact_map_position_slice"] < 8.9
+    # the rays include the exact map's worst direction: simulation finds the same radius
+    assert abs(l2["empirical_radius_position_slice"] - l2["radius_exact_map_position_slice"]) < 1e-2
+    assert l2["falsified_full"]["radius"] is None and l2["certified_below_falsified"]
     for name in ("paper", "lyapunov", "exact_norm"):
         assert l2["empirical"][name]["violations_53_inside"] == 0 and l2["empirical"][name]["singular_inside"] == 0
     for fig in ["fig7_F.png", "fig8_paths.png", "fig9_errors.png"]:
@@ -67,3 +73,35 @@ def test_posture_tracking_smoke(tmp_path):
         assert r["final_position_error_m"]["max"] < 0.5
     assert (tmp_path / "posture_21.png").read_bytes()[:4] == b"\x89PNG"
     assert json.loads((tmp_path / "summary.json").read_text())["cases"].keys() == s["cases"].keys()
+
+
+def test_certify_cli_curved_singular_set(tmp_path):
+    """(1,2): no exact map (curved singular set), numerical M1; the CLI still writes every key and the map."""
+    from experiments import certify
+
+    s = certify.run(tmp_path, robot="(1,2)", reference="circle", t_final=3.0, dt=0.02, n_empirical=16,
+                    n_directions=4, n_starts=0, map_grid=5)
+    on_disk = json.loads((tmp_path / "summary.json").read_text())
+    assert on_disk["radius_exact_map"] is None and "curved" in on_disk["exact_map_note"]
+    assert on_disk["m1"].startswith("numerical")
+    assert 0 < on_disk["radius_lyapunov"] <= on_disk["radius_exact_norm"]
+    for k in ("lyapunov", "exact_norm"):
+        assert on_disk["empirical"][k]["violations_53_inside"] == 0 and on_disk["empirical"][k]["singular_inside"] == 0
+    assert (tmp_path / "slice_map.png").read_bytes()[:4] == b"\x89PNG" and s["slice_map"]["n_grid"] == 5
+    with pytest.raises(SystemExit):
+        certify.main(["--robot", "(9,9)", "--out", str(tmp_path)])
+
+
+def test_section_6_2_outputs(tmp_path):
+    from experiments import section_6_2
+
+    s = section_6_2.run(tmp_path, dt=0.02, t_final=15.0, n_batch=8)
+    d = json.loads((tmp_path / "summary.json").read_text())
+    assert d["switched"] and 5.0 < d["t_switch"] < 5.5 and d["t_switch"] == s["t_switch"]
+    assert set(d["state_at_switch"]) == {"x", "y", "theta", "chi1"}
+    assert math.hypot(d["state_at_switch"]["x"], d["state_at_switch"]["y"]) <= d["r_switch"]
+    assert 0 < d["eta1_at_switch"] and 0 < d["min_eta1_before_switch"] and d["final_distance"] < 0.05
+    assert d["lemma2"]["condition_52_exact_norm"] and not d["nonfinite"]
+    assert d["batch"]["n_runs"] == 8 and d["batch"]["fraction_switched"] == 1.0 and d["batch"]["nonfinite"] == 0
+    for f in ("fig10_paths.png", "fig11_eta1.png", "batch.png"):
+        assert (tmp_path / f).read_bytes()[:4] == b"\x89PNG"

@@ -100,12 +100,15 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
     # traced once, reused by the four RK stages and the final evaluation (XLA inlines it):
     # cuts tracing and compile time of the rollout and of its gradient several-fold
     field = jax.jit(lambda t, z: system.vector_field(t, z, params))
+    post_step = getattr(system, "post_step", None)
 
     def step(carry, i):
         zt, alive, diag = carry
         z = jnp.stack(zt)
         t = t0 + i * dt
         z_next, aux = rk4_step(field, t, z, dt)
+        if post_step is not None:   # hybrid systems: discrete transition at the end of the step
+            z_next = post_step(t + dt, z_next, params)
         margin = jnp.asarray(aux.margin, dtype)
         finite_here = _all_finite((aux.control, margin))
         sample_ok = alive & finite_here & (margin > margin_floor)   # the state z at time t
@@ -269,7 +272,9 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
     Args:
       system: a closed-loop object (static, hashable) with
         ``vector_field(t, z, params) -> (dz/dt, aux)``, ``aux`` having ``control`` and
-        ``margin`` (e.g. :class:`wmrjax.controllers.DynamicLinearization`).
+        ``margin`` (e.g. :class:`wmrjax.controllers.DynamicLinearization`), and optionally
+        ``post_step(t, z, params) -> z``, a discrete transition applied at the end of every
+        step (hybrid systems, e.g. :class:`wmrjax.controllers.hybrid.Hybrid`).
       z0: initial state, shape (n,), unbatched (``vmap`` to batch).
       params: pytree of arrays the closed loop depends on (gains, reference, geometry).
       dt: step [s], > 0.

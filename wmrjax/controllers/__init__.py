@@ -8,3 +8,4 @@ from wmrjax.controllers.dynamic import (  # noqa: F401
     Gains,
     dynamic_linearization,
 )
+from wmrjax.controllers.hybrid import Hybrid, HybridParams, TimeVarying, hybrid_parking, stabilizer  # noqa: F401
