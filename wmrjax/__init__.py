@@ -6,7 +6,15 @@ import; call ``jax.config.update("jax_enable_x64", True)`` in your entry point.
 """
 
 from wmrjax import certify, controllers, linearize, references, robots  # noqa: F401
-from wmrjax.controllers import DynamicLinearization, Gains, dynamic_linearization, hybrid_parking  # noqa: F401
+from wmrjax.controllers import (  # noqa: F401
+    DynamicLinearization,
+    Gains,
+    StaticLinearization,
+    controller,
+    dynamic_linearization,
+    hybrid_parking,
+    static_linearization,
+)
 from wmrjax.references import Reference  # noqa: F401
 from wmrjax.robots import Geometry, RobotType, robot_type  # noqa: F401
 from wmrjax.simulate import Diagnostics, Trajectory, batch_map, batch_mesh, rk4_step, shard_batch, simulate  # noqa: F401
