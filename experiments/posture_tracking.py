@@ -124,7 +124,11 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
     return out, traces, (ep[ok], eh[ok])
 
 
-def figure(out_dir, kind, per_level):
+def figure(out_dir, kind, per_level, prefix="posture", error_label="position error |(x, y) - (x, y)_ref| [m]"):
+    """Paths of the circle and figure-eight runs at both levels, errors vs time, histogram of
+    final errors over the random batch: ``{prefix}_{type}.png``. ``per_level[level]`` is
+    ``(traces, (final_errors, ...))`` with traces[name] holding t, state (its first two
+    columns are the tracked point), ref, ep."""
     import numpy as np
 
     plt = _common.pyplot()
@@ -155,14 +159,14 @@ def figure(out_dir, kind, per_level):
         if ep_random.size:
             ax_h.hist(np.log10(np.maximum(ep_random, 1e-16)), bins=40, color=c, alpha=0.6, label=f"{lvl} level")
     ax_t.set_xlabel("t [s]")
-    ax_t.set_ylabel("position error |(x, y) - (x, y)_ref| [m]")
+    ax_t.set_ylabel(error_label)
     ax_h.set_xlabel("log10 final position error [m] (random references)")
     ax_h.set_ylabel("runs")
     for ax in (ax_t, ax_h):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    _common.save_figure(fig, out_dir / f"posture_{kind.strip('()').replace(',', '')}.png")
+    _common.save_figure(fig, out_dir / f"{prefix}_{kind.strip('()').replace(',', '')}.png")
     plt.close(fig)
 
 

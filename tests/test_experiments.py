@@ -105,3 +105,14 @@ def test_section_6_2_outputs(tmp_path):
     assert d["batch"]["n_runs"] == 8 and d["batch"]["fraction_switched"] == 1.0 and d["batch"]["nonfinite"] == 0
     for f in ("fig10_paths.png", "fig11_eta1.png", "batch.png"):
         assert (tmp_path / f).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_static_tracking_smoke(tmp_path):
+    from experiments import static_tracking
+
+    s = static_tracking.run(tmp_path, n_random=8, t_final=6.0, dt=0.02, kinds=("(2,0)",), levels=("velocity",))
+    r = s["cases"]["(2,0) velocity"]["random"]
+    assert r["n_runs"] == 8 and r["fraction_flagged_singular"] == 0.0 and r["fraction_converged"] == 1.0
+    assert abs(r["min_abs_det_K_over_runs"] - 0.3) < 1e-9          # e sin(delta), delta = pi/2
+    assert r["max_norm_z3"]["max"] > 0 and s["cases"]["(2,0) velocity"]["circle"]["final_point_error_m"] < 1e-2
+    assert (tmp_path / "static_20.png").read_bytes()[:4] == b"\x89PNG"
