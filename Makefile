@@ -20,6 +20,7 @@ venv: $(STAMP)
 
 demo: $(STAMP)
 	$(PY) -m experiments.section_6_1 --out results/section_6_1
+	$(PY) -m experiments.section_6_2 --out results/section_6_2
 	$(PY) -m experiments.posture_tracking --out results/posture_tracking
 
 test: $(STAMP)
