@@ -247,12 +247,20 @@ class Gains(NamedTuple):
     Attributes:
       poles: (m, r) positive reals; output i's error obeys
         :math:`\\prod_j (d/dt + \\lambda_{ij}) \\tilde Y_i = 0`: Hurwitz by construction.
+      coeffs: optional (m, r) coefficients overriding the poles (see :meth:`coefficients`).
     """
 
     poles: jnp.ndarray
+    coeffs: Optional[jnp.ndarray] = None
 
     def coefficients(self):
-        """(m, r) coefficients ``k[i, j]`` of ``d^j/dt^j`` (eq 49 errata, eq 13 for r = 2)."""
+        """(m, r) coefficients ``k[i, j]`` of ``d^j/dt^j`` (eq 49 errata, eq 13 for r = 2).
+
+        From the real poles, unless ``coeffs`` (any Hurwitz coefficients, e.g. complex
+        poles from the tuner's damping parameterisation) is given.
+        """
+        if self.coeffs is not None:
+            return self.coeffs
         return linearize.monic_coefficients(self.poles)
 
 

@@ -1,0 +1,134 @@
+"""Gain tuning: gradients, a known optimum, resumption, NaN exclusion, bad input."""
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import minimize_scalar
+
+from tuning import GainSpec, LossWeights, TuneConfig, batch_value, batch_value_and_grad, build, tune
+from tuning.gains import softplus_inverse
+
+# one small configuration shared by several tests, so its compiled functions are reused
+TINY = TuneConfig(n_train=3, n_heldout=2, steps=6, t_final=2.0, control_dt=0.1, substeps=2, eval_every=2)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return build(TINY)
+
+
+def test_gain_spec_maps_paper_poles_and_is_hurwitz(rng):
+    spec = GainSpec(2, 2)
+    np.testing.assert_allclose(spec.coefficients(spec.init(1.0)), [[1.0, 2.0]] * 2, atol=1e-12)   # (s + 1)^2
+    spec3 = GainSpec(2, 3, shared=False)
+    np.testing.assert_allclose(spec3.coefficients(spec3.init([1.0, 2.0, 3.0]))[0], [6.0, 11.0, 6.0], rtol=1e-12)
+    for _ in range(10):                                                 # any raw gives a Hurwitz polynomial
+        c = np.asarray(spec3.coefficients(jnp.asarray(rng.normal(size=(2, 3)) * 3)))
+        for row in c:
+            assert np.all(np.roots(np.concatenate([[1.0], row[::-1]])).real < 0)
+    frozen = GainSpec(1, 2, frozen=(1,))
+    g = jax.grad(lambda r: jnp.sum(frozen.coefficients(r)))(frozen.init(1.0))
+    assert g[1] == 0.0 and g[0] != 0.0
+
+
+def test_loss_gradient_matches_finite_differences(tiny):
+    ctrl, spec, g, rcfg, train, _ = tiny
+    w = jnp.asarray(TINY.weights, float)
+    raw = spec.init(1.3) + jnp.array([0.1, -0.2])
+    loss, grad, ok, _ = batch_value_and_grad(raw, train, ctrl, spec, g, rcfg, w)
+    assert bool(jnp.all(ok))
+    h = 1e-5
+    for i in range(raw.shape[0]):
+        d = jnp.zeros_like(raw).at[i].set(h)
+        fd = (batch_value(raw + d, train, ctrl, spec, g, rcfg, w)[0] - batch_value(raw - d, train, ctrl, spec, g, rcfg, w)[0]) / (2 * h)
+        np.testing.assert_allclose(float(grad[i]), float(fd), rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(float(loss), float(batch_value(raw, train, ctrl, spec, g, rcfg, w)[0]), rtol=1e-12)
+
+
+def test_nan_scenario_is_reported_and_excluded(tiny):
+    ctrl, spec, g, rcfg, train, _ = tiny
+    w = jnp.asarray(TINY.weights, float)
+    raw = spec.init(1.0)
+    bad = train._replace(input_scale=train.input_scale.at[0].set(jnp.nan))
+    loss, grad, ok, _ = batch_value_and_grad(raw, bad, ctrl, spec, g, rcfg, w)
+    assert not bool(ok[0]) and bool(jnp.all(ok[1:])) and np.isfinite(float(loss)) and bool(jnp.all(jnp.isfinite(grad)))
+    rest = jax.tree_util.tree_map(lambda x: x[1:], train)
+    l2, g2, _, _ = batch_value_and_grad(raw, rest, ctrl, spec, g, rcfg, w)
+    np.testing.assert_allclose(float(loss), float(l2), rtol=1e-12)          # the mean over the others, exactly
+    np.testing.assert_allclose(grad, g2, rtol=1e-10)
+
+
+def test_resume_gives_the_same_gains(tmp_path):
+    full = tune(TINY, None, log=lambda *_: None)
+    part = tune(TINY, tmp_path, log=lambda *_: None, stop_after=3)
+    assert not part["finished"] and json.loads((tmp_path / "checkpoint.json").read_text())["step"] == 3
+    resumed = tune(TINY, tmp_path, log=lambda *_: None)
+    assert resumed["finished"]
+    np.testing.assert_allclose(resumed["raw"], full["raw"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(resumed["best_raw"], full["best_raw"], rtol=0, atol=1e-12)
+    assert resumed["state"]["rollouts"] == full["state"]["rollouts"] == TINY.steps * TINY.n_train
+
+
+def test_checkpoint_of_another_configuration_is_refused(tmp_path):
+    tune(TINY, tmp_path, log=lambda *_: None, stop_after=1)
+    with pytest.raises(ValueError, match="another configuration.*learning_rate"):
+        tune(dataclasses.replace(TINY, learning_rate=0.01), tmp_path, log=lambda *_: None)
+
+
+def test_converges_to_analytic_optimum():
+    """(3,0) at velocity level, no noise/mismatch/limits, loss = tracking + w effort on a line
+    reference: with a ZOH period dt the error obeys e_{k+1} = (1 - lam dt) e_k, so the loss is
+    const + c (1 + w lam^2) / (lam (2 - lam dt)); its minimiser (about 1/sqrt(w)) is the oracle."""
+    w_eff, dt = 0.25, 0.01
+    cfg = TuneConfig(robot="(3,0)", task="posture", reference="line", n_train=4, n_heldout=2, poles_init=0.7,
+                     weights=(1.0, w_eff, 0.0, 0.0, 0.0), steps=150, learning_rate=0.3, patience=1000, ic_position=2.0,
+                     mismatch=0.0, input_limit=(), noise_std=(), t_final=10.0, control_dt=dt, substeps=1,
+                     eval_every=20)
+    res = tune(cfg, None, log=lambda *_: None)
+    lam = float(res["spec"].coefficients(jnp.asarray(res["raw"]))[0, 0])
+    opt = minimize_scalar(lambda x: (1 + w_eff * x * x) / (x * (2 - x * dt)), bounds=(0.1, 10), method="bounded").x
+    assert abs(opt - 2.0) < 0.05 and abs(lam - opt) < 0.005 * opt
+
+
+def test_bad_tuning_input(tmp_path):
+    with pytest.raises(ValueError, match="poles_init must be > 0"):
+        TuneConfig(poles_init=0.0).check()
+    with pytest.raises(ValueError, match="scenario batch is empty"):
+        TuneConfig(n_train=0).check()
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        TuneConfig(weights=(1.0, -1.0, 0.0, 0.0, 0.0)).check()
+    with pytest.raises(ValueError, match="at least one loss weight"):
+        TuneConfig(weights=(0.0,) * 5).check()
+    with pytest.raises(ValueError, match="finite and > 0"):
+        GainSpec(2, 2).init(-1.0)
+    from tuning.__main__ import main
+
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path), "--n-train", "0"])
+
+
+def test_cli_writes_summary(tmp_path):
+    from tuning.__main__ import main
+
+    args = ["--out", str(tmp_path), "--n-train", "3", "--n-heldout", "2", "--steps", "6", "--t-final", "2",
+            "--control-dt", "0.1"]
+    # substeps and eval_every differ from TINY only through defaults; keep them equal to reuse compilations
+    assert TINY.substeps == 2 and TINY.eval_every == 2
+    import tuning.__main__ as cli
+
+    cfg = dataclasses.replace(cli.config_from_args(cli.parser().parse_args(args)), substeps=2, eval_every=2)
+    s = cli.run(cfg, tmp_path, fresh=True, log=lambda *_: None)
+    on_disk = json.loads((tmp_path / "summary.json").read_text())
+    for k in ("initial_gains", "tuned_gains", "train_loss", "heldout_loss", "singularity_events", "rollouts",
+              "rollouts_to_match_baseline", "wall_time_s", "baseline"):
+        assert k in on_disk
+    assert on_disk["rollouts"] == 6 * 3 and set(on_disk["baseline"]) >= {"name", "best_loss", "rollouts_to_best"}
+    assert {"initial", "final"} <= set(on_disk["train_loss"]) and {"paper_gains", "tuned"} <= set(on_disk["heldout_loss"])
+    for f in ("loss.png", "trajectories.png"):
+        assert (tmp_path / f).read_bytes()[:4] == b"\x89PNG"
+    assert s["heldout_loss"] == on_disk["heldout_loss"]
+    assert main is not None

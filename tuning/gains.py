@@ -1,0 +1,135 @@
+r"""Gain parameterisation: Hurwitz error polynomials from unconstrained parameters.
+
+The tuned quantity is an unconstrained array ``raw``; positive quantities come from
+``softplus`` (dynamax style), so every parameter value gives a Hurwitz polynomial:
+
+* ``"damping"`` (default): per output, :math:`\lfloor r/2\rfloor` second-order factors
+  :math:`s^2 + 2\zeta\omega s + \omega^2` (natural frequency :math:`\omega`, damping
+  :math:`\zeta`, both > 0: real or complex pole pairs) times :math:`(s + \lambda)` when r is
+  odd. The paper's double pole at -1 is :math:`\omega = \zeta = 1`. Unlike real poles, whose
+  loss is symmetric under swapping :math:`\lambda_1, \lambda_2` (so gradient descent from the
+  paper's double pole never leaves :math:`\lambda_1 = \lambda_2`), this reaches every Hurwitz
+  polynomial.
+* ``"poles"``: r real poles at :math:`-\lambda_j`, :math:`\lambda_j > 0`.
+
+Shared across axes (one polynomial for every output) or per axis; frozen entries are held
+by ``stop_gradient``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wmrjax.controllers.dynamic import Gains
+
+
+def softplus_inverse(y):
+    """raw with softplus(raw) = y (y > 0), numerically stable."""
+    y = jnp.asarray(y)
+    return y + jnp.log(-jnp.expm1(-y))
+
+
+def _polymul(a, b):
+    """Product of two polynomials given by coefficient lists, highest power first."""
+    out = [0.0 * a[0]] * (len(a) + len(b) - 1)
+    for i, x in enumerate(a):
+        for j, y in enumerate(b):
+            out[i + j] = out[i + j] + x * y
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class GainSpec:
+    """Static description of the tuned gains (hashable; not a pytree).
+
+    Attributes:
+      m, r: the controller's outputs and relative degree.
+      shared: one polynomial for every output (raw shape (r,)) instead of (m, r).
+      frozen: flat indices into raw that are not tuned (held by stop_gradient).
+      parameterization: "damping" or "poles" (module docstring).
+    """
+
+    m: int
+    r: int
+    shared: bool = True
+    frozen: tuple = ()
+    parameterization: str = "damping"
+
+    @property
+    def shape(self):
+        return (self.r,) if self.shared else (self.m, self.r)
+
+    def names(self):
+        """Names of the r positive parameters of one output."""
+        if self.parameterization == "poles":
+            return [f"lambda{j + 1}" for j in range(self.r)]
+        return sum(([f"omega{k + 1}", f"zeta{k + 1}"] for k in range(self.r // 2)), []) + (["lambda"] * (self.r % 2))
+
+    def positive(self, raw):
+        """The positive parameters, raw shape, frozen entries held."""
+        if self.frozen:
+            mask = np.zeros(int(np.prod(self.shape)), bool)
+            mask[list(self.frozen)] = True
+            raw = jnp.where(jnp.asarray(mask.reshape(self.shape)), jax.lax.stop_gradient(raw), raw)
+        return jax.nn.softplus(raw)
+
+    def _coeffs_one(self, p):
+        if self.parameterization == "poles":
+            poly = [jnp.ones_like(p[0])]
+            for lam in p:
+                poly = _polymul(poly, [jnp.ones_like(lam), lam])
+        else:
+            poly = [jnp.ones_like(p[0])]
+            for k in range(self.r // 2):
+                om, ze = p[2 * k], p[2 * k + 1]
+                poly = _polymul(poly, [jnp.ones_like(om), 2.0 * ze * om, om * om])
+            if self.r % 2:
+                poly = _polymul(poly, [jnp.ones_like(p[-1]), p[-1]])
+        return jnp.stack(poly[1:][::-1])     # k_0 .. k_{r-1}: coefficient of d^j/dt^j
+
+    def coefficients(self, raw):
+        """(m, r) coefficients of the error polynomial of each output."""
+        p = self.positive(raw)
+        c = self._coeffs_one(p) if self.shared else jax.vmap(self._coeffs_one)(p)
+        return jnp.broadcast_to(c, (self.m, self.r))
+
+    def gains(self, raw) -> Gains:
+        """:class:`wmrjax.Gains` for the controller (coefficients given directly)."""
+        return Gains(jnp.ones((self.m, self.r)), self.coefficients(raw))
+
+    def closed_loop_poles(self, raw):
+        """Complex closed-loop poles per output, as [[re, im], ...] lists (for reports)."""
+        c = np.asarray(self.coefficients(raw))
+        return [[[float(z.real), float(z.imag)] for z in np.roots(np.concatenate([[1.0], row[::-1]]))] for row in c]
+
+    def init(self, poles):
+        """raw giving every output the real poles -poles (scalar: a repeated pole).
+
+        Raises:
+          ValueError: non-positive or non-finite poles, a bad shape or frozen index.
+        """
+        p = np.asarray(poles, dtype=float)
+        if not np.all(np.isfinite(p)) or np.any(p <= 0):
+            raise ValueError(f"initial pole magnitudes must be finite and > 0 (poles at -p), got {p.tolist()}")
+        if p.ndim == 0:
+            p = np.full(self.r, float(p))
+        if p.shape != (self.r,):
+            raise ValueError(f"initial poles must be a scalar or ({self.r},), got shape {p.shape}")
+        if self.parameterization == "poles":
+            one = p
+        else:
+            one = []
+            for k in range(self.r // 2):
+                a, b = p[2 * k], p[2 * k + 1]
+                one += [np.sqrt(a * b), (a + b) / (2.0 * np.sqrt(a * b))]
+            one += list(p[-1:]) if self.r % 2 else []
+            one = np.asarray(one)
+        full = np.broadcast_to(one, self.shape)
+        for i in self.frozen:
+            if not 0 <= i < full.size:
+                raise ValueError(f"frozen index {i} out of range for {full.size} tuned parameters")
+        return softplus_inverse(jnp.asarray(full))

@@ -1,0 +1,311 @@
+"""The tuning loop: optax on the pole parameters through batched sampled-data rollouts,
+with a held-out split, early stopping, atomic JSON checkpoints, and baselines (the
+paper's gains and a random search given the same rollout budget)."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import json
+import math
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+import wmrjax as w
+from wmrjax import references as R
+from tuning.gains import GainSpec, softplus_inverse
+from tuning.losses import LossWeights, Metrics, certificate_radius, scenario_loss
+from tuning.scenarios import RolloutConfig, Scenario, rollout
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneConfig:
+    """Everything a tuning run depends on (its JSON form fingerprints checkpoints)."""
+
+    robot: str = "(2,0)"
+    task: str = "posture"               # posture: dynamic (restricted) / static (3,0); point: static Table 3
+    reference: str = "paper_62"         # paper_62 | circle | figure_eight | line | random
+    geometry: tuple = (1.0, 0.0, 0.0)   # nominal (L, e, delta) the controller uses
+    n_train: int = 64
+    n_heldout: int = 64
+    poles_init: float = 1.0             # the paper's gains: every pole at -1
+    shared: bool = True
+    frozen: tuple = ()
+    weights: tuple = tuple(LossWeights())
+    steps: int = 40
+    learning_rate: float = 0.3
+    clip: float = 1.0
+    patience: int = 6                   # held-out evaluations without improvement before stopping
+    eval_every: int = 5
+    seed: int = 0
+    mismatch: float = 0.1               # +- relative error on input scales, e and L
+    input_limit: tuple = (5.5, 1.0)     # |input_i| <= limit_i in the plant (empty: none)
+    noise_std: tuple = (0.01, 0.01, 0.005)
+    ic_position: float = 0.5            # +- initial position error [m]
+    ic_velocity: float = 0.5            # +- initial velocity error [m/s] (dynamic laws)
+    t_final: float = 10.0
+    control_dt: float = 0.05
+    substeps: int = 5
+    search_low: float = 0.2             # random search: omega / real poles log-uniform in [low, high],
+    search_high: float = 5.0            # damping log-uniform in [0.3, 3]
+    parameterization: str = "damping"   # or "poles" (real poles only)
+
+    def check(self) -> "TuneConfig":
+        if self.n_train < 1 or self.n_heldout < 1:
+            raise ValueError(f"the scenario batch is empty: n_train = {self.n_train}, n_heldout = {self.n_heldout} "
+                             "(both must be >= 1)")
+        if not (np.isfinite(self.poles_init) and self.poles_init > 0):
+            raise ValueError(f"poles_init must be > 0 (poles at -poles_init), got {self.poles_init}")
+        LossWeights(*self.weights).check()
+        for k in ("learning_rate", "t_final", "control_dt", "clip"):
+            if not (np.isfinite(getattr(self, k)) and getattr(self, k) > 0):
+                raise ValueError(f"{k} must be finite and > 0, got {getattr(self, k)}")
+        if self.steps < 1 or self.substeps < 1 or self.eval_every < 1:
+            raise ValueError("steps, substeps and eval_every must be >= 1")
+        if not 0 <= self.mismatch < 1:
+            raise ValueError(f"mismatch must be in [0, 1), got {self.mismatch}")
+        if self.parameterization not in ("damping", "poles"):
+            raise ValueError(f"parameterization must be 'damping' or 'poles', got {self.parameterization!r}")
+        if not 0 < self.search_low < self.search_high:
+            raise ValueError("random search range must satisfy 0 < search_low < search_high")
+        return self
+
+    def fingerprint(self) -> str:
+        return hashlib.sha256(json.dumps(dataclasses.asdict(self), sort_keys=True).encode()).hexdigest()[:16]
+
+
+# --- set-up ----------------------------------------------------------------------------
+
+def build(cfg: TuneConfig):
+    """(controller, gain spec, nominal geometry, rollout config, train and held-out scenarios)."""
+    cfg.check()
+    ctrl = w.controller(cfg.robot, "velocity", cfg.task)
+    spec = GainSpec(ctrl.m, ctrl.relative_degree, cfg.shared, tuple(cfg.frozen), cfg.parameterization)
+    spec.init(cfg.poles_init)
+    g = w.Geometry(*cfg.geometry)
+    rcfg = RolloutConfig(cfg.t_final, cfg.control_dt, cfg.substeps)
+    key = jax.random.PRNGKey(cfg.seed)
+    k_tr, k_ho = jax.random.split(key)
+    train = make_scenarios(ctrl, cfg, g, k_tr, cfg.n_train)
+    heldout = make_scenarios(ctrl, cfg, g, k_ho, cfg.n_heldout)
+    return ctrl, spec, g, rcfg, train, heldout
+
+
+def _reference(cfg, key):
+    if cfg.reference == "random":
+        return R.random_smooth(key, n_modes=3, speed=1.0, min_speed=0.3, max_omega=0.6, start_scale=2.0)
+    return R.named(cfg.reference)
+
+
+def make_scenarios(ctrl, cfg: TuneConfig, g, key, n) -> Scenario:
+    """n scenarios: initial errors x references x geometry/input-scale mismatch x noise keys."""
+    nX, nu = ctrl.robot.n_state, ctrl.robot.n_input
+    limit = jnp.full(nu, jnp.inf)
+    if cfg.input_limit:
+        if len(cfg.input_limit) != nu:
+            raise ValueError(f"input_limit needs {nu} entries for type {ctrl.robot.name}, got {cfg.input_limit}")
+        limit = jnp.asarray(cfg.input_limit, float)
+    if len(cfg.noise_std) not in (0, 3, nX):
+        raise ValueError(f"noise_std needs 3 or {nX} entries, got {cfg.noise_std}")
+    noise = jnp.zeros(nX).at[: len(cfg.noise_std)].set(jnp.asarray(cfg.noise_std, float))
+
+    def one(k):
+        kr, ki, kv, km, kn = jax.random.split(k, 5)
+        ref = _reference(cfg, kr)
+        params = ctrl.params_unchecked(ref, 1.0, g)
+        if hasattr(ctrl, "inverse_psi") and ctrl.__class__.__name__ == "DynamicLinearization":
+            r = ctrl.relative_degree
+            zeta = ctrl.reference_jet(0.0, params)[:r]
+            zeta = zeta.at[0, :2].add(jax.random.uniform(ki, (2,), minval=-1, maxval=1) * cfg.ic_position)
+            zeta = zeta.at[1, :2].add(jax.random.uniform(kv, (2,), minval=-1, maxval=1) * cfg.ic_velocity)
+            z0 = ctrl.inverse_psi(zeta, g, float(ctrl.reference_branch(params)))
+        else:
+            post = ref.posture(0.0)
+            X = jnp.zeros(nX).at[:3].set(post)
+            if params.steering is not None:
+                X = X.at[nX - 1].set(params.steering(0.0))
+            X = X.at[:2].add(post[:2] - ctrl.outputs(X, g)[:2])
+            z0 = X.at[:2].add(jax.random.uniform(ki, (2,), minval=-1, maxval=1) * cfg.ic_position)
+        rho = jax.random.uniform(km, (nu + 2,), minval=-cfg.mismatch, maxval=cfg.mismatch)
+        pg = w.Geometry(L=g.L * (1 + rho[nu]), e=g.e * (1 + rho[nu + 1]), delta=g.delta)
+        return Scenario(z0, ref, pg, 1.0 + rho[:nu], limit, noise, kn)
+
+    return jax.vmap(one)(jax.random.split(key, n))
+
+
+# --- compiled pieces (module level: repeated runs with one configuration reuse them) ---------
+
+def _per_scenario(raw, sc, ctrl, spec, g, rcfg, w_arr):
+    m = rollout(ctrl, spec.gains(raw), g, sc, rcfg)
+    return scenario_loss(m, LossWeights(*w_arr)), m
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3, 5))
+def batch_value_and_grad(raw, scen, ctrl, spec, g, rcfg, w_arr):
+    """Mean loss and gradient over the scenarios that stayed valid; NaN scenarios are excluded.
+
+    Per-scenario gradients (vmapped) so a scenario whose value or gradient is not finite is
+    dropped from both, never averaged in.
+    """
+    vg = jax.vmap(jax.value_and_grad(_per_scenario, has_aux=True), in_axes=(None, 0, None, None, None, None, None))
+    (L, m), G = vg(raw, scen, ctrl, spec, g, rcfg, w_arr)
+    ok = m.valid & jnp.isfinite(L) & jnp.all(jnp.isfinite(G.reshape(G.shape[0], -1)), axis=1)
+    n = jnp.sum(ok)
+    loss = jnp.sum(jnp.where(ok, L, 0.0)) / jnp.maximum(n, 1)
+    grad = jnp.sum(jnp.where(ok.reshape((-1,) + (1,) * (G.ndim - 1)), G, 0.0), axis=0) / jnp.maximum(n, 1)
+    return loss, grad, ok, m
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3, 5))
+def batch_value(raw, scen, ctrl, spec, g, rcfg, w_arr):
+    """Mean loss (valid scenarios only), validity mask and metrics; forward only."""
+    L, m = jax.vmap(_per_scenario, in_axes=(None, 0, None, None, None, None, None))(raw, scen, ctrl, spec, g, rcfg, w_arr)
+    ok = m.valid & jnp.isfinite(L)
+    return jnp.sum(jnp.where(ok, L, 0.0)) / jnp.maximum(jnp.sum(ok), 1), ok, m
+
+
+def certificate_setup(ctrl, ref_name, g, t_final, eps=1e-2, n_t=501):
+    """M1 on a grid for the certificate term (closed form), or None where not available."""
+    from wmrjax import certify
+
+    if ref_name == "random" or ctrl.__class__.__name__ != "DynamicLinearization" or ctrl.robot.name == "(1,2)":
+        return None
+    params = ctrl.params_unchecked(R.named(ref_name), 1.0, g)
+    ts = jnp.linspace(0.0, t_final, n_t)
+    return ts, certify.m1_closed_form(ctrl, params, ts), eps
+
+
+# --- checkpoints --------------------------------------------------------------------------
+
+def _write_json_atomic(path: Path, obj) -> None:
+    from experiments._common import write_json
+
+    write_json(path, obj)
+
+
+def save_checkpoint(path: Path, cfg: TuneConfig, step, raw, opt_state, state: dict) -> None:
+    leaves = [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(opt_state)]
+    _write_json_atomic(path, {"fingerprint": cfg.fingerprint(), "config": dataclasses.asdict(cfg), "step": step,
+                              "raw": np.asarray(raw).tolist(), "opt_state": leaves, "state": state})
+
+
+def load_checkpoint(path: Path, cfg: TuneConfig, opt_state_template):
+    """(step, raw, opt_state, state) from a JSON checkpoint; ValueError if it is another configuration's."""
+    d = json.loads(Path(path).read_text())
+    if d.get("fingerprint") != cfg.fingerprint():
+        diff = {k: (d.get("config", {}).get(k), v) for k, v in dataclasses.asdict(cfg).items()
+                if json.loads(json.dumps(d.get("config", {}).get(k))) != json.loads(json.dumps(v))}
+        raise ValueError(f"checkpoint {path} belongs to another configuration (differs in {sorted(diff)}); "
+                         "use another --out directory or delete the checkpoint")
+    treedef = jax.tree_util.tree_structure(opt_state_template)
+    tmpl = jax.tree_util.tree_leaves(opt_state_template)
+    leaves = [jnp.asarray(np.asarray(v, dtype=np.asarray(t).dtype).reshape(np.shape(t))) for v, t in zip(d["opt_state"], tmpl)]
+    return d["step"], jnp.asarray(d["raw"]), jax.tree_util.tree_unflatten(treedef, leaves), d["state"]
+
+
+# --- the loop -----------------------------------------------------------------------------
+
+def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None) -> dict:
+    """Run (or resume) a tuning job; returns a dict with gains, histories and counts.
+
+    Args:
+      out_dir: where ``checkpoint.json`` lives (None: no checkpointing).
+      stop_after: stop after this many steps of *this* call (to test resumption).
+    """
+    ctrl, spec, g, rcfg, train, heldout = build(cfg)
+    w_arr = jnp.asarray(cfg.weights, float)
+    wts = LossWeights(*cfg.weights)
+    cert = certificate_setup(ctrl, cfg.reference, g, cfg.t_final) if wts.certificate > 0 else None
+    if wts.certificate > 0 and cert is None:
+        raise ValueError("the certificate term needs a dynamic (posture) controller of type (2,0), (2,1) or (1,1) "
+                         "and a named reference")
+
+    def cert_term(raw):
+        if cert is None:
+            return jnp.asarray(0.0)
+        ts, m1, eps = cert
+        return -wts.certificate * certificate_radius(spec.gains(raw), m1, ts, eps)
+
+    cert_vg = jax.jit(jax.value_and_grad(cert_term))
+    opt = optax.chain(optax.clip_by_global_norm(cfg.clip),
+                      optax.adam(optax.cosine_decay_schedule(cfg.learning_rate, cfg.steps, alpha=0.1)))
+    raw = spec.init(cfg.poles_init)
+    opt_state = opt.init(raw)
+    state = {"history": [], "best": None, "best_raw": None, "since_best": 0, "rollouts": 0, "excluded": 0,
+             "wall_time_s": 0.0, "stopped_early": False}
+    ckpt = Path(out_dir) / "checkpoint.json" if out_dir is not None else None
+    start = 0
+    if ckpt is not None and ckpt.exists():
+        start, raw, opt_state, state = load_checkpoint(ckpt, cfg, opt_state)
+        log(f"resumed from {ckpt} at step {start}")
+    t0 = time.perf_counter() - state["wall_time_s"]
+    done_here = 0
+    step = start
+    while step < cfg.steps and not state["stopped_early"]:
+        loss, grad, ok, m = batch_value_and_grad(raw, train, ctrl, spec, g, rcfg, w_arr)
+        c_val, c_grad = cert_vg(raw)
+        n_ok = int(jnp.sum(ok))
+        if n_ok == 0:
+            raise RuntimeError(f"step {step}: every training scenario failed (non-finite or singular)")
+        total = float(loss + c_val)
+        state["rollouts"] += cfg.n_train
+        state["excluded"] += cfg.n_train - n_ok
+        rec = {"step": step, "train_loss": total, "rollouts": state["rollouts"], "excluded": cfg.n_train - n_ok,
+               "params": np.asarray(spec.positive(raw)).tolist()}
+        if (step + 1) % cfg.eval_every == 0 or step == 0 or step + 1 == cfg.steps:
+            ho, _, _ = batch_value(raw, heldout, ctrl, spec, g, rcfg, w_arr)
+            ho = float(ho + c_val)
+            rec["heldout_loss"] = ho
+            if state["best"] is None or ho < state["best"]:
+                state["best"], state["best_raw"], state["since_best"] = ho, np.asarray(raw).tolist(), 0
+            else:
+                state["since_best"] += 1
+                if state["since_best"] >= cfg.patience:
+                    state["stopped_early"] = True
+        state["history"].append(rec)
+        upd, opt_state = opt.update(grad + c_grad, opt_state, raw)
+        raw = optax.apply_updates(raw, upd)
+        step += 1
+        done_here += 1
+        state["wall_time_s"] = time.perf_counter() - t0
+        log(f"step {step:4d}/{cfg.steps}  train {total:.5g}" + (f"  held-out {rec['heldout_loss']:.5g}" if "heldout_loss" in rec else "")
+            + f"  {'/'.join(spec.names())} {np.round(np.asarray(spec.positive(raw)), 3).tolist()}"
+            + (f"  excluded {cfg.n_train - n_ok}" if n_ok < cfg.n_train else "") + f"  ({state['wall_time_s']:.1f} s)")
+        if ckpt is not None:
+            save_checkpoint(ckpt, cfg, step, raw, opt_state, state)
+        if stop_after is not None and done_here >= stop_after:
+            break
+    finished = step >= cfg.steps or state["stopped_early"]
+    return {"finished": finished, "raw": np.asarray(raw), "best_raw": np.asarray(state["best_raw"]),
+            "state": state, "spec": spec, "ctrl": ctrl, "geometry": g, "rcfg": rcfg, "train": train,
+            "heldout": heldout, "w_arr": w_arr, "cert_term": cert_term}
+
+
+def random_search(cfg: TuneConfig, ctrl, spec, g, rcfg, train, w_arr, cert_term, budget_rollouts, key):
+    """Baseline: poles log-uniform in [search_low, search_high], same rollout budget (B per candidate)."""
+    n_cand = max(1, budget_rollouts // cfg.n_train)
+    u = np.asarray(jax.random.uniform(key, (n_cand,) + spec.shape))
+    lo = np.full(spec.r, np.log(cfg.search_low))
+    hi = np.full(spec.r, np.log(cfg.search_high))
+    if spec.parameterization == "damping":
+        lo[1:2 * (spec.r // 2):2], hi[1:2 * (spec.r // 2):2] = np.log(0.3), np.log(3.0)
+    positive = np.exp(lo + (hi - lo) * u)
+    raws = softplus_inverse(jnp.asarray(positive))
+    losses = []
+    for r in raws:
+        val, _, _ = batch_value(r, train, ctrl, spec, g, rcfg, w_arr)
+        losses.append(float(val + cert_term(r)))
+    losses = np.asarray(losses)
+    best_so_far = np.minimum.accumulate(losses)
+    i = int(np.argmin(losses))
+    return {"name": f"random search over {'/'.join(spec.names())} (log-uniform: frequencies and real poles in "
+                    f"[{cfg.search_low}, {cfg.search_high}], damping in [0.3, 3])", "candidates": n_cand,
+            "best_loss": float(losses[i]), "rollouts_to_best": (i + 1) * cfg.n_train,
+            "best_params": np.asarray(positive[i]).tolist(), "best_poles": spec.closed_loop_poles(raws[i]),
+            "best_so_far": best_so_far.tolist(), "rollouts_per_candidate": cfg.n_train}

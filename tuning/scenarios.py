@@ -1,0 +1,101 @@
+r"""Scenario batches and the sampled-data rollout used for tuning.
+
+A *scenario* is one closed-loop experiment: an initial state, a reference, the plant's true
+geometry and input scale (model mismatch: wheel radius, axle length, e, L), actuator
+limits (the plant saturates; the controller does not know), a sensor-noise key. The
+controller runs at a fixed rate with a zero-order hold: at each sample it measures the
+posture (plus noise), evaluates the linearizing law with its *nominal* geometry, and holds
+the command while the plant is integrated by RK4 substeps. With no noise, no mismatch, no
+limits and a fast rate this is the nominal exact-linearization loop.
+
+All arrays are per scenario; :func:`rollout` is a pure function of one scenario, batched
+with ``jax.vmap``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from wmrjax import robots
+from wmrjax.robots import Geometry
+from tuning.losses import Metrics
+
+
+class Scenario(NamedTuple):
+    """One tuning scenario (a pytree; stack along a leading axis for a batch)."""
+
+    z0: jnp.ndarray            # controller state (plant posture/steering + compensator)
+    reference: object          # wmrjax.references.Reference (its params may be batched)
+    plant_geometry: Geometry   # the true geometry
+    input_scale: jnp.ndarray   # (n_input,) true input = scale * command (wheel radius, axle errors)
+    input_limit: jnp.ndarray   # (n_input,) |true input| <= limit (inf: none)
+    noise_std: jnp.ndarray     # (n_state_X,) std of the posture/steering measurement noise
+    key: jnp.ndarray           # PRNG key of the noise
+
+
+class RolloutConfig(NamedTuple):
+    """Static rollout settings (hashable)."""
+
+    t_final: float = 10.0
+    control_dt: float = 0.05     # controller period [s] (zero-order hold)
+    substeps: int = 5            # RK4 steps of the plant per controller period
+    margin_safe: float = 0.2     # barrier starts below this |det K|
+    margin_floor: float = 1e-6   # at or below: singular, the scenario is invalid
+
+    @property
+    def n_periods(self) -> int:
+        return int(round(self.t_final / self.control_dt))
+
+
+def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, trajectory: bool = False):
+    """Simulate one scenario under the (velocity-level) linearizing law; returns :class:`Metrics`
+    (and with ``trajectory`` the sampled plant states and commands)."""
+    ext = ctrl.extension
+    nX = ctrl.robot.n_state
+    params = ctrl.params_unchecked(sc.reference, 1.0, nominal_geometry)._replace(gains=gains)
+    h = cfg.control_dt / cfg.substeps
+
+    def plant(X, u):
+        return robots.kinematic(ctrl.robot, X, u, sc.plant_geometry)
+
+    def period(carry, k):
+        z, alive, acc = carry
+        t = k * cfg.control_dt
+        X, c = z[:nX], z[nX:]
+        noise = sc.noise_std * jax.random.normal(jax.random.fold_in(sc.key, k), (nX,))
+        zm = jnp.concatenate([X + noise, c])
+        U, margin = ctrl.control(t, zm, params)
+        u_cmd = ext.plant_input(zm[:nX], c, U, nominal_geometry)
+        u_true = jnp.clip(sc.input_scale * u_cmd, -sc.input_limit, sc.input_limit)
+        c_next = c + cfg.control_dt * ext.compensator(zm[:nX], c, U, nominal_geometry)   # digital integrator
+
+        def sub(X, _):
+            k1 = plant(X, u_true)
+            k2 = plant(X + 0.5 * h * k1, u_true)
+            k3 = plant(X + 0.5 * h * k2, u_true)
+            k4 = plant(X + h * k3, u_true)
+            return X + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4), None
+
+        X_next, _ = jax.lax.scan(sub, X, None, length=cfg.substeps)
+        err = ctrl.error(t, z, params)[0]
+        excess = jax.nn.relu(jnp.abs(sc.input_scale * u_cmd) - sc.input_limit)
+        terms = jnp.stack([jnp.sum(err**2), jnp.sum(u_cmd**2), jnp.sum(jnp.where(jnp.isfinite(excess), excess, 0.0) ** 2),
+                           jax.nn.relu(1.0 - margin / cfg.margin_safe) ** 2])
+        z_next = jnp.concatenate([X_next, c_next])
+        ok = alive & jnp.all(jnp.isfinite(z_next)) & jnp.all(jnp.isfinite(terms)) & (margin > cfg.margin_floor)
+        singular = alive & ~(margin > cfg.margin_floor)
+        z_keep = jnp.where(ok, z_next, z)                       # freeze a failed run: no NaN downstream
+        terms = jnp.where(ok, terms, 0.0)
+        acc = (acc[0] + terms, jnp.minimum(acc[1], jnp.where(alive, margin, jnp.inf)), acc[2] | singular)
+        out = (z, u_cmd) if trajectory else None
+        return (z_keep, ok, acc), out
+
+    acc0 = (jnp.zeros(4), jnp.asarray(jnp.inf), jnp.asarray(False))
+    (zf, alive, (tot, mmin, sing)), traj = jax.lax.scan(period, (sc.z0, jnp.asarray(True), acc0),
+                                                        jnp.arange(cfg.n_periods))
+    mean = tot / cfg.n_periods
+    m = Metrics(mean[0], mean[1], mean[2], mean[3], alive, sing, mmin)
+    return (m, traj) if trajectory else m
