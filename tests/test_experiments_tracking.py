@@ -1,0 +1,27 @@
+"""Experiment entry points (see README): they run and write what the README promises."""
+
+import json
+
+
+def test_posture_tracking_smoke(tmp_path):
+    from experiments import posture_tracking
+
+    s = posture_tracking.run(tmp_path, n_random=16, t_final=4.0, dt=0.02, kinds=("(2,1)",), levels=("velocity",))
+    for level in ("velocity",):
+        r = s["cases"][f"(2,1) {level}"]["random"]
+        assert r["n_runs"] == 16 and r["fraction_references_regular"] == 1.0
+        assert 0.0 <= r["fraction_converged"] <= 1.0 and r["fraction_flagged_singular"] == 0.0
+        assert r["final_position_error_m"]["max"] < 0.5
+    assert (tmp_path / "posture_21.png").read_bytes()[:4] == b"\x89PNG"
+    assert json.loads((tmp_path / "summary.json").read_text())["cases"].keys() == s["cases"].keys()
+
+
+def test_static_tracking_smoke(tmp_path):
+    from experiments import static_tracking
+
+    s = static_tracking.run(tmp_path, n_random=8, t_final=6.0, dt=0.02, kinds=("(2,0)",), levels=("velocity",))
+    r = s["cases"]["(2,0) velocity"]["random"]
+    assert r["n_runs"] == 8 and r["fraction_flagged_singular"] == 0.0 and r["fraction_converged"] == 1.0
+    assert abs(r["min_abs_det_K_over_runs"] - 0.3) < 1e-9          # e sin(delta), delta = pi/2
+    assert r["max_norm_z3"]["max"] > 0 and s["cases"]["(2,0) velocity"]["circle"]["final_point_error_m"] < 1e-2
+    assert (tmp_path / "static_20.png").read_bytes()[:4] == b"\x89PNG"
