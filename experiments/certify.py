@@ -15,8 +15,9 @@ Writes ``summary.json`` and ``slice_map.png``: min_t dist(zeta(t), S) over a gri
 initial position errors (velocities equal to the reference's), with the eps contour and
 every certified circle.
 
-For (1,2) the singular set is curved: no closed-form M1 or exact-map radius; M1 comes from
-the numerical Remark 16 distance and the empirical/falsifier measure is min_t |det K|.
+For (1,2) the singular set is curved (sigma(zeta) = 0, see wmrjax.certify.m1_closed_form): M1
+has a closed form (a one-dimensional minimisation) but there is no exact-map radius, and the
+empirical/falsifier measure is min_t |det K|.
 """
 
 from __future__ import annotations

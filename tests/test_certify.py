@@ -170,3 +170,35 @@ def test_bad_exact_map_arguments(paper61):
     p12 = c12.params(R.circle(), geometry=w.Geometry(L=0.5, e=0.3, delta=0.5))
     with pytest.raises(ValueError, match="curved singular set"):
         C.exact_map_radius(c12, p12, 5.0, 1e-2)
+
+
+def test_m1_closed_form_12_is_the_distance_to_its_singular_set(rng):
+    """(1,2): singular iff the body-frame lateral velocity of P vanishes. Every point of that set is
+    at least M1 away, and the minimiser is at exactly M1 with sin(b1) sin(b2) = 0 after Psi^-1."""
+    c12 = w.dynamic_linearization("(1,2)")
+    g = w.Geometry(L=0.5, e=0.3, delta=0.5)
+    params = c12.params(R.figure_eight(size=4.0, omega=0.25, heading_offset=0.5), geometry=g)
+    ts = jnp.array([1.0, 3.0, 6.0])
+    m1 = np.asarray(C.m1_closed_form(c12, params, ts))
+    es = 0.3 * math.sin(0.5)
+    for t, m in zip(np.asarray(ts), m1):
+        jet = np.asarray(c12.reference_jet(jnp.asarray(t), params)[:2])
+
+        def on_set(dth, vel):        # project a velocity row onto sigma = 0 at heading theta_ref + dth
+            th = jet[0, 2] + dth
+            n = np.array([np.cos(th), np.sin(th), es])
+            return vel - (n @ vel) * n / (n @ n), th
+
+        d = []
+        for dth in rng.uniform(-np.pi, np.pi, 2000):
+            v, th = on_set(dth, jet[1] + rng.normal(size=3) * 0.3)
+            d.append(np.sqrt(dth**2 + np.sum((v - jet[1]) ** 2)))
+        assert min(d) >= m - 1e-9
+        ths = np.linspace(-np.pi, np.pi, 200001)
+        vals = ths**2 + (np.cos(jet[0, 2] + ths) * jet[1, 0] + np.sin(jet[0, 2] + ths) * jet[1, 1] + es * jet[1, 2]) ** 2 / (1 + es**2)
+        best = ths[np.argmin(vals)]
+        np.testing.assert_allclose(np.sqrt(vals.min()), m, rtol=1e-6)
+        v, th = on_set(best, jet[1])
+        zeta = jnp.asarray(np.stack([jet[0] + np.array([0.0, 0.0, best]), v]))
+        X = np.asarray(c12.inverse_psi(zeta, g, 1.0))
+        assert abs(np.sin(X[3]) * np.sin(X[4])) < 1e-9

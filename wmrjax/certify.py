@@ -45,18 +45,51 @@ def m1_closed_form(ctrl: DynamicLinearization, params: DynamicParams, ts):
     At torque level the higher rows of :math:`\zeta` can be matched on the singular set
     (for (1,1) on the family L sin(beta) + e cos(beta) = 0), so the same formula holds.
 
+    For (1,2), :math:`\eta_1\sin\beta_1\sin\beta_2 = 0` exactly when the body-frame lateral
+    velocity of P vanishes (both wheels' lateral components equal it), i.e. on the curved
+    hypersurface :math:`\sigma(\zeta) = \cos\theta\,\dot h_1 + \sin\theta\,\dot h_2 + e\sin\delta\,\dot\theta = 0`.
+    For fixed :math:`\theta` it is a hyperplane in :math:`(\dot h_1, \dot h_2, \dot\theta)` with
+    normal :math:`(\cos\theta, \sin\theta, e\sin\delta)`, so
+    :math:`M_1^2 = \min_\theta (\theta - \theta_{ref})^2 + \sigma_\theta(\zeta_{ref})^2 / (1 + e^2\sin^2\delta)`,
+    a one-dimensional minimisation (grid over a full turn, then golden section).
+
     Args:
       ctrl, params: the closed loop.
       ts: (T,) times [s].
 
     Returns:
       (T,) array.
-
-    Raises:
-      ValueError: for (1,2), whose singular set is curved (use :func:`m1_numerical`).
     """
+    g = params.geometry
     if ctrl.robot.name == "(1,2)":
-        raise ValueError("no closed-form M1 for type (1,2): use m1_numerical (Remark 16)")
+        es = g.e * jnp.sin(g.delta)
+        grid = jnp.linspace(-math.pi, math.pi, 721)
+        gr = 0.5 * (math.sqrt(5.0) - 1.0)
+
+        def one(t):
+            jet = ctrl.reference_jet(t, params)
+            th_r, v = jet[0, 2], jet[1]
+
+            def d2(dth):
+                s, c = jnp.sin(th_r + dth), jnp.cos(th_r + dth)
+                sig = c * v[0] + s * v[1] + es * v[2]
+                return dth**2 + sig**2 / (1.0 + es**2)
+
+            vals = jax.vmap(d2)(grid)
+            i = jnp.argmin(vals)
+            lo, hi = grid[jnp.maximum(i - 1, 0)], grid[jnp.minimum(i + 1, grid.shape[0] - 1)]
+
+            def golden(c, _):
+                lo, hi = c
+                x1, x2 = hi - gr * (hi - lo), lo + gr * (hi - lo)
+                left = d2(x1) <= d2(x2)
+                return (jnp.where(left, lo, x1), jnp.where(left, x2, hi)), None
+
+            (lo, hi), _ = jax.lax.scan(golden, (lo, hi), None, length=60)
+            return jnp.sqrt(jnp.minimum(d2(0.5 * (lo + hi)), vals[i]))
+
+        return jax.vmap(one)(jnp.asarray(ts))
+
     def one(t):
         jet = ctrl.reference_jet(t, params)
         return jnp.sqrt(jnp.sum(jet[1, :2] ** 2))
@@ -220,8 +253,8 @@ def lemma2(ctrl: DynamicLinearization, params: DynamicParams, t_final: float, ep
     """All certificates of this module for one closed loop over [0, t_final].
 
     Args:
-      m1: "closed" (Lemma 3 analogues), "numerical" (Remark 16), or "auto" (closed form
-        where it exists).
+      m1: "closed" (Lemma 3 and analogues, every type; the default "auto" is the same) or
+        "numerical" (Remark 16 by local search: an upper bound, not conservative).
 
     Returns:
       dict of :class:`Certificate` keyed "paper" (only for double poles at -1, r = 2),
@@ -230,7 +263,7 @@ def lemma2(ctrl: DynamicLinearization, params: DynamicParams, t_final: float, ep
     check_lemma2_args(eps, t_final)
     A = ctrl.error_matrix(params.gains)
     ts = jnp.linspace(0.0, t_final, n_t)
-    use_closed = m1 == "closed" or (m1 == "auto" and ctrl.robot.name != "(1,2)")
+    use_closed = m1 in ("closed", "auto")
     m1v = m1_closed_form(ctrl, params, ts) if use_closed else m1_numerical(ctrl, params, ts)
     check_lemma2_args(eps, t_final, m1v)
     out = {"m1_method": "closed form (Lemma 3)" if use_closed else "numerical (Remark 16)"}
