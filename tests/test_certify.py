@@ -143,9 +143,10 @@ def test_empirical_radius_finds_the_exact_one(paper61, exact61):
     assert er["per_direction"][1] == np.inf and er["radius"] == er["per_direction"][0]
 
 
-def test_falsifier_finds_planted_failure_and_respects_certificates(paper61, exact61):
-    """Just outside the exact radius (position slice) the falsifier, from random directions, finds a
-    run within eps of the singular set; just inside, nothing it finds is (every certificate is below)."""
+def test_falsifier_finds_planted_failure_and_respects_certificates(paper61, cert61, exact61):
+    """Just outside the exact radius (position slice) the falsifier, from directions that miss the
+    unsafe one, finds a run within eps of the singular set; just inside, nothing it finds is; and
+    every certified radius lies below the radius at which it found a failure."""
     ctrl, params, _ = paper61
     rad = float(exact61["position"].radius)
     ang = jnp.linspace(0.0, 2 * np.pi, 16, endpoint=False) + 0.1      # none of them on the unsafe diagonal
@@ -156,6 +157,8 @@ def test_falsifier_finds_planted_failure_and_respects_certificates(paper61, exac
     assert abs(float(jnp.linalg.norm(e)) - 1.03 * rad) < 1e-9 and np.allclose(np.asarray(e)[2:], 0.0)
     inside = C.falsify(ctrl, params, 0.97 * rad, starts, dt=0.02, n_steps=500, basis="position", steps=40, n_windows=2)
     assert float(jnp.min(inside.distance)) > 1e-2
+    for name in ("paper", "lyapunov", "exact_norm"):
+        assert float(cert61[name].radius) <= 1.03 * rad
 
 
 def test_bad_exact_map_arguments(paper61):
