@@ -20,7 +20,7 @@ import sys
 import time
 
 from experiments import _common
-from experiments.posture_tracking import figure
+from experiments.posture_tracking import cli, figure
 
 KINDS = ("(3,0)", "(2,0)", "(2,1)", "(1,1)", "(1,2)")
 LEVELS = ("velocity", "torque")
@@ -149,24 +149,7 @@ def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol=1e-2, kinds=K
 
 
 def main(argv=None) -> int:
-    p = _common.parser(__doc__.splitlines()[0], "results/static_tracking")
-    p.add_argument("--n-random", type=int, default=1024, help="random references per (type, level) (default 1024)")
-    p.add_argument("--t-final", type=float, default=15.0, help="horizon [s]")
-    p.add_argument("--dt", type=float, default=0.01, help="RK4 step [s]")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--types", nargs="+", default=list(KINDS), help="subset of (3,0) (2,0) (2,1) (1,1) (1,2)")
-    a = p.parse_args(argv)
-    if a.n_random < 1 or not a.t_final > 0 or not a.dt > 0:
-        p.error("--n-random must be >= 1, --t-final and --dt > 0")
-    import wmrjax as w
-
-    try:
-        kinds = tuple(w.robot_type(k).name for k in a.types)
-    except ValueError as exc:
-        p.error(str(exc))
-    run(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=kinds)
-    print(f"wrote {a.out}/summary.json and one PNG per type")
-    return 0
+    return cli(argv, __doc__, "results/static_tracking", KINDS, run)
 
 
 if __name__ == "__main__":

@@ -413,6 +413,12 @@ class DynamicLinearization:
           poles: scalar, (r,), or (m, r) positive pole magnitudes (poles at ``-poles``).
           geometry: :class:`wmrjax.Geometry`.
         """
+        p = self._checked_poles(reference, poles, geometry)
+        self._check_geometry_regular(geometry)
+        return DynamicParams(Gains(p), reference, geometry)
+
+    def _checked_poles(self, reference, poles, geometry):
+        """Validate the geometry, the reference type and the poles; return poles as (m, r)."""
         robots.check_geometry(geometry)
         if not isinstance(reference, Reference):
             raise ValueError(f"reference must be a wmrjax.references.Reference, got {type(reference).__name__}")
@@ -424,8 +430,7 @@ class DynamicLinearization:
             p = jnp.broadcast_to(p, (m, r))
         check_shape("poles", p, (m, r), f"one pole magnitude per output and derivative order, r = {r}")
         check_positive("poles (closed-loop poles are at -poles; they must be > 0 for a Hurwitz error dynamics)", p)
-        self._check_geometry_regular(geometry)
-        return DynamicParams(Gains(p), reference, geometry)
+        return p
 
     def params_unchecked(self, reference: Reference, poles, geometry: Geometry) -> DynamicParams:
         """Like :meth:`params` without validation: for use inside ``vmap``/``jit`` (traced values)."""
@@ -516,18 +521,23 @@ class DynamicLinearization:
           ValueError: wrong shapes, non-finite values, a singular state, or a branch that
             differs from the reference's (Remark 17).
         """
-        X = jnp.asarray(X, dtype=jnp.result_type(float))
-        u = jnp.asarray(u, dtype=jnp.result_type(float))
-        check_shape("X", X, (self.robot.n_state,), "(x, y, theta, beta...)")
-        check_shape("u", u, (self.robot.n_input,), "(eta..., zeta...) wheel velocities")
-        check_finite("X", X)
-        check_finite("u", u)
+        X, u = self._physical(X, u)
         c, U = self.extension.from_physical(X, u, params.geometry)
         z = jnp.concatenate([X, c] + ([U] if self.level == "torque" else []))
         self.check_regular(z, params)
         q = float(self.branch_quantity(z, params.geometry))
         self._check_branch(1 if q >= 0 else -1, self.reference_branch(params))
         return z
+
+    def _physical(self, X, u):
+        """Validated (X, u): posture and steering angles, wheel velocities."""
+        X = jnp.asarray(X, dtype=jnp.result_type(float))
+        u = jnp.asarray(u, dtype=jnp.result_type(float))
+        check_shape("X", X, (self.robot.n_state,), "(x, y, theta, beta...)")
+        check_shape("u", u, (self.robot.n_input,), "(eta..., zeta...) wheel velocities")
+        check_finite("X", X)
+        check_finite("u", u)
+        return X, u
 
     def _check_branch(self, branch, ref_branch):
         if branch not in (1, -1, 1.0, -1.0):
@@ -548,8 +558,11 @@ class DynamicLinearization:
         m = float(self.margin(jnp.asarray(zc), params.geometry))
         if not m > 1e3 * DET_FLOOR:
             raise ValueError(
-                f"{name} is on the singular set of the dynamic linearizing law for type {self.robot.name}: "
-                f"margin |det K(X_e)| = {m:.3g}; Table 4 requires {self.extension.regularity}")
+                f"{name} is on the singular set of the {self._law} for type {self.robot.name}: "
+                f"margin |det K| = {m:.3g}; {self._table} requires {self.extension.regularity}")
+
+    _law = "dynamic linearizing law"
+    _table = "Table 4"
 
     def reference_margins(self, params: DynamicParams, t_final, n: int = 201, t0=0.0):
         """Margin and branch quantity of :math:`(X_e)_{ref}(t)` on a uniform grid of n times."""

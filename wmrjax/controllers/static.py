@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import _math, robots
-from wmrjax._validate import check_finite, check_positive, check_shape, concrete
+from wmrjax._validate import concrete
 from wmrjax.controllers.dynamic import DynamicExtension, DynamicLinearization, Gains, LEVELS
 from wmrjax.references import Reference, taylor
 from wmrjax.robots import Geometry
@@ -207,17 +207,7 @@ class StaticLinearization(DynamicLinearization):
           ValueError: non-positive poles, a geometry violating Table 3's regularity condition,
             or a steering reference on the singular set.
         """
-        robots.check_geometry(geometry)
-        if not isinstance(reference, Reference):
-            raise ValueError(f"reference must be a wmrjax.references.Reference, got {type(reference).__name__}")
-        r, m = self.relative_degree, self.m
-        p = jnp.asarray(poles, dtype=jnp.result_type(float))
-        if p.ndim == 0:
-            p = jnp.full((m, r), p)
-        elif p.shape == (r,):
-            p = jnp.broadcast_to(p, (m, r))
-        check_shape("poles", p, (m, r), f"one pole magnitude per output and derivative order, r = {r}")
-        check_positive("poles (Lambda: the closed-loop poles are at -poles; they must be > 0)", p)
+        p = self._checked_poles(reference, poles, geometry)
         self.check_geometry_table3(geometry)
         if self.table3.steering_index is None:
             steering = None
@@ -276,26 +266,13 @@ class StaticLinearization(DynamicLinearization):
         Raises:
           ValueError: wrong shapes, non-finite values, or a state on Table 3's singular set.
         """
-        X = jnp.asarray(X, dtype=jnp.result_type(float))
-        u = jnp.asarray(u, dtype=jnp.result_type(float))
-        check_shape("X", X, (self.robot.n_state,), "(x, y, theta, beta...)")
-        check_shape("u", u, (self.robot.n_input,), "(eta..., zeta...) wheel velocities")
-        check_finite("X", X)
-        check_finite("u", u)
+        X, u = self._physical(X, u)
         z = X if self.level == "velocity" else jnp.concatenate([X, u])
         self.check_regular(z, params)
         return z
 
-    def check_regular(self, z, params, name: str = "initial state") -> None:
-        zc = concrete(z)
-        if zc is None:
-            return
-        check_shape(name, zc, (self.n_state,), " ".join(self.state_names))
-        check_finite(name, zc)
-        m = float(self.margin(jnp.asarray(zc), params.geometry))
-        if not m > 1e-9:
-            raise ValueError(f"{name} is on the singular set of Table 3 for type {self.robot.name}: "
-                             f"|det K| = {m:.3g}; Table 3 requires {self.table3.regularity}")
+    _law = "static linearizing law"
+    _table = "Table 3"
 
     def reference_branch(self, params) -> int:
         return 1
