@@ -193,6 +193,7 @@ def _figures(out, cfg, res, hist, rs, paper_raw, tuned_raw):
     for a in axs:
         a.grid(alpha=0.3)
         a.legend(fontsize=8)
+    fig.tight_layout()
     _common.save_figure(fig, out / "trajectories.png")
     plt.close(fig)
 
