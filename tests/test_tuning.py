@@ -86,7 +86,7 @@ def test_converges_to_analytic_optimum():
     w_eff, dt = 0.25, 0.01
     cfg = TuneConfig(robot="(3,0)", task="posture", reference="line", n_train=4, n_heldout=2, poles_init=0.7,
                      weights=(1.0, w_eff, 0.0, 0.0, 0.0), steps=150, learning_rate=0.3, patience=1000, ic_position=2.0,
-                     mismatch=0.0, input_limit=(), noise_std=(), t_final=10.0, control_dt=dt, substeps=1,
+                     mismatch=0.0, input_limit=(), noise_std=(), t_final=8.0, control_dt=dt, substeps=1,
                      eval_every=20)
     res = tune(cfg, None, log=lambda *_: None)
     lam = float(res["spec"].coefficients(jnp.asarray(res["raw"]))[0, 0])
