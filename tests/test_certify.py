@@ -27,17 +27,6 @@ def test_m1_lemma3_equals_eq65_and_numerical(paper61):
     np.testing.assert_allclose(C.m1_numerical(ctrl, params, ts), closed, rtol=1e-6)                # Remark 16
 
 
-@pytest.mark.skip(reason="18 s of compilation for the suite's time budget; (2,0) is checked in "
-                         "test_m1_lemma3_equals_eq65_and_numerical, and (2,1), (1,1) agree when run")
-@pytest.mark.parametrize("kind", ["(2,1)"])
-def test_m1_numerical_matches_closed_form(kind):
-    ctrl = w.dynamic_linearization(kind)
-    params = ctrl.params(R.figure_eight(size=4.0, omega=0.25, heading_offset=0.3 if kind == "(2,1)" else 0.0),
-                         geometry=w.Geometry(L=0.8, e=0.3))
-    ts = jnp.linspace(0.0, 5.0, 6)
-    np.testing.assert_allclose(C.m1_numerical(ctrl, params, ts), C.m1_closed_form(ctrl, params, ts), rtol=1e-5)
-
-
 def test_k2_bounds_hold(rng):
     ts = jnp.linspace(0.0, 20.0, 401)
     A = companion(monic_coefficients(jnp.ones((2, 2))))
