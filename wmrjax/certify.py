@@ -432,41 +432,42 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, t_final:
     if rows is None:
         raise ValueError("type (1,2) has a curved singular set: no exact-map radius; use falsify/falsified_radius")
     P = slice_basis(ctrl, basis)
+    C = jnp.eye(ctrl.relative_degree * ctrl.m)[jnp.asarray(rows)]
+    r = ctrl.relative_degree
+    ts = jnp.linspace(0.0, t_final, n_t)
+    m1 = jax.vmap(lambda t: jnp.linalg.norm(C @ ctrl.reference_jet(t, params)[:r].reshape(-1)))(ts)
+    check_lemma2_args(eps, t_final, m1)
+    rho, rad, t_star, worst = _exact_map(ctrl, params, P, C, jnp.asarray(eps, ts.dtype), ts, refine)
+    return ExactMapRadius(ts, rho, rad, t_star, worst)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 6))
+def _exact_map(ctrl, params, P, C, eps, ts, refine):
+    """Grid minimum of rho(t), refined by golden section (one compiled program per type and slice shape)."""
     A = ctrl.error_matrix(params.gains)
-    C = jnp.eye(A.shape[0])[jnp.asarray(rows)]
     r = ctrl.relative_degree
 
     def rho_x(t):
         a = C @ ctrl.reference_jet(t, params)[:r].reshape(-1)
         return _min_norm_to_ball(C @ jax.scipy.linalg.expm(A * t) @ P, a, eps)
 
-    ts = jnp.linspace(0.0, t_final, n_t)
-    m1 = jax.vmap(lambda t: jnp.linalg.norm(C @ ctrl.reference_jet(t, params)[:r].reshape(-1)))(ts)
-    check_lemma2_args(eps, t_final, m1)
+    rho = jax.vmap(lambda t: rho_x(t)[0])(ts)
+    i = jnp.argmin(rho)
+    lo, hi = ts[jnp.maximum(i - 1, 0)], ts[jnp.minimum(i + 1, ts.shape[0] - 1)]
+    g = 0.5 * (math.sqrt(5.0) - 1.0)
 
-    @jax.jit
-    def solve(ts):
-        rho = jax.vmap(lambda t: rho_x(t)[0])(ts)
-        i = jnp.argmin(rho)
-        lo, hi = ts[jnp.maximum(i - 1, 0)], ts[jnp.minimum(i + 1, ts.shape[0] - 1)]
-        g = 0.5 * (math.sqrt(5.0) - 1.0)
+    def golden(c, _):
+        lo, hi = c
+        x1, x2 = hi - g * (hi - lo), lo + g * (hi - lo)
+        left = rho_x(x1)[0] <= rho_x(x2)[0]
+        return (jnp.where(left, lo, x1), jnp.where(left, x2, hi)), None
 
-        def golden(c, _):
-            lo, hi = c
-            x1, x2 = hi - g * (hi - lo), lo + g * (hi - lo)
-            left = rho_x(x1)[0] <= rho_x(x2)[0]
-            return (jnp.where(left, lo, x1), jnp.where(left, x2, hi)), None
-
-        (lo, hi), _ = jax.lax.scan(golden, (lo, hi), None, length=refine)
-        tr = 0.5 * (lo + hi)
-        rr, x = rho_x(tr)
-        better = rr < rho[i]
-        t_star = jnp.where(better, tr, ts[i])
-        rad, xs = rho_x(t_star)
-        return rho, rad, t_star, P @ xs
-
-    rho, rad, t_star, worst = solve(ts)
-    return ExactMapRadius(ts, rho, rad, t_star, worst)
+    (lo, hi), _ = jax.lax.scan(golden, (lo, hi), None, length=refine)
+    tr = 0.5 * (lo + hi)
+    rr, _ = rho_x(tr)
+    t_star = jnp.where(rr < rho[i], tr, ts[i])
+    rad, xs = rho_x(t_star)
+    return rho, rad, t_star, P @ xs
 
 
 # --- running the real closed loop from initial errors ---------------------------------------
