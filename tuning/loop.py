@@ -8,7 +8,6 @@ import dataclasses
 import functools
 import hashlib
 import json
-import math
 import time
 from pathlib import Path
 
@@ -19,8 +18,9 @@ import optax
 
 import wmrjax as w
 from wmrjax import references as R
+from wmrjax.controllers.static import StaticLinearization
 from tuning.gains import GainSpec, softplus_inverse
-from tuning.losses import LossWeights, Metrics, certificate_radius, scenario_loss
+from tuning.losses import LossWeights, certificate_radius, scenario_loss
 from tuning.scenarios import RolloutConfig, Scenario, rollout
 
 
@@ -119,7 +119,7 @@ def make_scenarios(ctrl, cfg: TuneConfig, g, key, n) -> Scenario:
         kr, ki, kv, km, kn = jax.random.split(k, 5)
         ref = _reference(cfg, kr)
         params = ctrl.params_unchecked(ref, 1.0, g)
-        if hasattr(ctrl, "inverse_psi") and ctrl.__class__.__name__ == "DynamicLinearization":
+        if not isinstance(ctrl, StaticLinearization):      # dynamic law: perturb the output jet, Psi^-1
             r = ctrl.relative_degree
             zeta = ctrl.reference_jet(0.0, params)[:r]
             zeta = zeta.at[0, :2].add(jax.random.uniform(ki, (2,), minval=-1, maxval=1) * cfg.ic_position)
@@ -174,7 +174,7 @@ def certificate_setup(ctrl, ref_name, g, t_final, eps=1e-2, n_t=501):
     """M1 on a grid for the certificate term (closed form), or None where not available."""
     from wmrjax import certify
 
-    if ref_name == "random" or ctrl.__class__.__name__ != "DynamicLinearization" or ctrl.robot.name == "(1,2)":
+    if ref_name == "random" or isinstance(ctrl, StaticLinearization):
         return None
     params = ctrl.params_unchecked(R.named(ref_name), 1.0, g)
     ts = jnp.linspace(0.0, t_final, n_t)
@@ -183,15 +183,11 @@ def certificate_setup(ctrl, ref_name, g, t_final, eps=1e-2, n_t=501):
 
 # --- checkpoints --------------------------------------------------------------------------
 
-def _write_json_atomic(path: Path, obj) -> None:
-    from experiments._common import write_json
-
-    write_json(path, obj)
-
-
 def save_checkpoint(path: Path, cfg: TuneConfig, step, raw, opt_state, state: dict) -> None:
     leaves = [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(opt_state)]
-    _write_json_atomic(path, {"fingerprint": cfg.fingerprint(), "config": dataclasses.asdict(cfg), "step": step,
+    from experiments._common import write_json   # atomic: write, then rename
+
+    write_json(path, {"fingerprint": cfg.fingerprint(), "config": dataclasses.asdict(cfg), "step": step,
                               "raw": np.asarray(raw).tolist(), "opt_state": leaves, "state": state})
 
 
@@ -297,11 +293,9 @@ def random_search(cfg: TuneConfig, ctrl, spec, g, rcfg, train, w_arr, cert_term,
         lo[1:2 * (spec.r // 2):2], hi[1:2 * (spec.r // 2):2] = np.log(0.3), np.log(3.0)
     positive = np.exp(lo + (hi - lo) * u)
     raws = softplus_inverse(jnp.asarray(positive))
-    losses = []
-    for r in raws:
-        val, _, _ = batch_value(r, train, ctrl, spec, g, rcfg, w_arr)
-        losses.append(float(val + cert_term(r)))
-    losses = np.asarray(losses)
+    # every candidate at once (vmapped), one compiled program
+    vals = jax.vmap(lambda r: batch_value(r, train, ctrl, spec, g, rcfg, w_arr)[0] + cert_term(r))(raws)
+    losses = np.asarray(vals)
     best_so_far = np.minimum.accumulate(losses)
     i = int(np.argmin(losses))
     return {"name": f"random search over {'/'.join(spec.names())} (log-uniform: frequencies and real poles in "

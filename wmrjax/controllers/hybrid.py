@@ -122,11 +122,6 @@ class HybridParams(NamedTuple):
     lam: jnp.ndarray          # stabilizer gain
 
 
-class HybridAux(NamedTuple):
-    control: jnp.ndarray   # (eta1, eta2) applied
-    margin: jnp.ndarray    # |chi1| while tracking, 1 while parking
-
-
 @dataclasses.dataclass(frozen=True)
 class Hybrid:
     """Dynamic linearization, then the time-varying stabilizer (paper §6.2), for type (2,0), e = 0.
@@ -155,7 +150,7 @@ class Hybrid:
         chi_dot = jnp.where(parking, 0.0, zdot_t[3])
         zdot = jnp.concatenate([Xdot, chi_dot[None], jnp.zeros(6, z.dtype)])
         margin = jnp.where(parking, jnp.ones_like(aux_t.margin), aux_t.margin)
-        return zdot, HybridAux(u, margin)
+        return zdot, Aux(u, margin)   # applied (eta1, eta2); |chi1| while tracking, 1 while parking
 
     def post_step(self, t, z, params: HybridParams):
         """Discrete transition at the end of a step: switch when inside the disk (once)."""
