@@ -25,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from experiments import _common
+from experiments import common
 
 N_STEPS = 1000
 DT = 0.01
@@ -96,16 +96,15 @@ def c_ceiling(batches, source: Path):
 
 
 def run(out: Path, batches, reps: int, grad_batch: int, scipy_trajs: int, source: Path) -> dict:
-    _common.enable_x64()
+    common.enable_x64()
     import jax
     import jax.numpy as jnp
     import numpy as np
     from scipy.integrate import solve_ivp
 
     import wmrjax as w
-    from experiments.section_6_1 import setup
 
-    ctrl, params, _, _ = setup()
+    ctrl, params, _, _ = common.section_6_1_setup()
     sim_final = lambda z: w.simulate(ctrl, z, params, dt=DT, n_steps=N_STEPS, save_every=N_STEPS).final_state
     fast = jax.jit(lambda z: w.batch_map(sim_final, z, chunk=512))
     plain = jax.jit(jax.vmap(sim_final))
@@ -160,7 +159,7 @@ def run(out: Path, batches, reps: int, grad_batch: int, scipy_trajs: int, source
         pb = jnp.broadcast_to(poles, (z0s.shape[0],) + poles.shape)
 
         def one(z, pl):
-            p = params._replace(gains=w.Gains(pl))
+            p = params._replace(gains=w.Gains.from_poles(pl))
             tr = w.simulate(ctrl, z, p, dt=DT, n_steps=N_STEPS, save_every=10)
             e = jax.vmap(lambda t, s: ctrl.error(t, s, p)[0])(tr.t, tr.state)  # position errors
             return jnp.mean(jnp.sum(e**2, axis=-1))
@@ -199,7 +198,7 @@ def run(out: Path, batches, reps: int, grad_batch: int, scipy_trajs: int, source
     }
     for b, row in rows.items():
         row["ratio_wmrjax_over_scipy"] = row["wmrjax_batch_map"] / scipy_rate
-    _common.write_json(out / "summary.json", summary)
+    common.write_json(out / "summary.json", summary)
     return summary
 
 
@@ -220,7 +219,7 @@ def numpy_rollout_rhs(t, s):
 
 
 def main(argv=None) -> int:
-    p = _common.parser(__doc__.splitlines()[0], "results/benchmark")
+    p = common.parser(__doc__.splitlines()[0], "results/benchmark")
     p.add_argument("--batches", type=int, nargs="+", default=[1024, 16384, 65536])
     p.add_argument("--reps", type=int, default=5, help="timed repetitions (best kept)")
     p.add_argument("--grad-batch", type=int, default=1024)

@@ -22,127 +22,25 @@ empirical/falsifier measure is min_t |det K|.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import sys
 import time
 
-from experiments import _common
-
-DEFAULT_OFFSET = {"(2,0)": 0.0, "(2,1)": 0.3, "(1,1)": 0.0, "(1,2)": 0.5}
-
+from experiments import common
 
 def setup(robot, reference, level="velocity", poles=1.0, heading_offset=None):
+    """The closed loop to certify: the type's default geometry and heading offset (Table 4 rows),
+    except along the paper's reference (62), which is certified with the §6.1 geometry e = 0."""
     import wmrjax as w
-    from experiments.posture_tracking import geometry_for
     from wmrjax import references as R
 
     ctrl = w.dynamic_linearization(robot, level)
     ref = R.named(reference)
-    off = DEFAULT_OFFSET[ctrl.robot.name] if heading_offset is None else heading_offset
+    off = ctrl.row.default_heading_offset if heading_offset is None else heading_offset
     if off:
-        ref = dataclasses.replace(ref, heading_offset=R._as_array(off))
-    g = w.Geometry(e=0.0) if (ctrl.robot.name == "(2,0)" and reference == "paper_62") else geometry_for(ctrl.robot.name)
+        ref = ref.with_heading_offset(off)
+    g = w.Geometry(e=0.0) if reference == "paper_62" else ctrl.row.default_geometry
     return ctrl, ctrl.params(ref, poles=poles, geometry=g)
-
-
-def analyse(ctrl, params, *, t_final, eps=1e-2, dt=0.01, n_empirical=4096, n_directions=256, n_starts=16,
-            falsifier_dt=0.02, seed=0, zeta0_norm=None, log=print) -> tuple[dict, dict]:
-    """Every radius of the certification issue for one closed loop; returns (summary block, figure data)."""
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    from wmrjax import certify as C
-
-    n_steps = int(round(t_final / dt))
-    t0 = time.time()
-    cert = C.lemma2(ctrl, params, t_final, eps, n_t=n_steps + 1)
-    A = ctrl.error_matrix(params.gains)
-    k2s = {"lyapunov": lambda ts: C.k2_lyapunov(A, ts), "exact_norm": lambda ts: C.k2_exact(A, ts)}
-    if "paper" in cert:
-        k2s = {"paper": C.k2_paper, **k2s}
-    block = {"eps": eps, "t_final": t_final, "m1": cert["m1_method"]}
-    for name in k2s:
-        block[f"radius_{name}"] = float(cert[name].radius)
-        block[f"argmin_F_{name}"] = float(cert[name].argmin)
-    if zeta0_norm is not None:
-        ref = cert["paper"] if "paper" in cert else cert["exact_norm"]
-        block.update(zeta0_norm=zeta0_norm, min_F=float(ref.radius), argmin_F=float(ref.argmin),
-                     condition_52=bool(zeta0_norm <= float(ref.radius)))
-    certified = max(block[f"radius_{n}"] for n in k2s)
-    radii_txt = ", ".join(f"{n} {block['radius_' + n]:.4f}" for n in k2s)
-    log(f"  Lemma 2 radii {radii_txt}  ({time.time() - t0:.0f} s)")
-
-    exact = {}
-    if C.singular_rows(ctrl) is not None:
-        for b in ("full", "position"):
-            em = C.exact_map_radius(ctrl, params, t_final, eps, basis=b, n_t=4 * n_steps + 1)
-            exact[b] = em
-            key = "radius_exact_map" + ("" if b == "full" else "_position_slice")
-            block[key] = float(em.radius)
-            block[key.replace("radius", "worst")] = {"t": float(em.argmin), "initial_error": np.asarray(em.worst_error)}
-        log(f"  exact-map radius full {block['radius_exact_map']:.4f}, position slice "
-            f"{block['radius_exact_map_position_slice']:.4f}  ({time.time() - t0:.0f} s)")
-    else:
-        block["radius_exact_map"] = block["radius_exact_map_position_slice"] = None
-        block["exact_map_note"] = "singular set is curved for (1,2): no exact-map radius (see falsified radii)"
-    r_top = max([certified] + [float(e.radius) for e in exact.values()])
-
-    # -- empirical: (53) and regularity inside every ball
-    key = jax.random.PRNGKey(seed)
-    kd, kr, kf1, kf2 = jax.random.split(key, 4)
-    emp = {"n_runs": n_empirical, "radius_range": [0.0, 2.0 * r_top], "sampling": "uniform direction, uniform radius"}
-    if n_empirical:
-        dirs = C.sample_sphere(kd, n_empirical, A.shape[0])
-        errs = dirs * (2.0 * r_top * jax.random.uniform(kr, (n_empirical,)))[:, None]
-        n0 = np.asarray(jnp.linalg.norm(errs, axis=1))
-        for name, k2 in k2s.items():
-            res = C.verify(ctrl, params, errs, k2, dt=dt, n_steps=n_steps, save_every=10)
-            inside = n0 <= block[f"radius_{name}"]
-            sing, viol = np.asarray(res["singular"]), np.asarray(res["violation_53"])
-            emp[name] = {"runs_inside": int(inside.sum()), "violations_53_inside": int((viol & inside).sum()),
-                         "singular_inside": int((sing & inside).sum()), "singular_total": int(sing.sum())}
-            if (viol & inside).any() or (sing & inside).any():
-                print(f"LEMMA 2 VIOLATED inside the {name} certificate: {emp[name]}", file=sys.stderr, flush=True)
-        log(f"  empirical: {n_empirical} runs per K2, violations inside "
-            f"{sum(emp[n]['violations_53_inside'] + emp[n]['singular_inside'] for n in k2s)}  ({time.time() - t0:.0f} s)")
-    block["empirical"] = emp
-
-    # -- empirical safe radius per direction of the position slice
-    P = C.slice_basis(ctrl, "position")
-    ang = np.linspace(0.0, 2.0 * math.pi, n_directions, endpoint=False)
-    ring = np.stack([np.cos(ang), np.sin(ang)], 1)
-    if "position" in exact:  # make sure the worst direction of the exact map is among the rays
-        wd = np.asarray(P.T @ exact["position"].worst_error)
-        ring = np.concatenate([ring, (wd / np.linalg.norm(wd))[None]])
-    er = C.empirical_radius(ctrl, params, ring @ np.asarray(P).T, 2.0 * r_top, eps, dt=dt, n_steps=n_steps)
-    block["empirical_radius_position_slice"] = er["radius"] if np.isfinite(er["radius"]) else None
-    block["empirical_position_slice"] = {"n_directions": len(ring), "r_max": 2.0 * r_top, "n_runs": er["n_runs"],
-                                         "fraction_of_directions_failing": float(np.isfinite(er["per_direction"]).mean()),
-                                         "worst_direction": er["worst_direction"]}
-    log(f"  empirical safe radius (position slice, {len(ring)} rays): {er['radius']:.4f}  ({time.time() - t0:.0f} s)")
-
-    # -- gradient falsifier, full and position slice
-    fs = {}
-    for b, kf in (("full", kf1), ("position", kf2)) if n_starts else ():
-        r_hi = 1.05 * float(exact[b].radius) if b in exact else 2.0 * certified
-        f = C.falsified_radius(ctrl, params, eps, r_hi, kf, dt=falsifier_dt, n_steps=int(round(t_final / falsifier_dt)),
-                               basis=b, n_starts=n_starts, r_lo=certified)
-        fs[b] = f
-        name = "falsified_full" if b == "full" else "falsified_position_slice"
-        block[name] = {"radius": f["radius"], "initial_error": f["initial_error"], "distance": f["distance"],
-                       "rollouts": f["rollouts"], "bracket": f.get("bracket")}
-        log(f"  falsifier ({b}): smallest failing radius {f['radius']}  ({time.time() - t0:.0f} s)")
-    if not n_starts:
-        block["falsified_full"] = block["falsified_position_slice"] = {"radius": None, "skipped": "n_starts = 0"}
-    radii = [block[f"radius_{n}"] for n in k2s] + [block["radius_exact_map"], block["radius_exact_map_position_slice"]]
-    block["certified_below_falsified"] = all(
-        r is None or b not in fs or fs[b]["radius"] is None or r <= fs[b]["radius"] + 1e-9
-        for r, b in zip(radii, ["full"] * len(k2s) + ["full", "position"]))
-    if not block["certified_below_falsified"]:
-        print("A CERTIFIED RADIUS EXCEEDS A FALSIFIED ONE: a certificate is wrong", file=sys.stderr, flush=True)
-    return block, {"cert": cert, "exact": exact, "k2s": list(k2s)}
 
 
 def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title=""):
@@ -157,9 +55,9 @@ def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title="
     X, Y = np.meshgrid(xs, xs)
     P = np.asarray(C.slice_basis(ctrl, "position"))
     errs = np.stack([X.ravel(), Y.ravel()], 1) @ P.T
-    d, s = C.min_distance(ctrl, params, jnp.asarray(errs), dt=dt, n_steps=int(round(t_final / dt)), save_every=1)
+    d, s = C.min_distance(ctrl, params, t_final=t_final, initial_errors=jnp.asarray(errs), dt=dt)
     d = np.where(np.asarray(s), 0.0, np.asarray(d)).reshape(X.shape)
-    plt = _common.pyplot()
+    plt = common.pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 5.6))
     im = ax.pcolormesh(X, Y, np.log10(np.maximum(d, 1e-6)), cmap="viridis", shading="auto")
     fig.colorbar(im, ax=ax, label="log10 min_t dist(zeta(t), singular set)" if C.singular_rows(ctrl) else
@@ -181,19 +79,22 @@ def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title="
     ax.set_title(title or "initial position errors (velocities = reference's)")
     ax.set_aspect("equal")
     ax.legend(fontsize=7, loc="upper right")
-    _common.save_figure(fig, path)
+    common.save_figure(fig, path)
     plt.close(fig)
     return {"n_grid": n_grid, "half_width": R, "fraction_unsafe": float(bad.mean())}
 
 
 def run(out, robot="(2,0)", reference="paper_62", level="velocity", poles=1.0, t_final=10.0, eps=1e-2, dt=0.01,
         n_empirical=4096, n_directions=256, n_starts=16, heading_offset=None, map_grid=81, seed=0) -> dict:
-    _common.enable_x64()
+    common.enable_x64()
     t0 = time.time()
     ctrl, params = setup(robot, reference, level, poles, heading_offset)
     print(f"certify {ctrl.robot.name} ({level}) along {reference}, T = {t_final} s, eps = {eps}", flush=True)
-    block, _ = analyse(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_empirical=n_empirical,
-                       n_directions=n_directions, n_starts=n_starts, seed=seed)
+    from wmrjax import certify as C
+
+    report = C.analyse(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_empirical=n_empirical,
+                       n_directions=n_directions, n_starts=n_starts, seed=seed, log=lambda m: print(m, flush=True))
+    block = report.summary()
     out.mkdir(parents=True, exist_ok=True)
     summary = {"experiment": "certify", "robot": ctrl.robot.name, "level": level, "reference": reference,
                "heading_offset": float(params.reference.heading_offset), "geometry": params.geometry._asdict(),
@@ -201,7 +102,7 @@ def run(out, robot="(2,0)", reference="paper_62", level="velocity", poles=1.0, t
     summary["slice_map"] = slice_map(ctrl, params, block, out / "slice_map.png", t_final=t_final, dt=dt, eps=eps,
                                      n_grid=map_grid, title=f"{ctrl.robot.name} along {reference}: initial position errors")
     summary["wall_time_s"] = time.time() - t0
-    _common.write_json(out / "summary.json", summary)
+    common.write_json(out / "summary.json", summary)
     return summary
 
 
@@ -209,7 +110,7 @@ def main(argv=None) -> int:
     import wmrjax as w
     from wmrjax import references as R
 
-    p = _common.parser(__doc__.splitlines()[0], "results/certify")
+    p = common.parser(__doc__.splitlines()[0], "results/certify")
     p.add_argument("--robot", default="(2,0)", help="robot type: (2,0), (2,1), (1,1) or (1,2) (default (2,0))")
     p.add_argument("--reference", default="paper_62", help=f"named reference, one of {sorted(R.REFERENCES)}")
     p.add_argument("--level", default="velocity", choices=["velocity", "torque"])

@@ -17,17 +17,10 @@ import dataclasses
 import sys
 import time
 
-from experiments import _common
+from experiments import common
 
 KINDS = ("(2,0)", "(2,1)", "(1,1)", "(1,2)")
 LEVELS = ("velocity", "torque")
-
-
-def geometry_for(kind):
-    import wmrjax as w
-
-    return {"(2,0)": w.Geometry(e=0.2), "(2,1)": w.Geometry(),
-            "(1,1)": w.Geometry(L=1.0, e=0.3), "(1,2)": w.Geometry(L=0.5, e=0.3, delta=0.5)}[kind]
 
 
 def _posture_error(xi, xi_ref):
@@ -47,8 +40,8 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
     from wmrjax import references as R
 
     ctrl = w.dynamic_linearization(kind, level)
-    g = geometry_for(kind)
-    free_heading = kind in ("(2,1)", "(1,2)")
+    g = ctrl.row.default_geometry
+    free_heading = bool(ctrl.row.extension.angle_outputs)   # theta is an output: a crab angle is possible
     n_steps = int(round(t_final / dt))
     n_post = ctrl.robot.n_state
     out = {"geometry": g._asdict(), "poles": 1.0, "relative_degree": ctrl.relative_degree}
@@ -94,7 +87,7 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
         tr = w.simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=n_steps)
         _, m_ref, q_ref = ctrl.reference_margins(params, t_final, 151)
         ref_ok = (jnp.min(m_ref) > 1e-3) & jnp.all(q_ref * ctrl.reference_branch(params) > 0)
-        return tr.final_state, tr.diagnostics, params.reference.posture(tr.t[-1]), ctrl.margin(z0, params.geometry), ref_ok
+        return tr.final_state, tr.diagnostics, params.reference.posture(tr.t[-1]), ctrl.margin(z0, params), ref_ok
 
     t0 = time.perf_counter()
     zf, diag, post_f, m0, ref_ok = jax.jit(jax.vmap(one))(params_b, z0_b)
@@ -105,7 +98,7 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
     failed = np.asarray(diag.failed)
     ok = ~failed & ref_ok
     conv = ok & (ep < tol_pos) & (eh < tol_head)
-    q = lambda a: {f"q{int(p)}": float(np.percentile(a, p)) for p in (50, 90, 99)} | {"max": float(a.max())} if a.size else {}
+    q = common.quantiles
     out["random"] = {
         "n_runs": int(n_random), "t_final": t_final, "dt": dt,
         "initial_perturbation": "uniform: +-0.3 m in x, y; +-0.15 rad in theta; +-0.1 rad in steering angles",
@@ -124,55 +117,9 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
     return out, traces, (ep[ok], eh[ok])
 
 
-def figure(out_dir, kind, per_level, prefix="posture", error_label="position error |(x, y) - (x, y)_ref| [m]"):
-    """Paths of the circle and figure-eight runs at both levels, errors vs time, histogram of
-    final errors over the random batch: ``{prefix}_{type}.png``. ``per_level[level]`` is
-    ``(traces, (final_errors, ...))`` with traces[name] holding t, state (its first two
-    columns are the tracked point), ref, ep."""
-    import numpy as np
-
-    plt = _common.pyplot()
-    fig, axs = plt.subplots(2, 2, figsize=(10, 8.5))
-    for j, name in enumerate(["circle", "figure_eight"]):
-        ax = axs[0, j]
-        tr0 = next(iter(per_level.values()))[0][name]
-        ax.plot(tr0["ref"][:, 0], tr0["ref"][:, 1], "k--", lw=1.2, label="reference")
-        for lvl, c in zip(("velocity", "torque"), ("C0", "C3")):
-            if lvl not in per_level:
-                continue
-            st = per_level[lvl][0][name]["state"]
-            ax.plot(st[:, 0], st[:, 1], c, lw=1.2, label=f"robot, {lvl} level")
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.set_title(f"type {kind}: {name.replace('_', '-')}")
-        ax.axis("equal")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    ax_t, ax_h = axs[1, 0], axs[1, 1]
-    for lvl, c in zip(("velocity", "torque"), ("C0", "C3")):
-        if lvl not in per_level:
-            continue
-        traces, (ep_random, _) = per_level[lvl]
-        for name, ls in (("circle", "-"), ("figure_eight", ":")):
-            tr = traces[name]
-            ax_t.semilogy(tr["t"], np.maximum(tr["ep"], 1e-12), c + ls, label=f"{name.replace('_', '-')}, {lvl}")
-        if ep_random.size:
-            ax_h.hist(np.log10(np.maximum(ep_random, 1e-16)), bins=40, color=c, alpha=0.6, label=f"{lvl} level")
-    ax_t.set_xlabel("t [s]")
-    ax_t.set_ylabel(error_label)
-    ax_h.set_xlabel("log10 final position error [m] (random references)")
-    ax_h.set_ylabel("runs")
-    for ax in (ax_t, ax_h):
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.tight_layout()
-    _common.save_figure(fig, out_dir / f"{prefix}_{kind.strip('()').replace(',', '')}.png")
-    plt.close(fig)
-
-
 def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol_pos=1e-2, tol_head=1e-2, kinds=KINDS,
         levels=LEVELS):
-    _common.enable_x64()
+    common.enable_x64()
     summary = {"experiment": "posture_tracking", "controller": "dynamic feedback linearization (Table 4, Prop 8)",
                "poles": "all at -1", "cases": {}}
     for kind in kinds:
@@ -187,35 +134,13 @@ def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol_pos=1e-2, tol
                   f"converged {r['fraction_converged']:.3f}, singular {r['fraction_flagged_singular']:.3f}, "
                   f"median final position error {r['final_position_error_m'].get('q50', float('nan')):.2e} m "
                   f"({time.perf_counter() - t0:.1f} s)", flush=True)
-        figure(out_dir, kind, per_level)
-        _common.write_json(out_dir / "summary.json", summary)  # progress: rewritten after each type
+        common.tracking_figure(out_dir, kind, per_level)
+        common.write_json(out_dir / "summary.json", summary)  # progress: rewritten after each type
     return summary
 
 
-def cli(argv, doc, default_out, kinds, run_fn) -> int:
-    """The command line shared by the tracking experiments (this one and static_tracking)."""
-    p = _common.parser(doc.splitlines()[0], default_out)
-    p.add_argument("--n-random", type=int, default=1024, help="random references per (type, level) (default 1024)")
-    p.add_argument("--t-final", type=float, default=15.0, help="horizon [s]")
-    p.add_argument("--dt", type=float, default=0.01, help="RK4 step [s]")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--types", nargs="+", default=list(kinds), help=f"subset of {' '.join(kinds)}")
-    a = p.parse_args(argv)
-    if a.n_random < 1 or not a.t_final > 0 or not a.dt > 0:
-        p.error("--n-random must be >= 1, --t-final and --dt > 0")
-    import wmrjax as w
-
-    try:
-        chosen = tuple(w.robot_type(k).name for k in a.types)
-    except ValueError as exc:
-        p.error(str(exc))
-    run_fn(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=chosen)
-    print(f"wrote {a.out}/summary.json and one PNG per type")
-    return 0
-
-
 def main(argv=None) -> int:
-    return cli(argv, __doc__, "results/posture_tracking", KINDS, run)
+    return common.tracking_cli(argv, __doc__, "results/posture_tracking", KINDS, run)
 
 
 if __name__ == "__main__":

@@ -15,36 +15,19 @@ from __future__ import annotations
 import math
 import sys
 
-from experiments import _common
-
-
-def setup():
-    """The paper's closed loop and initial state (importable by other experiments/tests)."""
-    import jax.numpy as jnp
-
-    import wmrjax as w
-    from wmrjax import references
-
-    ctrl = w.dynamic_linearization("(2,0)", "velocity")
-    params = ctrl.params(references.paper_62(), poles=1.0, geometry=w.Geometry(e=0.0))
-    p0 = params.reference.position(jnp.asarray(0.0))
-    v0 = params.reference.velocity(jnp.asarray(0.0))
-    # (63): x(0) = x_ref(0) - 0.54, y(0) = y_ref(0) + 0.54, velocities equal to the reference's
-    zeta0 = jnp.array([[p0[0] - 0.54, p0[1] + 0.54], [v0[0], v0[1]]])
-    z0 = ctrl.initial_state(zeta0, params)
-    return ctrl, params, z0, zeta0
+from experiments import common
 
 
 def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096, n_directions: int = 256,
         n_starts: int = 16) -> dict:
-    _common.enable_x64()
+    common.enable_x64()
     import jax
     import jax.numpy as jnp
     import numpy as np
 
     import wmrjax as w
 
-    ctrl, params, z0, zeta0 = setup()
+    ctrl, params, z0, zeta0 = common.section_6_1_setup()
     n_steps = int(round(t_final / dt))
     traj = w.simulate(ctrl, z0, params, dt=dt, n_steps=n_steps)
     t = np.asarray(traj.t)
@@ -92,34 +75,34 @@ def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096, n
                                             n_starts=n_starts)
     out.mkdir(parents=True, exist_ok=True)
     _fig7(out, cert, summary["lemma2"])
-    _common.write_npz(out / "trajectories.npz", t=t, state=state, control=control, reference=ref_post,
+    common.write_npz(out / "trajectories.npz", t=t, state=state, control=control, reference=ref_post,
                       state_names=np.array(ctrl.state_names), control_names=np.array(["eta1", "eta2"]))
     _figures(out, t, state, ref_post, eta1, eta1_ref)
-    _common.write_json(out / "summary.json", summary)
+    common.write_json(out / "summary.json", summary)
     return summary
 
 
 def _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, eps=1e-2, n_directions=256, n_starts=16):
     """Lemma 2 with the paper's K2 (64), the automatic Lyapunov K2 and the exact ||e^{At}||; the
-    exact-map radii; empirical checks and the falsifier (see :mod:`experiments.certify`)."""
+    exact-map radii; empirical checks and the falsifier (:func:`wmrjax.certify.analyse`)."""
     import jax.numpy as jnp
 
-    from experiments.certify import analyse
     from wmrjax import certify as C
 
     e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0, params)))
-    block, data = analyse(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_empirical=n_empirical,
-                          n_directions=n_directions, n_starts=n_starts, zeta0_norm=e0,
-                          log=lambda msg: print(msg, flush=True))
+    report = C.analyse(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_empirical=n_empirical,
+                       n_directions=n_directions, n_starts=n_starts, zeta0_norm=e0,
+                       log=lambda msg: print(msg, flush=True))
+    block = report.summary()
     block["k2_paper"] = "eq (64)"
     block["lyapunov_K1_r1"] = [float(x) for x in C.lyapunov_bound(ctrl.error_matrix(params.gains))[:2]]
-    return block, data["cert"]
+    return block, report.lemma2.certificates()
 
 
 def _fig7(out, cert, block):
     import numpy as np
 
-    plt = _common.pyplot()
+    plt = common.pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     for name, lab, c in [("paper", "F(t), K2 of eq (64)", "k"), ("lyapunov", "F(t), Lyapunov K2", "C0"),
                          ("exact_norm", "F(t), K2 = ||exp(At)||", "C3")]:
@@ -137,12 +120,12 @@ def _fig7(out, cert, block):
     ax.set_title("Fig. 7: the function F(t) (eps = 0.01)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    _common.save_figure(fig, out / "fig7_F.png")
+    common.save_figure(fig, out / "fig7_F.png")
     plt.close(fig)
 
 
 def _figures(out, t, state, ref, eta1, eta1_ref):
-    plt = _common.pyplot()
+    plt = common.pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 5.5))
     ax.plot(ref[:, 0], ref[:, 1], "k--", lw=1.2, label="reference (62)")
     ax.plot(state[:, 0], state[:, 1], "C0", lw=1.6, label="robot")
@@ -154,7 +137,7 @@ def _figures(out, t, state, ref, eta1, eta1_ref):
     ax.axis("equal")
     ax.grid(alpha=0.3)
     ax.legend()
-    _common.save_figure(fig, out / "fig8_paths.png")
+    common.save_figure(fig, out / "fig8_paths.png")
     plt.close(fig)
 
     fig, axs = plt.subplots(3, 1, figsize=(6.5, 6.5), sharex=True)
@@ -166,12 +149,12 @@ def _figures(out, t, state, ref, eta1, eta1_ref):
         a.grid(alpha=0.3)
     axs[-1].set_xlabel("t [s]")
     axs[0].set_title("Fig. 9: errors in x, y and eta1")
-    _common.save_figure(fig, out / "fig9_errors.png")
+    common.save_figure(fig, out / "fig9_errors.png")
     plt.close(fig)
 
 
 def main(argv=None) -> int:
-    p = _common.parser(__doc__.splitlines()[0], "results/section_6_1")
+    p = common.parser(__doc__.splitlines()[0], "results/section_6_1")
     p.add_argument("--dt", type=float, default=0.01, help="RK4 step [s] (default 0.01)")
     p.add_argument("--t-final", type=float, default=10.0, help="horizon [s] (default 10)")
     a = p.parse_args(argv)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import sys
 
-from experiments import _common
+from experiments import common
 
 
 def setup(r_switch=None, lam=None):
@@ -44,7 +44,7 @@ def _parked(final, tol_pos, tol_head):
 
 def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_switch=None, lam=None, seed=0,
         eps=1e-2) -> dict:
-    _common.enable_x64()
+    common.enable_x64()
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -56,16 +56,16 @@ def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_
     n_steps = int(round(t_final / dt))
     z0 = hy.initial_state(zeta0, params)
     tr = w.simulate(hy, z0, params, dt=dt, n_steps=n_steps)
-    t, st, u = np.asarray(tr.t), np.asarray(tr.state), np.asarray(tr.control)
-    fin = st[-1]
-    switched = bool(fin[4] > 0.5)
-    t_sw = float(fin[5]) if switched else None
+    t, st, u = np.asarray(tr.t), np.asarray(tr.state.tracking), np.asarray(tr.control)
+    fin = tr.final_state
+    switched = bool(fin.switched)
+    t_sw = float(fin.t_switch) if switched else None
     ref = params.tracking.reference
     ref_post = np.asarray(jax.vmap(ref.posture)(jnp.asarray(np.minimum(t, 10.0))))
     eta1_ref = np.asarray(jax.vmap(lambda s: jnp.linalg.norm(ref.velocity(s)))(jnp.asarray(np.minimum(t, 10.0))))
     before = t < (t_sw if switched else np.inf)
     i_sw = int(np.searchsorted(t, t_sw - 0.5 * dt)) if switched else None
-    d_fin, h_fin, _ = _parked(fin, tol_pos, tol_head)
+    d_fin, h_fin, _ = _parked(np.asarray(fin.tracking), tol_pos, tol_head)
     summary = {
         "experiment": "section_6_2",
         "paper": "d'Andrea-Novel, Campion & Bastin, IJRR 14(6) 1995, section 6.2",
@@ -75,14 +75,14 @@ def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_
         "reference": "eq (66): x_ref = y_ref = 1e-2 sqrt(2)/6 (10 - t)^3, at rest at the origin for t >= 10 s",
         "r_switch": float(params.r_switch), "r_switch_squared": float(params.r_switch) ** 2, "lambda": float(params.lam),
         "dt": dt, "t_final": t_final,
-        "initial_state": dict(zip(["x", "y", "theta", "chi1"], map(float, z0[:4]))),
+        "initial_state": dict(zip(["x", "y", "theta", "chi1"], map(float, z0.tracking))),
         "switched": switched, "t_switch": t_sw,
-        "state_at_switch": dict(zip(["x", "y", "theta", "chi1"], map(float, fin[6:10]))) if switched else None,
+        "state_at_switch": dict(zip(["x", "y", "theta", "chi1"], map(float, fin.at_switch))) if switched else None,
         # e = 0: the linearizing law's eta1 is chi1; the stabilizer then starts from its own eta1
-        "eta1_at_switch": float(fin[9]) if switched else None,
+        "eta1_at_switch": float(fin.at_switch[3]) if switched else None,
         "eta1_stabilizer_after_switch": float(u[i_sw, 0]) if switched else None,
         "min_eta1_before_switch": float(np.min(np.abs(u[before, 0]))),
-        "final_distance": float(d_fin), "final_heading": float(np.angle(np.exp(1j * fin[2]))),
+        "final_distance": float(d_fin), "final_heading": float(np.angle(np.exp(1j * fin.tracking[2]))),
         "max_abs_heading_last_2pi_s": float(np.max(np.abs(np.angle(np.exp(1j * st[t >= t_final - 2 * math.pi, 2]))))),
         "distance_at": {f"{s:g}": float(np.hypot(*st[int(round(s / dt)), :2])) for s in (10, 20, 30, 45, 60)
                         if s <= t_final},
@@ -91,14 +91,14 @@ def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_
     # -- Lemma 2 up to the switch (M1 -> 0 at rest: it certifies nothing beyond)
     if switched:
         ctrl, tp = hy.tracking, params.tracking
-        cert = C.lemma2(ctrl, tp, t_sw, eps, n_t=max(int(round(t_sw / dt)) + 1, 2))
-        e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0[:4], tp)))
+        cert = C.lemma2(ctrl, tp, t_final=t_sw, eps=eps, n_t=max(int(round(t_sw / dt)) + 1, 2))
+        e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0.tracking, tp)))
         summary["lemma2"] = {"eps": eps, "horizon": t_sw, "zeta0_norm": e0,
-                             "radius_paper": float(cert["paper"].radius), "argmin_F_paper": float(cert["paper"].argmin),
-                             "condition_52_paper": bool(e0 <= float(cert["paper"].radius)),
-                             "radius_exact_norm": float(cert["exact_norm"].radius),
-                             "condition_52_exact_norm": bool(e0 <= float(cert["exact_norm"].radius)),
-                             "min_M1": float(jnp.min(cert["paper"].m1))}
+                             "radius_paper": float(cert.paper.radius), "argmin_F_paper": float(cert.paper.argmin),
+                             "condition_52_paper": bool(e0 <= float(cert.paper.radius)),
+                             "radius_exact_norm": float(cert.exact_norm.radius),
+                             "condition_52_exact_norm": bool(e0 <= float(cert.exact_norm.radius)),
+                             "min_M1": float(jnp.min(cert.paper.m1))}
     # -- batch around the paper's initial conditions
     if n_batch:
         k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
@@ -108,17 +108,17 @@ def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_
         z0s = jax.vmap(lambda zz: hy.initial_state(zz, params))(zetas)
         fins, diag = jax.jit(jax.vmap(lambda z: (lambda r: (r.final_state, r.diagnostics))(
             w.simulate(hy, z, params, dt=dt, n_steps=n_steps, save_every=n_steps))))(z0s)
-        fins = np.asarray(fins)
+        switched_b = np.asarray(fins.switched)
         ok = ~np.asarray(diag.failed)
-        d, h, parked = _parked(fins, tol_pos, tol_head)
-        tsw = fins[:, 5][fins[:, 4] > 0.5]
+        d, h, parked = _parked(np.asarray(fins.tracking), tol_pos, tol_head)
+        tsw = np.asarray(fins.t_switch)[switched_b]
         q = lambda a: {k: float(np.quantile(a, p)) for k, p in (("min", 0), ("median", .5), ("p90", .9), ("max", 1))} \
             if len(a) else None
         summary["batch"] = {
             "n_runs": n_batch, "perturbation": "position +-0.3 m, velocity +-0.2 m/s (uniform) around the paper's",
             "tolerance": {"distance_m": tol_pos, "heading_rad": tol_head},
             "fraction_parked": float(np.mean(parked & ok)), "fraction_within_distance": float(np.mean((d <= tol_pos) & ok)),
-            "fraction_switched": float(np.mean(fins[:, 4] > 0.5)), "n_failed": int((~ok).sum()),
+            "fraction_switched": float(np.mean(switched_b)), "n_failed": int((~ok).sum()),
             "nonfinite": int(np.asarray(diag.nonfinite).sum()),
             "t_switch_s": q(tsw), "final_distance_m": q(d[ok]), "final_abs_heading_rad": q(h[ok])}
         batch = (tsw, d[ok])
@@ -126,16 +126,16 @@ def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_
         batch = None
     out.mkdir(parents=True, exist_ok=True)
     _figures(out, t, st, u, ref_post, eta1_ref, t_sw, float(params.r_switch), batch)
-    _common.write_npz(out / "trajectory.npz", t=t, state=st, control=u, reference=ref_post,
-                      state_names=np.array(hy.state_names))
-    _common.write_json(out / "summary.json", summary)
+    common.write_npz(out / "trajectory.npz", t=t, state=st, control=u, reference=ref_post,
+                     mode=np.asarray(tr.state.mode), state_names=np.array(hy.state_names[:4]))
+    common.write_json(out / "summary.json", summary)
     return summary
 
 
 def _figures(out, t, st, u, ref, eta1_ref, t_sw, r_s, batch):
     import numpy as np
 
-    plt = _common.pyplot()
+    plt = common.pyplot()
     fig, ax = plt.subplots(figsize=(5.8, 5.8))
     ax.plot(ref[:, 0], ref[:, 1], "k--", lw=1.2, label="reference (66)")
     ax.plot(st[:, 0], st[:, 1], "C0", lw=1.4, label="robot")
@@ -158,7 +158,7 @@ def _figures(out, t, st, u, ref, eta1_ref, t_sw, r_s, batch):
     inset.set_ylim(-1.2 * r_s, 1.2 * r_s)
     inset.set_title("near the goal", fontsize=7)
     inset.tick_params(labelsize=6)
-    _common.save_figure(fig, out / "fig10_paths.png")
+    common.save_figure(fig, out / "fig10_paths.png")
     plt.close(fig)
 
     fig, axs = plt.subplots(2, 1, figsize=(6.8, 5.8), sharex=True)
@@ -175,7 +175,7 @@ def _figures(out, t, st, u, ref, eta1_ref, t_sw, r_s, batch):
     axs[0].legend(fontsize=8)
     axs[0].set_title("Fig. 11: error in eta1 (tracking, then the time-varying law)")
     axs[1].set_xlabel("t [s]")
-    _common.save_figure(fig, out / "fig11_eta1.png")
+    common.save_figure(fig, out / "fig11_eta1.png")
     plt.close(fig)
 
     if batch is not None:
@@ -189,12 +189,12 @@ def _figures(out, t, st, u, ref, eta1_ref, t_sw, r_s, batch):
         for a in axs:
             a.grid(alpha=0.3)
         fig.suptitle("batch around the paper's initial conditions")
-        _common.save_figure(fig, out / "batch.png")
+        common.save_figure(fig, out / "batch.png")
         plt.close(fig)
 
 
 def main(argv=None) -> int:
-    p = _common.parser(__doc__.splitlines()[0], "results/section_6_2")
+    p = common.parser(__doc__.splitlines()[0], "results/section_6_2")
     p.add_argument("--dt", type=float, default=0.01, help="RK4 step [s] (default 0.01)")
     p.add_argument("--t-final", type=float, default=60.0, help="horizon [s] (default 60)")
     p.add_argument("--n-batch", type=int, default=1024, help="initial conditions around the paper's (default 1024)")

@@ -19,19 +19,10 @@ import math
 import sys
 import time
 
-from experiments import _common
-from experiments.posture_tracking import cli, figure
+from experiments import common
 
 KINDS = ("(3,0)", "(2,0)", "(2,1)", "(1,1)", "(1,2)")
 LEVELS = ("velocity", "torque")
-
-
-def geometry_for(kind):
-    import wmrjax as w
-
-    return {"(3,0)": w.Geometry(), "(2,0)": w.Geometry(e=0.3, delta=0.5 * math.pi),
-            "(2,1)": w.Geometry(e=0.3, delta=0.5 * math.pi), "(1,1)": w.Geometry(L=1.0, e=0.3),
-            "(1,2)": w.Geometry(L=0.5, e=0.3)}[kind]
 
 
 def run_case(kind, level, n_random, t_final, dt, seed, tol):
@@ -42,32 +33,33 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
     import wmrjax as w
     from wmrjax import references as R
 
-    task = "posture" if kind == "(3,0)" else "point"
+    task = "posture" if w.robot_type(kind).omnidirectional else "point"
     ctrl = w.controller(kind, level, task)
-    g = geometry_for(kind)
+    posture = ctrl.task == "posture"      # (3,0): the heading is an output too
+    g = ctrl.row.default_geometry
     n_steps = int(round(t_final / dt))
     nX, nu = ctrl.robot.n_state, ctrl.robot.n_input
-    out = {"task": task, "geometry": g._asdict(), "poles": 1.0, "outputs": ctrl.table3.regularity}
+    out = {"task": task, "geometry": g._asdict(), "poles": 1.0, "outputs": ctrl.row.regularity}
 
     def start(params, key):
         """Random initial state: the tracked point near the reference's start, at rest."""
         k1, k2, k3 = jax.random.split(key, 3)
         th = jax.random.uniform(k2, (), minval=-math.pi, maxval=math.pi)
-        if kind == "(3,0)":
+        if posture:
             th = params.reference.posture(0.0)[2] + 0.3 * th / math.pi
         X = jnp.zeros(nX).at[2].set(th)
-        if ctrl.table3.steering_index is not None:
+        if ctrl.row.steering_index is not None:
             X = X.at[nX - 1].set(params.steering(0.0) + jax.random.uniform(k3, (), minval=-0.3, maxval=0.3))
-        if kind in ("(1,1)", "(1,2)"):
+        if ctrl.robot.delta_m == 1:       # the steering wheel that is not an output: random angle
             X = X.at[3].set(jax.random.uniform(k3, (), minval=-1.0, maxval=1.0))
         # place P' = h(X) at p_ref(0) + dp: h is X's position plus an offset independent of x, y
         target = params.reference.position(0.0) + jax.random.uniform(k1, (2,), minval=-0.5, maxval=0.5)
-        X = X.at[:2].add(target - ctrl.outputs(X, params.geometry)[:2])
+        X = X.at[:2].add(target - ctrl.outputs(X, params)[:2])
         return X if level == "velocity" else jnp.concatenate([X, jnp.zeros(nu)])
 
     def point_error(t, z, params):
         e = ctrl.error(t, z, params)[0]
-        return jnp.hypot(e[0], e[1]), (jnp.abs(e[2]) if kind == "(3,0)" else 0.0 * e[0])
+        return jnp.hypot(e[0], e[1]), (jnp.abs(e[2]) if posture else 0.0 * e[0])
 
     traces = {}
     for name, ref in {"circle": R.circle(radius=3.0, omega=0.4), "figure_eight": R.figure_eight(size=4.0, omega=0.25)}.items():
@@ -76,13 +68,15 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
         ctrl.check_regular(z0, params)
         tr = w.simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=max(1, n_steps // 300))
         ep, eh = (np.asarray(a) for a in jax.vmap(lambda t, z: point_error(t, z, params))(tr.t, tr.state))
-        pts = np.asarray(jax.vmap(lambda z: ctrl.outputs(z, g))(tr.state))
+        pts = np.asarray(jax.vmap(lambda z: ctrl.outputs(z, params))(tr.state))
         refp = np.asarray(jax.vmap(ref.position)(tr.t))
         traces[name] = dict(t=np.asarray(tr.t), state=pts, ref=refp, ep=ep)
         out[name] = {"final_point_error_m": float(ep[-1]), "final_heading_error_rad": float(eh[-1]),
                      "min_abs_det_K": float(tr.diagnostics.min_margin), "failed": bool(tr.diagnostics.failed),
                      "max_norm_z3": float(np.max(np.linalg.norm(np.asarray(jax.vmap(ctrl.z3)(tr.state)), axis=-1)))
-                     if ctrl.table3.z3 else None}
+                     if ctrl.row.z3 else None,
+                     "final_heading_error_vs_reference_rad": float(tr.diagnostics.internal.heading_error),
+                     "turned_round": bool(tr.diagnostics.internal.turned_round)}
 
     key = jax.random.PRNGKey(seed)
     k_ref, k_ic = jax.random.split(key)
@@ -93,8 +87,8 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
         z0 = start(params, ki)
         tr = w.simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=max(1, n_steps // 100))
         ep, eh = point_error(tr.t[-1], tr.final_state, params)
-        z3n = jnp.max(jnp.linalg.norm(jax.vmap(ctrl.z3)(tr.state), axis=-1)) if ctrl.table3.z3 else 0.0
-        return ep, eh, tr.diagnostics, ctrl.margin(z0, g), z3n
+        z3n = jnp.max(jnp.linalg.norm(jax.vmap(ctrl.z3)(tr.state), axis=-1)) if ctrl.row.z3 else 0.0
+        return ep, eh, tr.diagnostics, ctrl.margin(z0, params), z3n
 
     t0 = time.perf_counter()
     ep, eh, diag, m0, z3n = jax.jit(jax.vmap(one))(jax.random.split(k_ref, n_random), jax.random.split(k_ic, n_random))
@@ -103,21 +97,28 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
     ep, eh, z3n = np.asarray(ep), np.asarray(eh), np.asarray(z3n)
     failed = np.asarray(diag.failed)
     ok = ~failed
-    conv = ok & (ep < tol) & (eh < tol)
-    q = lambda a: {f"q{int(p)}": float(np.percentile(a, p)) for p in (50, 90, 99)} | {"max": float(a.max())} if a.size else {}
+    turned = np.asarray(diag.internal.turned_round)
+    conv = ok & (ep < tol) & (eh < tol) & ~turned
+    q = common.quantiles
     out["random"] = {
         "n_runs": int(n_random), "t_final": t_final, "dt": dt,
         "initial_conditions": "tracked point uniform within +-0.5 m of the reference's start, any heading "
                               "((3,0): +-0.3 rad), steering within +-0.3 rad of its reference, at rest",
         "final_point_error_m": q(ep[ok]),
-        **({"final_heading_error_rad": q(eh[ok])} if kind == "(3,0)" else {}),
+        **({"final_heading_error_rad": q(eh[ok])} if posture else {}),
         "fraction_converged": float(conv.mean()),
         "converged_definition": f"not flagged singular, final point error < {tol} m"
-                                + (f" and heading error < {tol} rad" if kind == "(3,0)" else ""),
+                                + (f" and heading error < {tol} rad" if posture else "")
+                                + ", not turned round",
+        "fraction_turned_round": float(turned.mean()),
+        "fraction_point_tracked_but_turned_round": float((ok & (ep < tol) & turned).mean()),
+        "turned_round_definition": "final heading more than pi/2 away from the reference heading (path tangent, "
+                                   "forward axis x2): the point is tracked with the robot facing backwards",
+        "final_abs_heading_error_vs_reference_rad": q(np.abs(np.asarray(diag.internal.heading_error))[ok]),
         "fraction_flagged_singular": float(failed.mean()),
         "min_abs_det_K_over_runs": float(np.min(np.asarray(diag.min_margin))),
         "min_initial_abs_det_K": float(np.min(np.asarray(m0))),
-        "max_norm_z3": q(z3n[ok]) if ctrl.table3.z3 else None,
+        "max_norm_z3": q(z3n[ok]) if ctrl.row.z3 else None,
         "z3_note": "z3 = theta (and a steering angle) integrated unwrapped: on references whose speed is "
                    "not L1 (these never stop) theta keeps turning, so ||z3|| grows with the horizon; Prop 5 "
                    "bounds it for L1 speeds",
@@ -127,7 +128,9 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
 
 
 def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol=1e-2, kinds=KINDS, levels=LEVELS) -> dict:
-    _common.enable_x64()
+    common.enable_x64()
+    import wmrjax as w
+
     summary = {"experiment": "static_tracking",
                "controller": "static feedback linearization (Prop 3 for (3,0); Table 3, eqs 27-28, Remark 11)",
                "poles": "all at -1", "cases": {}}
@@ -139,17 +142,18 @@ def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol=1e-2, kinds=K
             per_level[level] = (traces, errs)
             summary["cases"][f"{kind} {level}"] = res
             r = res["random"]
-            print(f"{kind} {level}: converged {r['fraction_converged']:.3f}, singular {r['fraction_flagged_singular']:.3f}, "
+            print(f"{kind} {level}: converged {r['fraction_converged']:.3f}, turned round "
+                  f"{r['fraction_turned_round']:.3f}, singular {r['fraction_flagged_singular']:.3f}, "
                   f"median final point error {r['final_point_error_m'].get('q50', float('nan')):.2e} m, "
                   f"min |det K| {r['min_abs_det_K_over_runs']:.3g} ({time.perf_counter() - t0:.1f} s)", flush=True)
-        figure(out_dir, kind, per_level, prefix="static",
-               error_label="point error |h(X) - p_ref| [m]" if kind != "(3,0)" else "position error [m]")
-        _common.write_json(out_dir / "summary.json", summary)  # progress: rewritten after each type
+        label = "position error [m]" if w.robot_type(kind).omnidirectional else "point error |h(X) - p_ref| [m]"
+        common.tracking_figure(out_dir, kind, per_level, prefix="static", error_label=label)
+        common.write_json(out_dir / "summary.json", summary)  # progress: rewritten after each type
     return summary
 
 
 def main(argv=None) -> int:
-    return cli(argv, __doc__, "results/static_tracking", KINDS, run)
+    return common.tracking_cli(argv, __doc__, "results/static_tracking", KINDS, run)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-from experiments import _common
+from wmrjax import io
 
 
 def parser():
@@ -70,8 +70,9 @@ def config_from_args(a):
 
 
 def run(cfg, out: Path, fresh: bool = False, log=print) -> dict:
-    _common.enable_x64()
     import jax
+
+    jax.config.update("jax_enable_x64", True)   # this entry point runs in float64
     import jax.numpy as jnp
     import numpy as np
 
@@ -133,10 +134,10 @@ def run(cfg, out: Path, fresh: bool = False, log=print) -> dict:
         "baseline": {k: rs[k] for k in ("name", "best_loss", "rollouts_to_best", "candidates", "best_params", "best_poles")},
         "certified_radius_lyapunov": radius,
     }
-    _common.write_json(out / "history.json", {"gradient": hist, "random_search_best_so_far": rs["best_so_far"],
+    io.write_json(out / "history.json", {"gradient": hist, "random_search_best_so_far": rs["best_so_far"],
                                               "random_search_rollouts_per_candidate": rs["rollouts_per_candidate"]})
     _figures(out, cfg, res, hist, rs, paper_raw, tuned_raw)
-    _common.write_json(out / "summary.json", summary)
+    io.write_json(out / "summary.json", summary)
     return summary
 
 
@@ -156,7 +157,7 @@ def _figures(out, cfg, res, hist, rs, paper_raw, tuned_raw):
 
     from tuning.scenarios import rollout
 
-    plt = _common.pyplot()
+    plt = io.headless_pyplot()
     fig, ax = plt.subplots(figsize=(6.6, 4.2))
     ax.semilogy([h["rollouts"] for h in hist], [h["train_loss"] for h in hist], "C0", label="gradient (train)")
     ho = [(h["rollouts"], h["heldout_loss"]) for h in hist if "heldout_loss" in h]
@@ -168,7 +169,7 @@ def _figures(out, cfg, res, hist, rs, paper_raw, tuned_raw):
     ax.set_title("tuning the poles: loss vs rollouts")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    _common.save_figure(fig, out / "loss.png")
+    io.write_png(fig, out / "loss.png")
     plt.close(fig)
 
     ctrl, spec, g, rcfg = res["ctrl"], res["spec"], res["geometry"], res["rcfg"]
@@ -194,7 +195,7 @@ def _figures(out, cfg, res, hist, rs, paper_raw, tuned_raw):
         a.grid(alpha=0.3)
         a.legend(fontsize=8)
     fig.tight_layout()
-    _common.save_figure(fig, out / "trajectories.png")
+    io.write_png(fig, out / "trajectories.png")
     plt.close(fig)
 
 

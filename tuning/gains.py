@@ -24,22 +24,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax.controllers.dynamic import Gains
+from wmrjax.gains import Gains, damping_coefficients, monic_coefficients
 
 
 def softplus_inverse(y):
     """raw with softplus(raw) = y (y > 0), numerically stable."""
     y = jnp.asarray(y)
     return y + jnp.log(-jnp.expm1(-y))
-
-
-def _polymul(a, b):
-    """Product of two polynomials given by coefficient lists, highest power first."""
-    out = [0.0 * a[0]] * (len(a) + len(b) - 1)
-    for i, x in enumerate(a):
-        for j, y in enumerate(b):
-            out[i + j] = out[i + j] + x * y
-    return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,18 +69,11 @@ class GainSpec:
         return jax.nn.softplus(raw)
 
     def _coeffs_one(self, p):
+        """k_0 .. k_{r-1} (coefficients of d^j/dt^j) of one output from its positive parameters."""
         if self.parameterization == "poles":
-            poly = [jnp.ones_like(p[0])]
-            for lam in p:
-                poly = _polymul(poly, [jnp.ones_like(lam), lam])
-        else:
-            poly = [jnp.ones_like(p[0])]
-            for k in range(self.r // 2):
-                om, ze = p[2 * k], p[2 * k + 1]
-                poly = _polymul(poly, [jnp.ones_like(om), 2.0 * ze * om, om * om])
-            if self.r % 2:
-                poly = _polymul(poly, [jnp.ones_like(p[-1]), p[-1]])
-        return jnp.stack(poly[1:][::-1])     # k_0 .. k_{r-1}: coefficient of d^j/dt^j
+            return monic_coefficients(p)
+        q = self.r // 2
+        return damping_coefficients(p[0:2 * q:2], p[1:2 * q:2], p[-1] if self.r % 2 else None)
 
     def coefficients(self, raw):
         """(m, r) coefficients of the error polynomial of each output."""
@@ -98,8 +82,8 @@ class GainSpec:
         return jnp.broadcast_to(c, (self.m, self.r))
 
     def gains(self, raw) -> Gains:
-        """:class:`wmrjax.Gains` for the controller (coefficients given directly)."""
-        return Gains(jnp.ones((self.m, self.r)), self.coefficients(raw))
+        """:class:`wmrjax.Gains` (Hurwitz coefficients) for the controller."""
+        return Gains(self.coefficients(raw))
 
     def closed_loop_poles(self, raw):
         """Complex closed-loop poles per output, as [[re, im], ...] lists (for reports)."""

@@ -18,7 +18,7 @@ import optax
 
 import wmrjax as w
 from wmrjax import references as R
-from wmrjax.controllers.static import StaticLinearization
+from wmrjax import io
 from tuning.gains import GainSpec, softplus_inverse
 from tuning.losses import LossWeights, certificate_radius, scenario_loss
 from tuning.scenarios import RolloutConfig, Scenario, rollout
@@ -119,18 +119,18 @@ def make_scenarios(ctrl, cfg: TuneConfig, g, key, n) -> Scenario:
         kr, ki, kv, km, kn = jax.random.split(k, 5)
         ref = _reference(cfg, kr)
         params = ctrl.params_unchecked(ref, 1.0, g)
-        if not isinstance(ctrl, StaticLinearization):      # dynamic law: perturb the output jet, Psi^-1
+        if isinstance(ctrl, w.DynamicLinearization):       # dynamic law: perturb the output jet, Psi^-1
             r = ctrl.relative_degree
             zeta = ctrl.reference_jet(0.0, params)[:r]
             zeta = zeta.at[0, :2].add(jax.random.uniform(ki, (2,), minval=-1, maxval=1) * cfg.ic_position)
             zeta = zeta.at[1, :2].add(jax.random.uniform(kv, (2,), minval=-1, maxval=1) * cfg.ic_velocity)
-            z0 = ctrl.inverse_psi(zeta, g, float(ctrl.reference_branch(params)))
+            z0 = ctrl.inverse_psi(zeta, params, float(ctrl.reference_branch(params)))
         else:
             post = ref.posture(0.0)
             X = jnp.zeros(nX).at[:3].set(post)
             if params.steering is not None:
                 X = X.at[nX - 1].set(params.steering(0.0))
-            X = X.at[:2].add(post[:2] - ctrl.outputs(X, g)[:2])
+            X = X.at[:2].add(post[:2] - ctrl.outputs(X, params)[:2])
             z0 = X.at[:2].add(jax.random.uniform(ki, (2,), minval=-1, maxval=1) * cfg.ic_position)
         rho = jax.random.uniform(km, (nu + 2,), minval=-cfg.mismatch, maxval=cfg.mismatch)
         pg = w.Geometry(L=g.L * (1 + rho[nu]), e=g.e * (1 + rho[nu + 1]), delta=g.delta)
@@ -174,7 +174,7 @@ def certificate_setup(ctrl, ref_name, g, t_final, eps=1e-2, n_t=501):
     """M1 on a grid for the certificate term (closed form), or None where not available."""
     from wmrjax import certify
 
-    if ref_name == "random" or isinstance(ctrl, StaticLinearization):
+    if ref_name == "random" or not isinstance(ctrl, w.DynamicLinearization):
         return None
     params = ctrl.params_unchecked(R.named(ref_name), 1.0, g)
     ts = jnp.linspace(0.0, t_final, n_t)
@@ -184,25 +184,17 @@ def certificate_setup(ctrl, ref_name, g, t_final, eps=1e-2, n_t=501):
 # --- checkpoints --------------------------------------------------------------------------
 
 def save_checkpoint(path: Path, cfg: TuneConfig, step, raw, opt_state, state: dict) -> None:
-    leaves = [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(opt_state)]
-    from experiments._common import write_json   # atomic: write, then rename
-
-    write_json(path, {"fingerprint": cfg.fingerprint(), "config": dataclasses.asdict(cfg), "step": step,
-                              "raw": np.asarray(raw).tolist(), "opt_state": leaves, "state": state})
+    """Atomic JSON checkpoint of the tuned parameters, the optimizer state and the history."""
+    io.write_checkpoint(path, fingerprint=cfg.fingerprint(), config=dataclasses.asdict(cfg), step=step,
+                        trees={"raw": raw, "opt_state": opt_state}, state=state)
 
 
-def load_checkpoint(path: Path, cfg: TuneConfig, opt_state_template):
-    """(step, raw, opt_state, state) from a JSON checkpoint; ValueError if it is another configuration's."""
-    d = json.loads(Path(path).read_text())
-    if d.get("fingerprint") != cfg.fingerprint():
-        diff = {k: (d.get("config", {}).get(k), v) for k, v in dataclasses.asdict(cfg).items()
-                if json.loads(json.dumps(d.get("config", {}).get(k))) != json.loads(json.dumps(v))}
-        raise ValueError(f"checkpoint {path} belongs to another configuration (differs in {sorted(diff)}); "
-                         "use another --out directory or delete the checkpoint")
-    treedef = jax.tree_util.tree_structure(opt_state_template)
-    tmpl = jax.tree_util.tree_leaves(opt_state_template)
-    leaves = [jnp.asarray(np.asarray(v, dtype=np.asarray(t).dtype).reshape(np.shape(t))) for v, t in zip(d["opt_state"], tmpl)]
-    return d["step"], jnp.asarray(d["raw"]), jax.tree_util.tree_unflatten(treedef, leaves), d["state"]
+def load_checkpoint(path: Path, cfg: TuneConfig, raw_template, opt_state_template):
+    """(step, raw, opt_state, state) from a JSON checkpoint; ValueError if it is another configuration's
+    or does not match the shapes of this configuration's parameters."""
+    ck = io.read_checkpoint(path, fingerprint=cfg.fingerprint(), config=dataclasses.asdict(cfg),
+                            templates={"raw": raw_template, "opt_state": opt_state_template})
+    return ck.step, ck.trees["raw"], ck.trees["opt_state"], ck.state
 
 
 # --- the loop -----------------------------------------------------------------------------
@@ -238,7 +230,7 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
     ckpt = Path(out_dir) / "checkpoint.json" if out_dir is not None else None
     start = 0
     if ckpt is not None and ckpt.exists():
-        start, raw, opt_state, state = load_checkpoint(ckpt, cfg, opt_state)
+        start, raw, opt_state, state = load_checkpoint(ckpt, cfg, raw, opt_state)
         log(f"resumed from {ckpt} at step {start}")
     t0 = time.perf_counter() - state["wall_time_s"]
     done_here = 0

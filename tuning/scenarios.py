@@ -53,7 +53,7 @@ class RolloutConfig(NamedTuple):
 def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, trajectory: bool = False):
     """Simulate one scenario under the (velocity-level) linearizing law; returns :class:`Metrics`
     (and with ``trajectory`` the sampled plant states and commands)."""
-    ext = ctrl.extension
+    ext = ctrl.row.extension
     nX = ctrl.robot.n_state
     params = ctrl.params_unchecked(sc.reference, 1.0, nominal_geometry)._replace(gains=gains)
     h = cfg.control_dt / cfg.substeps

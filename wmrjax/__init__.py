@@ -5,18 +5,22 @@ robots by state feedback linearization", IJRR 14(6), 1995. Float64 is not enable
 import; call ``jax.config.update("jax_enable_x64", True)`` in your entry point.
 """
 
-from wmrjax import certify, controllers, linearize, references, robots  # noqa: F401
+from wmrjax import certify, controllers, io, linearize, references, robots  # noqa: F401
 from wmrjax.controllers import (  # noqa: F401
+    Aux,
+    ClosedLoop,
     DynamicLinearization,
-    Gains,
+    HybridState,
+    InternalDynamics,
     StaticLinearization,
     controller,
     dynamic_linearization,
     hybrid_parking,
     static_linearization,
 )
+from wmrjax.gains import Gains  # noqa: F401
 from wmrjax.references import Reference  # noqa: F401
 from wmrjax.robots import Geometry, RobotType, robot_type  # noqa: F401
 from wmrjax.simulate import Diagnostics, Trajectory, batch_map, batch_mesh, rk4_step, shard_batch, simulate  # noqa: F401
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

@@ -67,35 +67,11 @@ def input_leakage(field: Callable, h: Callable, z, n_inputs: int, relative_degre
     return worst
 
 
-def monic_coefficients(poles):
-    r"""Coefficients of :math:`\prod_j (s + \lambda_j) = s^r + \sum_{j<r} k_j s^j`.
-
-    Args:
-      poles: (..., r) positive reals :math:`\lambda_j` (closed-loop poles at :math:`-\lambda_j`).
-
-    Returns:
-      (..., r) array ``k`` with ``k[..., j]`` the coefficient of ``s^j``: Hurwitz by
-      construction. For r = 2: ``k = (l1 l2, l1 + l2)`` as in eq (13).
-    """
-    r = poles.shape[-1]
-    # coefficients from highest power down, start with the monic polynomial "1"
-    c = [jnp.ones_like(poles[..., 0])]
-    for j in range(r):
-        lam = poles[..., j]
-        new = [c[0]]
-        for i in range(1, len(c)):
-            new.append(c[i] + lam * c[i - 1])
-        new.append(lam * c[-1])
-        c = new
-    # c[i] is the coefficient of s^(r - i); return ascending powers without the leading 1.
-    return jnp.stack(c[::-1][:r], axis=-1)
-
-
 def companion(coeffs):
     r"""Block error matrix A of the linear error dynamics, for :math:`\dot{\tilde\zeta} = A\tilde\zeta`.
 
     Args:
-      coeffs: (m, r) coefficients per output (from :func:`monic_coefficients`).
+      coeffs: (m, r) coefficients per output (:attr:`wmrjax.gains.Gains.coeffs`).
 
     Returns:
       (r m, r m) matrix acting on ``zeta_err.reshape(-1)`` with ``zeta_err`` ordered (r, m)

@@ -78,6 +78,10 @@ class Reference:
         """Speed of P, ``|p'(t)|`` [m/s]."""
         return jnp.linalg.norm(self.velocity(t))
 
+    def with_heading_offset(self, offset) -> "Reference":
+        """The same path with another constant heading offset [rad] (a crab angle)."""
+        return dataclasses.replace(self, heading_offset=_as_array(offset))
+
 
 def _as_array(x):
     return jnp.asarray(x, dtype=jnp.result_type(float))

@@ -41,6 +41,9 @@ class Diagnostics(NamedTuple):
       t_failure: time of the first failure [s] (``inf`` if none).
       min_margin: smallest margin over the valid states at step boundaries.
       t_min_margin: when it occurred [s].
+      internal: what the system's optional ``final_report(t, z, params)`` returns at the
+        final state (the static laws: :class:`wmrjax.controllers.static.InternalDynamics`,
+        the heading error and ||z3|| of their uncontrolled coordinates); None otherwise.
     """
 
     nonfinite: jnp.ndarray
@@ -49,6 +52,7 @@ class Diagnostics(NamedTuple):
     t_failure: jnp.ndarray
     min_margin: jnp.ndarray
     t_min_margin: jnp.ndarray
+    internal: Any = None
 
 
 class Trajectory(NamedTuple):
@@ -56,13 +60,13 @@ class Trajectory(NamedTuple):
 
     Attributes:
       t: saved times, shape (T,) [s]; T = n_steps // save_every + 1 (t0 included).
-      state: (T, n) states at those times.
+      state: (T, n) states at those times (a pytree state: every leaf with a leading T axis).
       control: (T, p) plant input evaluated at those states (at the final time: at the
         last state, for completeness).
       margin: (T,) singularity margin at those states.
       valid: (T,) True where the run is alive and that state's margin and control are
         regular and finite; False from the first failure on.
-      final_state: (n,) state after the last step (frozen value if the run failed).
+      final_state: state after the last step (frozen value if the run failed), like ``z0``.
       diagnostics: :class:`Diagnostics`.
     """
 
@@ -75,13 +79,27 @@ class Trajectory(NamedTuple):
     diagnostics: Diagnostics
 
 
+def _is_continuous(x) -> bool:
+    return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
+
+
+def _axpy(z, a, k):
+    """``z + a k`` on the continuous (floating) leaves of a state pytree; discrete leaves kept."""
+    return jax.tree_util.tree_map(lambda zi, ki: zi + a * ki if _is_continuous(zi) else zi, z, k)
+
+
 def rk4_step(field, t, z, dt):
-    """One classical RK4 step of ``dz/dt = field(t, z)[0]``; returns ``(z_next, aux_at_t)``."""
+    """One classical RK4 step of ``dz/dt = field(t, z)[0]``; returns ``(z_next, aux_at_t)``.
+
+    ``z`` may be a pytree: its floating leaves are integrated, its integer leaves (discrete
+    state such as a mode) are held and change only in a system's ``post_step``.
+    """
     k1, aux = field(t, z)
-    k2, _ = field(t + 0.5 * dt, z + (0.5 * dt) * k1)
-    k3, _ = field(t + 0.5 * dt, z + (0.5 * dt) * k2)
-    k4, _ = field(t + dt, z + dt * k3)
-    return z + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), aux
+    k2, _ = field(t + 0.5 * dt, _axpy(z, 0.5 * dt, k1))
+    k3, _ = field(t + 0.5 * dt, _axpy(z, 0.5 * dt, k2))
+    k4, _ = field(t + dt, _axpy(z, dt, k3))
+    combine = lambda zi, a, b, c, d: zi + (dt / 6.0) * (a + 2.0 * b + 2.0 * c + d) if _is_continuous(zi) else zi
+    return jax.tree_util.tree_map(combine, z, k1, k2, k3, k4), aux
 
 
 def _all_finite(tree):
@@ -92,9 +110,30 @@ def _all_finite(tree):
     return ok
 
 
+def _to_scalars(z):
+    """A state pytree as a flat tuple of scalars (structure of arrays under vmap)."""
+    return tuple(x for leaf in jax.tree_util.tree_leaves(z) for x in jnp.reshape(leaf, (-1,)))
+
+
+def _from_scalars(scalars, like):
+    """Inverse of :func:`_to_scalars` for the structure and leaf shapes of ``like``."""
+    leaves, treedef = jax.tree_util.tree_flatten(like)
+    out, i = [], 0
+    for leaf in leaves:
+        n = int(np.prod(np.shape(leaf)))
+        out.append(jnp.stack(scalars[i:i + n]).reshape(np.shape(leaf)) if np.ndim(leaf) else scalars[i])
+        i += n
+    return jax.tree_util.tree_unflatten(treedef, out)
+
+
+def _first_float(z):
+    leaves = [x for x in jax.tree_util.tree_leaves(z) if _is_continuous(x)]
+    return jnp.reshape(leaves[0], (-1,))[0]
+
+
 @functools.partial(jax.jit, static_argnames=("system", "n_steps", "save_every"))
 def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
-    dtype = jnp.result_type(z0)
+    dtype = jnp.result_type(*[x for x in jax.tree_util.tree_leaves(z0) if _is_continuous(x)])
     dt = jnp.asarray(dt, dtype)
     t0 = jnp.asarray(t0, dtype)
     # traced once, reused by the four RK stages and the final evaluation (XLA inlines it):
@@ -104,7 +143,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
 
     def step(carry, i):
         zt, alive, diag = carry
-        z = jnp.stack(zt)
+        z = _from_scalars(zt, z0)
         t = t0 + i * dt
         z_next, aux = rk4_step(field, t, z, dt)
         if post_step is not None:   # hybrid systems: discrete transition at the end of the step
@@ -124,8 +163,9 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
             min_margin=jnp.where(better, margin, diag.min_margin),
             t_min_margin=jnp.where(better, t, diag.t_min_margin),
         )
-        z_keep = jnp.where(ok, jnp.where(finite_next, z_next, z), z)  # double where: no NaN leaks into grads
-        zt_next = tuple(z_keep[j] for j in range(z.shape[0]))
+        # double where: no NaN leaks into grads
+        z_keep = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, jnp.where(finite_next, a, b), b), z_next, z)
+        zt_next = _to_scalars(z_keep)
         return (zt_next, ok, diag), (z, aux.control, margin, sample_ok)
 
     # Reverse mode: rematerialise each step instead of storing its intermediates (the
@@ -133,10 +173,12 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
     step = jax.checkpoint(step, prevent_cse=False)
 
     # initial flags derived from z0 so they carry its sharding/varying type (shard_map)
-    bad0 = ~jnp.isfinite(z0[0])
-    inf = jnp.where(bad0, jnp.inf, jnp.inf * jnp.ones_like(z0[0]))
-    diag0 = Diagnostics(bad0, bad0 & False, bad0, jnp.where(bad0, t0, inf), inf, t0 + 0.0 * z0[0])
-    carry = (tuple(z0[j] for j in range(z0.shape[0])), ~bad0, diag0)
+    first = _first_float(z0)
+    bad0 = ~jnp.isfinite(first)
+    inf = jnp.where(bad0, jnp.inf, jnp.inf * jnp.ones_like(first))
+    report0 = None
+    diag0 = Diagnostics(bad0, bad0 & False, bad0, jnp.where(bad0, t0, inf), inf, t0 + 0.0 * first, report0)
+    carry = (_to_scalars(z0), ~bad0, diag0)
 
     n_saves = n_steps // save_every
     rec0 = (z0, jnp.zeros_like(jnp.asarray(field(t0, z0)[1].control)), inf, ~bad0)
@@ -162,7 +204,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
     if rest.shape[0]:  # steps beyond the last saving chunk run without saving
         (carry, _), _ = jax.lax.scan(inner, (carry, rec0), (rest, jnp.ones_like(rest)))
     zt, alive, diag = carry
-    z_final = jnp.stack(zt)
+    z_final = _from_scalars(zt, z0)
     t_final = t0 + n_steps * dt
     _, aux_f = field(t_final, z_final)
     m_f = jnp.asarray(aux_f.margin, dtype)
@@ -176,12 +218,15 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
     better = final_ok & (m_f < diag.min_margin)
     diag = diag._replace(min_margin=jnp.where(better, m_f, diag.min_margin),
                          t_min_margin=jnp.where(better, t_final, diag.t_min_margin))
+    final_report = getattr(system, "final_report", None)
+    if final_report is not None:    # e.g. the internal dynamics of a static law
+        diag = diag._replace(internal=final_report(t_final, z_final, params))
     states, controls, margins, valids = recs
     t_saved = t0 + dt * jnp.arange(n_saves + 1, dtype=dtype) * save_every
     t_saved = t_saved.at[-1].set(t_final)
     traj = Trajectory(
         t=t_saved,
-        state=jnp.concatenate([states, z_final[None]]),
+        state=jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), states, z_final),
         control=jnp.concatenate([controls, jnp.asarray(aux_f.control)[None]]),
         margin=jnp.concatenate([margins, jnp.asarray(aux_f.margin, dtype)[None]]),
         valid=jnp.concatenate([valids, final_ok[None]]),
@@ -298,14 +343,26 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
     dtv = concrete(dt)
     if dtv is not None and not (np.ndim(dtv) == 0 and np.isfinite(dtv) and dtv > 0):
         raise ValueError(f"dt must be a finite scalar > 0 [s], got {dt!r}")
-    z0 = jnp.asarray(z0)
-    if not jnp.issubdtype(z0.dtype, jnp.floating):
-        z0 = z0.astype(jnp.result_type(float))
+    leaves = jax.tree_util.tree_leaves(z0)
+    if not leaves:
+        raise ValueError("z0 must be a state array (or a pytree of arrays), got an empty pytree")
+    if isinstance(z0, (list, tuple)) and not hasattr(z0, "_fields"):
+        z0 = jnp.asarray(z0)          # a plain sequence of numbers is a state vector
+    z0 = jax.tree_util.tree_map(
+        lambda x: jnp.asarray(x) if jnp.issubdtype(jnp.result_type(x), jnp.number) else jnp.asarray(x, float), z0)
+    z0 = jax.tree_util.tree_map(
+        lambda x: x.astype(jnp.result_type(float)) if jnp.issubdtype(x.dtype, jnp.bool_) else x, z0)
+    if not any(_is_continuous(x) for x in jax.tree_util.tree_leaves(z0)):
+        z0 = jax.tree_util.tree_map(lambda x: x.astype(jnp.result_type(float)), z0)
     n = getattr(system, "n_state", None)
-    if z0.ndim != 1 or (n is not None and z0.shape != (n,)):
+    size = sum(int(np.size(x)) for x in jax.tree_util.tree_leaves(z0))
+    is_array = isinstance(z0, jax.Array)
+    if (is_array and z0.ndim != 1) or (n is not None and size != n):
         names = getattr(system, "state_names", None)
         raise ValueError(f"z0 must be an unbatched state of shape ({n},)"
                          + (f" = ({', '.join(names)})" if names else "")
-                         + f"; got shape {z0.shape} (use jax.vmap to batch)")
-    check_finite("z0", z0)
+                         + f"; got shape {np.shape(z0) if is_array else [np.shape(x) for x in jax.tree_util.tree_leaves(z0)]}"
+                         " (use jax.vmap to batch)")
+    for leaf in jax.tree_util.tree_leaves(z0):
+        check_finite("z0", leaf)
     return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor)

@@ -1,18 +1,34 @@
-"""Feedback-linearizing controllers of d'Andrea-Novel, Campion & Bastin (1995)."""
+"""Feedback-linearizing controllers of d'Andrea-Novel, Campion & Bastin (1995).
+
+* :mod:`~wmrjax.controllers.law` -- the closed-loop protocol and the one generic law;
+* :mod:`~wmrjax.controllers.dynamic` -- Table 4 (dynamic linearization, posture tracking);
+* :mod:`~wmrjax.controllers.static` -- Prop 3 and Table 3 (static linearization);
+* :mod:`~wmrjax.controllers.hybrid` -- §6.2 (tracking, then a time-varying stabilizer).
+"""
 
 from wmrjax.controllers.dynamic import (  # noqa: F401
-    EXTENSIONS,
-    DynamicExtension,
+    TABLE4,
     DynamicLinearization,
     DynamicParams,
-    Gains,
+    Table4Row,
     dynamic_linearization,
 )
-from wmrjax.controllers.hybrid import Hybrid, HybridParams, TimeVarying, hybrid_parking, stabilizer  # noqa: F401
+from wmrjax.controllers.hybrid import (  # noqa: F401
+    Hybrid,
+    HybridParams,
+    HybridState,
+    TimeVarying,
+    hybrid_parking,
+    stabilizer,
+)
+from wmrjax.controllers.law import DET_FLOOR, LEVELS, Aux, ClosedLoop, Extension, LinearizingLaw  # noqa: F401
 from wmrjax.controllers.static import (  # noqa: F401
+    TABLE3,
+    InternalDynamics,
     StaticLinearization,
     StaticParams,
     Steering,
+    Table3Row,
     controller,
     static_linearization,
     steering_constant,

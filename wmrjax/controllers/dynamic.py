@@ -1,13 +1,14 @@
 r"""Dynamic feedback linearization for posture tracking (paper §5, Table 4, Props 7-9).
 
-Each row of Table 4 is a :class:`DynamicExtension`: the linearizing outputs, the
-compensator states that delay some input combinations, and how the new inputs U drive
-the plant. Everything else -- the diffeomorphism :math:`\zeta = \Psi(X_e)`, the
-decoupling matrix :math:`K(X_e)` and drift, the auxiliary law (49) -- is produced by the
-generic engine of :mod:`wmrjax.linearize`, at velocity level (kinematic model 5) and at
-torque level (model 8) by the cascade of Lemma 1: the torque-level extension appends the
-velocity-level new inputs U to the state and takes :math:`V = \dot U` as input, with the
-same outputs, relative degrees one higher, and the same decoupling matrix.
+Each row of Table 4 is a :class:`Table4Row`, built by keyword: the mechanics of the
+extension (:class:`wmrjax.controllers.law.Extension`: outputs, compensator, how the new
+inputs drive the plant) and every fact that differs by robot type -- the regularity
+condition, the closed-form :math:`\Psi^{-1}`, the branch rule (Remark 17), the pieces of
+the singular set and the distance to it in :math:`\zeta` coordinates (Remark 16, which
+gives :math:`M_1`), the geometry the law needs, and a default geometry for examples.
+Everything else -- :math:`\zeta = \Psi(X_e)`, K and the drift, the auxiliary law (49) --
+comes from the one generic law of :mod:`wmrjax.controllers.law`, at velocity and torque
+level (Lemma 1).
 
 Extended state ``z`` (unbatched vector):
 
@@ -18,6 +19,8 @@ Extended state ``z`` (unbatched vector):
 from __future__ import annotations
 
 import dataclasses
+import functools
+import math
 from typing import Callable, NamedTuple, Optional
 
 import jax
@@ -25,62 +28,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import _math, linearize, robots
-from wmrjax._validate import check_finite, check_positive, check_shape, concrete
+from wmrjax._validate import check_finite, check_shape, concrete
+from wmrjax.controllers.law import (DET_FLOOR, LEVELS, Aux, Extension, LinearizingLaw, Requirement,
+                                    check_reference_type, check_regular, check_requirements, make_gains,
+                                    physical_state_names, validated_physical)
+from wmrjax.gains import Gains
 from wmrjax.references import Reference, taylor
 from wmrjax.robots import Geometry, RobotType
 
-# |det K| below this is treated as singular inside the law (the division is clamped);
-# runs report the true margin so such events are flagged.
-DET_FLOOR = 1e-12
 
+# --- Table 4: the extensions -------------------------------------------------------------
 
-@dataclasses.dataclass(frozen=True)
-class DynamicExtension:
-    """One row of Table 4 (static description).
-
-    Attributes:
-      robot: the robot type.
-      n_comp: number of compensator states c.
-      comp_names: their names (for reports).
-      relative_degree: r of every output at velocity level.
-      outputs: ``(xi, geometry) -> Y`` linearizing outputs, function of the posture only.
-      plant_input: ``(X, c, U, geometry) -> u``, affine in U.
-      compensator: ``(X, c, U, geometry) -> dc/dt``, affine in U.
-      regularity: Table 4's condition (with errata), for messages.
-      psi_inverse: closed form ``(zeta, branch, geometry) -> z`` at velocity level, on the
-        branch where :attr:`branch_quantity` has the sign ``branch`` (+1 or -1).
-      from_physical: ``(X, u, geometry) -> (c, U)``: compensator state and new inputs
-        matching a physical state (posture, steering angles, wheel velocities u) with the
-        compensator at rest (its time derivative zero).
-      branch_quantity: ``(z, geometry) -> scalar`` whose sign labels the branch of Psi^-1
-        (Remark 17): chi1 for (2,0) and (1,1), eta1 for (2,1) and (1,2).
-      extra_margin: optional ``(z, geometry) -> scalar`` multiplying |det K| in the
-        singularity margin (the (1,1) lever L sin(beta) + e cos(beta), errata).
-      angle_outputs: which outputs are angles (theta for (2,1), (1,2)): their zeroth-order
-        error is wrapped to [-pi, pi) so a reference heading given modulo 2 pi is tracked
-        without a spurious turn (errata: integrate angles unwrapped, wrap only errors).
-    """
-
-    robot: RobotType
-    n_comp: int
-    comp_names: tuple
-    relative_degree: int
-    outputs: Callable = dataclasses.field(repr=False)
-    plant_input: Callable = dataclasses.field(repr=False)
-    compensator: Callable = dataclasses.field(repr=False)
-    regularity: str = ""
-    psi_inverse: Optional[Callable] = dataclasses.field(default=None, repr=False)
-    from_physical: Optional[Callable] = dataclasses.field(default=None, repr=False)
-    branch_quantity: Optional[Callable] = dataclasses.field(default=None, repr=False)
-    extra_margin: Optional[Callable] = dataclasses.field(default=None, repr=False)
-    angle_outputs: tuple = ()
-
-    @property
-    def n_outputs(self) -> int:
-        return self.robot.n_input  # square: m outputs, m new inputs
-
-
-# --- Table 4 rows --------------------------------------------------------------------
 
 def _out_axle_point(xi, g):
     s, c = _math.sincos(xi[2])
@@ -108,9 +66,9 @@ def _phys_20(X, u, g):
     return jnp.stack([u[0] + g.e * u[1]]), jnp.stack([jnp.zeros_like(u[0]), u[1]])
 
 
-def _out_posture(xi, g):
+def _out_posture(X, g):
     del g
-    return xi
+    return X[:3]
 
 
 def _pi_21(X, c, U, g):  # u = (eta1, eta2, zeta1); compensator (eta1, eta2), U = (eta1', eta2', zeta1)
@@ -217,52 +175,166 @@ def _phys_12(X, u, g):
     return u[:1], jnp.stack([jnp.zeros_like(u[0]), u[1], u[2]])
 
 
-def _first_comp(n_x):
-    return lambda z, g: z[n_x]          # first compensator state: chi1 (2,0), eta1 otherwise
-
-
 def _chi1_11(z, g):
     return z[4] * _lever_11(z[3], g)[0]
 
 
-EXTENSIONS: dict[str, DynamicExtension] = {
-    "(2,0)": DynamicExtension(robots.TYPES["(2,0)"], 1, ("chi1",), 2, _out_axle_point, _pi_20, _comp_20,
-                              "chi1 = eta1 + e eta2 != 0", _psi_inv_20, _phys_20, _first_comp(3)),
-    "(2,1)": DynamicExtension(robots.TYPES["(2,1)"], 2, ("eta1", "eta2"), 2, _out_posture, _pi_21, _comp_21,
-                              "eta1 != 0", _psi_inv_21, _phys_21, _first_comp(4), angle_outputs=(2,)),
-    "(1,1)": DynamicExtension(robots.TYPES["(1,1)"], 2, ("eta1", "chi2"), 3, _out_axle_point, _pi_11, _comp_11,
-                              "eta1 (L sin beta + e cos beta) != 0 (errata: Table 4 prints only eta1 != 0)",
-                              _psi_inv_11, _phys_11, _chi1_11, _margin_11),
-    "(1,2)": DynamicExtension(robots.TYPES["(1,2)"], 1, ("eta1",), 2, _out_12, _pi_12, _comp_12,
-                              "L eta1 sin(beta1) sin(beta2) != 0", _psi_inv_12, _phys_12, _first_comp(5),
-                              angle_outputs=(2,)),
-}
+def _first_comp(z, g, n_x):
+    return z[n_x]          # first compensator state: chi1 (2,0), eta1 (2,1), (1,2)
 
 
-# --- gains and parameters -----------------------------------------------------------
+# --- Table 4: the singular sets (Remark 16) -----------------------------------------------
 
-class Gains(NamedTuple):
-    """Closed-loop poles of the linear error dynamics (Prop 8, eq 49 with the errata sign).
+def _distance_point_speed(jet, g):
+    r"""Distance in :math:`\zeta` coordinates to :math:`\{\dot h_1 = \dot h_2 = 0\}` (the output
+    point at rest): :math:`\|\dot h\|` (Lemma 3, eq 59), for (2,0), (2,1), (1,1). At torque
+    level the higher rows can be matched on the singular set, so the same formula holds."""
+    del g
+    return jnp.sqrt(jnp.sum(jet[1, :2] ** 2))
+
+
+_GOLDEN = 0.5 * (math.sqrt(5.0) - 1.0)
+
+
+def _distance_lateral_velocity(jet, g):
+    r"""Distance in :math:`\zeta` coordinates to the singular set of (1,2).
+
+    :math:`\eta_1\sin\beta_1\sin\beta_2 = 0` exactly when the body-frame lateral velocity of
+    P vanishes (both wheels' lateral components equal it), i.e. on the curved hypersurface
+    :math:`\sigma(\zeta) = \cos\theta\,\dot h_1 + \sin\theta\,\dot h_2 + e\sin\delta\,\dot\theta = 0`.
+    For fixed :math:`\theta` it is a hyperplane in :math:`(\dot h_1, \dot h_2, \dot\theta)` with
+    normal :math:`(\cos\theta, \sin\theta, e\sin\delta)`, so
+    :math:`d^2 = \min_\theta (\theta - \theta_0)^2 + \sigma_\theta(\zeta)^2 / (1 + e^2\sin^2\delta)`,
+    a one-dimensional minimisation (grid over a full turn, then golden section).
+    """
+    es = g.e * jnp.sin(g.delta)
+    th_r, v = jet[0, 2], jet[1]
+    grid = jnp.linspace(-math.pi, math.pi, 721)
+
+    def d2(dth):
+        s, c = jnp.sin(th_r + dth), jnp.cos(th_r + dth)
+        sig = c * v[0] + s * v[1] + es * v[2]
+        return dth**2 + sig**2 / (1.0 + es**2)
+
+    vals = jax.vmap(d2)(grid)
+    i = jnp.argmin(vals)
+    lo, hi = grid[jnp.maximum(i - 1, 0)], grid[jnp.minimum(i + 1, grid.shape[0] - 1)]
+
+    def golden(c, _):
+        lo, hi = c
+        x1, x2 = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
+        left = d2(x1) <= d2(x2)
+        return (jnp.where(left, lo, x1), jnp.where(left, x2, hi)), None
+
+    (lo, hi), _ = jax.lax.scan(golden, (lo, hi), None, length=60)
+    return jnp.sqrt(jnp.minimum(d2(0.5 * (lo + hi)), vals[i]))
+
+
+def _families_first_comp(n_x):
+    return lambda g: [(n_x, 0.0)]
+
+
+def _families_11(g):
+    return [(4, 0.0), (3, jnp.arctan2(-g.e, g.L))]       # eta1 = 0; lever L sin(beta) + e cos(beta) = 0
+
+
+def _families_12(g):
+    return [(5, 0.0), (3, 0.0), (4, 0.0)]                # eta1 = 0, beta1 = 0, beta2 = 0
+
+
+_L_NONZERO = Requirement("L", "nonzero", "Table 4: det K is proportional to L")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Table4Row:
+    """One row of Table 4 and every per-type fact the dynamic law and its certificates need.
 
     Attributes:
-      poles: (m, r) positive reals; output i's error obeys
-        :math:`\\prod_j (d/dt + \\lambda_{ij}) \\tilde Y_i = 0`: Hurwitz by construction.
-      coeffs: optional (m, r) coefficients overriding the poles (see :meth:`coefficients`).
+      extension: outputs, compensator and plant input (:class:`Extension`).
+      regularity: Table 4's condition (with errata), for messages.
+      psi_inverse: closed form ``(zeta, branch, geometry) -> z`` at velocity level, on the
+        branch where :attr:`branch_quantity` has the sign ``branch`` (+1 or -1).
+      from_physical: ``(X, u, geometry) -> (c, U)``: compensator state and new inputs
+        matching a physical state with the compensator at rest (its derivative zero).
+      branch_quantity: ``(z, geometry) -> scalar`` whose sign labels the branch (Remark 17).
+      branch_name: its name ("chi1" or "eta1").
+      branch_follows_heading: True where the branch is the sign of the velocity along the
+        heading ((2,0), (1,1)): a reference heading offset by pi (moving backwards) is on
+        branch -1. False where the heading is an output ((2,1), (1,2)).
+      extra_margin: optional ``(z, geometry) -> scalar`` multiplying |det K| in the
+        singularity margin (the (1,1) lever L sin(beta) + e cos(beta), errata).
+      singular_families: ``geometry -> [(state index, pinned value), ...]``: the pieces of
+        the singular set (Remark 16's numerical M1 searches each).
+      singular_set_is_linear: True where the singular set in zeta coordinates is the linear
+        subspace {velocity of the output point = 0} (exact-map radius applies).
+      singular_distance: ``(jet, geometry) -> scalar``: distance from the output jet
+        (rows 0 and 1 used) to the singular set in zeta coordinates; M1 of the reference.
+      requires: geometry :class:`Requirement` s of the regularity condition.
+      default_geometry: the geometry used by the examples and experiments [m, m, rad].
+      default_heading_offset: a reference heading offset [rad] keeping the reference
+        regular on the default geometry (non-zero where a crab angle is needed).
     """
 
-    poles: jnp.ndarray
-    coeffs: Optional[jnp.ndarray] = None
+    extension: Extension
+    regularity: str
+    psi_inverse: Callable = dataclasses.field(repr=False)
+    from_physical: Callable = dataclasses.field(repr=False)
+    branch_quantity: Callable = dataclasses.field(repr=False)
+    branch_name: str
+    branch_follows_heading: bool
+    extra_margin: Optional[Callable] = dataclasses.field(default=None, repr=False)
+    singular_families: Callable = dataclasses.field(repr=False)
+    singular_set_is_linear: bool
+    singular_distance: Callable = dataclasses.field(repr=False)
+    requires: tuple = ()
+    default_geometry: Geometry = Geometry()
+    default_heading_offset: float = 0.0
 
-    def coefficients(self):
-        """(m, r) coefficients ``k[i, j]`` of ``d^j/dt^j`` (eq 49 errata, eq 13 for r = 2).
+    @property
+    def robot(self) -> RobotType:
+        return self.extension.robot
 
-        From the real poles, unless ``coeffs`` (any Hurwitz coefficients, e.g. complex
-        poles from the tuner's damping parameterisation) is given.
-        """
-        if self.coeffs is not None:
-            return self.coeffs
-        return linearize.monic_coefficients(self.poles)
 
+TABLE4: dict[str, Table4Row] = {row.robot.name: row for row in (
+    Table4Row(
+        extension=Extension(robot=robots.TYPES["(2,0)"], outputs=_out_axle_point, relative_degree=2, n_comp=1,
+                            comp_names=("chi1",), plant_input=_pi_20, compensator=_comp_20),
+        regularity="chi1 = eta1 + e eta2 != 0",
+        psi_inverse=_psi_inv_20, from_physical=_phys_20,
+        branch_quantity=functools.partial(_first_comp, n_x=3), branch_name="chi1", branch_follows_heading=True,
+        singular_families=_families_first_comp(3), singular_set_is_linear=True,
+        singular_distance=_distance_point_speed, default_geometry=Geometry(e=0.2)),
+    Table4Row(
+        extension=Extension(robot=robots.TYPES["(2,1)"], outputs=_out_posture, relative_degree=2, n_comp=2,
+                            comp_names=("eta1", "eta2"), plant_input=_pi_21, compensator=_comp_21,
+                            angle_outputs=(2,)),
+        regularity="eta1 != 0",
+        psi_inverse=_psi_inv_21, from_physical=_phys_21,
+        branch_quantity=functools.partial(_first_comp, n_x=4), branch_name="eta1", branch_follows_heading=False,
+        singular_families=_families_first_comp(4), singular_set_is_linear=True,
+        singular_distance=_distance_point_speed, default_geometry=Geometry(), default_heading_offset=0.3),
+    Table4Row(
+        extension=Extension(robot=robots.TYPES["(1,1)"], outputs=_out_axle_point, relative_degree=3, n_comp=2,
+                            comp_names=("eta1", "chi2"), plant_input=_pi_11, compensator=_comp_11),
+        regularity="eta1 (L sin beta + e cos beta) != 0 (errata: Table 4 prints only eta1 != 0)",
+        psi_inverse=_psi_inv_11, from_physical=_phys_11,
+        branch_quantity=_chi1_11, branch_name="chi1", branch_follows_heading=True, extra_margin=_margin_11,
+        singular_families=_families_11, singular_set_is_linear=True,
+        singular_distance=_distance_point_speed, requires=(_L_NONZERO,),
+        default_geometry=Geometry(L=1.0, e=0.3)),
+    Table4Row(
+        extension=Extension(robot=robots.TYPES["(1,2)"], outputs=_out_12, relative_degree=2, n_comp=1,
+                            comp_names=("eta1",), plant_input=_pi_12, compensator=_comp_12, angle_outputs=(2,)),
+        regularity="L eta1 sin(beta1) sin(beta2) != 0",
+        psi_inverse=_psi_inv_12, from_physical=_phys_12,
+        branch_quantity=functools.partial(_first_comp, n_x=5), branch_name="eta1", branch_follows_heading=False,
+        singular_families=_families_12, singular_set_is_linear=False,
+        singular_distance=_distance_lateral_velocity, requires=(_L_NONZERO,),
+        default_geometry=Geometry(L=0.5, e=0.3, delta=0.5), default_heading_offset=0.5),
+)}
+
+
+# --- parameters and the controller --------------------------------------------------------
 
 class DynamicParams(NamedTuple):
     """Everything array-valued the closed loop depends on (a pytree: vmap/grad it)."""
@@ -272,182 +344,130 @@ class DynamicParams(NamedTuple):
     geometry: Geometry
 
 
-class Aux(NamedTuple):
-    """What a closed-loop evaluation reports besides the state derivative."""
-
-    control: jnp.ndarray   # plant input: u (velocity level) or v (torque level)
-    margin: jnp.ndarray    # |det K(X_e)|, the singularity margin (Remark 14)
-
-
 @dataclasses.dataclass(frozen=True)
 class DynamicLinearization:
     """A dynamic linearizing posture-tracking controller (static, hashable).
 
-    Build it with :func:`dynamic_linearization`. Its :meth:`vector_field` is what
-    :func:`wmrjax.simulate` integrates; the extended state ``z`` holds the plant state
-    and the compensator (and at torque level the plant velocities through U).
+    Build it with :func:`dynamic_linearization` or :func:`wmrjax.controller`. Its
+    :meth:`vector_field` is what :func:`wmrjax.simulate` integrates; the extended state
+    ``z`` holds the plant state and the compensator (and at torque level the plant
+    velocities through U). Methods take ``(t, z, params)`` or ``(z, params)``.
     """
 
-    extension: DynamicExtension
+    row: Table4Row
     level: str  # "velocity" | "torque"
 
     # -- static sizes --
     @property
+    def law(self) -> LinearizingLaw:
+        """The generic law this controller runs (shared with the static laws)."""
+        return LinearizingLaw(self.row.extension, self.level)
+
+    @property
     def robot(self) -> RobotType:
-        return self.extension.robot
+        return self.row.robot
 
     @property
     def m(self) -> int:
-        return self.extension.n_outputs
+        return self.law.m
 
     @property
     def relative_degree(self) -> int:
-        return self.extension.relative_degree + (1 if self.level == "torque" else 0)
+        return self.law.relative_degree
 
     @property
     def n_state(self) -> int:
-        n = self.robot.n_state + self.extension.n_comp
-        return n + (self.m if self.level == "torque" else 0)
+        return self.law.n_state
 
     @property
     def state_names(self) -> tuple:
-        X = ("x", "y", "theta") + (("beta",) if self.robot.delta_s == 1 else ("beta1", "beta2")[: self.robot.delta_s])
-        names = X + self.extension.comp_names
+        names = physical_state_names(self.robot) + self.row.extension.comp_names
         return names + tuple(f"U{i + 1}" for i in range(self.m)) if self.level == "torque" else names
 
-    # -- dynamics of the extended system --
-    def _velocity_field(self, zv, U, g):
-        n = self.robot.n_state
-        X, c = zv[:n], zv[n:]
-        u = self.extension.plant_input(X, c, U, g)
-        return jnp.concatenate([robots.kinematic(self.robot, X, u, g), self.extension.compensator(X, c, U, g)])
+    @property
+    def velocity_level(self) -> "DynamicLinearization":
+        return DynamicLinearization(self.row, "velocity")
 
-    def field(self, z, U, g):
-        """Extended dynamics ``dz/dt = F(z) + G(z) U`` (U: new inputs of this level)."""
-        if self.level == "velocity":
-            return self._velocity_field(z, U, g)
-        nv = self.n_state - self.m
-        return jnp.concatenate([self._velocity_field(z[:nv], z[nv:], g), U])
+    # -- the law --
+    def outputs(self, z, params):
+        """Linearizing outputs Y of Table 4 at ``z``, shape (m,)."""
+        return self.law.outputs(z, params.geometry)
 
-    def plant_control(self, z, U, g):
-        """The physical input: u (velocity level) or v = du/dt (torque level, by jvp)."""
-        n = self.robot.n_state
-        pi = lambda X, c, Uv: self.extension.plant_input(X, c, Uv, g)
-        if self.level == "velocity":
-            return pi(z[:n], z[n:], U)
-        nv = self.n_state - self.m
-        zdot = self.field(z, U, g)
-        return jax.jvp(pi, (z[:n], z[n:nv], z[nv:]), (zdot[:n], zdot[n:nv], U))[1]
-
-    def outputs(self, z, g):
-        return self.extension.outputs(z[:3], g)
-
-    def jet(self, z, g):
+    def jet(self, z, params):
         """``(zeta, a, K)`` of :func:`wmrjax.linearize.output_jet` at ``z``."""
-        return linearize.output_jet(lambda x, U: self.field(x, U, g), lambda x: self.outputs(x, g),
-                                    z, self.m, self.relative_degree)
+        return self.law.jet(z, params.geometry)
 
-    def psi(self, z, g):
+    def psi(self, z, params):
         r"""The diffeomorphism :math:`\zeta = \Psi(X_e)` (eq 35), shape (r, m)."""
-        return self.jet(z, g)[0]
+        return self.law.jet(z, params.geometry)[0]
 
     def reference_jet(self, t, params: DynamicParams):
         """``Y_ref, Y_ref', ..., Y_ref^{(r)}`` at time t, shape (r + 1, m), by autodiff."""
         ref, g = params.reference, params.geometry
-        return taylor(lambda s: self.extension.outputs(ref.posture(s), g), t, self.relative_degree)
-
-    def control(self, t, z, params: DynamicParams):
-        """New input U (Prop 8) and the margin ``|det K|``.
-
-        Returns:
-          ``(U, margin)``; the division by ``det K`` is clamped at :data:`DET_FLOOR`.
-        """
-        g = params.geometry
-        zeta, a, K = self.jet(z, g)
-        yref = self.reference_jet(t, params)
-        r = self.relative_degree
-        k = params.gains.coefficients()            # (m, r)
-        err = self._wrap_error(zeta - yref[:r])    # (r, m)
-        w = yref[r]
-        for j in range(r):                         # eq (49), errata sign
-            w = w - k[:, j] * err[j]
-        num, det = _math.adjugate_solve(K, w - a)
-        return num / _math.safe_divisor(det, DET_FLOOR), self._margin(z, det, g)
+        return taylor(lambda s: self.row.extension.outputs(ref.posture(s), g), t, self.relative_degree)
 
     def _margin(self, z, det, g):
         m = jnp.abs(det)
-        if self.extension.extra_margin is not None:
-            m = m * jnp.abs(self.extension.extra_margin(z, g))
+        if self.row.extra_margin is not None:
+            m = m * jnp.abs(self.row.extra_margin(z, g))
         return m
 
-    def margin(self, z, g):
+    def control(self, t, z, params: DynamicParams):
+        """New input U (Prop 8, eq 49) and the margin ``|det K|``; the division is clamped at ``DET_FLOOR``."""
+        g = params.geometry
+        U, det = self.law.control(self.reference_jet(t, params), z, params.gains.coeffs, g)
+        return U, self._margin(z, det, g)
+
+    def margin(self, z, params):
         """Singularity margin at ``z``: |det K(X_e)| (times |L sin b + e cos b| for (1,1)); 0 on the singular set."""
-        return self._margin(z, jnp.linalg.det(self.jet(z, g)[2]), g)
+        g = params.geometry
+        return self._margin(z, jnp.linalg.det(self.law.jet(z, g)[2]), g)
 
     def vector_field(self, t, z, params: DynamicParams):
         """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin)."""
         U, margin = self.control(t, z, params)
         g = params.geometry
-        return self.field(z, U, g), Aux(self.plant_control(z, U, g), margin)
+        return self.law.field(z, U, g), Aux(self.law.plant_control(z, U, g), margin)
 
     # -- error coordinates --
-    def _wrap_error(self, err):
-        for i in self.extension.angle_outputs:
-            err = err.at[0, i].set(_math.wrap_angle(err[0, i]))
-        return err
-
     def error(self, t, z, params: DynamicParams):
         r""":math:`\tilde\zeta = \Psi(z) - \zeta_{ref}(t)`, shape (r, m); angle outputs wrapped."""
-        return self._wrap_error(self.psi(z, params.geometry) - self.reference_jet(t, params)[: self.relative_degree])
+        return self.law.wrap_error(self.psi(z, params) - self.reference_jet(t, params)[: self.relative_degree])
 
     def error_matrix(self, gains: Gains):
         """Matrix A with :math:`\\dot{\\tilde\\zeta} = A \\tilde\\zeta` on ``error(...).reshape(-1)``."""
-        return linearize.companion(gains.coefficients())
+        return linearize.companion(gains.coeffs)
 
-    # -- parameters and initial states --
-    def params(self, reference: Reference, poles=1.0, geometry: Geometry = Geometry()) -> DynamicParams:
+    def singular_distance(self, jet, params):
+        """Distance from an output jet (r, m) to the singular set in zeta coordinates (Remark 16)."""
+        return self.row.singular_distance(jet, params.geometry)
+
+    # -- parameters --
+    def params(self, reference: Reference, poles=1.0, geometry: Geometry = Geometry(), *,
+               gains: Gains | None = None) -> DynamicParams:
         """Build and validate :class:`DynamicParams`.
 
         Args:
           reference: a :class:`wmrjax.references.Reference`.
-          poles: scalar, (r,), or (m, r) positive pole magnitudes (poles at ``-poles``).
-          geometry: :class:`wmrjax.Geometry`.
-        """
-        p = self._checked_poles(reference, poles, geometry)
-        self._check_geometry_regular(geometry)
-        return DynamicParams(Gains(p), reference, geometry)
+          poles: scalar, (r,), or (m, r) positive real pole magnitudes (poles at ``-poles``).
+          geometry: :class:`wmrjax.Geometry` (``row.default_geometry`` is the experiments' choice).
+          gains: a :class:`wmrjax.Gains` instead of ``poles`` (e.g. complex pole pairs).
 
-    def _checked_poles(self, reference, poles, geometry):
-        """Validate the geometry, the reference type and the poles; return poles as (m, r)."""
+        Raises:
+          ValueError: a bad reference, geometry or gains.
+        """
         robots.check_geometry(geometry)
-        if not isinstance(reference, Reference):
-            raise ValueError(f"reference must be a wmrjax.references.Reference, got {type(reference).__name__}")
-        r, m = self.relative_degree, self.m
-        p = jnp.asarray(poles, dtype=jnp.result_type(float))
-        if p.ndim == 0:
-            p = jnp.full((m, r), p)
-        elif p.shape == (r,):
-            p = jnp.broadcast_to(p, (m, r))
-        check_shape("poles", p, (m, r), f"one pole magnitude per output and derivative order, r = {r}")
-        check_positive("poles (closed-loop poles are at -poles; they must be > 0 for a Hurwitz error dynamics)", p)
-        return p
+        check_reference_type(reference)
+        check_requirements(self.row.requires, geometry, f"type {self.robot.name} ({self.row.regularity})")
+        return DynamicParams(make_gains(gains, poles, self.m, self.relative_degree), reference, geometry)
 
     def params_unchecked(self, reference: Reference, poles, geometry: Geometry) -> DynamicParams:
         """Like :meth:`params` without validation: for use inside ``vmap``/``jit`` (traced values)."""
-        r, m = self.relative_degree, self.m
-        p = jnp.broadcast_to(jnp.asarray(poles, dtype=jnp.result_type(float)), (m, r))
-        return DynamicParams(Gains(p), reference, geometry)
+        p = jnp.broadcast_to(jnp.asarray(poles, dtype=jnp.result_type(float)), (self.m, self.relative_degree))
+        return DynamicParams(Gains.from_poles(p), reference, geometry)
 
-    def _check_geometry_regular(self, g: Geometry) -> None:
-        v = {k: concrete(x) for k, x in g._asdict().items()}
-        if self.robot.name in ("(1,1)", "(1,2)") and v["L"] is not None and float(v["L"]) == 0.0:
-            raise ValueError(f"geometry.L must be non-zero for type {self.robot.name} (Table 4: {self.extension.regularity})")
-
-    @property
-    def velocity_level(self) -> "DynamicLinearization":
-        return DynamicLinearization(self.extension, "velocity")
-
-    def inverse_psi(self, zeta, geometry: Geometry, branch=1.0):
+    # -- Psi^-1, branches, initial states --
+    def inverse_psi(self, zeta, params, branch=1.0):
         r""":math:`X_e = \Psi^{-1}(\zeta)` on a branch (Lemma 3 for (2,0); closed forms for the others).
 
         At torque level the first r - 1 rows give the velocity-level state, and the last
@@ -455,29 +475,27 @@ class DynamicLinearization:
 
         Args:
           zeta: (r, m) output jet.
-          geometry: :class:`Geometry`.
+          params: the closed loop's parameters (its geometry is used).
           branch: +1 or -1, sign of :meth:`branch_quantity`.
         """
-        ext = self.extension
+        g = params.geometry
         if self.level == "velocity":
-            return ext.psi_inverse(zeta, branch, geometry)
-        vel = self.velocity_level
-        zv = ext.psi_inverse(zeta[:-1], branch, geometry)
-        _, a, K = vel.jet(zv, geometry)
-        num, det = _math.adjugate_solve(K, zeta[-1] - a)
-        return jnp.concatenate([zv, num / _math.safe_divisor(det, DET_FLOOR)])
+            return self.row.psi_inverse(zeta, branch, g)
+        zv = self.row.psi_inverse(zeta[:-1], branch, g)
+        return jnp.concatenate([zv, self.law.velocity_level.solve_top(zv, zeta[-1], g)])
 
-    def branch_quantity(self, z, geometry: Geometry):
+    def branch_quantity(self, z, params):
         """The quantity whose sign is the branch (chi1 for (2,0), (1,1); eta1 for (2,1), (1,2))."""
-        return self.extension.branch_quantity(z, geometry)
+        return self.row.branch_quantity(z, params.geometry)
 
     def reference_branch(self, params: DynamicParams) -> int:
         """Branch of the reference's virtual robot: +1 (it moves forward along its tangent).
 
-        For (2,0) and (1,1), a heading offset of pi (moving backwards) gives -1.
+        Where the branch follows the heading ((2,0), (1,1)), a heading offset of pi (moving
+        backwards) gives -1.
         """
         off = concrete(params.reference.heading_offset)
-        if self.robot.name in ("(2,0)", "(1,1)") and off is not None and np.cos(float(off)) < 0:
+        if self.row.branch_follows_heading and off is not None and np.cos(float(off)) < 0:
             return -1
         return 1
 
@@ -485,7 +503,7 @@ class DynamicLinearization:
         r""":math:`(X_e)_{ref}(t) = \Psi^{-1}(\zeta_{ref}(t))` (eq 48), on the reference's branch."""
         t = jnp.asarray(t, dtype=jnp.result_type(float))
         zeta = self.reference_jet(t, params)[: self.relative_degree]
-        return self.inverse_psi(zeta, params.geometry, float(self.reference_branch(params)))
+        return self.inverse_psi(zeta, params, float(self.reference_branch(params)))
 
     def initial_state(self, zeta0, params: DynamicParams, branch=None):
         r"""Extended state from an initial output jet, :math:`X_e(0) = \Psi^{-1}(\zeta(0))`.
@@ -507,37 +525,36 @@ class DynamicLinearization:
         if branch is None:
             branch = ref_branch
         self._check_branch(branch, ref_branch)
-        z0 = self.inverse_psi(zeta0, params.geometry, float(branch))
+        z0 = self.inverse_psi(zeta0, params, float(branch))
         self.check_regular(z0, params)
         return z0
+
+    def physical_state(self, X, u, params):
+        """Extended state from a physical state, no checks (pure: jit/vmap it).
+
+        The compensator starts at rest (its derivative zero); at torque level the plant's
+        velocities enter through U.
+        """
+        c, U = self.row.from_physical(X, u, params.geometry)
+        return jnp.concatenate([X, c] + ([U] if self.level == "torque" else []))
 
     def initial_state_from_physical(self, X, u, params: DynamicParams):
         """Extended state from a physical state: posture and steering X, wheel velocities u.
 
-        The compensator starts at rest (its derivative zero); at torque level the plant's
-        velocities are part of the state.
+        Works under ``jax.vmap``/``jit`` (the checks then apply to concrete values only)
+        and compiles once per controller.
 
         Raises:
           ValueError: wrong shapes, non-finite values, a singular state, or a branch that
             differs from the reference's (Remark 17).
         """
-        X, u = self._physical(X, u)
-        c, U = self.extension.from_physical(X, u, params.geometry)
-        z = jnp.concatenate([X, c] + ([U] if self.level == "torque" else []))
+        X, u = validated_physical(self.robot, X, u)
+        z, q = _physical_jit(self, X, u, params)
         self.check_regular(z, params)
-        q = float(self.branch_quantity(z, params.geometry))
-        self._check_branch(1 if q >= 0 else -1, self.reference_branch(params))
+        qc = concrete(q)
+        if qc is not None:
+            self._check_branch(1 if qc >= 0 else -1, self.reference_branch(params))
         return z
-
-    def _physical(self, X, u):
-        """Validated (X, u): posture and steering angles, wheel velocities."""
-        X = jnp.asarray(X, dtype=jnp.result_type(float))
-        u = jnp.asarray(u, dtype=jnp.result_type(float))
-        check_shape("X", X, (self.robot.n_state,), "(x, y, theta, beta...)")
-        check_shape("u", u, (self.robot.n_input,), "(eta..., zeta...) wheel velocities")
-        check_finite("X", X)
-        check_finite("u", u)
-        return X, u
 
     def _check_branch(self, branch, ref_branch):
         if branch not in (1, -1, 1.0, -1.0):
@@ -545,31 +562,17 @@ class DynamicLinearization:
         if int(branch) != ref_branch:
             raise ValueError(
                 f"initial branch {int(branch):+d} differs from the reference's branch {ref_branch:+d} "
-                f"(sign of {'chi1' if self.robot.name in ('(2,0)', '(1,1)') else 'eta1'}); "
-                "Remark 17: robot and reference must be on the same branch")
+                f"(sign of {self.row.branch_name}); Remark 17: robot and reference must be on the same branch")
 
     def check_regular(self, z, params: DynamicParams, name: str = "initial state") -> None:
         """Raise ValueError if ``z`` is on (or numerically at) the singular set of Table 4."""
-        zc = concrete(z)
-        if zc is None:
-            return
-        check_shape(name, zc, (self.n_state,), " ".join(self.state_names))
-        check_finite(name, zc)
-        m = float(self.margin(jnp.asarray(zc), params.geometry))
-        if not m > 1e3 * DET_FLOOR:
-            raise ValueError(
-                f"{name} is on the singular set of the {self._law} for type {self.robot.name}: "
-                f"margin |det K| = {m:.3g}; {self._table} requires {self.extension.regularity}")
-
-    _law = "dynamic linearizing law"
-    _table = "Table 4"
+        check_regular(self, z, params, name, "dynamic linearizing law", "Table 4", self.row.regularity)
 
     def reference_margins(self, params: DynamicParams, t_final, n: int = 201, t0=0.0):
         """Margin and branch quantity of :math:`(X_e)_{ref}(t)` on a uniform grid of n times."""
         ts = jnp.linspace(t0, t_final, n)
         zr = jax.vmap(lambda t: self.reference_state(t, params))(ts)
-        g = params.geometry
-        return ts, jax.vmap(lambda z: self.margin(z, g))(zr), jax.vmap(lambda z: self.branch_quantity(z, g))(zr)
+        return ts, jax.vmap(lambda z: self.margin(z, params))(zr), jax.vmap(lambda z: self.branch_quantity(z, params))(zr)
 
     def check_reference(self, params: DynamicParams, t_final, n: int = 201, floor: float = 1e-6) -> None:
         """Raise ValueError if the reference reaches the singular set on [0, t_final].
@@ -583,11 +586,14 @@ class DynamicLinearization:
             i = int(np.argmax(bad))
             raise ValueError(
                 f"reference {params.reference.name!r} reaches the singular set of type {self.robot.name} at "
-                f"t = {ts[i]:.3g} s (margin {m[i]:.3g}); Table 4 requires {self.extension.regularity} along "
+                f"t = {ts[i]:.3g} s (margin {m[i]:.3g}); Table 4 requires {self.row.regularity} along "
                 "the reference (it must not stop or reverse)")
 
 
-LEVELS = ("velocity", "torque")
+@functools.partial(jax.jit, static_argnums=0)
+def _physical_jit(ctrl, X, u, params):
+    z = ctrl.physical_state(X, u, params)
+    return z, ctrl.branch_quantity(z, params)
 
 
 def dynamic_linearization(robot, level: str = "velocity") -> DynamicLinearization:
@@ -602,9 +608,9 @@ def dynamic_linearization(robot, level: str = "velocity") -> DynamicLinearizatio
         (Prop 3: static linearization solves posture tracking).
     """
     rt = robots.robot_type(robot)
-    if rt.name not in EXTENSIONS:
+    if rt.name not in TABLE4:
         raise ValueError(f"type {rt.name} has no dynamic extension in Table 4; "
-                         f"expected one of {sorted(EXTENSIONS)} (type (3,0) is statically linearizable, Prop 3)")
+                         f"expected one of {sorted(TABLE4)} (type (3,0) is statically linearizable, Prop 3)")
     if level not in LEVELS:
         raise ValueError(f"level must be one of {LEVELS}, got {level!r}")
-    return DynamicLinearization(EXTENSIONS[rt.name], level)
+    return DynamicLinearization(TABLE4[rt.name], level)

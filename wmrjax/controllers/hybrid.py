@@ -21,10 +21,11 @@ so that :math:`z = \psi(\theta) + \lambda x\cos\tau` obeys :math:`\dot z = -z` a
 :math:`\tfrac{d}{dt}\tfrac12(x^2+y^2) = -\eta_1^2 \le 0` (LaSalle for periodic systems:
 convergence, not exponential).
 
-The hybrid closed loop is one :func:`wmrjax.simulate`-able system. Its state is
-``(x, y, theta, chi1, mode, t_switch, ...)``: ``mode`` (0: tracking, 1: parking),
-``t_switch`` and the recorded switch state have zero derivative and change only in :meth:`Hybrid.post_step`, the discrete
-transition applied after every RK4 step: the switch happens at the first step whose end
+The hybrid closed loop is one :func:`wmrjax.simulate`-able system. Its state is a
+:class:`HybridState` pytree with named fields: the tracking state ``(x, y, theta, chi1)``,
+an integer ``mode`` (:data:`TRACKING` or :data:`PARKING`), ``t_switch`` and the state at the switch;
+all but the tracking state are discrete (zero derivative) and change only in
+:meth:`Hybrid.post_step`, the discrete transition applied after every RK4 step: the switch happens at the first step whose end
 state is inside the disk, never earlier. At the switch theta is replaced by its
 representative nearest 0 (:math:`\psi(\theta) = \theta` is not 2 pi periodic) and never
 wrapped again. No Python branching on values: it jits and vmaps. After the switch the
@@ -43,12 +44,14 @@ import numpy as np
 
 from wmrjax import _math, robots
 from wmrjax._validate import concrete
-from wmrjax.controllers.dynamic import Aux, DynamicLinearization, DynamicParams, dynamic_linearization
+from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams, dynamic_linearization
+from wmrjax.controllers.law import Aux
 from wmrjax.references import Reference
 from wmrjax.robots import Geometry
 
 PAPER_R_SWITCH = float(np.sqrt(np.sqrt(2.0) / 10.0))   # x^2 + y^2 = sqrt(2)/10  ->  r_s = 0.376 m
 PAPER_LAMBDA = 40.0
+TRACKING, PARKING = 0, 1    # values of HybridState.mode
 
 
 def identity(theta):
@@ -122,13 +125,33 @@ class HybridParams(NamedTuple):
     lam: jnp.ndarray          # stabilizer gain
 
 
+class HybridState(NamedTuple):
+    """State of the hybrid loop (a pytree; :func:`wmrjax.simulate` flattens it internally).
+
+    Attributes:
+      tracking: (4,) ``(x, y, theta, chi1)`` [m, m, rad, m/s]; after the switch theta is the
+        representative nearest 0 (never wrapped again) and chi1 is frozen.
+      mode: integer scalar, :data:`TRACKING` (0) or :data:`PARKING` (1).
+      t_switch: time of the switch [s] (0 before it).
+      at_switch: (4,) ``(x, y, theta, chi1)`` recorded at the switch (zeros before it).
+    """
+
+    tracking: jnp.ndarray
+    mode: jnp.ndarray
+    t_switch: jnp.ndarray
+    at_switch: jnp.ndarray
+
+    @property
+    def switched(self):
+        return self.mode == PARKING
+
+
 @dataclasses.dataclass(frozen=True)
 class Hybrid:
     """Dynamic linearization, then the time-varying stabilizer (paper §6.2), for type (2,0), e = 0.
 
-    State ``(x, y, theta, chi1, mode, t_switch, x_switch, y_switch, theta_switch, chi1_switch)``:
-    the last six change only at the switch (:meth:`post_step`), so every run's final state
-    records when and where it switched (theta_switch is the representative nearest 0).
+    State :class:`HybridState`: the discrete fields change only at the switch
+    (:meth:`post_step`), so every run's final state records when and where it switched.
     """
 
     psi: Callable = identity
@@ -138,27 +161,29 @@ class Hybrid:
     n_state = 10
     state_names = ("x", "y", "theta", "chi1", "mode", "t_switch", "x_switch", "y_switch", "theta_switch", "chi1_switch")
 
-    def vector_field(self, t, z, params: HybridParams):
-        parking = z[4] > 0.5
+    def vector_field(self, t, z: HybridState, params: HybridParams):
+        parking = z.mode == PARKING
+        zt = z.tracking
         # the linearizing branch sees a regular state after the switch: no inf/NaN in values or grads
-        zt = jnp.where(parking, z[:4].at[3].set(1.0), z[:4])
-        zdot_t, aux_t = self.tracking.vector_field(t, zt, params.tracking)
-        u_t = aux_t.control
-        u_p = stabilizer(z[:3], t - z[5], params.lam, self.psi)
-        u = jnp.where(parking, u_p, u_t)
-        Xdot = robots.kinematic(robots.TYPES["(2,0)"], z[:3], u, Geometry(e=0.0))
+        zt_safe = jnp.where(parking, zt.at[3].set(1.0), zt)
+        zdot_t, aux_t = self.tracking.vector_field(t, zt_safe, params.tracking)
+        u_p = stabilizer(zt[:3], t - z.t_switch, params.lam, self.psi)
+        u = jnp.where(parking, u_p, aux_t.control)
+        Xdot = robots.kinematic(robots.TYPES["(2,0)"], zt[:3], u, Geometry(e=0.0))
         chi_dot = jnp.where(parking, 0.0, zdot_t[3])
-        zdot = jnp.concatenate([Xdot, chi_dot[None], jnp.zeros(6, z.dtype)])
+        zdot = HybridState(jnp.concatenate([Xdot, chi_dot[None]]), jnp.zeros_like(z.mode),
+                           jnp.zeros_like(z.t_switch), jnp.zeros_like(z.at_switch))
         margin = jnp.where(parking, jnp.ones_like(aux_t.margin), aux_t.margin)
         return zdot, Aux(u, margin)   # applied (eta1, eta2); |chi1| while tracking, 1 while parking
 
-    def post_step(self, t, z, params: HybridParams):
+    def post_step(self, t, z: HybridState, params: HybridParams) -> HybridState:
         """Discrete transition at the end of a step: switch when inside the disk (once)."""
-        inside = z[0] ** 2 + z[1] ** 2 <= params.r_switch**2
-        switch = (z[4] < 0.5) & inside
-        z = z.at[2].set(jnp.where(switch, _math.wrap_angle(z[2]), z[2]))
-        record = jnp.concatenate([jnp.stack([jnp.ones_like(t), t]), z[:4]])
-        return z.at[4:].set(jnp.where(switch, record, z[4:]))
+        zt = z.tracking
+        inside = zt[0] ** 2 + zt[1] ** 2 <= params.r_switch**2
+        switch = (z.mode == TRACKING) & inside
+        zt = zt.at[2].set(jnp.where(switch, _math.wrap_angle(zt[2]), zt[2]))
+        return HybridState(zt, jnp.where(switch, PARKING, z.mode).astype(z.mode.dtype),
+                           jnp.where(switch, t, z.t_switch), jnp.where(switch, zt, z.at_switch))
 
     def params(self, reference: Reference, poles=1.0, r_switch=PAPER_R_SWITCH, lam=PAPER_LAMBDA,
                t_end: float = 10.0) -> HybridParams:
@@ -182,10 +207,11 @@ class Hybrid:
                              f"({end[0]:.3g}, {end[1]:.3g}) m, |p| = {np.hypot(*end):.3g} m >= r_s = {float(r_switch):.3g} m")
         return HybridParams(tp, jnp.asarray(r_switch, float), jnp.asarray(lam, float))
 
-    def initial_state(self, zeta0, params: HybridParams):
-        """From an initial output jet ((x, y), (xdot, ydot)) via Lemma 3's Psi^-1; mode 0."""
+    def initial_state(self, zeta0, params: HybridParams) -> HybridState:
+        """From an initial output jet ((x, y), (xdot, ydot)) via Lemma 3's Psi^-1; mode TRACKING."""
         z = self.tracking.initial_state(zeta0, params.tracking)
-        return jnp.concatenate([z, jnp.zeros(6, z.dtype)])
+        zero = jnp.zeros((), z.dtype)
+        return HybridState(z, jnp.asarray(TRACKING, dtype=jnp.int32), zero, jnp.zeros(4, z.dtype))
 
 
 def hybrid_parking(psi: Callable = identity) -> Hybrid:

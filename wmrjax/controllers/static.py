@@ -2,23 +2,30 @@ r"""Static feedback linearization (paper §4): posture tracking for the omnidire
 (3,0) (Prop 3, eqs 12-14) and point tracking for the restricted types (Table 3, Props 4-5,
 eqs 20-28; Remark 11 at velocity level).
 
-The same engine as the dynamic controllers (:func:`wmrjax.linearize.output_jet`) derives
-the decoupling matrix K of eq (22) and the drift g of eq (23) from the Table 3 outputs
-:math:`z_1 = h(\xi, \beta)` by autodiff; a "static extension" is a Table 4-style row with no
-compensator whose new inputs are the plant's own inputs. So
+Each row of Table 3 is a :class:`Table3Row` built by keyword: the outputs
+:math:`z_1 = h(\xi, \beta)` as an :class:`wmrjax.controllers.law.Extension` with no
+compensator (its new inputs are the plant's own inputs), and the per-type facts (the
+nonlinear coordinates :math:`z_3`, the regularity condition and the geometry it needs,
+the free steering channel and its singular angles, a default geometry). The same generic
+law as the dynamic controllers (:class:`wmrjax.controllers.law.LinearizingLaw`) derives
+the decoupling matrix K of eq (22) and the drift g of eq (23) by autodiff. So
 
 * velocity level (Remark 11): :math:`u = K^{-1}(\dot z_{1,ref} - \Lambda \tilde z_1)`, error
   :math:`\dot{\tilde z}_1 + \Lambda\tilde z_1 = 0`;
 * torque level (27)-(28), with the errata's tildes:
-  :math:`v = K^{-1}(w - g)`, :math:`w = \ddot z_{1,ref} - (\Lambda_1+\Lambda_2)\dot{\tilde z}_1 - \Lambda_1\Lambda_2\tilde z_1`.
+  :math:`v = K^{-1}(w - g)`, :math:`w = \ddot z_{1,ref} - k_1\dot{\tilde z}_1 - k_0\tilde z_1`
+  (:math:`k_1 = \Lambda_1+\Lambda_2`, :math:`k_0 = \Lambda_1\Lambda_2` for real poles).
 
 For (3,0) the outputs are the posture itself: (12) and its velocity counterpart
 :math:`\eta_{ref} = R(\theta)[\dot\xi_{ref} - \Lambda_1\tilde\xi]` (eq 14), with the reference-model
 state :math:`\tilde\sigma = R^T(\theta)(\eta - \eta_{ref})` exposed by :meth:`StaticLinearization.sigma_tilde`.
 
 The nonlinear coordinates :math:`z_3 = k(\xi, \beta)` of Table 3 are not controlled; Prop 5
-bounds them when :math:`\dot z_{1,ref}` is :math:`L^1`. The steering outputs of (2,1) (beta)
-and (1,2) (beta2) are free channels: a :class:`Steering` reference (default: the angle that
+bounds them when :math:`\dot z_{1,ref}` is :math:`L^1`. They are reported: every run's
+:class:`InternalDynamics` (in ``Trajectory.diagnostics.internal``) gives the final heading
+error relative to the reference heading and :math:`\|z_3\|`, and flags a robot that tracks
+its point while it has turned round. The steering outputs of (2,1) (beta) and (1,2)
+(beta2) are free channels: a :class:`Steering` reference (default: the angle that
 maximises |det K|) keeps the law away from its singular set.
 """
 
@@ -26,17 +33,20 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax import _math, robots
+from wmrjax import _math, linearize, robots
 from wmrjax._validate import concrete
-from wmrjax.controllers.dynamic import DynamicExtension, DynamicLinearization, Gains, LEVELS
+from wmrjax.controllers.law import (LEVELS, Aux, Extension, LinearizingLaw, Requirement, check_reference_type,
+                                    check_regular, check_requirements, make_gains, physical_state_names,
+                                    validated_physical)
+from wmrjax.gains import Gains
 from wmrjax.references import Reference, taylor
-from wmrjax.robots import Geometry
+from wmrjax.robots import Geometry, RobotType
 
 
 # --- steering references -------------------------------------------------------------
@@ -95,43 +105,87 @@ def _h_12(X, g):  # x + L cos th - e sin(th + b1), y + L sin th + e cos(th + b1)
     return jnp.stack([X[0] + g.L * c - g.e * sb, X[1] + g.L * s + g.e * cb, X[4]])
 
 
-class Table3Row(NamedTuple):
-    outputs: Callable         # (X, geometry) -> z1
-    z3: tuple                 # state indices of the nonlinear coordinates k(xi, beta)
-    regularity: str           # Table 3's last column (errata determinant)
-    steering_index: int | None  # which output is a free steering channel
-    angle_outputs: tuple = ()
+def _steer_21(g):
+    return jnp.asarray(g.delta) + 0.5 * math.pi
 
 
-TABLE3 = {
-    "(3,0)": Table3Row(_h_30, (), "always regular (K = R^T(theta))", None, (2,)),
-    "(2,0)": Table3Row(_h_20, (2,), "e != 0, delta != k pi (det K = e sin(delta))", None),
-    "(2,1)": Table3Row(_h_21, (2,), "e != 0, delta != beta mod pi (det K = -e sin(beta - delta))", 2),
-    "(1,1)": Table3Row(_h_11, (2, 3), "e != 0 (det K = e L; L != 0 too)", None),
-    "(1,2)": Table3Row(_h_12, (2, 3), "e sin(beta2) != 0 (det K = 2 e L sin(beta2); L != 0 too)", 2),
-}
+def _steer_12(g):
+    del g
+    return 0.5 * math.pi
+
+
+def _steer_level_21(beta, delta):
+    return np.abs(np.sin(beta - delta))
+
+
+def _steer_level_12(beta, delta):
+    del delta
+    return np.abs(np.sin(beta))
+
+
+_E = Requirement("e", "nonzero", "Table 3: det K is proportional to e")
+_L = Requirement("L", "nonzero", "Table 3: det K is proportional to L")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Table3Row:
+    """One row of Table 3 (or Prop 3 for (3,0)) and the per-type facts of its static law.
+
+    Attributes:
+      extension: the outputs :math:`z_1 = h(\\xi, \\beta)` (no compensator, U = u).
+      tracks: "posture" ((3,0), Prop 3) or "point" (Table 3).
+      z3: state indices of the nonlinear coordinates :math:`z_3 = k(\\xi, \\beta)`.
+      regularity: Table 3's last column (errata determinant).
+      requires: geometry :class:`Requirement` s of that condition.
+      steering_index: which output is a free steering channel (None: none).
+      default_steering: ``geometry -> angle`` maximising |det K| on that channel.
+      steering_level: ``(beta, delta) -> |.|`` (NumPy) vanishing where the steering
+        reference makes K singular; ``steering_condition`` says it in words.
+      default_geometry: the geometry used by the examples and experiments.
+    """
+
+    extension: Extension
+    tracks: str = "point"
+    z3: tuple = ()
+    regularity: str
+    requires: tuple = ()
+    steering_index: Optional[int] = None
+    default_steering: Optional[Callable] = dataclasses.field(default=None, repr=False)
+    steering_level: Optional[Callable] = dataclasses.field(default=None, repr=False)
+    steering_condition: str = ""
+    default_geometry: Geometry = Geometry()
+
+    @property
+    def robot(self) -> RobotType:
+        return self.extension.robot
+
+
+def _row(kind, outputs, **facts) -> Table3Row:
+    return Table3Row(extension=Extension(robot=robots.TYPES[kind], outputs=outputs, relative_degree=1,
+                                         angle_outputs=facts.pop("angle_outputs", ())), **facts)
+
+
+TABLE3: dict[str, Table3Row] = {row.robot.name: row for row in (
+    _row("(3,0)", _h_30, angle_outputs=(2,), tracks="posture", regularity="always regular (K = R^T(theta))"),
+    _row("(2,0)", _h_20, z3=(2,), regularity="e != 0, delta != k pi (det K = e sin(delta))",
+         requires=(_E, Requirement("delta", "sin_nonzero", "Table 3: det K = e sin(delta); the point must not lie "
+                                                            "on the fixed-wheel axle")),
+         default_geometry=Geometry(e=0.3, delta=0.5 * math.pi)),
+    _row("(2,1)", _h_21, z3=(2,), regularity="e != 0, delta != beta mod pi (det K = -e sin(beta - delta))",
+         requires=(_E,), steering_index=2, default_steering=_steer_21, steering_level=_steer_level_21,
+         steering_condition="delta != beta mod pi", default_geometry=Geometry(e=0.3, delta=0.5 * math.pi)),
+    _row("(1,1)", _h_11, z3=(2, 3), regularity="e != 0 (det K = e L; L != 0 too)", requires=(_E, _L),
+         default_geometry=Geometry(L=1.0, e=0.3)),
+    _row("(1,2)", _h_12, z3=(2, 3), regularity="e sin(beta2) != 0 (det K = 2 e L sin(beta2); L != 0 too)",
+         requires=(_E, _L), steering_index=2, default_steering=_steer_12, steering_level=_steer_level_12,
+         steering_condition="sin(beta2) != 0", default_geometry=Geometry(L=0.5, e=0.3)),
+)}
 
 
 def default_steering(robot, geometry: Geometry) -> Steering | None:
     """The steering reference maximising |det K|: beta = delta + pi/2 for (2,1), beta2 = pi/2 for (1,2)."""
-    name = robots.robot_type(robot).name
-    if name == "(2,1)":
-        return steering_constant(jnp.asarray(geometry.delta) + 0.5 * math.pi)
-    if name == "(1,2)":
-        return steering_constant(0.5 * math.pi)
-    return None
-
-
-def _identity_input(X, c, U, g):
-    return U
-
-
-def _no_compensator(X, c, U, g):
-    return U[:0]
-
-
-def _from_physical(X, u, g):
-    return u[:0], u
+    row = TABLE3[robots.robot_type(robot).name]
+    return None if row.default_steering is None else steering_constant(row.default_steering(geometry))
 
 
 class StaticParams(NamedTuple):
@@ -143,55 +197,144 @@ class StaticParams(NamedTuple):
     steering: Steering | None = None
 
 
+class InternalDynamics(NamedTuple):
+    """The uncontrolled part of a static point-tracking loop at one time (Table 3's z3).
+
+    Attributes:
+      heading_error: robot heading minus the reference heading (path tangent in the
+        paper's convention, plus the reference's heading offset), wrapped to [-pi, pi) [rad].
+      z3_norm: ||z3|| (theta and the non-output steering angle, unwrapped) [rad].
+      turned_round: |heading_error| > pi/2: the point is tracked with the robot facing
+        backwards (the law cannot see it; Prop 5 only bounds z3).
+    """
+
+    heading_error: jnp.ndarray
+    z3_norm: jnp.ndarray
+    turned_round: jnp.ndarray
+
+
 @dataclasses.dataclass(frozen=True)
-class StaticLinearization(DynamicLinearization):
+class StaticLinearization:
     """Static linearizing tracking law (posture for (3,0), point for the others).
 
     State: X at velocity level, (X, u) at torque level (model 8). Build it with
-    :func:`static_linearization` or :func:`wmrjax.controller`.
+    :func:`static_linearization` or :func:`wmrjax.controller`. A sibling of
+    :class:`wmrjax.controllers.DynamicLinearization`: both run a
+    :class:`wmrjax.controllers.law.LinearizingLaw`.
     """
 
-    task: str = "point"
+    row: Table3Row
+    level: str
 
     @property
-    def table3(self) -> Table3Row:
-        return TABLE3[self.robot.name]
+    def law(self) -> LinearizingLaw:
+        return LinearizingLaw(self.row.extension, self.level)
 
-    def outputs(self, z, g):
+    @property
+    def robot(self) -> RobotType:
+        return self.row.robot
+
+    @property
+    def task(self) -> str:
+        return self.row.tracks
+
+    @property
+    def m(self) -> int:
+        return self.law.m
+
+    @property
+    def relative_degree(self) -> int:
+        return self.law.relative_degree
+
+    @property
+    def n_state(self) -> int:
+        return self.law.n_state
+
+    @property
+    def state_names(self) -> tuple:
+        X = physical_state_names(self.robot)
+        if self.level == "velocity":
+            return X
+        eta = tuple(f"eta{i + 1}" for i in range(self.robot.delta_m))
+        zeta = tuple(f"zeta{i + 1}" for i in range(self.robot.delta_s))
+        return X + eta + zeta
+
+    # -- the law --
+    def outputs(self, z, params):
         """Table 3's linearizing outputs :math:`z_1 = h(\\xi, \\beta)` (posture for (3,0))."""
-        return self.table3.outputs(z[: self.robot.n_state], g)
+        return self.law.outputs(z, params.geometry)
+
+    def jet(self, z, params):
+        return self.law.jet(z, params.geometry)
+
+    def psi(self, z, params):
+        """Outputs and, at torque level, their first derivatives, shape (r, m)."""
+        return self.law.jet(z, params.geometry)[0]
 
     def z3(self, z):
         """Table 3's nonlinear coordinates :math:`z_3 = k(\\xi, \\beta)` (theta; theta, beta(1))."""
-        return z[jnp.asarray(self.table3.z3, dtype=int)] if self.table3.z3 else z[:0]
+        return z[jnp.asarray(self.row.z3, dtype=int)] if self.row.z3 else z[:0]
 
     def reference_outputs(self, t, params: StaticParams):
         """:math:`z_{1,ref}(t)`: the point's path (and steering), or the posture for (3,0)."""
         ref = params.reference
-        if self.robot.name == "(3,0)":
+        if self.row.tracks == "posture":
             return ref.posture(t)
         p = ref.position(t)
-        if self.table3.steering_index is None:
+        if self.row.steering_index is None:
             return p
         return jnp.concatenate([p, jnp.atleast_1d(params.steering(t))])
 
     def reference_jet(self, t, params: StaticParams):
         return taylor(lambda s: self.reference_outputs(s, params), t, self.relative_degree)
 
-    def margin(self, z, g):
+    def control(self, t, z, params: StaticParams):
+        """Plant input of the law (u, or v at torque level) and the margin ``|det K|``."""
+        U, det = self.law.control(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
+        return U, jnp.abs(det)
+
+    def margin(self, z, params):
         """|det K(X)| (eq 22): zero on Table 3's singular set."""
-        return jnp.abs(jnp.linalg.det(self.jet(z, g)[2]))
+        return jnp.abs(jnp.linalg.det(self.law.jet(z, params.geometry)[2]))
+
+    def vector_field(self, t, z, params: StaticParams):
+        """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin)."""
+        U, margin = self.control(t, z, params)
+        g = params.geometry
+        return self.law.field(z, U, g), Aux(self.law.plant_control(z, U, g), margin)
+
+    def error(self, t, z, params: StaticParams):
+        r""":math:`\tilde z_1` (and :math:`\dot{\tilde z}_1` at torque level), shape (r, m); angles wrapped."""
+        return self.law.wrap_error(self.psi(z, params) - self.reference_jet(t, params)[: self.relative_degree])
+
+    def error_matrix(self, gains: Gains):
+        return linearize.companion(gains.coeffs)
 
     def sigma_tilde(self, t, z, params: StaticParams):
         r"""Reference-model state :math:`\tilde\sigma = \dot{\tilde z}_1 + \Lambda_1\tilde z_1` (eq 14:
-        :math:`R^T(\theta)(\eta - \eta_{ref})` for (3,0)); zero at velocity level by construction."""
+        :math:`R^T(\theta)(\eta - \eta_{ref})` for (3,0)); zero at velocity level by construction.
+
+        :math:`\Lambda_1` is the slower real root of each output's polynomial
+        (:meth:`wmrjax.Gains.cascade_pole`); NaN for complex poles, which have no real cascade.
+        """
         if self.level == "velocity":
             return jnp.zeros(self.m, z.dtype)
         err = self.error(t, z, params)
-        return err[1] + params.gains.poles[:, 0] * err[0]
+        return err[1] + params.gains.cascade_pole() * err[0]
+
+    def internal_dynamics(self, t, z, params: StaticParams) -> InternalDynamics:
+        """Heading error relative to the reference and ||z3|| at ``(t, z)`` (:class:`InternalDynamics`)."""
+        dth = _math.wrap_angle(z[2] - params.reference.posture(t)[2])
+        z3 = self.z3(z)
+        return InternalDynamics(dth, jnp.sqrt(jnp.sum(z3 * z3)), jnp.abs(dth) > 0.5 * math.pi)
+
+    def final_report(self, t, z, params: StaticParams) -> InternalDynamics:
+        """What :func:`wmrjax.simulate` records in ``diagnostics.internal`` at the final state."""
+        return self.internal_dynamics(t, z, params)
 
     # -- parameters, initial states, checks --
-    def params(self, reference: Reference, poles=1.0, geometry: Geometry = Geometry(), steering=None) -> StaticParams:
+    def params(self, reference: Reference, poles=1.0, geometry: Geometry = Geometry(), steering=None, *,
+               gains: Gains | None = None) -> StaticParams:
         """Build and validate :class:`StaticParams`.
 
         Args:
@@ -199,47 +342,36 @@ class StaticLinearization(DynamicLinearization):
             posture ``reference.posture``.
           poles: scalar, (r,) or (m, r) positive pole magnitudes: Lambda (velocity level),
             (Lambda1, Lambda2) (torque level).
-          geometry: :class:`Geometry`; (e, delta) or (L, e) place the tracked point.
+          geometry: :class:`Geometry`; (e, delta) or (L, e) place the tracked point
+            (``row.default_geometry`` is the experiments' choice).
           steering: :class:`Steering` for (2,1)/(1,2) (default :func:`default_steering`), a
             float (constant), or None.
+          gains: a :class:`wmrjax.Gains` instead of ``poles``.
 
         Raises:
-          ValueError: non-positive poles, a geometry violating Table 3's regularity condition,
-            or a steering reference on the singular set.
+          ValueError: a bad reference or gains, a geometry violating Table 3's regularity
+            condition, or a steering reference on the singular set.
         """
-        p = self._checked_poles(reference, poles, geometry)
-        self.check_geometry_table3(geometry)
-        if self.table3.steering_index is None:
+        robots.check_geometry(geometry)
+        check_reference_type(reference)
+        check_requirements(self.row.requires, geometry, f"Table 3, type {self.robot.name} ({self.row.regularity})")
+        g = make_gains(gains, poles, self.m, self.relative_degree)
+        if self.row.steering_index is None:
             steering = None
         elif steering is None:
             steering = default_steering(self.robot, geometry)
         elif not isinstance(steering, Steering):
             steering = steering_constant(steering)
-        params = StaticParams(Gains(p), reference, geometry, steering)
+        params = StaticParams(g, reference, geometry, steering)
         if steering is not None:
             self.check_steering(params)
         return params
 
     def params_unchecked(self, reference: Reference, poles, geometry: Geometry, steering=None) -> StaticParams:
-        r, m = self.relative_degree, self.m
-        p = jnp.broadcast_to(jnp.asarray(poles, dtype=jnp.result_type(float)), (m, r))
-        if self.table3.steering_index is not None and steering is None:
+        p = jnp.broadcast_to(jnp.asarray(poles, dtype=jnp.result_type(float)), (self.m, self.relative_degree))
+        if self.row.steering_index is not None and steering is None:
             steering = default_steering(self.robot, geometry)
-        return StaticParams(Gains(p), reference, geometry, steering)
-
-    def check_geometry_table3(self, g: Geometry) -> None:
-        """ValueError naming the Table 3 condition the geometry violates."""
-        v = {k: concrete(x) for k, x in g._asdict().items()}
-        name, reg = self.robot.name, self.table3.regularity
-        if name == "(3,0)":
-            return
-        if v["e"] is not None and float(v["e"]) == 0.0:
-            raise ValueError(f"Table 3, type {name}: the regularity condition requires e != 0 ({reg}); got e = 0")
-        if name == "(2,0)" and v["delta"] is not None and abs(math.sin(float(v["delta"]))) < 1e-12:
-            raise ValueError(f"Table 3, type (2,0): the regularity condition requires delta != k pi ({reg}); "
-                             f"got delta = {float(v['delta'])!r}: the point lies on the fixed-wheel axle")
-        if name in ("(1,1)", "(1,2)") and v["L"] is not None and float(v["L"]) == 0.0:
-            raise ValueError(f"Table 3, type {name}: det K vanishes with L = 0 ({reg})")
+        return StaticParams(Gains.from_poles(p), reference, geometry, steering)
 
     def check_steering(self, params: StaticParams, t_final: float = 10.0, n: int = 201) -> None:
         """ValueError if the steering reference meets the singular set (delta = beta mod pi, sin beta2 = 0)."""
@@ -248,56 +380,39 @@ class StaticLinearization(DynamicLinearization):
         if b is None:
             return
         b = np.asarray(b)
-        d = b - float(params.geometry.delta) if self.robot.name == "(2,1)" else b
-        lev = np.abs(np.sin(d))
+        lev = self.row.steering_level(b, float(params.geometry.delta))
         if not np.all(np.isfinite(lev)) or lev.min() < 1e-6:
             i = int(np.nanargmin(lev))
-            cond = "delta != beta mod pi" if self.robot.name == "(2,1)" else "sin(beta2) != 0"
-            raise ValueError(f"Table 3, type {self.robot.name}: the steering reference violates {cond} at "
-                             f"t = {float(ts[i]):.3g} s (steering {b[i]:.3g} rad); choose another steering reference")
+            raise ValueError(f"Table 3, type {self.robot.name}: the steering reference violates "
+                             f"{self.row.steering_condition} at t = {float(ts[i]):.3g} s (steering {b[i]:.3g} rad); "
+                             "choose another steering reference")
 
-    def initial_state(self, zeta0, params, branch=None):
-        raise ValueError("static point tracking has no Psi^-1 (z3 is not an output): "
-                         "use initial_state_from_physical(X, u, params)")
+    def physical_state(self, X, u, params):
+        """State X (velocity level) or (X, u) (torque level), no checks (pure)."""
+        del params
+        return X if self.level == "velocity" else jnp.concatenate([X, u])
 
     def initial_state_from_physical(self, X, u, params: StaticParams):
         """State X (velocity level) or (X, u) (torque level) from posture/steering X and wheel velocities u.
 
+        Works under ``jax.vmap``/``jit`` (checks apply to concrete values only).
+
         Raises:
           ValueError: wrong shapes, non-finite values, or a state on Table 3's singular set.
         """
-        X, u = self._physical(X, u)
-        z = X if self.level == "velocity" else jnp.concatenate([X, u])
+        X, u = validated_physical(self.robot, X, u)
+        z = self.physical_state(X, u, params)
         self.check_regular(z, params)
         return z
 
-    _law = "static linearizing law"
-    _table = "Table 3"
+    def check_regular(self, z, params, name: str = "initial state") -> None:
+        """Raise ValueError if ``z`` is on (or numerically at) Table 3's singular set."""
+        check_regular(self, z, params, name, "static linearizing law", "Table 3", self.row.regularity)
 
-    def reference_branch(self, params) -> int:
-        return 1
-
-    def check_reference(self, params, t_final, n: int = 201, floor: float = 1e-6) -> None:
+    def check_reference(self, params, t_final, n: int = 201) -> None:
+        """ValueError if the steering reference reaches the singular set on [0, t_final]."""
         if params.steering is not None:
             self.check_steering(params, t_final, n)
-
-    @property
-    def state_names(self) -> tuple:
-        X = ("x", "y", "theta") + (("beta",) if self.robot.delta_s == 1 else ("beta1", "beta2")[: self.robot.delta_s])
-        if self.level == "velocity":
-            return X
-        eta = tuple(f"eta{i + 1}" for i in range(self.robot.delta_m))
-        zeta = tuple(f"zeta{i + 1}" for i in range(self.robot.delta_s))
-        return X + eta + zeta
-
-
-def _static_extension(rt) -> DynamicExtension:
-    row = TABLE3[rt.name]
-    return DynamicExtension(rt, 0, (), 1, row.outputs, _identity_input, _no_compensator, row.regularity,
-                            None, _from_physical, None, None, row.angle_outputs)
-
-
-STATIC_EXTENSIONS = {name: _static_extension(robots.TYPES[name]) for name in TABLE3}
 
 
 def static_linearization(robot, level: str = "velocity") -> StaticLinearization:
@@ -310,7 +425,7 @@ def static_linearization(robot, level: str = "velocity") -> StaticLinearization:
     rt = robots.robot_type(robot)
     if level not in LEVELS:
         raise ValueError(f"level must be one of {LEVELS}, got {level!r}")
-    return StaticLinearization(STATIC_EXTENSIONS[rt.name], level, "posture" if rt.omnidirectional else "point")
+    return StaticLinearization(TABLE3[rt.name], level)
 
 
 TASKS = ("posture", "point")

@@ -1,0 +1,156 @@
+"""What the experiment entry points share: float64, argument parsing, writing results and
+figures (atomically, through :mod:`wmrjax.io`), the paper's §6.1 set-up, and the command
+line and figure of the two tracking experiments. Experiments import this module, never
+each other."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+# no JAX import at module level: the benchmark sets XLA_FLAGS (device count) before JAX starts
+
+
+def pyplot():
+    """matplotlib.pyplot on the Agg backend."""
+    from wmrjax.io import headless_pyplot
+
+    return headless_pyplot()
+
+
+def write_json(path: Path, obj) -> None:
+    """Write JSON atomically (:func:`wmrjax.io.write_json`)."""
+    from wmrjax import io
+
+    io.write_json(path, obj)
+
+
+def write_npz(path: Path, **arrays) -> None:
+    """Write a pickle-free ``.npz`` atomically (:func:`wmrjax.io.write_npz`)."""
+    from wmrjax import io
+
+    io.write_npz(path, **arrays)
+
+
+def enable_x64() -> None:
+    """Experiments run in float64 (the library never flips this on import)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+def parser(description: str, default_out: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--out", type=Path, default=Path(default_out), help=f"output directory (default {default_out})")
+    return p
+
+
+def save_figure(fig, path: Path) -> None:
+    """Write a figure as PNG (atomically)."""
+    from wmrjax.io import write_png
+
+    write_png(fig, path)
+
+
+def section_6_1_setup():
+    """The paper's §6.1 closed loop: (2,0), e = 0, reference (62), poles -1, initial condition (63).
+
+    Returns:
+      ``(ctrl, params, z0, zeta0)``.
+    """
+    import jax.numpy as jnp
+
+    import wmrjax as w
+    from wmrjax import references
+
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    params = ctrl.params(references.paper_62(), poles=1.0, geometry=w.Geometry(e=0.0))
+    p0 = params.reference.position(jnp.asarray(0.0))
+    v0 = params.reference.velocity(jnp.asarray(0.0))
+    # (63): x(0) = x_ref(0) - 0.54, y(0) = y_ref(0) + 0.54, velocities equal to the reference's
+    zeta0 = jnp.array([[p0[0] - 0.54, p0[1] + 0.54], [v0[0], v0[1]]])
+    z0 = ctrl.initial_state(zeta0, params)
+    return ctrl, params, z0, zeta0
+
+
+# --- the tracking experiments (posture_tracking, static_tracking) ------------------------------
+
+def tracking_cli(argv, doc, default_out, kinds, run_fn) -> int:
+    """The command line shared by the tracking experiments."""
+    p = parser(doc.splitlines()[0], default_out)
+    p.add_argument("--n-random", type=int, default=1024, help="random references per (type, level) (default 1024)")
+    p.add_argument("--t-final", type=float, default=15.0, help="horizon [s]")
+    p.add_argument("--dt", type=float, default=0.01, help="RK4 step [s]")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--types", nargs="+", default=list(kinds), help=f"subset of {' '.join(kinds)}")
+    a = p.parse_args(argv)
+    if a.n_random < 1 or not a.t_final > 0 or not a.dt > 0:
+        p.error("--n-random must be >= 1, --t-final and --dt > 0")
+    import wmrjax as w
+
+    try:
+        chosen = tuple(w.robot_type(k).name for k in a.types)
+    except ValueError as exc:
+        p.error(str(exc))
+    t0 = time.perf_counter()
+    run_fn(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=chosen)
+    print(f"wrote {a.out}/summary.json and one PNG per type ({time.perf_counter() - t0:.0f} s)", file=sys.stdout)
+    return 0
+
+
+def quantiles(a) -> dict:
+    """Median, 90th and 99th percentiles and the maximum of a 1-D array ({} if empty)."""
+    import numpy as np
+
+    a = np.asarray(a)
+    if not a.size:
+        return {}
+    return {f"q{int(p)}": float(np.percentile(a, p)) for p in (50, 90, 99)} | {"max": float(a.max())}
+
+
+def tracking_figure(out_dir, kind, per_level, prefix="posture", error_label="position error |(x, y) - (x, y)_ref| [m]"):
+    """Paths of the circle and figure-eight runs at both levels, errors vs time, histogram of
+    final errors over the random batch: ``{prefix}_{type}.png``. ``per_level[level]`` is
+    ``(traces, (final_errors, ...))`` with traces[name] holding t, state (its first two
+    columns are the tracked point), ref, ep."""
+    import numpy as np
+
+    plt = pyplot()
+    fig, axs = plt.subplots(2, 2, figsize=(10, 8.5))
+    for j, name in enumerate(["circle", "figure_eight"]):
+        ax = axs[0, j]
+        tr0 = next(iter(per_level.values()))[0][name]
+        ax.plot(tr0["ref"][:, 0], tr0["ref"][:, 1], "k--", lw=1.2, label="reference")
+        for lvl, c in zip(("velocity", "torque"), ("C0", "C3")):
+            if lvl not in per_level:
+                continue
+            st = per_level[lvl][0][name]["state"]
+            ax.plot(st[:, 0], st[:, 1], c, lw=1.2, label=f"robot, {lvl} level")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_title(f"type {kind}: {name.replace('_', '-')}")
+        ax.axis("equal")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    ax_t, ax_h = axs[1, 0], axs[1, 1]
+    for lvl, c in zip(("velocity", "torque"), ("C0", "C3")):
+        if lvl not in per_level:
+            continue
+        traces, (ep_random, _) = per_level[lvl]
+        for name, ls in (("circle", "-"), ("figure_eight", ":")):
+            tr = traces[name]
+            ax_t.semilogy(tr["t"], np.maximum(tr["ep"], 1e-12), c + ls, label=f"{name.replace('_', '-')}, {lvl}")
+        if ep_random.size:
+            ax_h.hist(np.log10(np.maximum(ep_random, 1e-16)), bins=40, color=c, alpha=0.6, label=f"{lvl} level")
+    ax_t.set_xlabel("t [s]")
+    ax_t.set_ylabel(error_label)
+    ax_h.set_xlabel("log10 final position error [m] (random references)")
+    ax_h.set_ylabel("runs")
+    for ax in (ax_t, ax_h):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, out_dir / f"{prefix}_{kind.strip('()').replace(',', '')}.png")
+    plt.close(fig)

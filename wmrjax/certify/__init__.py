@@ -1,0 +1,45 @@
+r"""Certification: from which initial errors the dynamic linearizing law provably stays away
+from its singular set (paper §6, Lemma 2, Remark 16, Lemma 3, eqs 50-65), and how tight that is.
+
+Every function of this package takes the closed loop first, ``(ctrl, params, *, t_final,
+eps, ...)``, keyword-only after that, and returns a NamedTuple with fixed fields:
+
+* :mod:`~wmrjax.certify.lemma2` -- M1 (closed form for every type, and Remark 16's local
+  search), K2 three ways (eq 64, an automatic Lyapunov bound, the exact ||e^{At}||), F and
+  the certified radius :math:`\min_t F(t)`: :func:`lemma2`;
+* :mod:`~wmrjax.certify.exact_map` -- the exact-map radius from
+  :math:`\tilde\zeta(t) = e^{At}\tilde\zeta(0)` (types with a linear singular set);
+* :mod:`~wmrjax.certify.empirical` -- batch rollouts: (53) and regularity inside a ball,
+  distances to the singular set, the empirical radius per direction;
+* :mod:`~wmrjax.certify.falsify` -- gradient falsification (an upper bound);
+* :mod:`~wmrjax.certify.pipeline` -- :func:`analyse`, all of the above in one report.
+
+Only dynamic linearizing laws are certified: a static law raises ``ValueError``.
+"""
+
+from wmrjax.certify.empirical import (  # noqa: F401
+    Distances,
+    EmpiricalRadius,
+    Verification,
+    empirical_radius,
+    min_distance,
+    sample_sphere,
+    verify,
+)
+from wmrjax.certify.exact_map import ExactMapRadius, exact_map_radius, singular_rows, slice_basis  # noqa: F401
+from wmrjax.certify.falsify import Falsification, FalsifiedRadius, falsified_radius, falsify  # noqa: F401
+from wmrjax.certify.lemma2 import (  # noqa: F401
+    Certificate,
+    Lemma2Report,
+    LyapunovBound,
+    certificate,
+    check_lemma2_args,
+    k2_exact,
+    k2_lyapunov,
+    k2_paper,
+    lemma2,
+    lyapunov_bound,
+    m1_closed_form,
+    m1_numerical,
+)
+from wmrjax.certify.pipeline import CertificationReport, EmpiricalCheck, analyse  # noqa: F401

@@ -1,0 +1,244 @@
+r"""Empirical checks of the certificates by batch simulation: (53) and regularity inside a ball
+(:func:`verify`), the distance to the singular set along runs (:func:`min_distance`), and the
+empirical safe radius per direction (:func:`empirical_radius`)."""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
+from wmrjax.certify.exact_map import singular_rows
+from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
+from wmrjax.simulate import simulate
+
+
+def n_steps_for(t_final: float, dt: float) -> int:
+    """Number of RK4 steps covering [0, t_final] with step dt (ValueError for a bad pair)."""
+    if not (np.isfinite(dt) and dt > 0 and np.isfinite(t_final) and t_final > 0):
+        raise ValueError(f"t_final and dt must be finite and > 0 [s], got t_final = {t_final!r}, dt = {dt!r}")
+    n = int(round(t_final / dt))
+    if n < 1:
+        raise ValueError(f"dt = {dt} s is longer than the horizon t_final = {t_final} s")
+    return n
+
+
+def sample_sphere(key, n, dim):
+    """n points uniformly on the unit sphere in R^dim."""
+    x = jax.random.normal(key, (n, dim))
+    return x / jnp.linalg.norm(x, axis=1, keepdims=True)
+
+
+class Verification(NamedTuple):
+    """Per-run results of :func:`verify`, each (N,)."""
+
+    norm0: jnp.ndarray          # ||initial error||
+    violation_53: jnp.ndarray   # (53) violated at some valid sample
+    singular: jnp.ndarray       # the run failed (or started on the other branch)
+    max_ratio: jnp.ndarray      # max_t ||err(t)|| / (K2(t) ||err(0)||)
+    min_margin: jnp.ndarray     # min_t |det K|
+
+
+def verify(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, initial_errors, k2,
+           dt: float, save_every: int = 10, tol: float = 1e-6) -> Verification:
+    r"""Simulate from :math:`\zeta(0) = \zeta_{ref}(0) + \tilde\zeta_0` and check (53) and regularity.
+
+    Args:
+      t_final: horizon [s].
+      initial_errors: (N, r*m) initial errors (Table 4 ordering, see ``ctrl.error``).
+      k2: ``ts -> K2(ts)``, the bound to check.
+      dt, save_every: integration step [s] and saving stride.
+      tol: absolute slack for (53), covering integration error.
+
+    Returns:
+      :class:`Verification`.
+    """
+    check_dynamic(ctrl)
+    n_steps = n_steps_for(t_final, dt)
+    branch = jnp.asarray(float(ctrl.reference_branch(params)))
+    n_saves = n_steps // save_every
+    ts = dt * save_every * jnp.arange(n_saves + 1, dtype=jnp.result_type(float))
+    ts = ts.at[-1].set(dt * n_steps)
+    k2v = jnp.asarray(k2(ts))   # the bound on the saved grid: one compiled program for every K2
+    return Verification(*_verify(ctrl, params, jnp.asarray(initial_errors), k2v, branch, tol, dt, n_steps, save_every))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8))
+def _verify(ctrl, params, errs, k2, branch, tol, dt, n_steps, save_every):
+    def one(e0):
+        tr, z0 = run_from_error(ctrl, params, e0, branch, dt, n_steps, save_every)
+        err = jax.vmap(lambda t, z: ctrl.error(t, z, params).reshape(-1))(tr.t, tr.state)
+        nrm = jnp.linalg.norm(err, axis=1)
+        n0 = jnp.linalg.norm(e0)
+        bound = k2 * n0
+        viol = jnp.any(tr.valid & (nrm > bound + tol))
+        ratio = jnp.max(jnp.where(tr.valid, nrm / jnp.maximum(bound, 1e-300), 0.0))
+        wrong_branch = ctrl.branch_quantity(z0, params) * branch <= 0
+        return n0, viol, tr.diagnostics.failed | wrong_branch, ratio, tr.diagnostics.min_margin
+
+    return jax.vmap(one)(errs)
+
+
+# --- running the real closed loop from initial errors ---------------------------------------
+
+
+def run_from_error(ctrl, params, e0, branch, dt, n_steps, save_every):
+    r = ctrl.relative_degree
+    zeta0 = ctrl.reference_jet(jnp.asarray(0.0), params)[:r] + e0.reshape(r, ctrl.m)
+    z0 = ctrl.inverse_psi(zeta0, params, branch)
+    return simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=save_every), z0
+
+
+def distance_along(ctrl, params, tr, chord=False):
+    """Per saved interval, dist(zeta(t), singular set) at its samples (closed-form types; else
+    the margin |det K|). Returns ``(distance (N-1,), valid (N-1,))``.
+
+    With ``chord``, minimised over the chord between the two samples instead: the velocity of
+    the output point can sweep past zero between samples, and the chord sees that, for the
+    falsifier's gradient. The chord cuts inside the curve by O(dt^2), so it may under-estimate;
+    failures are therefore always confirmed on samples, which over-estimate."""
+    rows = singular_rows(ctrl)
+    valid = tr.valid[1:] & tr.valid[:-1]
+    if rows is None:
+        return jnp.minimum(tr.margin[1:], tr.margin[:-1]), valid
+    v = jax.vmap(lambda z: ctrl.psi(z, params).reshape(-1))(tr.state)[:, jnp.asarray(rows)]
+    if not chord:
+        return jnp.minimum(jnp.linalg.norm(v[1:], axis=1), jnp.linalg.norm(v[:-1], axis=1)), valid
+    a, d = v[:-1], v[1:] - v[:-1]
+    s = jnp.clip(-jnp.sum(a * d, axis=1) / jnp.maximum(jnp.sum(d * d, axis=1), 1e-300), 0.0, 1.0)
+    return jnp.linalg.norm(a + s[:, None] * d, axis=1), valid
+
+
+class Distances(NamedTuple):
+    """Per-run results of :func:`min_distance`, each (N,)."""
+
+    distance: jnp.ndarray   # min_t dist(zeta(t), S) (min_t |det K| for (1,2)); 0 for failed runs
+    singular: jnp.ndarray   # flagged by the simulator (or started on the other branch)
+
+
+def min_distance(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, initial_errors, dt: float,
+                 save_every: int = 1) -> Distances:
+    r"""Simulate from :math:`\zeta_{ref}(0) + \tilde\zeta_0` and return, per run,
+    :math:`\min_t \mathrm{dist}(\zeta(t), S)` and whether the simulator flagged it singular.
+
+    For (1,2), whose singular set is curved, the measure is :math:`\min_t |\det K|` instead.
+
+    Args:
+      t_final: horizon [s]; initial_errors: (N, r m); dt: RK4 step [s]; save_every: stride.
+
+    Returns:
+      :class:`Distances`.
+    """
+    check_dynamic(ctrl)
+    n_steps = n_steps_for(t_final, dt)
+    branch = jnp.asarray(float(ctrl.reference_branch(params)))
+    return Distances(*_min_distance(ctrl, params, jnp.asarray(initial_errors), branch, dt, n_steps, save_every))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 4, 5, 6))
+def _min_distance(ctrl, params, errs, branch, dt, n_steps, save_every):
+    def one(e0):
+        tr, z0 = run_from_error(ctrl, params, e0, branch, dt, n_steps, save_every)
+        dist, valid = distance_along(ctrl, params, tr)
+        d = jnp.min(jnp.where(valid, dist, jnp.inf))
+        wrong = ctrl.branch_quantity(z0, params) * branch <= 0
+        fail = tr.diagnostics.failed | wrong
+        return jnp.where(fail, 0.0, d), fail
+
+    return jax.vmap(one)(errs)
+
+
+class EmpiricalRadius(NamedTuple):
+    """Result of :func:`empirical_radius`."""
+
+    per_direction: np.ndarray    # (D,) first failing radius per ray (inf: none up to r_max)
+    radius: float                # min over the rays
+    worst_direction: np.ndarray  # (r m,) the ray attaining it
+    n_runs: int                  # simulations used
+
+
+def empirical_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float, directions,
+                     r_max: float, dt: float, n_grid: int = 48, n_dips: int = 3, n_golden: int = 30,
+                     n_bisect: int = 20) -> EmpiricalRadius:
+    r"""Empirical safe radius per direction by simulation: the smallest :math:`\rho \le` ``r_max``
+    at which the run from :math:`\rho d` comes within ``eps`` of the singular set (or is flagged).
+
+    Along a ray, :math:`m(\rho) = \min_t \mathrm{dist}(\zeta(t), S)` dips below eps only on a
+    narrow interval (past it, the velocity of the output point swings around zero instead of
+    through it), which a plain grid misses. So: sample m on ``n_grid`` radii, minimise it by
+    golden section inside the brackets of the first ``n_dips`` local minima, and bisect for the
+    first crossing of eps. All rounds are vmapped over (direction, dip). Rays that never fail
+    report ``inf``.
+
+    Args:
+      t_final: horizon [s]; eps: the margin.
+      directions: (D, r m) unit vectors.
+      r_max: largest radius searched.
+      dt: RK4 step [s].
+
+    Returns:
+      :class:`EmpiricalRadius`.
+    """
+    check_dynamic(ctrl)
+    check_lemma2_args(eps, t_final)
+    dirs = np.asarray(directions)
+    D = dirs.shape[0]
+    g = np.linspace(0.0, r_max, n_grid + 1)[1:]
+    runs = 0
+
+    def m_of(dd, rr):
+        nonlocal runs
+        runs += rr.size
+        e = dd * rr[:, None]
+        n = max(64, 1 << (len(e) - 1).bit_length())       # few distinct batch sizes: few compilations
+        e = np.concatenate([e, np.repeat(e[:1], n - len(e), axis=0)])
+        d, s = min_distance(ctrl, params, t_final=t_final, initial_errors=jnp.asarray(e), dt=dt)
+        return np.where(np.asarray(s), 0.0, np.asarray(d))[: len(rr)]
+
+    m = m_of(np.repeat(dirs, n_grid, axis=0), np.tile(g, D)).reshape(D, n_grid)
+    padded = np.concatenate([np.full((D, 1), np.inf), m, np.full((D, 1), np.inf)], axis=1)
+    is_min = (padded[:, 1:-1] <= padded[:, :-2]) & (padded[:, 1:-1] <= padded[:, 2:])
+    # brackets [lo, hi] around the n_dips deepest local minima of each ray (padding repeats one)
+    lo = np.zeros((D, n_dips))
+    hi = np.zeros((D, n_dips))
+    for k in range(D):
+        idx = np.where(is_min[k])[0]
+        idx = list(idx[np.argsort(m[k, idx])][:n_dips])
+        idx += [idx[-1]] * (n_dips - len(idx))
+        lo[k] = [g[j - 1] if j > 0 else 0.0 for j in idx]
+        hi[k] = [g[min(j + 1, n_grid - 1)] for j in idx]
+    dd = np.repeat(dirs, n_dips, axis=0)
+    a, b = lo.reshape(-1), hi.reshape(-1)
+    gr = 0.5 * (math.sqrt(5.0) - 1.0)
+    for _ in range(n_golden):
+        x1, x2 = b - gr * (b - a), a + gr * (b - a)
+        m12 = m_of(np.concatenate([dd, dd]), np.concatenate([x1, x2]))
+        left = m12[: len(a)] <= m12[len(a):]
+        a, b = np.where(left, a, x1), np.where(left, x2, b)
+    r_star = 0.5 * (a + b)
+    dips = m_of(dd, r_star) < eps
+    # first crossing of eps: below every failing dip, and below the first failing grid radius
+    first = np.where((m < eps).any(axis=1), (m < eps).argmax(axis=1), -1)
+    g0 = np.concatenate([[0.0], g])
+    cand_lo = np.concatenate([lo.reshape(-1), g0[np.maximum(first, 0)]])
+    cand_hi = np.concatenate([np.where(dips, r_star, np.inf), np.where(first >= 0, g[np.maximum(first, 0)], np.inf)])
+    cand_d = np.concatenate([dd, dirs])
+    owner = np.concatenate([np.repeat(np.arange(D), n_dips), np.arange(D)])
+    live = np.isfinite(cand_hi)
+    cl, ch = cand_lo[live], cand_hi[live]
+    for _ in range(n_bisect if live.any() else 0):
+        mid = 0.5 * (cl + ch)
+        fail = m_of(cand_d[live], mid) < eps
+        ch, cl = np.where(fail, mid, ch), np.where(fail, cl, mid)
+    per = np.full(D, np.inf)
+    np.minimum.at(per, owner[live], ch)
+    k = int(np.argmin(per))
+    return EmpiricalRadius(per, float(per[k]), dirs[k], runs)
+
+
+# --- falsification ----------------------------------------------------------------------

@@ -1,0 +1,260 @@
+r"""Lemma 2 certificates: from which initial errors the dynamic linearizing law provably
+stays away from its singular set (paper §6, Lemma 2, Remark 16, Lemma 3, eqs 50-65).
+
+Lemma 2: if :math:`\|\tilde\zeta(t)\| \le K_2(t)\|\tilde\zeta(0)\|` (53) and
+:math:`\|\tilde\zeta(t)\| < M_1(t)` keeps :math:`\zeta(t)` regular (51), then every initial
+error with :math:`\|\tilde\zeta(0)\| \le \min_t F(t)`, :math:`F = (M_1 - \epsilon)/K_2` (52),
+keeps the closed loop regular. This module computes
+
+* :math:`M_1(t)`: the distance from :math:`\zeta_{ref}(t)` to the singular set (Remark 16,
+  eq 58), numerically for any type (:func:`m1_numerical`), in closed form where the
+  singular set is :math:`\{\dot h = 0\}` (:func:`m1_closed_form`; Lemma 3 for (2,0));
+* :math:`K_2(t)` three ways: the paper's (64), an automatic Lyapunov bound
+  :math:`K_1 e^{-r_1 t}` for any Hurwitz gains, and the exact :math:`\|e^{At}\|_2` (valid
+  because under the linearizing law the error obeys :math:`\dot{\tilde\zeta} = A\tilde\zeta`
+  exactly while the run is regular);
+* :math:`F(t)`, the certified radius :math:`\min_t F(t)` and condition (52);
+* :func:`verify`: batch rollouts from initial errors sampled in and around a radius,
+  counting violations of (53) and singularity events.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wmrjax._validate import concrete
+from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
+
+
+
+# --- M1 -------------------------------------------------------------------------------
+
+def check_dynamic(ctrl) -> None:
+    """ValueError unless ``ctrl`` is a dynamic linearizing law (the only one Lemma 2 is about)."""
+    if not isinstance(ctrl, DynamicLinearization):
+        raise ValueError(
+            f"certification needs a dynamic linearizing controller (wmrjax.dynamic_linearization), got "
+            f"{type(ctrl).__name__}: Lemma 2's M1 is the distance of the reference's output jet to the singular "
+            "set of Psi (Remark 16), which a static law does not have")
+
+
+def m1_closed_form(ctrl: DynamicLinearization, params: DynamicParams, ts):
+    r"""M1(t) in closed form: the distance of :math:`\zeta_{ref}(t)` to the singular set (Remark 16).
+
+    The distance is the row's :attr:`~wmrjax.controllers.dynamic.Table4Row.singular_distance`:
+    :math:`\|\dot h_{ref}\|` where the singular set is :math:`\{\dot h = 0\}` ((2,0), (1,1):
+    :math:`|(\chi_1)_{ref}|`, eq 59; (2,1): :math:`|(\eta_1)_{ref}|`), and for (1,2) a
+    one-dimensional minimisation over theta (its singular set is curved).
+
+    Args:
+      ctrl, params: the closed loop.
+      ts: (T,) times [s].
+
+    Returns:
+      (T,) array.
+    """
+    check_dynamic(ctrl)
+    return jax.vmap(lambda t: ctrl.singular_distance(ctrl.reference_jet(t, params), params))(jnp.asarray(ts))
+
+
+def m1_numerical(ctrl: DynamicLinearization, params: DynamicParams, ts, iters: int = 40, damping: float = 1e-6):
+    r"""M1(t) of Remark 16 (eq 58): :math:`\min \|\zeta - \zeta_{ref}(t)\|` over the singular set.
+
+    The singular set is the image under :math:`\Psi` of the states on each singular family
+    (``ctrl.row.singular_families``); for each family and time, Levenberg-Marquardt minimises
+    :math:`\|\Psi(z) - \zeta_{ref}(t)\|` over the free coordinates from the reference's own
+    state and from headings rotated by pi/2, pi, -pi/2. Vmapped over time. A local method:
+    it returns an upper bound of the true distance, equal to it when a start lies in the
+    right basin (checked against the closed forms in the tests). An upper bound is not
+    conservative for Lemma 2, which needs a lower bound on the distance: :func:`lemma2`
+    uses the closed form wherever it exists, and :func:`verify` checks any certificate
+    against simulation.
+
+    Returns:
+      (T,) array.
+    """
+    check_dynamic(ctrl)
+    r = ctrl.relative_degree
+
+    def dist_family(t, idx, val, dtheta):
+        zref = ctrl.reference_state(t, params).at[2].add(dtheta)
+        target = ctrl.reference_jet(t, params)[:r].reshape(-1)
+        free = jnp.arange(ctrl.n_state) != idx
+        sel = jnp.where(free, size=ctrl.n_state - 1)[0]
+
+        def full(p):
+            return zref.at[sel].set(p).at[idx].set(val)
+
+        def resid(p):
+            return ctrl.psi(full(p), params).reshape(-1) - target
+
+        def lm(p, _):
+            res = resid(p)
+            J = jax.jacfwd(resid)(p)
+            H = J.T @ J
+            step = jnp.linalg.solve(H + damping * (1.0 + jnp.trace(H)) * jnp.eye(p.shape[0]), J.T @ res)
+            p_new = p - step
+            better = jnp.sum(resid(p_new) ** 2) < jnp.sum(res**2)
+            return jnp.where(better, p_new, p), None
+
+        p, _ = jax.lax.scan(lm, zref[sel], None, length=iters)
+        return jnp.sqrt(jnp.sum(resid(p) ** 2))
+
+    fams = ctrl.row.singular_families(params.geometry)
+    starts = (0.0, 0.5 * math.pi, math.pi, -0.5 * math.pi)
+
+    def one(t):
+        # multi-start over the heading: from theta_ref alone LM can sit on a saddle
+        return jnp.min(jnp.stack([dist_family(t, i, v, d) for i, v in fams for d in starts]))
+
+    return jax.vmap(one)(jnp.asarray(ts))
+
+
+# --- K2 -------------------------------------------------------------------------------
+
+def k2_paper(ts):
+    r"""Eq (64): :math:`K_2(t) = 2\sqrt2(1 + 1/\sqrt2)\,e^{-(1 - 1/\sqrt2)t}` (§6.1 gains: double pole -1)."""
+    ts = jnp.asarray(ts)
+    return 2.0 * math.sqrt(2.0) * (1.0 + 1.0 / math.sqrt(2.0)) * jnp.exp(-(1.0 - 1.0 / math.sqrt(2.0)) * ts)
+
+
+class LyapunovBound(NamedTuple):
+    """:math:`\\|e^{At}\\| \\le K_1 e^{-r_1 t}` from :math:`A^TP + PA = -I`."""
+
+    K1: jnp.ndarray
+    r1: jnp.ndarray
+    P: jnp.ndarray
+
+
+def lyapunov_bound(A) -> LyapunovBound:
+    r"""Automatic K2 from any Hurwitz A: with :math:`V = x^TPx`, :math:`\dot V = -\|x\|^2 \le -V/\lambda_{max}(P)`,
+    so :math:`\|x(t)\| \le \sqrt{\lambda_{max}/\lambda_{min}}\, e^{-t/(2\lambda_{max})}\|x(0)\|`.
+
+    Raises:
+      ValueError: if A is not Hurwitz (no positive definite solution).
+    """
+    A = jnp.asarray(A)
+    n = A.shape[0]
+    Av = concrete(A)
+    if Av is not None and not np.all(np.linalg.eigvals(Av).real < 0):
+        raise ValueError(f"error matrix is not Hurwitz (eigenvalues {np.linalg.eigvals(Av)}); "
+                         "the closed-loop poles must be at -poles with poles > 0")
+    eye = jnp.eye(n, dtype=A.dtype)
+    # vec(A^T P + P A) = (I kron A^T + A^T kron I) vec(P)   (column-major vec)
+    L = jnp.kron(eye, A.T) + jnp.kron(A.T, eye)
+    P = jnp.linalg.solve(L, -eye.reshape(-1, order="F")).reshape(n, n, order="F")
+    P = 0.5 * (P + P.T)
+    ev = jnp.linalg.eigvalsh(P)
+    return LyapunovBound(jnp.sqrt(ev[-1] / ev[0]), 0.5 / ev[-1], P)
+
+
+def k2_lyapunov(A, ts):
+    """K2(t) = K1 exp(-r1 t) of :func:`lyapunov_bound`."""
+    b = lyapunov_bound(A)
+    return b.K1 * jnp.exp(-b.r1 * jnp.asarray(ts))
+
+
+def k2_exact(A, ts):
+    r"""The smallest valid K2: :math:`\|e^{At}\|_2` (largest singular value), vmapped over t."""
+    A = jnp.asarray(A)
+    return jax.vmap(lambda t: jnp.linalg.norm(jax.scipy.linalg.expm(A * t), ord=2))(jnp.asarray(ts))
+
+
+# --- F, radii, condition (52) -------------------------------------------------------
+
+class Certificate(NamedTuple):
+    """A Lemma 2 certificate on a time grid."""
+
+    ts: jnp.ndarray
+    m1: jnp.ndarray
+    k2: jnp.ndarray
+    F: jnp.ndarray
+    radius: jnp.ndarray      # min_t F(t)
+    argmin: jnp.ndarray      # where the minimum is attained [s]
+
+
+def certificate(ts, m1, k2, eps) -> Certificate:
+    """F(t) = (M1(t) - eps) / K2(t) and the certified radius min_t F(t) (eq 52)."""
+    ts, m1, k2 = jnp.asarray(ts), jnp.asarray(m1), jnp.asarray(k2)
+    F = (m1 - eps) / k2
+    i = jnp.argmin(F)
+    return Certificate(ts, m1, k2, F, F[i], ts[i])
+
+
+def check_lemma2_args(eps, t_final, m1=None) -> None:
+    """ValueError for eps <= 0, horizon <= 0, or a reference reaching the singular set (M1 <= eps)."""
+    if not (np.isfinite(eps) and eps > 0):
+        raise ValueError(f"eps must be > 0 (Lemma 2's margin), got {eps!r}")
+    if not (np.isfinite(t_final) and t_final > 0):
+        raise ValueError(f"the horizon must be > 0 [s], got {t_final!r}")
+    if m1 is not None:
+        m = np.asarray(m1)
+        if not np.all(np.isfinite(m)) or np.min(m) <= eps:
+            low = np.nanmin(np.where(np.isfinite(m), m, 0.0))
+            raise ValueError(f"the reference comes within eps = {eps} of the singular set (min M1 = {low:.3g}; "
+                             "non-finite where it stops): "
+                             "Lemma 2 certifies nothing (condition 2 fails); shorten the horizon or change the reference")
+
+
+class Lemma2Report(NamedTuple):
+    """Every Lemma 2 certificate of one closed loop (fixed fields).
+
+    Attributes:
+      paper: K2 of eq (64); only for the paper's gains (double pole at -1 per output, r = 2),
+        whatever representation gave them; None otherwise.
+      lyapunov: the automatic Lyapunov K2.
+      exact_norm: K2 = ||exp(At)||.
+      m1_method: how M1 was computed.
+    """
+
+    paper: Certificate | None
+    lyapunov: Certificate
+    exact_norm: Certificate
+    m1_method: str
+
+    def certificates(self) -> dict:
+        """name -> :class:`Certificate`, the paper's first when it applies."""
+        out = {"paper": self.paper} if self.paper is not None else {}
+        return {**out, "lyapunov": self.lyapunov, "exact_norm": self.exact_norm}
+
+
+M1_METHODS = ("closed", "numerical")
+
+
+def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float, n_t: int = 1001,
+           m1: str = "closed") -> Lemma2Report:
+    """All Lemma 2 certificates of this module for one closed loop over [0, t_final].
+
+    Args:
+      ctrl, params: the closed loop (a dynamic linearizing law).
+      t_final: horizon [s]; eps: Lemma 2's margin.
+      n_t: size of the uniform time grid on which min F is taken.
+      m1: "closed" (Remark 16 in closed form, every type) or "numerical" (Remark 16 by local
+        search: an upper bound of the distance, so not conservative; for cross-checks).
+
+    Returns:
+      :class:`Lemma2Report`.
+
+    Raises:
+      ValueError: a static law, an unknown ``m1``, bad eps/horizon, or a reference within eps
+        of the singular set.
+    """
+    check_dynamic(ctrl)
+    if m1 not in M1_METHODS:
+        raise ValueError(f"m1 must be one of {M1_METHODS}, got {m1!r}")
+    check_lemma2_args(eps, t_final)
+    A = ctrl.error_matrix(params.gains)
+    ts = jnp.linspace(0.0, t_final, n_t)
+    m1v = m1_closed_form(ctrl, params, ts) if m1 == "closed" else m1_numerical(ctrl, params, ts)
+    check_lemma2_args(eps, t_final, m1v)
+    paper = None
+    if ctrl.relative_degree == 2 and params.gains.is_double_pole(1.0):
+        paper = certificate(ts, m1v, k2_paper(ts), eps)
+    return Lemma2Report(paper, certificate(ts, m1v, k2_lyapunov(A, ts), eps),
+                        certificate(ts, m1v, k2_exact(A, ts), eps),
+                        "closed form (Lemma 3)" if m1 == "closed" else "numerical (Remark 16)")

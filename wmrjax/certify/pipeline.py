@@ -1,0 +1,191 @@
+r"""The certification pipeline: every radius of one closed loop, checked against rollouts.
+
+:func:`analyse` runs, over one horizon and one eps: Lemma 2 with K2 three ways, the
+exact-map radius (full error and the paper's position slice), an empirical check of (53)
+and regularity inside every certified ball, the empirical safe radius per direction of the
+position slice, and the gradient falsifier (full and position slice). It returns a
+:class:`CertificationReport`; :meth:`CertificationReport.summary` is its JSON form.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wmrjax.certify.empirical import EmpiricalRadius, empirical_radius, sample_sphere, verify
+from wmrjax.certify.exact_map import ExactMapRadius, exact_map_radius, singular_rows, slice_basis
+from wmrjax.certify.falsify import FalsifiedRadius, falsified_radius
+from wmrjax.certify.lemma2 import Lemma2Report, check_dynamic, k2_exact, k2_lyapunov, k2_paper, lemma2
+from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
+
+
+class EmpiricalCheck(NamedTuple):
+    """Counts of one K2's empirical check (sampled initial errors)."""
+
+    runs_inside: int             # samples inside the certified ball
+    violations_53_inside: int    # of those, runs violating (53)
+    singular_inside: int         # of those, runs flagged singular
+    singular_total: int          # singular runs among all samples
+
+
+class CertificationReport(NamedTuple):
+    """Everything :func:`analyse` computed (fixed fields; None where a method does not apply).
+
+    Attributes:
+      eps, t_final: the margin and horizon [s].
+      lemma2: :class:`~wmrjax.certify.lemma2.Lemma2Report`.
+      zeta0_norm: ||initial error|| of a given run (condition 52 is checked against it), or None.
+      exact_full, exact_position: exact-map radii (None for a curved singular set, (1,2)).
+      empirical: K2 name -> :class:`EmpiricalCheck` (empty when no samples were drawn).
+      empirical_sampling: how the samples were drawn (count, radius range).
+      empirical_position: empirical safe radius per ray of the position slice.
+      falsified_full, falsified_position: the falsifier's results (None when skipped).
+      certified_below_falsified: every certified radius lies below the falsified ones.
+      wall_time_s: seconds taken.
+    """
+
+    eps: float
+    t_final: float
+    lemma2: Lemma2Report
+    zeta0_norm: float | None
+    exact_full: ExactMapRadius | None
+    exact_position: ExactMapRadius | None
+    empirical: dict
+    empirical_sampling: dict
+    empirical_position: EmpiricalRadius
+    falsified_full: FalsifiedRadius | None
+    falsified_position: FalsifiedRadius | None
+    certified_below_falsified: bool
+    wall_time_s: float
+
+    def certified_radius(self) -> float:
+        """The largest Lemma 2 radius (over the K2 bounds)."""
+        return max(float(c.radius) for c in self.lemma2.certificates().values())
+
+    def summary(self) -> dict:
+        """The report as a JSON-able dict (the ``lemma2`` block of the experiments' summary.json)."""
+        certs = self.lemma2.certificates()
+        block = {"eps": self.eps, "t_final": self.t_final, "m1": self.lemma2.m1_method}
+        for name, c in certs.items():
+            block[f"radius_{name}"] = float(c.radius)
+            block[f"argmin_F_{name}"] = float(c.argmin)
+        if self.zeta0_norm is not None:
+            ref = certs["paper"] if "paper" in certs else certs["exact_norm"]
+            block.update(zeta0_norm=self.zeta0_norm, min_F=float(ref.radius), argmin_F=float(ref.argmin),
+                         condition_52=bool(self.zeta0_norm <= float(ref.radius)))
+        if self.exact_full is not None:
+            for key, em in (("radius_exact_map", self.exact_full),
+                            ("radius_exact_map_position_slice", self.exact_position)):
+                block[key] = float(em.radius)
+                block[key.replace("radius", "worst")] = {"t": float(em.argmin),
+                                                         "initial_error": np.asarray(em.worst_error)}
+        else:
+            block["radius_exact_map"] = block["radius_exact_map_position_slice"] = None
+            block["exact_map_note"] = "singular set is curved for (1,2): no exact-map radius (see falsified radii)"
+        block["empirical"] = {**self.empirical_sampling, **{k: v._asdict() for k, v in self.empirical.items()}}
+        er = self.empirical_position
+        block["empirical_radius_position_slice"] = er.radius if np.isfinite(er.radius) else None
+        block["empirical_position_slice"] = {
+            "n_directions": len(er.per_direction), "r_max": self.empirical_sampling["radius_range"][1],
+            "n_runs": er.n_runs, "fraction_of_directions_failing": float(np.isfinite(er.per_direction).mean()),
+            "worst_direction": er.worst_direction}
+        for name, f in (("falsified_full", self.falsified_full), ("falsified_position_slice", self.falsified_position)):
+            block[name] = ({"radius": None, "skipped": "n_starts = 0"} if f is None else
+                           {"radius": f.radius, "initial_error": f.initial_error, "distance": f.distance,
+                            "rollouts": f.rollouts, "bracket": None if f.bracket is None else list(f.bracket)})
+        block["certified_below_falsified"] = self.certified_below_falsified
+        return block
+
+
+def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float = 1e-2,
+            dt: float = 0.01, n_empirical: int = 4096, n_directions: int = 256, n_starts: int = 16,
+            falsifier_dt: float = 0.02, seed: int = 0, zeta0_norm: float | None = None,
+            log: Callable[[str], None] = lambda msg: None) -> CertificationReport:
+    """Every certificate of one closed loop, checked by simulation and falsification.
+
+    Args:
+      ctrl, params: the closed loop (a dynamic linearizing law).
+      t_final: horizon [s]; eps: Lemma 2's margin.
+      dt: RK4 step of the empirical checks [s].
+      n_empirical: sampled initial errors per K2 (uniform direction, uniform radius up to
+        twice the largest certified radius); 0 skips the check.
+      n_directions: rays of the position-slice empirical radius.
+      n_starts: falsifier starts (0 skips the falsifier).
+      falsifier_dt: RK4 step of the falsifier [s] (failures are confirmed ten times finer).
+      seed: PRNG seed of the samples and starts.
+      zeta0_norm: ||initial error|| of a run of interest (condition 52 is reported for it).
+      log: progress messages (e.g. ``print``).
+
+    Returns:
+      :class:`CertificationReport`.
+    """
+    check_dynamic(ctrl)
+    t0 = time.time()
+    n_steps = int(round(t_final / dt))
+    cert = lemma2(ctrl, params, t_final=t_final, eps=eps, n_t=n_steps + 1)
+    A = ctrl.error_matrix(params.gains)
+    k2s = {"lyapunov": lambda ts: k2_lyapunov(A, ts), "exact_norm": lambda ts: k2_exact(A, ts)}
+    if cert.paper is not None:
+        k2s = {"paper": k2_paper, **k2s}
+    radii = {n: float(c.radius) for n, c in cert.certificates().items()}
+    certified = max(radii.values())
+    log("  Lemma 2 radii " + ", ".join(f"{n} {r:.4f}" for n, r in radii.items()) + f"  ({time.time() - t0:.0f} s)")
+
+    exact = {}
+    if singular_rows(ctrl) is not None:
+        for b in ("full", "position"):
+            exact[b] = exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=b, n_t=4 * n_steps + 1)
+        log(f"  exact-map radius full {float(exact['full'].radius):.4f}, position slice "
+            f"{float(exact['position'].radius):.4f}  ({time.time() - t0:.0f} s)")
+    r_top = max([certified] + [float(e.radius) for e in exact.values()])
+
+    # -- empirical: (53) and regularity inside every ball
+    kd, kr, kf1, kf2 = jax.random.split(jax.random.PRNGKey(seed), 4)
+    sampling = {"n_runs": n_empirical, "radius_range": [0.0, 2.0 * r_top],
+                "sampling": "uniform direction, uniform radius"}
+    emp = {}
+    if n_empirical:
+        dirs = sample_sphere(kd, n_empirical, A.shape[0])
+        errs = dirs * (2.0 * r_top * jax.random.uniform(kr, (n_empirical,)))[:, None]
+        n0 = np.asarray(jnp.linalg.norm(errs, axis=1))
+        for name, k2 in k2s.items():
+            res = verify(ctrl, params, t_final=t_final, initial_errors=errs, k2=k2, dt=dt, save_every=10)
+            inside = n0 <= radii[name]
+            sing, viol = np.asarray(res.singular), np.asarray(res.violation_53)
+            emp[name] = EmpiricalCheck(int(inside.sum()), int((viol & inside).sum()), int((sing & inside).sum()),
+                                       int(sing.sum()))
+            if emp[name].violations_53_inside or emp[name].singular_inside:
+                log(f"LEMMA 2 VIOLATED inside the {name} certificate: {emp[name]}")
+        log(f"  empirical: {n_empirical} runs per K2, violations inside "
+            f"{sum(e.violations_53_inside + e.singular_inside for e in emp.values())}  ({time.time() - t0:.0f} s)")
+
+    # -- empirical safe radius per direction of the position slice
+    P = slice_basis(ctrl, "position")
+    ang = np.linspace(0.0, 2.0 * math.pi, n_directions, endpoint=False)
+    ring = np.stack([np.cos(ang), np.sin(ang)], 1)
+    if "position" in exact:  # make sure the worst direction of the exact map is among the rays
+        wd = np.asarray(P.T @ exact["position"].worst_error)
+        ring = np.concatenate([ring, (wd / np.linalg.norm(wd))[None]])
+    er = empirical_radius(ctrl, params, t_final=t_final, eps=eps, directions=ring @ np.asarray(P).T,
+                          r_max=2.0 * r_top, dt=dt)
+    log(f"  empirical safe radius (position slice, {len(ring)} rays): {er.radius:.4f}  ({time.time() - t0:.0f} s)")
+
+    # -- gradient falsifier, full and position slice
+    fs = {}
+    for b, kf in (("full", kf1), ("position", kf2)) if n_starts else ():
+        r_hi = 1.05 * float(exact[b].radius) if b in exact else 2.0 * certified
+        fs[b] = falsified_radius(ctrl, params, t_final=t_final, eps=eps, r_hi=r_hi, key=kf, dt=falsifier_dt,
+                                 basis=b, n_starts=n_starts, r_lo=certified)
+        log(f"  falsifier ({b}): smallest failing radius {fs[b].radius}  ({time.time() - t0:.0f} s)")
+    bounds = [(r, "full") for r in radii.values()]
+    bounds += [(float(e.radius), b) for b, e in exact.items()]
+    below = all(b not in fs or fs[b].radius is None or r <= fs[b].radius + 1e-9 for r, b in bounds)
+    if not below:
+        log("A CERTIFIED RADIUS EXCEEDS A FALSIFIED ONE: a certificate is wrong")
+    return CertificationReport(eps, t_final, cert, zeta0_norm, exact.get("full"), exact.get("position"), emp,
+                               sampling, er, fs.get("full"), fs.get("position"), below, time.time() - t0)

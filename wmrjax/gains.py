@@ -1,0 +1,172 @@
+r"""Gains of the linear error dynamics: one representation, Hurwitz coefficients.
+
+Under a linearizing law every output error obeys
+:math:`\tilde Y^{(r)} + \sum_{j<r} k_j \tilde Y^{(j)} = 0` (eq 13 for r = 2, eq 49 with
+the errata sign for any r). :class:`Gains` stores exactly these coefficients ``k`` per
+output, shape (m, r), and nothing else; the constructors build them from
+
+* real poles at :math:`-\lambda_j` (:meth:`Gains.from_poles`; the paper's choice, e.g. a
+  double pole at -1 in §6.1: ``k = (1, 2)``);
+* second-order factors :math:`s^2 + 2\zeta\omega s + \omega^2` (natural frequency
+  :math:`\omega`, damping :math:`\zeta`: real or complex pole pairs), times
+  :math:`(s + \lambda)` when r is odd (:meth:`Gains.from_damping`).
+
+Every consumer (the laws, :func:`wmrjax.linearize.companion`, the certificates, the
+reference-model state of eq 14) reads ``coeffs``; pole-based reports come from
+:meth:`Gains.poles`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from wmrjax._validate import check_finite, check_positive, concrete
+
+
+def monic_coefficients(poles):
+    r"""Coefficients of :math:`\prod_j (s + \lambda_j) = s^r + \sum_{j<r} k_j s^j`.
+
+    Args:
+      poles: (..., r) positive reals :math:`\lambda_j` (closed-loop poles at :math:`-\lambda_j`).
+
+    Returns:
+      (..., r) array ``k`` with ``k[..., j]`` the coefficient of ``s^j``: Hurwitz by
+      construction. For r = 2: ``k = (l1 l2, l1 + l2)`` as in eq (13).
+    """
+    r = poles.shape[-1]
+    c = [jnp.ones_like(poles[..., 0])]          # highest power first, start from "1"
+    for j in range(r):
+        lam = poles[..., j]
+        new = [c[0]]
+        for i in range(1, len(c)):
+            new.append(c[i] + lam * c[i - 1])
+        new.append(lam * c[-1])
+        c = new
+    return jnp.stack(c[::-1][:r], axis=-1)      # ascending powers, without the leading 1
+
+
+def _polymul(a, b):
+    """Product of two polynomials given as coefficient lists, highest power first."""
+    out = [0.0 * a[0]] * (len(a) + len(b) - 1)
+    for i, x in enumerate(a):
+        for j, y in enumerate(b):
+            out[i + j] = out[i + j] + x * y
+    return out
+
+
+def damping_coefficients(omega, zeta, lam=None):
+    r"""Coefficients of :math:`\prod_k (s^2 + 2\zeta_k\omega_k s + \omega_k^2)\,(s + \lambda)`.
+
+    Args:
+      omega, zeta: (..., q) natural frequencies [rad/s] and dampings, all > 0.
+      lam: optional (...,) real pole magnitude for odd r.
+
+    Returns:
+      (..., r) coefficients, r = 2 q (+ 1 with ``lam``), ascending powers.
+    """
+    omega, zeta = jnp.asarray(omega), jnp.asarray(zeta)
+    poly = [jnp.ones_like(omega[..., 0]) if omega.shape[-1] else jnp.ones_like(jnp.asarray(lam))]
+    for k in range(omega.shape[-1]):
+        om, ze = omega[..., k], zeta[..., k]
+        poly = _polymul(poly, [jnp.ones_like(om), 2.0 * ze * om, om * om])
+    if lam is not None:
+        lam = jnp.asarray(lam)
+        poly = _polymul(poly, [jnp.ones_like(lam), lam])
+    return jnp.stack(poly[1:][::-1], axis=-1)
+
+
+class Gains(NamedTuple):
+    """Hurwitz coefficients of every output's error polynomial (a pytree: vmap/grad it).
+
+    Attributes:
+      coeffs: (m, r); ``coeffs[i, j]`` multiplies :math:`d^j\\tilde Y_i/dt^j` (eq 49 errata).
+    """
+
+    coeffs: jnp.ndarray
+
+    @property
+    def shape(self):
+        """(m, r): outputs and relative degree."""
+        return tuple(jnp.shape(self.coeffs))
+
+    @classmethod
+    def from_poles(cls, poles, m: int | None = None, r: int | None = None) -> "Gains":
+        """Real poles at ``-poles``.
+
+        Args:
+          poles: (m, r), (r,) or scalar pole magnitudes, > 0 (broadcast to (m, r)).
+          m, r: target shape when ``poles`` is a scalar or (r,).
+
+        Raises:
+          ValueError: a non-positive or non-finite pole, or a shape that does not broadcast.
+        """
+        p = jnp.asarray(poles, dtype=jnp.result_type(float))
+        if m is not None and r is not None:
+            if p.ndim > 2 or (p.ndim >= 1 and p.shape[-1] not in (1, r)) or (p.ndim == 2 and p.shape[0] not in (1, m)):
+                raise ValueError(f"poles must be a scalar, ({r},) or ({m}, {r}) (one pole magnitude per output and "
+                                 f"derivative order, r = {r}), got shape {p.shape}")
+            p = jnp.broadcast_to(p, (m, r))
+        elif p.ndim != 2:
+            raise ValueError(f"poles must be (m, r) unless m and r are given, got shape {p.shape}")
+        check_positive("poles (closed-loop poles are at -poles; they must be > 0 for a Hurwitz error dynamics)", p)
+        return cls(monic_coefficients(p))
+
+    @classmethod
+    def from_damping(cls, omega, zeta, lam=None, m: int | None = None) -> "Gains":
+        """Second-order factors (omega, zeta) per output, times (s + lam) for odd r.
+
+        Args:
+          omega, zeta: (q,) or (m, q), > 0; the paper's double pole at -1 is omega = zeta = 1.
+          lam: None, scalar or (m,) real pole magnitude (odd r).
+          m: number of outputs when omega is (q,).
+        """
+        om, ze = jnp.atleast_1d(jnp.asarray(omega, float)), jnp.atleast_1d(jnp.asarray(zeta, float))
+        check_positive("omega (natural frequencies)", om)
+        check_positive("zeta (dampings)", ze)
+        if lam is not None:
+            check_positive("lam (real pole magnitude)", lam)
+        c = damping_coefficients(om, ze, lam)
+        if c.ndim == 1:
+            if m is None:
+                raise ValueError("from_damping needs m (number of outputs) when omega is one-dimensional")
+            c = jnp.broadcast_to(c, (m, c.shape[0]))
+        return cls(c)
+
+    def check(self, m: int, r: int) -> "Gains":
+        """ValueError unless ``coeffs`` is a finite (m, r) array of a Hurwitz polynomial per output."""
+        c = concrete(self.coeffs)
+        if c is None:
+            return self
+        if c.shape != (m, r):
+            raise ValueError(f"gains.coeffs must have shape ({m}, {r}) (outputs, relative degree), got {c.shape}")
+        check_finite("gains.coeffs", c)
+        bad = [i for i in range(m) if not np.all(np.roots(np.concatenate([[1.0], c[i, ::-1]])).real < 0)]
+        if bad:
+            raise ValueError(f"gains.coeffs of outputs {bad} are not Hurwitz (closed-loop poles "
+                             f"{self.poles()[bad[0]].tolist()}); the error dynamics would not converge")
+        return self
+
+    def poles(self) -> np.ndarray:
+        """(m, r) complex closed-loop poles (roots of each output's polynomial); concrete values only."""
+        c = np.asarray(self.coeffs)
+        return np.stack([np.sort_complex(np.roots(np.concatenate([[1.0], row[::-1]]))) for row in c])
+
+    def is_double_pole(self, value: float = 1.0, rtol: float = 1e-12) -> bool:
+        """True iff every output's polynomial is :math:`(s + value)^2` (concrete coefficients; r = 2)."""
+        c = concrete(self.coeffs)
+        return (c is not None and c.ndim == 2 and c.shape[1] == 2
+                and bool(np.allclose(c, [value * value, 2.0 * value], rtol=rtol, atol=0.0)))
+
+    def cascade_pole(self):
+        r"""For r = 2, :math:`\Lambda_1` of the cascade :math:`\dot{\tilde z} + \Lambda_1 \tilde z = \tilde\sigma`,
+        :math:`\dot{\tilde\sigma} + \Lambda_2\tilde\sigma = 0` (eqs 12-14): the slower real root, (m,).
+
+        NaN for an output whose poles are complex (no real cascade exists).
+        """
+        k0, k1 = self.coeffs[:, 0], self.coeffs[:, 1]
+        disc = k1 * k1 - 4.0 * k0
+        root = jnp.sqrt(jnp.where(disc >= 0, disc, 0.0))
+        return jnp.where(disc >= 0, 0.5 * (k1 - root), jnp.nan)

@@ -1,0 +1,166 @@
+"""Results on disk: atomic JSON/NPZ/bytes writing and JSON checkpoints of pytrees.
+
+Every writer goes through :func:`atomic_write` (write a temporary file in the target
+directory, then ``os.replace``), so a killed run leaves either the previous file or the
+new one, never half of one. Nothing here loads a pickle: ``.npz`` files are written with
+plain numeric arrays only, and checkpoints are JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
+
+
+def atomic_write(path, write: Callable) -> Path:
+    """Call ``write(fh)`` on a temporary binary file next to ``path``, then rename it to ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def jsonable(x):
+    """``x`` with arrays as lists, NamedTuples as dicts, and non-finite floats as None/"inf"/"-inf"."""
+    if hasattr(x, "_asdict"):
+        return jsonable(x._asdict())
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if hasattr(x, "tolist"):
+        return jsonable(np.asarray(x).tolist())
+    if isinstance(x, float) and not np.isfinite(x):
+        return None if np.isnan(x) else ("inf" if x > 0 else "-inf")
+    return x
+
+
+def write_json(path, obj) -> Path:
+    """Write ``obj`` as indented JSON atomically (see :func:`jsonable` for the conversions)."""
+    data = json.dumps(jsonable(obj), indent=2, sort_keys=False).encode()
+    return atomic_write(path, lambda fh: fh.write(data + b"\n"))
+
+
+def write_npz(path, **arrays) -> Path:
+    """Write an ``.npz`` of plain numeric/string arrays atomically.
+
+    Raises:
+      ValueError: for an object array (it would need a pickle to load).
+    """
+    arrays = {k: np.asarray(v) for k, v in arrays.items()}
+    for k, v in arrays.items():
+        if v.dtype == object:
+            raise ValueError(f"refusing to save object array {k!r}: npz files here never hold pickles")
+    return atomic_write(path, lambda fh: np.savez(fh, **arrays))
+
+
+def write_bytes(path, data: bytes) -> Path:
+    """Write raw bytes (e.g. a rendered PNG) atomically."""
+    return atomic_write(path, lambda fh: fh.write(data))
+
+
+# --- checkpoints -----------------------------------------------------------------------------
+
+class Checkpoint(NamedTuple):
+    """A resumable state: ``step`` done, the array pytrees, and a JSON-able ``state`` dict."""
+
+    step: int
+    trees: dict
+    state: dict
+
+
+def write_checkpoint(path, *, fingerprint: str, config: dict, step: int, trees: dict, state: dict) -> Path:
+    """Write a JSON checkpoint atomically.
+
+    Args:
+      fingerprint: identifies the configuration; :func:`read_checkpoint` refuses another.
+      config: the configuration itself (for the refusal message).
+      step: steps completed.
+      trees: name -> pytree of arrays (e.g. parameters, optimizer state), stored as leaf lists.
+      state: any JSON-able dict (histories, counters).
+    """
+    import jax
+
+    leaves = {k: [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(t)] for k, t in trees.items()}
+    return write_json(path, {"fingerprint": fingerprint, "config": config, "step": step, "trees": leaves,
+                             "state": state})
+
+
+def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) -> Checkpoint:
+    """Read a checkpoint written by :func:`write_checkpoint`, restoring each tree's structure.
+
+    Args:
+      templates: name -> a pytree with the expected structure, shapes and dtypes.
+
+    Raises:
+      ValueError: a checkpoint of another configuration (naming the keys that differ), or one
+        whose trees do not match the templates (missing, truncated or reshaped leaves).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"checkpoint {path} is not readable JSON ({exc}); delete it or use another directory")
+    if d.get("fingerprint") != fingerprint:
+        old = d.get("config", {}) or {}
+        diff = sorted(k for k, v in config.items() if json.loads(json.dumps(jsonable(old.get(k))))
+                      != json.loads(json.dumps(jsonable(v))))
+        raise ValueError(f"checkpoint {path} belongs to another configuration (differs in {diff}); "
+                         "use another --out directory or delete the checkpoint")
+    trees = {}
+    for name, template in templates.items():
+        got = (d.get("trees") or {}).get(name)
+        tmpl, treedef = jax.tree_util.tree_flatten(template)
+        if got is None or len(got) != len(tmpl):
+            raise ValueError(f"checkpoint {path}: tree {name!r} has {None if got is None else len(got)} leaves, "
+                             f"expected {len(tmpl)}")
+        leaves = []
+        for i, (v, t) in enumerate(zip(got, tmpl)):
+            a = np.asarray(v, dtype=np.asarray(t).dtype)
+            if a.shape != np.shape(t):
+                raise ValueError(f"checkpoint {path}: leaf {i} of {name!r} has shape {a.shape}, expected "
+                                 f"{np.shape(t)} (a truncated or edited checkpoint)")
+            leaves.append(jnp.asarray(a))
+        trees[name] = jax.tree_util.tree_unflatten(treedef, leaves)
+    if not isinstance(d.get("step"), int) or not isinstance(d.get("state"), dict):
+        raise ValueError(f"checkpoint {path} lacks an integer 'step' or a 'state' object")
+    return Checkpoint(d["step"], trees, d["state"])
+
+
+
+
+# --- figures -----------------------------------------------------------------------------------
+
+def headless_pyplot():
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (for writing PNG files)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def write_png(fig, path, dpi: int = 120) -> Path:
+    """Render a matplotlib figure to PNG and write it atomically."""
+    import io as _io
+
+    buf = _io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    return write_bytes(path, buf.getvalue())
