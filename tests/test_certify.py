@@ -10,13 +10,14 @@ import pytest
 import wmrjax as w
 from wmrjax import certify as C
 from wmrjax import references as R
-from wmrjax.linearize import companion, monic_coefficients
+from wmrjax.gains import monic_coefficients
+from wmrjax.linearize import companion
 
 
 @pytest.fixture(scope="module")
 def cert61(paper61):
     ctrl, params, z0 = paper61
-    return C.lemma2(ctrl, params, 10.0, 1e-2, n_t=1001)
+    return C.lemma2(ctrl, params, t_final=10.0, eps=1e-2, n_t=1001)
 
 
 def test_m1_lemma3_equals_eq65_and_numerical(paper61):
@@ -45,24 +46,24 @@ def test_section61_condition_52_and_ordering(paper61, cert61):
     ctrl, params, z0 = paper61
     e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0, params)))
     np.testing.assert_allclose(e0, 0.54 * math.sqrt(2), rtol=1e-12)
-    paper = cert61["paper"]
+    paper = cert61.paper
     # the paper: "with our choice (63), condition (52) is satisfied"
     assert e0 <= float(paper.radius) < 1.01 * e0
     np.testing.assert_allclose(paper.F, (paper.m1 - 1e-2) / paper.k2)
-    assert float(paper.radius) <= float(cert61["lyapunov"].radius) <= float(cert61["exact_norm"].radius)
+    assert float(paper.radius) <= float(cert61.lyapunov.radius) <= float(cert61.exact_norm.radius)
 
 
 def test_inside_certified_ball_no_violations(paper61, cert61):
     """4 directions x radii up to the exact-norm certificate: (53) holds and no run is singular."""
     ctrl, params, _ = paper61
     A = ctrl.error_matrix(params.gains)
-    rad = float(cert61["exact_norm"].radius)
+    rad = float(cert61.exact_norm.radius)
     dirs = C.sample_sphere(jax.random.PRNGKey(1), 32, 4)
     errs = dirs * jnp.linspace(0.2, 1.0, 32)[:, None] * rad
-    res = C.verify(ctrl, params, errs, lambda ts: C.k2_exact(A, ts), dt=0.02, n_steps=500, save_every=10)
-    assert not np.any(np.asarray(res["singular"]))
-    assert not np.any(np.asarray(res["violation_53"]))
-    assert float(np.max(res["max_ratio"])) <= 1.0 + 1e-6
+    res = C.verify(ctrl, params, t_final=10.0, initial_errors=errs, k2=lambda ts: C.k2_exact(A, ts), dt=0.02, save_every=10)
+    assert not np.any(np.asarray(res.singular))
+    assert not np.any(np.asarray(res.violation_53))
+    assert float(np.max(res.max_ratio)) <= 1.0 + 1e-6
 
 
 def test_far_outside_becomes_singular(paper61):
@@ -71,19 +72,19 @@ def test_far_outside_becomes_singular(paper61):
     A = ctrl.error_matrix(params.gains)
     href = ctrl.reference_jet(jnp.asarray(0.0), params)
     e0 = jnp.concatenate([jnp.zeros(2), -0.999 * href[1]])[None]
-    res = C.verify(ctrl, params, e0, lambda ts: C.k2_exact(A, ts), dt=0.02, n_steps=500, save_every=10)
-    assert float(res["min_margin"][0]) < 0.01 or bool(res["singular"][0])
+    res = C.verify(ctrl, params, t_final=10.0, initial_errors=e0, k2=lambda ts: C.k2_exact(A, ts), dt=0.02, save_every=10)
+    assert float(res.min_margin[0]) < 0.01 or bool(res.singular[0])
 
 
 def test_bad_lemma2_arguments(paper61):
     ctrl, params, _ = paper61
     with pytest.raises(ValueError, match="eps must be > 0"):
-        C.lemma2(ctrl, params, 10.0, 0.0)
+        C.lemma2(ctrl, params, t_final=10.0, eps=0.0)
     with pytest.raises(ValueError, match="horizon must be > 0"):
-        C.lemma2(ctrl, params, -1.0, 1e-2)
+        C.lemma2(ctrl, params, t_final=-1.0, eps=1e-2)
     stop = ctrl.params(R.paper_66(), poles=1.0)
     with pytest.raises(ValueError, match="within eps"):
-        C.lemma2(ctrl, stop, 10.0, 1e-2)
+        C.lemma2(ctrl, stop, t_final=10.0, eps=1e-2)
     with pytest.raises(ValueError, match="not Hurwitz"):
         C.lyapunov_bound(jnp.array([[0.0, 1.0], [1.0, -1.0]]))
 
@@ -93,7 +94,7 @@ def test_bad_lemma2_arguments(paper61):
 @pytest.fixture(scope="module")
 def exact61(paper61):
     ctrl, params, _ = paper61
-    return {b: C.exact_map_radius(ctrl, params, 10.0, 1e-2, basis=b) for b in ("full", "position")}
+    return {b: C.exact_map_radius(ctrl, params, t_final=10.0, eps=1e-2, basis=b) for b in ("full", "position")}
 
 
 def test_min_norm_to_ball_matches_boundary_search(rng):
@@ -117,10 +118,10 @@ def test_exact_map_radius_is_tight_and_above_lemma2(paper61, cert61, exact61):
     full, pos = exact61["full"], exact61["position"]
     # full ball: at t = 0 the worst error cancels the reference velocity, ||h'_ref(0)|| = M1(0) = 5
     np.testing.assert_allclose(float(full.radius), 5.0 - 1e-2, rtol=1e-9)
-    assert float(cert61["exact_norm"].radius) <= float(full.radius) <= float(pos.radius)
+    assert float(cert61.exact_norm.radius) <= float(full.radius) <= float(pos.radius)
     w = pos.worst_error
     assert np.allclose(np.asarray(w)[2:], 0.0) and abs(float(jnp.linalg.norm(w)) - float(pos.radius)) < 1e-9
-    d, s = C.min_distance(ctrl, params, jnp.stack([0.99 * w, 1.01 * w]), dt=0.01, n_steps=1000)
+    d, s = C.min_distance(ctrl, params, t_final=10.0, initial_errors=jnp.stack([0.99 * w, 1.01 * w]), dt=0.01)
     assert float(d[0]) > 1e-2 > float(d[1]) and not np.any(np.asarray(s))   # the real closed loop agrees
 
 
@@ -128,10 +129,10 @@ def test_empirical_radius_finds_the_exact_one(paper61, exact61):
     ctrl, params, _ = paper61
     pos = exact61["position"]
     wd = pos.worst_error / jnp.linalg.norm(pos.worst_error)
-    er = C.empirical_radius(ctrl, params, jnp.stack([wd, -wd]), 12.0, 1e-2, dt=0.01, n_steps=1000, n_grid=16,
+    er = C.empirical_radius(ctrl, params, t_final=10.0, eps=1e-2, directions=jnp.stack([wd, -wd]), r_max=12.0, dt=0.01, n_grid=16,
                             n_golden=20, n_bisect=16)
-    np.testing.assert_allclose(er["per_direction"][0], float(pos.radius), rtol=1e-3)
-    assert er["per_direction"][1] == np.inf and er["radius"] == er["per_direction"][0]
+    np.testing.assert_allclose(er.per_direction[0], float(pos.radius), rtol=1e-3)
+    assert er.per_direction[1] == np.inf and er.radius == er.per_direction[0]
 
 
 def test_falsifier_finds_planted_failure_and_respects_certificates(paper61, cert61, exact61):
@@ -142,14 +143,16 @@ def test_falsifier_finds_planted_failure_and_respects_certificates(paper61, cert
     rad = float(exact61["position"].radius)
     ang = jnp.linspace(0.0, 2 * np.pi, 16, endpoint=False) + 0.1      # none of them on the unsafe diagonal
     starts = jnp.stack([jnp.cos(ang), jnp.sin(ang)], 1)
-    out = C.falsify(ctrl, params, 1.03 * rad, starts, dt=0.02, n_steps=500, basis="position", steps=40, n_windows=2)
+    out = C.falsify(ctrl, params, t_final=10.0, radius=1.03 * rad, starts=starts, dt=0.02, basis="position", steps=40,
+                    n_windows=2)
     assert float(jnp.min(out.distance)) < 1e-2
     e = out.initial_errors[int(out.best)]
     assert abs(float(jnp.linalg.norm(e)) - 1.03 * rad) < 1e-9 and np.allclose(np.asarray(e)[2:], 0.0)
-    inside = C.falsify(ctrl, params, 0.97 * rad, starts, dt=0.02, n_steps=500, basis="position", steps=40, n_windows=2)
+    inside = C.falsify(ctrl, params, t_final=10.0, radius=0.97 * rad, starts=starts, dt=0.02, basis="position", steps=40,
+                       n_windows=2)
     assert float(jnp.min(inside.distance)) > 1e-2
     for name in ("paper", "lyapunov", "exact_norm"):
-        assert float(cert61[name].radius) <= 1.03 * rad
+        assert float(getattr(cert61, name).radius) <= 1.03 * rad
 
 
 def test_bad_exact_map_arguments(paper61):
@@ -159,11 +162,11 @@ def test_bad_exact_map_arguments(paper61):
     with pytest.raises(ValueError, match="unknown slice"):
         C.slice_basis(ctrl, "velocity-ish")
     with pytest.raises(ValueError, match="eps must be > 0"):
-        C.exact_map_radius(ctrl, params, 10.0, -1.0)
+        C.exact_map_radius(ctrl, params, t_final=10.0, eps=-1.0)
     c12 = w.dynamic_linearization("(1,2)")
     p12 = c12.params(R.circle(), geometry=w.Geometry(L=0.5, e=0.3, delta=0.5))
     with pytest.raises(ValueError, match="curved singular set"):
-        C.exact_map_radius(c12, p12, 5.0, 1e-2)
+        C.exact_map_radius(c12, p12, t_final=5.0, eps=1e-2)
 
 
 def test_m1_closed_form_12_is_the_distance_to_its_singular_set(rng):
@@ -194,5 +197,5 @@ def test_m1_closed_form_12_is_the_distance_to_its_singular_set(rng):
         np.testing.assert_allclose(np.sqrt(vals.min()), m, rtol=1e-6)
         v, th = on_set(best, jet[1])
         zeta = jnp.asarray(np.stack([jet[0] + np.array([0.0, 0.0, best]), v]))
-        X = np.asarray(c12.inverse_psi(zeta, g, 1.0))
+        X = np.asarray(c12.inverse_psi(zeta, params, 1.0))
         assert abs(np.sin(X[3]) * np.sin(X[4])) < 1e-9

@@ -48,12 +48,14 @@ def test_psi_inverse_round_trip_both_branches(kind, level, rng):
     n_angles = 1 + ctrl.robot.delta_s
     zs = rng.uniform(-1.2, 1.2, size=(64, ctrl.n_state))
 
+    P = ctrl.params_unchecked(R.line(), 1.0, GEOM)
+
     @jax.jit
     def round_trip(z):
-        q = ctrl.branch_quantity(z, GEOM)
+        q = ctrl.branch_quantity(z, P)
         branch = jnp.where(q >= 0, 1.0, -1.0)
-        back = ctrl.inverse_psi(ctrl.psi(z, GEOM), GEOM, branch)
-        return q, ctrl.margin(z, GEOM), back, ctrl.branch_quantity(back, GEOM)
+        back = ctrl.inverse_psi(ctrl.psi(z, P), P, branch)
+        return q, ctrl.margin(z, P), back, ctrl.branch_quantity(back, P)
 
     q, m, back, q_back = (np.asarray(a) for a in jax.vmap(round_trip)(jnp.asarray(zs)))
     keep = (np.abs(q) > 0.05) & (m > 1e-2)
@@ -118,7 +120,7 @@ def test_gradients_through_closed_loop(kind, rng):
     z0 = ctrl.reference_state(0.0, params) + jnp.zeros(ctrl.n_state).at[0].set(0.1)
 
     def loss(poles, z0):
-        p = params._replace(gains=w.Gains(poles))
+        p = params._replace(gains=w.Gains.from_poles(poles))
         tr = w.simulate(ctrl, z0, p, dt=0.1, n_steps=4, save_every=4)
         return jnp.sum(ctrl.error(tr.t[-1], tr.final_state, p) ** 2)
 
@@ -143,11 +145,12 @@ def test_initial_state_from_physical(kind):
     n = ctrl.robot.n_state
     X = zref[:n]
     # the reference's own wheel velocities, read back through the plant input map
-    u = np.asarray(ctrl.extension.plant_input(jnp.asarray(X), jnp.asarray(zref[n:n + ctrl.extension.n_comp]),
-                                              jnp.asarray(zref[n + ctrl.extension.n_comp:]), GEOM))
+    ext = ctrl.row.extension
+    u = np.asarray(ext.plant_input(jnp.asarray(X), jnp.asarray(zref[n:n + ext.n_comp]),
+                                   jnp.asarray(zref[n + ext.n_comp:]), GEOM))
     z = ctrl.initial_state_from_physical(X, u, params)
-    nv = n + ctrl.extension.n_comp
-    u_back = ctrl.extension.plant_input(z[:n], z[n:nv], z[nv:], GEOM)
+    nv = n + ext.n_comp
+    u_back = ext.plant_input(z[:n], z[n:nv], z[nv:], GEOM)
     np.testing.assert_allclose(u_back, u, atol=1e-12)
     np.testing.assert_allclose(z[:n], X)
     with pytest.raises(ValueError, match="Remark 17"):  # driving backwards: the other branch

@@ -45,14 +45,15 @@ def test_stabilizer_alone_decreases_distance(rng):
 def test_switch_at_first_step_inside_disk(paper62_hybrid, run_hybrid):
     hy, params, z0 = paper62_hybrid
     tr = run_hybrid(z0, params)
-    st, t = np.asarray(tr.state), np.asarray(tr.t)
+    st, t, mode = np.asarray(tr.state.tracking), np.asarray(tr.t), np.asarray(tr.state.mode)
     assert not bool(tr.diagnostics.failed) and np.all(np.isfinite(st)) and np.all(np.isfinite(tr.control))
+    assert isinstance(tr.final_state, H.HybridState) and mode.dtype == np.int32   # named fields, integer mode
     inside = st[:, 0] ** 2 + st[:, 1] ** 2 <= float(params.r_switch) ** 2
     k = int(np.argmax(inside))
     assert 0 < k and not inside[:k].any()
-    assert np.all(st[:k, 4] == 0.0) and np.all(st[k:, 4] == 1.0)
-    assert st[-1, 5] == pytest.approx(t[k]) and 5.0 < t[k] < 5.5
-    np.testing.assert_allclose(st[-1, 6:8], st[k, :2])        # recorded switch state
+    assert np.all(mode[:k] == H.TRACKING) and np.all(mode[k:] == H.PARKING)
+    assert float(tr.final_state.t_switch) == pytest.approx(t[k]) and 5.0 < t[k] < 5.5
+    np.testing.assert_allclose(np.asarray(tr.final_state.at_switch), st[k])   # recorded switch state
     assert abs(st[k, 2]) <= math.pi                            # theta's representative nearest 0
     # before the switch the robot follows the linearizing law exactly (eta1 = chi1 > 0)
     assert np.all(np.asarray(tr.control)[:k, 0] > 0.2)
@@ -63,16 +64,19 @@ def test_hybrid_gradients_finite_and_jit_vmap_consistent(paper62_hybrid, run_hyb
 
     def final_distance(scale, lam):
         p = params._replace(lam=lam, tracking=params.tracking._replace(
-            gains=params.tracking.gains._replace(poles=params.tracking.gains.poles * scale)))
-        fs = run_hybrid(z0, p).final_state
+            gains=w.Gains.from_poles(jnp.ones((2, 2)) * scale)))
+        fs = run_hybrid(z0, p).final_state.tracking
         return jnp.hypot(fs[0], fs[1])
 
     g = jax.jacfwd(final_distance, argnums=(0, 1))(1.0, params.lam)
     assert all(np.isfinite(float(x)) for x in g)
-    z0s = jnp.stack([z0, z0.at[0].add(0.1), z0.at[1].add(-0.1)])
+    shifts = jnp.array([[0.0, 0.0], [0.1, 0.0], [0.0, -0.1]])
+    z0s = jax.vmap(lambda d: z0._replace(tracking=z0.tracking.at[:2].add(d)))(shifts)
     batch = jax.vmap(lambda z: run_hybrid(z, params).final_state)(z0s)
     for i in range(3):
-        np.testing.assert_allclose(batch[i], run_hybrid(z0s[i], params).final_state, rtol=1e-10, atol=1e-12)
+        one = run_hybrid(jax.tree_util.tree_map(lambda a: a[i], z0s), params).final_state
+        for a, b in zip(jax.tree_util.tree_leaves(batch), jax.tree_util.tree_leaves(one)):
+            np.testing.assert_allclose(a[i], b, rtol=1e-10, atol=1e-12)
 
 
 def test_bad_hybrid_arguments():

@@ -107,7 +107,7 @@ def test_vmap_equals_python_loop_and_jit_equals_nojit(paper61):
 def test_vmap_over_references_and_gains(paper61):
     ctrl, params, z0 = paper61
     poles = jnp.array([1.0, 2.0])
-    batched = jax.vmap(lambda p: w.simulate(ctrl, z0, params._replace(gains=w.Gains(jnp.full((2, 2), p))),
+    batched = jax.vmap(lambda p: w.simulate(ctrl, z0, params._replace(gains=w.Gains.from_poles(jnp.full((2, 2), p))),
                                             dt=0.02, n_steps=50, save_every=50).final_state)(poles)
     for i, p in enumerate([1.0, 2.0]):
         one = w.simulate(ctrl, z0, ctrl.params(params.reference, poles=p, geometry=params.geometry),
@@ -121,7 +121,7 @@ def test_gradients_through_rollout(paper61):
 
     @jax.jit
     def loss(poles, z0):
-        p = params._replace(gains=w.Gains(poles))
+        p = params._replace(gains=w.Gains.from_poles(poles))
         tr = w.simulate(ctrl, z0, p, dt=0.1, n_steps=8, save_every=4)
         err = jax.vmap(lambda t, z: ctrl.error(t, z, p))(tr.t, tr.state)
         return jnp.sum(err**2)

@@ -63,12 +63,12 @@ def test_engine_K_equals_table3_closed_form_and_errata_det(kind, rng):
         g = GEOM[kind]
         for _ in range(5):
             z = jnp.asarray(rng.uniform(-2, 2, ctrl.n_state))
-            K = np.asarray(ctrl.jet(z, g)[2])
+            K = np.asarray(ctrl.law.jet(z, g)[2])
             X = np.asarray(z[: ctrl.robot.n_state])
             np.testing.assert_allclose(K, _closed_form_K(kind, X, g), atol=1e-12)
             np.testing.assert_allclose(np.linalg.det(K), ERRATA_DET[kind](X, g), atol=1e-12)
             if level == "velocity":
-                np.testing.assert_allclose(ctrl.jet(z, g)[1], 0.0, atol=1e-14)     # no drift: z1' = K u
+                np.testing.assert_allclose(ctrl.law.jet(z, g)[1], 0.0, atol=1e-14)     # no drift: z1' = K u
 
 
 @pytest.mark.parametrize("kind", list(GEOM))
