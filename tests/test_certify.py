@@ -97,7 +97,7 @@ def exact61(paper61):
     return {b: C.exact_map_radius(ctrl, params, t_final=10.0, eps=1e-2, basis=b) for b in ("full", "position")}
 
 
-def test_min_norm_to_ball_matches_boundary_search(rng):
+def testmin_norm_to_ball_matches_boundary_search(rng):
     """Independent oracle: min over the eps-circle y = -a + eps (cos p, sin p) of ||M^+ y||."""
     for _ in range(5):
         M = rng.normal(size=(2, 4))
@@ -106,10 +106,10 @@ def test_min_norm_to_ball_matches_boundary_search(rng):
         ph = np.linspace(0.0, 2 * np.pi, 20001)
         Y = -a[None] + eps * np.stack([np.cos(ph), np.sin(ph)], 1)
         brute = np.min(np.linalg.norm(Y @ np.linalg.pinv(M).T, axis=1))
-        rho, x = C._min_norm_to_ball(jnp.asarray(M), jnp.asarray(a), eps)
+        rho, x = C.min_norm_to_ball(jnp.asarray(M), jnp.asarray(a), eps)
         np.testing.assert_allclose(float(rho), brute, rtol=1e-6)
         np.testing.assert_allclose(np.linalg.norm(a + M @ np.asarray(x)), eps, rtol=1e-8)   # on the boundary
-    rho, _ = C._min_norm_to_ball(jnp.zeros((2, 2)), jnp.array([1.0, 0.0]), 0.1)            # unreachable
+    rho, _ = C.min_norm_to_ball(jnp.zeros((2, 2)), jnp.array([1.0, 0.0]), 0.1)            # unreachable
     assert float(rho) == np.inf
 
 

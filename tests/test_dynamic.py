@@ -125,13 +125,14 @@ def test_gradients_through_closed_loop(kind, rng):
         return jnp.sum(ctrl.error(tr.t[-1], tr.final_state, p) ** 2)
 
     f = jax.jit(loss)
-    g = jax.jit(jax.grad(loss, argnums=(0, 1)))(params.gains.poles, z0)
+    poles = jnp.full((ctrl.m, ctrl.relative_degree), 1.3)
+    g = jax.jit(jax.grad(loss, argnums=(0, 1)))(poles, z0)
     assert all(np.all(np.isfinite(np.asarray(x))) for x in g)
     for _ in range(2):
-        dp = jnp.asarray(rng.normal(size=params.gains.poles.shape))
+        dp = jnp.asarray(rng.normal(size=poles.shape))
         dz = jnp.asarray(rng.normal(size=z0.shape))
         h = 1e-5
-        fd = (f(params.gains.poles + h * dp, z0 + h * dz) - f(params.gains.poles - h * dp, z0 - h * dz)) / (2 * h)
+        fd = (f(poles + h * dp, z0 + h * dz) - f(poles - h * dp, z0 - h * dz)) / (2 * h)
         ad = jnp.sum(g[0] * dp) + jnp.sum(g[1] * dz)
         np.testing.assert_allclose(ad, fd, rtol=1e-6, atol=1e-9)
         assert abs(float(ad)) > 1e-6

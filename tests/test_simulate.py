@@ -251,5 +251,5 @@ def test_bad_controller_arguments(paper61):
         w.dynamic_linearization("(3,0)")
     with pytest.raises(ValueError, match="level must be one of"):
         w.dynamic_linearization("(2,0)", level="acceleration")
-    with pytest.raises(ValueError, match="geometry.L must be non-zero"):
+    with pytest.raises(ValueError, match="geometry.L must be != 0"):
         w.dynamic_linearization("(1,1)").params(params.reference, geometry=w.Geometry(L=0.0))

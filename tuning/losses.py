@@ -57,6 +57,6 @@ def certificate_radius(gains, m1, ts, eps):
     """Lemma 2 radius with the automatic Lyapunov K2 for these gains (differentiable in them)."""
     from wmrjax import linearize
 
-    A = linearize.companion(gains.coefficients())
+    A = linearize.companion(gains.coeffs)
     k2 = certify.k2_lyapunov(A, ts)
     return jnp.min((m1 - eps) / k2)

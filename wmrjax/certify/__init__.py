@@ -26,7 +26,7 @@ from wmrjax.certify.empirical import (  # noqa: F401
     sample_sphere,
     verify,
 )
-from wmrjax.certify.exact_map import ExactMapRadius, exact_map_radius, singular_rows, slice_basis  # noqa: F401
+from wmrjax.certify.exact_map import ExactMapRadius, exact_map_radius, min_norm_to_ball, singular_rows, slice_basis  # noqa: F401
 from wmrjax.certify.falsify import Falsification, FalsifiedRadius, falsified_radius, falsify  # noqa: F401
 from wmrjax.certify.lemma2 import (  # noqa: F401
     Certificate,

@@ -54,7 +54,7 @@ def slice_basis(ctrl: DynamicLinearization, kind="full"):
     return P
 
 
-def _min_norm_to_ball(M, a, eps, iters: int = 200):
+def min_norm_to_ball(M, a, eps, iters: int = 200):
     r"""Smallest :math:`\|x\|` with :math:`\|a + Mx\| \le \epsilon` and the minimiser (inf if unreachable).
 
     KKT: :math:`x(\nu) = -\nu (I + \nu M^TM)^{-1} M^T a`; in the SVD :math:`M = U S V^T` the
@@ -104,7 +104,7 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     With :math:`\tilde\zeta(t) = e^{At}P s` (P the slice basis) and the singular set
     :math:`\{C\zeta = 0\}`, the run comes within :math:`\epsilon` of it at time t iff
     :math:`\|C\zeta_{ref}(t) + C e^{At} P s\| < \epsilon`. For each t the smallest such
-    :math:`\|s\|` is :func:`_min_norm_to_ball`; the radius is its minimum over [0, T]. Every
+    :math:`\|s\|` is :func:`min_norm_to_ball`; the radius is its minimum over [0, T]. Every
     initial error inside the ball keeps distance :math:`\ge\epsilon` over the horizon, and the
     returned ``worst_error`` (scaled by any factor > 1) does not: the radius is tight.
 
@@ -141,7 +141,7 @@ def _exact_map(ctrl, params, P, C, eps, ts, refine):
 
     def rho_x(t):
         a = C @ ctrl.reference_jet(t, params)[:r].reshape(-1)
-        return _min_norm_to_ball(C @ jax.scipy.linalg.expm(A * t) @ P, a, eps)
+        return min_norm_to_ball(C @ jax.scipy.linalg.expm(A * t) @ P, a, eps)
 
     rho = jax.vmap(lambda t: rho_x(t)[0])(ts)
     i = jnp.argmin(rho)
