@@ -1,8 +1,10 @@
-"""Test configuration: float64 everywhere, shared (module-scoped) closed loops."""
+"""Test configuration: float64 everywhere, strict dtype promotion (no silent int/float or
+float32/float64 mixing), shared (module-scoped) closed loops."""
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 import math  # noqa: E402
 

@@ -139,23 +139,33 @@ def test_gradients_through_closed_loop(kind, rng):
 
 
 @pytest.mark.parametrize("kind", KINDS)
-def test_initial_state_from_physical(kind):
-    ctrl = w.dynamic_linearization(kind, "torque")
+@pytest.mark.parametrize("level", ["velocity", "torque"])
+def test_initial_state_from_physical(kind, level):
+    ctrl = w.dynamic_linearization(kind, level)
     params = ctrl.params(_reference(kind), poles=1.0, geometry=GEOM)
-    zref = np.asarray(ctrl.reference_state(0.0, params))
-    n = ctrl.robot.n_state
-    X = zref[:n]
-    # the reference's own wheel velocities, read back through the plant input map
-    ext = ctrl.row.extension
-    u = np.asarray(ext.plant_input(jnp.asarray(X), jnp.asarray(zref[n:n + ext.n_comp]),
-                                   jnp.asarray(zref[n + ext.n_comp:]), GEOM))
-    z = ctrl.initial_state_from_physical(X, u, params)
+    zref = ctrl.reference_state(0.0, params)
+    n, ext = ctrl.robot.n_state, ctrl.row.extension
     nv = n + ext.n_comp
-    u_back = ext.plant_input(z[:n], z[n:nv], z[nv:], GEOM)
-    np.testing.assert_allclose(u_back, u, atol=1e-12)
+    X = np.asarray(zref[:n])
+    # the reference's own wheel velocities: its new inputs (zero error) through the plant input map
+    U = zref[nv:] if level == "torque" else ctrl.control(0.0, zref, params)[0]
+    u = np.asarray(ext.plant_input(zref[:n], zref[n:nv], U, GEOM))
+    z = ctrl.initial_state_from_physical(X, u, params)
     np.testing.assert_allclose(z[:n], X)
+    if level == "torque":
+        u_back = ext.plant_input(z[:n], z[n:nv], z[nv:], GEOM)
+        np.testing.assert_allclose(u_back, u, atol=1e-12)
     with pytest.raises(ValueError, match="Remark 17"):  # driving backwards: the other branch
         ctrl.initial_state_from_physical(X, u * np.r_[-1.0, np.ones(len(u) - 1)] if kind != "(2,0)" else -u, params)
+
+    # batched: vmap over 16 measured states (one compiled program), equal to the unbatched calls
+    rng = np.random.default_rng(7)
+    Xs = X + rng.uniform(-0.05, 0.05, (16, n))
+    us = u * (1.0 + rng.uniform(-0.05, 0.05, (16, len(u))))
+    batch = jax.vmap(lambda a, b: ctrl.initial_state_from_physical(a, b, params))(jnp.asarray(Xs), jnp.asarray(us))
+    assert batch.shape == (16, ctrl.n_state)
+    for i in (0, 7, 15):
+        np.testing.assert_allclose(batch[i], ctrl.initial_state_from_physical(Xs[i], us[i], params), rtol=0, atol=1e-12)
 
 
 def test_singular_initial_conditions_raise():

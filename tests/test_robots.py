@@ -87,3 +87,20 @@ def test_model_argument_checks():
         robots.check_model_args("(1,1)", jnp.zeros(4), jnp.zeros(2), g, torque=True)
     with pytest.raises(ValueError, match="geometry must be a wmrjax.Geometry"):
         robots.check_geometry((1.0, 0.0, 0.0))
+
+
+@pytest.mark.parametrize("L_w", [1.0, 2.7])
+def test_car_model_conversion_11(L_w, rng):
+    """The README's conversion from the car model (rear-axle midpoint, heading psi from the world
+    x-axis, speed v, front steering phi, wheelbase L_w) to the (1,1) state and input."""
+    for _ in range(20):
+        x_r, y_r, psi = rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(-np.pi, np.pi)
+        v, phi, phi_dot = rng.uniform(-2, 2), rng.uniform(-1.2, 1.2), rng.uniform(-0.5, 0.5)
+        X = jnp.array([x_r, y_r, psi + np.pi / 2, phi - np.pi / 2])
+        u = jnp.array([v / (L_w * np.cos(phi)), phi_dot])
+        Xdot = np.asarray(robots.kinematic(robots.robot_type("(1,1)"), X, u, w.Geometry(L=L_w)))
+        car = [v * np.cos(psi), v * np.sin(psi), v * np.tan(phi) / L_w, phi_dot]   # the car model
+        np.testing.assert_allclose(Xdot, car, rtol=1e-12, atol=1e-12)
+        back_v = -L_w * np.sin(float(X[3])) * float(u[0])                             # the inverse map
+        back_phi = np.arctan(-np.cos(float(X[3])) / np.sin(float(X[3])))
+        np.testing.assert_allclose([back_v, back_phi], [v, phi], rtol=1e-12, atol=1e-12)

@@ -156,9 +156,9 @@ def batch_value_and_grad(raw, scen, ctrl, spec, g, rcfg, w_arr):
     vg = jax.vmap(jax.value_and_grad(_per_scenario, has_aux=True), in_axes=(None, 0, None, None, None, None, None))
     (L, m), G = vg(raw, scen, ctrl, spec, g, rcfg, w_arr)
     ok = m.valid & jnp.isfinite(L) & jnp.all(jnp.isfinite(G.reshape(G.shape[0], -1)), axis=1)
-    n = jnp.sum(ok)
-    loss = jnp.sum(jnp.where(ok, L, 0.0)) / jnp.maximum(n, 1)
-    grad = jnp.sum(jnp.where(ok.reshape((-1,) + (1,) * (G.ndim - 1)), G, 0.0), axis=0) / jnp.maximum(n, 1)
+    n = jnp.maximum(jnp.sum(ok), 1).astype(L.dtype)
+    loss = jnp.sum(jnp.where(ok, L, 0.0)) / n
+    grad = jnp.sum(jnp.where(ok.reshape((-1,) + (1,) * (G.ndim - 1)), G, 0.0), axis=0) / n
     return loss, grad, ok, m
 
 
@@ -167,7 +167,7 @@ def batch_value(raw, scen, ctrl, spec, g, rcfg, w_arr):
     """Mean loss (valid scenarios only), validity mask and metrics; forward only."""
     L, m = jax.vmap(_per_scenario, in_axes=(None, 0, None, None, None, None, None))(raw, scen, ctrl, spec, g, rcfg, w_arr)
     ok = m.valid & jnp.isfinite(L)
-    return jnp.sum(jnp.where(ok, L, 0.0)) / jnp.maximum(jnp.sum(ok), 1), ok, m
+    return jnp.sum(jnp.where(ok, L, 0.0)) / jnp.maximum(jnp.sum(ok), 1).astype(L.dtype), ok, m
 
 
 def certificate_setup(ctrl, ref_name, g, t_final, eps=1e-2, n_t=501):
@@ -257,7 +257,8 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
                 if state["since_best"] >= cfg.patience:
                     state["stopped_early"] = True
         state["history"].append(rec)
-        upd, opt_state = opt.update(grad + c_grad, opt_state, raw)
+        with jax.numpy_dtype_promotion("standard"):   # optax mixes its int32 step count with floats
+            upd, opt_state = opt.update(grad + c_grad, opt_state, raw)
         raw = optax.apply_updates(raw, upd)
         step += 1
         done_here += 1

@@ -63,7 +63,7 @@ def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, tra
 
     def period(carry, k):
         z, alive, acc = carry
-        t = k * cfg.control_dt
+        t = k.astype(sc.noise_std.dtype) * cfg.control_dt
         X, c = z[:nX], z[nX:]
         noise = sc.noise_std * jax.random.normal(jax.random.fold_in(sc.key, k), (nX,))
         zm = jnp.concatenate([X + noise, c])

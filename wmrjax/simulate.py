@@ -144,7 +144,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
     def step(carry, i):
         zt, alive, diag = carry
         z = _from_scalars(zt, z0)
-        t = t0 + i * dt
+        t = t0 + i.astype(dtype) * dt
         z_next, aux = rk4_step(field, t, z, dt)
         if post_step is not None:   # hybrid systems: discrete transition at the end of the step
             z_next = post_step(t + dt, z_next, params)

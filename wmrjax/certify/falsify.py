@@ -86,7 +86,8 @@ def _falsify(ctrl, params, radius, us, windows, P, branch, dt, n_steps, steps, l
         better = v < best_v
         best_u = jnp.where(better[:, None], us, best_u)
         best_v = jnp.where(better, v, best_v)
-        upd, state = opt.update(g, state, us)
+        with jax.numpy_dtype_promotion("standard"):   # optax mixes its int32 step count with floats
+            upd, state = opt.update(g, state, us)
         us = optax.apply_updates(us, upd)
         us = us / jnp.linalg.norm(us, axis=1, keepdims=True)
         return (us, state, best_u, best_v), None

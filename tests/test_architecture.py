@@ -1,0 +1,201 @@
+"""The library's structure: layering, one gain representation, typed certification results,
+static laws reporting their internal dynamics, float32 runs, checkpoints that refuse bad input."""
+
+import math
+import pathlib
+import re
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.linalg import expm, solve_continuous_lyapunov
+
+import wmrjax as w
+from wmrjax import certify as C
+from wmrjax import io
+from wmrjax import references as R
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _sources(pkg):
+    return sorted((ROOT / pkg).rglob("*.py"))
+
+
+def test_layers_never_point_up_and_no_dispatch_on_type_names():
+    up = {"wmrjax": r"^\s*(from|import)\s+(experiments|tuning)\b", "tuning": r"^\s*(from|import)\s+experiments\b"}
+    for pkg, pattern in up.items():
+        for f in _sources(pkg):
+            bad = [ln for ln in f.read_text().splitlines() if re.search(pattern, ln)]
+            assert not bad, f"{f.relative_to(ROOT)} imports an upper layer: {bad}"
+    for f in _sources("experiments"):
+        others = re.findall(r"^\s*from experiments(?:\.(\w+))? import (\w+)", f.read_text(), flags=re.M)
+        assert all(mod in ("", "common") and (mod or name == "common") for mod, name in others), (f, others)
+    names = re.compile(r"""\.name\s*(==|!=|in)\s*[("']|(kind|name)\s*(==|!=)\s*["']\(\d,\d\)["']|in \(["']\(\d,\d\)""")
+    # private names stay in their module (the package's private helper modules _math, _validate excepted)
+    private = re.compile(r"^\s*from\s+\S+\s+import\s+.*\b_(?!math\b|validate\b)[a-z]", re.M)
+    for pkg in ("wmrjax", "tuning", "experiments"):
+        for f in _sources(pkg):
+            text = f.read_text()
+            if f.name != "robots.py":
+                assert not names.search(text), f"{f.relative_to(ROOT)} compares robot type names: {names.search(text)}"
+            assert not private.search(text), f"{f.relative_to(ROOT)} imports a private name: {private.search(text)}"
+
+
+# --- one gain representation --------------------------------------------------------------------
+
+def test_gains_constructors_agree_and_read_back_their_poles():
+    np.testing.assert_array_equal(w.Gains.from_poles(1.0, 2, 2).coeffs, [[1.0, 2.0], [1.0, 2.0]])
+    np.testing.assert_array_equal(w.Gains.from_damping(1.0, 1.0, m=2).coeffs, [[1.0, 2.0], [1.0, 2.0]])
+    np.testing.assert_allclose(w.Gains.from_poles([[0.8, 2.0]]).coeffs, [[1.6, 2.8]], rtol=1e-15)
+    g = w.Gains.from_damping(3.76, 0.47, m=2)
+    re_, im = -0.47 * 3.76, 3.76 * math.sqrt(1 - 0.47**2)
+    np.testing.assert_allclose(g.poles(), [[re_ - 1j * im, re_ + 1j * im]] * 2, rtol=1e-12)
+    g3 = w.Gains.from_damping([2.0], [0.5], lam=3.0, m=1)          # r = 3: (s^2 + 2 s + 4)(s + 3)
+    np.testing.assert_allclose(g3.coeffs, [[12.0, 10.0, 5.0]], rtol=1e-15)
+    np.testing.assert_allclose(w.Gains(jnp.array([[1.6, 2.8]])).cascade_pole(), [0.8], rtol=1e-12)
+    assert np.isnan(float(g.cascade_pole()[0]))                      # complex poles: no real cascade
+    with pytest.raises(ValueError, match="poles"):
+        w.Gains.from_poles(-1.0, 2, 2)
+    with pytest.raises(ValueError, match="not Hurwitz"):
+        w.Gains(jnp.array([[1.0, -0.5], [1.0, 2.0]])).check(2, 2)
+
+
+def test_params_take_gains_and_refuse_bad_ones(paper61):
+    ctrl, params, _ = paper61
+    tuned = w.Gains.from_damping(3.76, 0.47, m=2)
+    p = ctrl.params(params.reference, geometry=params.geometry, gains=tuned)
+    np.testing.assert_array_equal(p.gains.coeffs, tuned.coeffs)
+    with pytest.raises(ValueError, match=r"shape \(2, 2\)"):
+        ctrl.params(params.reference, geometry=params.geometry, gains=w.Gains(jnp.ones((2, 3))))
+    with pytest.raises(ValueError, match="complex pole pairs"):
+        ctrl.params(params.reference, poles=jnp.array([1.0 + 1.0j, 1.0 - 1.0j]), geometry=params.geometry)
+    with pytest.raises(ValueError, match="wmrjax.Gains"):
+        ctrl.params(params.reference, geometry=params.geometry, gains=jnp.ones((2, 2)))
+
+
+def test_lemma2_gives_eq64_only_for_the_double_pole_whatever_the_representation(paper61):
+    """The latent bug of the old two representations: tuned gains (complex poles) must not get the
+    eq (64) certificate, which is only a bound of ||e^{At}|| for the double pole at -1."""
+    ctrl, params, _ = paper61
+    kw = dict(t_final=10.0, eps=1e-2, n_t=1001)
+    by_poles = C.lemma2(ctrl, params, **kw)
+    by_damping = C.lemma2(ctrl, params._replace(gains=w.Gains.from_damping(1.0, 1.0, m=2)), **kw)
+    assert by_poles.paper is not None and by_damping.paper is not None
+    assert float(by_damping.paper.radius) == float(by_poles.paper.radius)
+    np.testing.assert_allclose(float(by_poles.paper.radius), 0.768181, atol=1e-6)     # §6.1 (summary.json)
+
+    tuned = params._replace(gains=w.Gains.from_damping(3.76, 0.47, m=2))
+    rep = C.lemma2(ctrl, tuned, **kw)
+    assert rep.paper is None and set(rep.certificates()) == {"lyapunov", "exact_norm"}
+    # why it matters: eq (64) is no bound for other gains (a lightly damped pair: ||e^{At}|| exceeds it)
+    light = w.Gains.from_damping(1.0, 0.1, m=2)
+    assert C.lemma2(ctrl, params._replace(gains=light), **kw).paper is None
+    ts = np.linspace(0.0, 10.0, 201)
+    exact = np.array([np.linalg.norm(expm(np.asarray(ctrl.error_matrix(light)) * t), 2) for t in ts])
+    np.testing.assert_allclose(np.max(exact / np.asarray(C.k2_paper(ts))), 1.49896, rtol=1e-4)   # > 1: not a bound
+    A = np.asarray(ctrl.error_matrix(tuned.gains))
+    # the Lyapunov certificate for the tuned gains, against SciPy's Lyapunov solver
+    P = solve_continuous_lyapunov(A.T, -np.eye(4))
+    ev = np.linalg.eigvalsh(0.5 * (P + P.T))
+    k2 = np.sqrt(ev[-1] / ev[0]) * np.exp(-0.5 / ev[-1] * np.asarray(rep.lyapunov.ts))
+    np.testing.assert_allclose(float(rep.lyapunov.radius), np.min((np.asarray(rep.lyapunov.m1) - 1e-2) / k2),
+                               rtol=1e-9)
+    with pytest.raises(ValueError, match="m1 must be one of"):
+        C.lemma2(ctrl, params, t_final=10.0, eps=1e-2, m1="closedform")
+
+
+def test_sigma_tilde_reads_the_coefficients():
+    ctrl = w.controller("(3,0)", "torque")
+    p_poles = ctrl.params(R.circle(), poles=jnp.array([0.8, 2.0]))
+    p_coeffs = p_poles._replace(gains=w.Gains(jnp.broadcast_to(jnp.array([1.6, 2.8]), (3, 2))))
+    z = jnp.array([0.3, -0.2, 0.1, 0.4, 0.5, -0.1])
+    np.testing.assert_allclose(ctrl.sigma_tilde(0.3, z, p_coeffs), ctrl.sigma_tilde(0.3, z, p_poles), rtol=1e-12)
+    complex_gains = p_poles._replace(gains=w.Gains.from_damping(2.0, 0.5, m=3))
+    assert np.all(np.isnan(np.asarray(ctrl.sigma_tilde(0.3, z, complex_gains))))
+
+
+# --- controllers are siblings; certification refuses a static law ------------------------------
+
+def test_static_and_dynamic_laws_are_siblings_and_certify_refuses_static():
+    stat = w.controller("(2,0)", "velocity", "point")
+    dyn = w.controller("(2,0)", "velocity", "posture")
+    assert not isinstance(stat, w.DynamicLinearization) and not isinstance(dyn, w.StaticLinearization)
+    assert isinstance(stat, w.ClosedLoop) and isinstance(dyn, w.ClosedLoop) and isinstance(w.hybrid_parking(), w.ClosedLoop)
+    assert type(stat.law) is type(dyn.law)                         # one law, by composition
+    sp = stat.params(R.circle(), geometry=stat.row.default_geometry)
+    for fn in (lambda: C.lemma2(stat, sp, t_final=5.0, eps=1e-2),
+               lambda: C.exact_map_radius(stat, sp, t_final=5.0, eps=1e-2),
+               lambda: C.min_distance(stat, sp, t_final=5.0, initial_errors=jnp.zeros((1, 2)), dt=0.1)):
+        with pytest.raises(ValueError, match="static law"):
+            fn()
+
+
+# --- static laws report their internal dynamics ---------------------------------------------------
+
+@pytest.mark.parametrize("delta, heading_offset, turned", [(0.5 * math.pi, math.pi - 0.3, False),
+                                                           (-0.5 * math.pi, 0.3, True)])
+def test_static_law_flags_a_robot_that_turned_round(delta, heading_offset, turned):
+    """(2,0) on a line, e = 0.3. With the point ahead of the axle (delta = pi/2) the heading
+    (z3 = theta, uncontrolled) settles facing forward, even from a start nearly reversed; with
+    the point behind it (delta = -pi/2) the robot tracks the point while it turns round, from a
+    start facing forward. The point is tracked either way; the report tells the two apart."""
+    ctrl = w.controller("(2,0)", "velocity", "point")
+    p = ctrl.params(R.line(velocity=(1.0, 0.0)), geometry=w.Geometry(e=0.3, delta=delta))
+    th0 = float(p.reference.posture(0.0)[2]) + heading_offset
+    X = jnp.array([0.0, 0.0, th0])
+    X = X.at[:2].add(-ctrl.outputs(X, p)[:2])
+    z0 = ctrl.initial_state_from_physical(X, jnp.zeros(2), p)
+    tr = w.simulate(ctrl, z0, p, dt=0.02, n_steps=500, save_every=500)
+    rep = tr.diagnostics.internal
+    assert isinstance(rep, w.InternalDynamics) and not bool(tr.diagnostics.failed)
+    assert float(jnp.linalg.norm(ctrl.error(tr.t[-1], tr.final_state, p))) < 1e-6  # the point is tracked either way
+    expected = np.angle(np.exp(1j * (float(tr.final_state[2]) - float(p.reference.posture(tr.t[-1])[2]))))
+    np.testing.assert_allclose(float(rep.heading_error), expected, atol=1e-12)
+    np.testing.assert_allclose(float(rep.z3_norm), abs(float(tr.final_state[2])), rtol=1e-12)
+    assert bool(rep.turned_round) is turned
+    np.testing.assert_allclose(abs(expected), math.pi if turned else 0.0, atol=1e-6)
+
+
+# --- float32 ---------------------------------------------------------------------------------------
+
+def test_float32_closed_loop_smoke():
+    """The §6.1 loop runs in float32 (x64 off, in a fresh process) and agrees with float64 to 1e-3."""
+    code = (
+        "import jax, numpy as np\n"
+        "import wmrjax as w\n"
+        "from wmrjax import references as R\n"
+        "def run():\n"
+        "    ctrl = w.dynamic_linearization('(2,0)')\n"
+        "    p = ctrl.params(R.paper_62(), poles=1.0, geometry=w.Geometry(e=0.0))\n"
+        "    z0 = ctrl.initial_state(np.array([[4.81, 6.97], [-3.5355, -3.5355]]), p)\n"
+        "    tr = w.simulate(ctrl, z0, p, dt=0.01, n_steps=300, save_every=300)\n"
+        "    return tr.final_state\n"
+        "z32 = run()\n"
+        "jax.config.update('jax_enable_x64', True)\n"
+        "z64 = run()\n"
+        "print(z32.dtype, z64.dtype, float(np.max(np.abs(np.asarray(z32, float) - np.asarray(z64)))))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    d32, d64, diff = out.stdout.split()
+    assert (d32, d64) == ("float32", "float64") and float(diff) < 1e-3
+
+
+# --- checkpoints -------------------------------------------------------------------------------------
+
+def test_checkpoint_round_trip_and_refusals(tmp_path):
+    path = tmp_path / "ck.json"
+    trees = {"raw": jnp.arange(3.0), "opt": (jnp.zeros((2, 2)), jnp.asarray(4, dtype=jnp.int32))}
+    io.write_checkpoint(path, fingerprint="abc", config={"lr": 0.1}, step=5, trees=trees, state={"best": 1.5})
+    ck = io.read_checkpoint(path, fingerprint="abc", config={"lr": 0.1}, templates=trees)
+    assert ck.step == 5 and ck.state == {"best": 1.5}
+    np.testing.assert_array_equal(ck.trees["raw"], [0.0, 1.0, 2.0])
+    assert ck.trees["opt"][1].dtype == jnp.int32 and int(ck.trees["opt"][1]) == 4
+    with pytest.raises(ValueError, match=r"differs in \['lr'\]"):
+        io.read_checkpoint(path, fingerprint="xyz", config={"lr": 0.2}, templates=trees)
+    text = path.read_text().replace("2.0\n", "", 1)                # truncate the raw parameters by hand
+    path.write_text(text.replace("1.0,", "1.0", 1))
+    with pytest.raises(ValueError, match="raw"):
+        io.read_checkpoint(path, fingerprint="abc", config={"lr": 0.1}, templates=trees)
