@@ -28,9 +28,11 @@ import time
 
 from experiments import common
 
-def setup(robot, reference, level="velocity", poles=1.0, heading_offset=None):
-    """The closed loop to certify: the type's default geometry and heading offset (Table 4 rows),
-    except along the paper's reference (62), which is certified with the §6.1 geometry e = 0."""
+
+def setup(robot, reference, level="velocity", poles=1.0, heading_offset=None, geometry=None):
+    """The closed loop to certify: ``geometry`` (L, e, delta) if given, else the type's default
+    geometry (its Table 4 row), with e = 0 along the paper's reference (62) as in §6.1; the
+    row's default heading offset unless ``heading_offset`` is given."""
     import wmrjax as w
     from wmrjax import references as R
 
@@ -39,7 +41,10 @@ def setup(robot, reference, level="velocity", poles=1.0, heading_offset=None):
     off = ctrl.row.default_heading_offset if heading_offset is None else heading_offset
     if off:
         ref = ref.with_heading_offset(off)
-    g = w.Geometry(e=0.0) if reference == "paper_62" else ctrl.row.default_geometry
+    if geometry is not None:
+        g = w.Geometry(*geometry)
+    else:
+        g = ctrl.row.default_geometry._replace(e=0.0) if reference == "paper_62" else ctrl.row.default_geometry
     return ctrl, ctrl.params(ref, poles=poles, geometry=g)
 
 
@@ -85,10 +90,11 @@ def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title="
 
 
 def run(out, robot="(2,0)", reference="paper_62", level="velocity", poles=1.0, t_final=10.0, eps=1e-2, dt=0.01,
-        n_empirical=4096, n_directions=256, n_starts=16, heading_offset=None, map_grid=81, seed=0) -> dict:
+        n_empirical=4096, n_directions=256, n_starts=16, heading_offset=None, map_grid=81, seed=0,
+        geometry=None) -> dict:
     common.enable_x64()
     t0 = time.time()
-    ctrl, params = setup(robot, reference, level, poles, heading_offset)
+    ctrl, params = setup(robot, reference, level, poles, heading_offset, geometry)
     print(f"certify {ctrl.robot.name} ({level}) along {reference}, T = {t_final} s, eps = {eps}", flush=True)
     from wmrjax import certify as C
 
@@ -123,6 +129,8 @@ def main(argv=None) -> int:
     p.add_argument("--n-starts", type=int, default=16, help="falsifier starts (default 16)")
     p.add_argument("--heading-offset", type=float, default=None, help="reference heading offset [rad] (crab angle)")
     p.add_argument("--map-grid", type=int, default=81, help="slice map resolution (default 81 x 81)")
+    p.add_argument("--geometry", type=float, nargs=3, default=None, metavar=("L", "E", "DELTA"),
+                   help="robot geometry [m, m, rad] (default: the type's default; e = 0 along paper_62, as in §6.1)")
     a = p.parse_args(argv)
     try:
         w.robot_type(a.robot)
@@ -130,7 +138,7 @@ def main(argv=None) -> int:
             if not (math.isfinite(getattr(a, k)) and getattr(a, k) > 0):
                 raise ValueError(f"--{k.replace('_', '-')} must be finite and > 0, got {getattr(a, k)}")
         s = run(a.out, a.robot, a.reference, a.level, a.poles, a.t_final, a.eps, a.dt, a.n_empirical,
-                a.n_directions, a.n_starts, a.heading_offset, a.map_grid)
+                a.n_directions, a.n_starts, a.heading_offset, a.map_grid, geometry=a.geometry)
     except ValueError as e:
         p.error(str(e))
     keys = ["radius_paper", "radius_lyapunov", "radius_exact_norm", "radius_exact_map", "radius_exact_map_position_slice",
