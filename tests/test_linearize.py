@@ -1,6 +1,5 @@
 """The generic engine against the paper's closed forms (eqs 39, 43, errata determinants)."""
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest

@@ -33,7 +33,9 @@ import jax
 import jax.numpy as jnp
 
 from wmrjax import _math, linearize, robots
-from wmrjax._validate import concrete
+from wmrjax._validate import check_finite, check_shape, concrete
+from wmrjax.gains import Gains
+from wmrjax.references import Reference
 from wmrjax.robots import Geometry, RobotType
 
 # |det K| below this is treated as singular inside the law (the division is clamped);
@@ -247,8 +249,6 @@ def physical_state_names(robot: RobotType) -> tuple:
 
 def validated_physical(robot: RobotType, X, u):
     """(X, u) as float arrays, with a ValueError for wrong shapes or non-finite values (concrete only)."""
-    from wmrjax._validate import check_finite, check_shape
-
     X = jnp.asarray(X, dtype=jnp.result_type(float))
     u = jnp.asarray(u, dtype=jnp.result_type(float))
     check_shape("X", X, (robot.n_state,), "(x, y, theta, beta...)")
@@ -260,8 +260,6 @@ def validated_physical(robot: RobotType, X, u):
 
 def make_gains(gains, poles, m: int, r: int):
     """The law's :class:`wmrjax.Gains`: ``gains`` if given (checked: (m, r), Hurwitz), else real ``poles``."""
-    from wmrjax.gains import Gains
-
     if gains is not None:
         if not isinstance(gains, Gains):
             raise ValueError(f"gains must be a wmrjax.Gains (Hurwitz coefficients), got {type(gains).__name__}")
@@ -273,8 +271,6 @@ def make_gains(gains, poles, m: int, r: int):
 
 
 def check_reference_type(reference) -> None:
-    from wmrjax.references import Reference
-
     if not isinstance(reference, Reference):
         raise ValueError(f"reference must be a wmrjax.references.Reference, got {type(reference).__name__}")
 
@@ -287,8 +283,6 @@ def margin_at(ctrl, z, params):
 
 def check_regular(ctrl, z, params, name: str, law_name: str, table: str, regularity: str) -> None:
     """ValueError if a concrete state ``z`` is on (or numerically at) the singular set."""
-    from wmrjax._validate import check_finite, check_shape
-
     zc = concrete(z)
     if zc is None:
         return
