@@ -21,7 +21,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Callable, NamedTuple, Optional
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,7 +29,7 @@ import numpy as np
 
 from wmrjax import _math, linearize, robots
 from wmrjax._validate import check_finite, check_shape, concrete
-from wmrjax.controllers.law import (DET_FLOOR, LEVELS, Aux, Extension, LinearizingLaw, Requirement,
+from wmrjax.controllers.law import (DET_FLOOR, LEVELS, Extension, LinearizingLaw, Requirement,
                                     check_reference_type, check_regular, check_requirements, make_gains,
                                     physical_state_names, validated_physical)
 from wmrjax.gains import Gains
@@ -261,8 +261,6 @@ class Table4Row:
       branch_follows_heading: True where the branch is the sign of the velocity along the
         heading ((2,0), (1,1)): a reference heading offset by pi (moving backwards) is on
         branch -1. False where the heading is an output ((2,1), (1,2)).
-      extra_margin: optional ``(z, geometry) -> scalar`` multiplying |det K| in the
-        singularity margin (the (1,1) lever L sin(beta) + e cos(beta), errata).
       singular_families: ``geometry -> [(state index, pinned value), ...]``: the pieces of
         the singular set (Remark 16's numerical M1 searches each).
       singular_set_is_linear: True where the singular set in zeta coordinates is the linear
@@ -282,7 +280,6 @@ class Table4Row:
     branch_quantity: Callable = dataclasses.field(repr=False)
     branch_name: str
     branch_follows_heading: bool
-    extra_margin: Optional[Callable] = dataclasses.field(default=None, repr=False)
     singular_families: Callable = dataclasses.field(repr=False)
     singular_set_is_linear: bool
     singular_distance: Callable = dataclasses.field(repr=False)
@@ -315,10 +312,11 @@ TABLE4: dict[str, Table4Row] = {row.robot.name: row for row in (
         singular_distance=_distance_point_speed, default_geometry=Geometry(), default_heading_offset=0.3),
     Table4Row(
         extension=Extension(robot=robots.TYPES["(1,1)"], outputs=_out_axle_point, relative_degree=3, n_comp=2,
-                            comp_names=("eta1", "chi2"), plant_input=_pi_11, compensator=_comp_11),
+                            comp_names=("eta1", "chi2"), plant_input=_pi_11, compensator=_comp_11,
+                            extra_margin=_margin_11),
         regularity="eta1 (L sin beta + e cos beta) != 0 (errata: Table 4 prints only eta1 != 0)",
         psi_inverse=_psi_inv_11, from_physical=_phys_11,
-        branch_quantity=_chi1_11, branch_name="chi1", branch_follows_heading=True, extra_margin=_margin_11,
+        branch_quantity=_chi1_11, branch_name="chi1", branch_follows_heading=True,
         singular_families=_families_11, singular_set_is_linear=True,
         singular_distance=_distance_point_speed, requires=(_L_NONZERO,),
         default_geometry=Geometry(L=1.0, e=0.3)),
@@ -406,33 +404,22 @@ class DynamicLinearization:
         ref, g = params.reference, params.geometry
         return taylor(lambda s: self.row.extension.outputs(ref.posture(s), g), t, self.relative_degree)
 
-    def _margin(self, z, det, g):
-        m = jnp.abs(det)
-        if self.row.extra_margin is not None:
-            m = m * jnp.abs(self.row.extra_margin(z, g))
-        return m
-
     def control(self, t, z, params: DynamicParams):
         """New input U (Prop 8, eq 49) and the margin ``|det K|``; the division is clamped at ``DET_FLOOR``."""
-        g = params.geometry
-        U, det = self.law.control(self.reference_jet(t, params), z, params.gains.coeffs, g)
-        return U, self._margin(z, det, g)
+        return self.law.control(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
 
     def margin(self, z, params):
         """Singularity margin at ``z``: |det K(X_e)| (times |L sin b + e cos b| for (1,1)); 0 on the singular set."""
-        g = params.geometry
-        return self._margin(z, jnp.linalg.det(self.law.jet(z, g)[2]), g)
+        return self.law.margin(z, params.geometry)
 
     def vector_field(self, t, z, params: DynamicParams):
         """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin)."""
-        U, margin = self.control(t, z, params)
-        g = params.geometry
-        return self.law.field(z, U, g), Aux(self.law.plant_control(z, U, g), margin)
+        return self.law.closed_loop(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
 
     # -- error coordinates --
     def error(self, t, z, params: DynamicParams):
         r""":math:`\tilde\zeta = \Psi(z) - \zeta_{ref}(t)`, shape (r, m); angle outputs wrapped."""
-        return self.law.wrap_error(self.psi(z, params) - self.reference_jet(t, params)[: self.relative_degree])
+        return self.law.error(self.reference_jet(t, params), z, params.geometry)
 
     def error_matrix(self, gains: Gains):
         """Matrix A with :math:`\\dot{\\tilde\\zeta} = A \\tilde\\zeta` on ``error(...).reshape(-1)``."""

@@ -129,6 +129,9 @@ class Extension:
       compensator: ``(X, c, U, geometry) -> dc/dt``, affine in U.
       angle_outputs: which outputs are angles: their zeroth-order error is wrapped to
         [-pi, pi) (errata: integrate angles unwrapped, wrap only errors).
+      extra_margin: optional ``(z, geometry) -> scalar`` multiplying |det K| in the
+        singularity margin, for a singular set that |det K| alone misses (the (1,1) lever
+        L sin(beta) + e cos(beta), errata).
     """
 
     robot: RobotType
@@ -139,6 +142,7 @@ class Extension:
     plant_input: Callable = dataclasses.field(default=_identity_input, repr=False)
     compensator: Callable = dataclasses.field(default=_no_compensator, repr=False)
     angle_outputs: tuple = ()
+    extra_margin: Callable | None = dataclasses.field(default=None, repr=False)
 
     @property
     def n_outputs(self) -> int:
@@ -213,15 +217,26 @@ class LinearizingLaw:
             err = err.at[0, i].set(_math.wrap_angle(err[0, i]))
         return err
 
+    def margin_from_det(self, z, det, g):
+        """Singularity margin from ``det K``: |det K| (times the extension's extra factor)."""
+        m = jnp.abs(det)
+        if self.extension.extra_margin is not None:
+            m = m * jnp.abs(self.extension.extra_margin(z, g))
+        return m
+
+    def margin(self, z, g):
+        """Singularity margin at ``z``; 0 on the singular set."""
+        return self.margin_from_det(z, jnp.linalg.det(self.jet(z, g)[2]), g)
+
     def control(self, yref, z, coeffs, g):
-        """New input U of the auxiliary law (49, errata sign) and ``det K``.
+        """New input U of the auxiliary law (49, errata sign) and the singularity margin.
 
         Args:
           yref: (r + 1, m) reference outputs and their derivatives up to order r.
           z: state. coeffs: (m, r) Hurwitz coefficients. g: geometry.
 
         Returns:
-          ``(U, det K)``; the division by ``det K`` is clamped at :data:`DET_FLOOR`.
+          ``(U, margin)``; the division by ``det K`` is clamped at :data:`DET_FLOOR`.
         """
         zeta, a, K = self.jet(z, g)
         r = self.relative_degree
@@ -230,7 +245,16 @@ class LinearizingLaw:
         for j in range(r):
             w = w - coeffs[:, j] * err[j]
         num, det = _math.adjugate_solve(K, w - a)
-        return num / _math.safe_divisor(det, DET_FLOOR), det
+        return num / _math.safe_divisor(det, DET_FLOOR), self.margin_from_det(z, det, g)
+
+    def closed_loop(self, yref, z, coeffs, g):
+        """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin) under :meth:`control`."""
+        U, margin = self.control(yref, z, coeffs, g)
+        return self.field(z, U, g), Aux(self.plant_control(z, U, g), margin)
+
+    def error(self, yref, z, g):
+        r""":math:`\Psi(z) - \zeta_{ref}`, shape (r, m), angle outputs wrapped (``yref``: (>= r, m))."""
+        return self.wrap_error(self.jet(z, g)[0] - yref[: self.relative_degree])
 
     def solve_top(self, z, target, g):
         """U with ``Y^{(r)} = a(z) + K(z) U = target`` (clamped at :data:`DET_FLOOR`)."""

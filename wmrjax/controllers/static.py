@@ -41,7 +41,7 @@ import numpy as np
 
 from wmrjax import _math, linearize, robots
 from wmrjax._validate import concrete
-from wmrjax.controllers.law import (LEVELS, Aux, Extension, LinearizingLaw, Requirement, check_reference_type,
+from wmrjax.controllers.law import (LEVELS, Extension, LinearizingLaw, Requirement, check_reference_type,
                                     check_regular, check_requirements, make_gains, physical_state_names,
                                     validated_physical)
 from wmrjax.gains import Gains
@@ -290,24 +290,22 @@ class StaticLinearization:
 
     def control(self, t, z, params: StaticParams):
         """Plant input of the law (u, or v at torque level) and the margin ``|det K|``."""
-        U, det = self.law.control(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
-        return U, jnp.abs(det)
+        return self.law.control(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
 
     def margin(self, z, params):
         """|det K(X)| (eq 22): zero on Table 3's singular set."""
-        return jnp.abs(jnp.linalg.det(self.law.jet(z, params.geometry)[2]))
+        return self.law.margin(z, params.geometry)
 
     def vector_field(self, t, z, params: StaticParams):
         """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin)."""
-        U, margin = self.control(t, z, params)
-        g = params.geometry
-        return self.law.field(z, U, g), Aux(self.law.plant_control(z, U, g), margin)
+        return self.law.closed_loop(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
 
     def error(self, t, z, params: StaticParams):
         r""":math:`\tilde z_1` (and :math:`\dot{\tilde z}_1` at torque level), shape (r, m); angles wrapped."""
-        return self.law.wrap_error(self.psi(z, params) - self.reference_jet(t, params)[: self.relative_degree])
+        return self.law.error(self.reference_jet(t, params), z, params.geometry)
 
     def error_matrix(self, gains: Gains):
+        """Matrix A of the linear error dynamics on ``error(...).reshape(-1)``."""
         return linearize.companion(gains.coeffs)
 
     def sigma_tilde(self, t, z, params: StaticParams):
