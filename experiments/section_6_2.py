@@ -57,7 +57,7 @@ def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_
     z0 = hy.initial_state(zeta0, params)
     tr = w.simulate(hy, z0, params, dt=dt, n_steps=n_steps)
     t, st, u = np.asarray(tr.t), np.asarray(tr.state.tracking), np.asarray(tr.control)
-    fin = tr.final_state
+    fin = jax.tree_util.tree_map(np.asarray, tr.final_state)   # NumPy from here on
     switched = bool(fin.switched)
     t_sw = float(fin.t_switch) if switched else None
     ref = params.tracking.reference

@@ -17,7 +17,7 @@ from scipy.linalg import expm
 import wmrjax as w
 from experiments.benchmark import numpy_rollout_rhs
 from wmrjax import references as R
-from wmrjax.controllers.dynamic import Aux
+from wmrjax.controllers.law import Aux
 
 
 
