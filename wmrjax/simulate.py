@@ -176,8 +176,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
     first = _first_float(z0)
     bad0 = ~jnp.isfinite(first)
     inf = jnp.where(bad0, jnp.inf, jnp.inf * jnp.ones_like(first))
-    report0 = None
-    diag0 = Diagnostics(bad0, bad0 & False, bad0, jnp.where(bad0, t0, inf), inf, t0 + 0.0 * first, report0)
+    diag0 = Diagnostics(bad0, bad0 & False, bad0, jnp.where(bad0, t0, inf), inf, t0 + 0.0 * first)
     carry = (_to_scalars(z0), ~bad0, diag0)
 
     n_saves = n_steps // save_every
@@ -348,12 +347,11 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
         raise ValueError("z0 must be a state array (or a pytree of arrays), got an empty pytree")
     if isinstance(z0, (list, tuple)) and not hasattr(z0, "_fields"):
         z0 = jnp.asarray(z0)          # a plain sequence of numbers is a state vector
-    z0 = jax.tree_util.tree_map(
-        lambda x: jnp.asarray(x) if jnp.issubdtype(jnp.result_type(x), jnp.number) else jnp.asarray(x, float), z0)
-    z0 = jax.tree_util.tree_map(
-        lambda x: x.astype(jnp.result_type(float)) if jnp.issubdtype(x.dtype, jnp.bool_) else x, z0)
+    floating = jnp.result_type(float)
+    z0 = jax.tree_util.tree_map(                  # numbers keep their dtype, booleans become floats
+        lambda x: jnp.asarray(x) if jnp.issubdtype(jnp.result_type(x), jnp.number) else jnp.asarray(x, floating), z0)
     if not any(_is_continuous(x) for x in jax.tree_util.tree_leaves(z0)):
-        z0 = jax.tree_util.tree_map(lambda x: x.astype(jnp.result_type(float)), z0)
+        z0 = jax.tree_util.tree_map(lambda x: x.astype(floating), z0)   # an all-integer vector is a state
     n = getattr(system, "n_state", None)
     size = sum(int(np.size(x)) for x in jax.tree_util.tree_leaves(z0))
     is_array = isinstance(z0, jax.Array)
