@@ -30,9 +30,10 @@ from experiments import common
 
 
 def setup(robot, reference, level="velocity", poles=1.0, heading_offset=None, geometry=None):
-    """The closed loop to certify: ``geometry`` (L, e, delta) if given, else the type's default
-    geometry (its Table 4 row), with e = 0 along the paper's reference (62) as in §6.1; the
-    row's default heading offset unless ``heading_offset`` is given."""
+    """The closed loop to certify: ``geometry`` (L, e, delta) if given, else the paper's geometry
+    along the paper's references (62) and (66) where the paper has one (§6: (2,0), e = 0), else
+    the type's default geometry (its Table 4 row); the row's default heading offset unless
+    ``heading_offset`` is given."""
     import wmrjax as w
     from wmrjax import references as R
 
@@ -43,8 +44,10 @@ def setup(robot, reference, level="velocity", poles=1.0, heading_offset=None, ge
         ref = ref.with_heading_offset(off)
     if geometry is not None:
         g = w.Geometry(*geometry)
+    elif reference in ("paper_62", "paper_66") and ctrl.row.paper_geometry is not None:
+        g = ctrl.row.paper_geometry
     else:
-        g = ctrl.row.default_geometry._replace(e=0.0) if reference == "paper_62" else ctrl.row.default_geometry
+        g = ctrl.row.default_geometry
     return ctrl, ctrl.params(ref, poles=poles, geometry=g)
 
 
@@ -130,7 +133,8 @@ def main(argv=None) -> int:
     p.add_argument("--heading-offset", type=float, default=None, help="reference heading offset [rad] (crab angle)")
     p.add_argument("--map-grid", type=int, default=81, help="slice map resolution (default 81 x 81)")
     p.add_argument("--geometry", type=float, nargs=3, default=None, metavar=("L", "E", "DELTA"),
-                   help="robot geometry [m, m, rad] (default: the type's default; e = 0 along paper_62, as in §6.1)")
+                   help="robot geometry [m, m, rad] (default: the paper's along paper_62/66 where it has one, "
+                        "else the type's default)")
     a = p.parse_args(argv)
     try:
         w.robot_type(a.robot)

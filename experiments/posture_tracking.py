@@ -13,7 +13,6 @@ PNG per type (paths and errors).
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import time
 
@@ -73,7 +72,7 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
             # a crab angle bounded away from 0: at 0 the (1,2) reference itself is singular
             ko1, ko2 = jax.random.split(ko)
             off = jax.random.uniform(ko1, (), minval=0.3, maxval=0.8) * jnp.sign(jax.random.normal(ko2, ()))
-            ref = dataclasses.replace(ref, heading_offset=off)
+            ref = ref.with_heading_offset(off)
         params = ctrl.params_unchecked(ref, 1.0, g)
         zr = ctrl.reference_state(0.0, params)
         dp = jax.random.uniform(ki, (n_post,), minval=-1.0, maxval=1.0)

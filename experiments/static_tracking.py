@@ -110,6 +110,9 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
         "converged_definition": f"not flagged singular, final point error < {tol} m"
                                 + (f" and heading error < {tol} rad" if posture else "")
                                 + ", not turned round",
+        "fraction_point_tracked": float((ok & (ep < tol) & (eh < tol)).mean()),
+        "point_tracked_definition": "the converged definition of earlier versions: not flagged singular, final "
+                                    "point error < tol (and heading error for (3,0)), whatever the heading",
         "fraction_turned_round": float(turned.mean()),
         "fraction_point_tracked_but_turned_round": float((ok & (ep < tol) & turned).mean()),
         "turned_round_definition": "final heading more than pi/2 away from the reference heading (path tangent, "

@@ -1,12 +1,15 @@
 """The library's structure: layering, one gain representation, typed certification results,
 static laws reporting their internal dynamics, float32 runs, checkpoints that refuse bad input."""
 
+import ast
+import inspect
 import math
 import pathlib
 import re
 import subprocess
 import sys
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -24,24 +27,80 @@ def _sources(pkg):
     return sorted((ROOT / pkg).rglob("*.py"))
 
 
-def test_layers_never_point_up_and_no_dispatch_on_type_names():
-    up = {"wmrjax": r"^\s*(from|import)\s+(experiments|tuning)\b", "tuning": r"^\s*(from|import)\s+experiments\b"}
-    for pkg, pattern in up.items():
+def _imports(path):
+    """(modules imported, names imported from modules) of one source file, by its syntax tree."""
+    mods, names = [], []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            mods += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            mods.append(node.module)
+            names += [(node.module, a.name) for a in node.names]
+    return mods, names
+
+
+def test_layers_never_point_up():
+    forbidden = {"wmrjax": ("tuning", "experiments"), "tuning": ("experiments",)}
+    for pkg, above in forbidden.items():
         for f in _sources(pkg):
-            bad = [ln for ln in f.read_text().splitlines() if re.search(pattern, ln)]
+            mods, _ = _imports(f)
+            bad = [m for m in mods if m.split(".")[0] in above]
             assert not bad, f"{f.relative_to(ROOT)} imports an upper layer: {bad}"
     for f in _sources("experiments"):
-        others = re.findall(r"^\s*from experiments(?:\.(\w+))? import (\w+)", f.read_text(), flags=re.M)
-        assert all(mod in ("", "common") and (mod or name == "common") for mod, name in others), (f, others)
-    names = re.compile(r"""\.name\s*(==|!=|in)\s*[("']|(kind|name)\s*(==|!=)\s*["']\(\d,\d\)["']|in \(["']\(\d,\d\)""")
-    # private names stay in their module (the package's private helper modules _math, _validate excepted)
-    private = re.compile(r"^\s*from\s+\S+\s+import\s+.*\b_(?!math\b|validate\b)[a-z]", re.M)
+        mods, names = _imports(f)
+        others = [m for m in mods if m.startswith("experiments.") and m != "experiments.common"]
+        others += [n for m, n in names if m == "experiments" and n != "common"]
+        assert not others, f"{f.relative_to(ROOT)} imports another experiment: {others}"
     for pkg in ("wmrjax", "tuning", "experiments"):
         for f in _sources(pkg):
+            _, names = _imports(f)
+            # private names stay in their module (the package's private helper modules excepted)
+            private = [(m, n) for m, n in names if n.startswith("_") and n not in ("_math", "_validate")]
+            assert not private, f"{f.relative_to(ROOT)} imports private names {private}"
+
+
+def test_per_type_facts_live_in_the_tables():
+    """No dispatch on a robot's name outside robots.py and the two table definitions: no comparison
+    with a type-name string, no membership test in a list of them, no dict keyed by them."""
+    type_name = r"""["']\(\d,\d\)["']"""
+    patterns = [re.compile(r"\.name\s*(==|!=|in)\s*[(\[{\"']"),                  # robot.name == "(2,0)"
+                re.compile(r"(==|!=)\s*" + type_name), re.compile(type_name + r"\s*(==|!=)"),
+                re.compile(r"\bin\s*[(\[{]\s*" + type_name),                       # kind in ("(2,1)", ...)
+                re.compile(r"[{,]\s*" + type_name + r"\s*:"),                        # {"(2,0)": ...}
+                re.compile(r"\[\s*[\w.]*\.name\s*\]")]                              # TABLE[ctrl.robot.name]
+    allowed = {ROOT / "wmrjax" / "robots.py"}
+    table_lookups = {ROOT / "wmrjax" / "controllers" / f for f in ("dynamic.py", "static.py")}
+    for pkg in ("wmrjax", "tuning", "experiments"):
+        for f in _sources(pkg):
+            if f in allowed:
+                continue
             text = f.read_text()
-            if f.name != "robots.py":
-                assert not names.search(text), f"{f.relative_to(ROOT)} compares robot type names: {names.search(text)}"
-            assert not private.search(text), f"{f.relative_to(ROOT)} imports a private name: {private.search(text)}"
+            for pat in patterns[:5] + ([] if f in table_lookups else patterns[5:]):
+                hit = pat.search(text)
+                assert not hit, f"{f.relative_to(ROOT)} dispatches on a type name: {hit.group(0)!r}"
+
+
+def test_signatures_are_uniform():
+    """Certification: the closed loop first, then t_final and eps keyword-only; controllers: the
+    same argument kinds in the same order for both siblings."""
+    P = inspect.Parameter
+    for fn, keys in [(C.lemma2, ("t_final", "eps")), (C.exact_map_radius, ("t_final", "eps")),
+                     (C.empirical_radius, ("t_final", "eps")), (C.falsified_radius, ("t_final", "eps")),
+                     (C.analyse, ("t_final", "eps")), (C.verify, ("t_final",)), (C.min_distance, ("t_final",)),
+                     (C.falsify, ("t_final",))]:
+        ps = inspect.signature(fn).parameters
+        assert list(ps)[:2] == ["ctrl", "params"], fn.__name__
+        assert all(p.kind == P.KEYWORD_ONLY for p in list(ps.values())[2:]), fn.__name__
+        assert all(k in ps for k in keys), fn.__name__
+    methods = {"vector_field": ["t", "z", "params"], "control": ["t", "z", "params"], "error": ["t", "z", "params"],
+               "reference_jet": ["t", "params"], "margin": ["z", "params"], "psi": ["z", "params"],
+               "outputs": ["z", "params"], "jet": ["z", "params"], "physical_state": ["X", "u", "params"],
+               "initial_state_from_physical": ["X", "u", "params"], "check_regular": ["z", "params", "name"],
+               "check_reference": ["params", "t_final", "n", "floor"], "error_matrix": ["gains"]}
+    for cls in (w.DynamicLinearization, w.StaticLinearization):
+        for name, args in methods.items():
+            got = list(inspect.signature(getattr(cls, name)).parameters)[1:]
+            assert got == args, f"{cls.__name__}.{name}{tuple(got)}"
 
 
 # --- one gain representation --------------------------------------------------------------------
@@ -113,8 +172,15 @@ def test_sigma_tilde_reads_the_coefficients():
     p_coeffs = p_poles._replace(gains=w.Gains(jnp.broadcast_to(jnp.array([1.6, 2.8]), (3, 2))))
     z = jnp.array([0.3, -0.2, 0.1, 0.4, 0.5, -0.1])
     np.testing.assert_allclose(ctrl.sigma_tilde(0.3, z, p_coeffs), ctrl.sigma_tilde(0.3, z, p_poles), rtol=1e-12)
+    # the coefficients forget the order of the poles: (2.0, 0.8) is the same law, with Lambda_1 = 0.8
+    p_desc = ctrl.params(R.circle(), poles=jnp.array([2.0, 0.8]))
+    np.testing.assert_array_equal(p_desc.gains.coeffs, p_poles.gains.coeffs)
+    np.testing.assert_allclose(ctrl.sigma_tilde(0.3, z, p_desc), ctrl.sigma_tilde(0.3, z, p_poles), rtol=1e-12)
     complex_gains = p_poles._replace(gains=w.Gains.from_damping(2.0, 0.5, m=3))
     assert np.all(np.isnan(np.asarray(ctrl.sigma_tilde(0.3, z, complex_gains))))
+    # at a double pole the root is 0: finite derivative of Lambda_1 = k1 / 2 there
+    dlam = jax.grad(lambda c: w.Gains(c).cascade_pole()[0])(jnp.array([[1.0, 2.0]]))
+    np.testing.assert_allclose(dlam, [[0.0, 0.5]])
 
 
 # --- controllers are siblings; certification refuses a static law ------------------------------

@@ -8,6 +8,7 @@ from scipy.linalg import expm
 
 import wmrjax as w
 from wmrjax import references as R
+from wmrjax.controllers import dynamic, law
 
 KINDS = ["(2,0)", "(2,1)", "(1,1)", "(1,2)"]
 GEOM = w.Geometry(L=0.8, e=0.3, delta=0.4)
@@ -166,6 +167,10 @@ def test_initial_state_from_physical(kind, level):
     assert batch.shape == (16, ctrl.n_state)
     for i in (0, 7, 15):
         np.testing.assert_allclose(batch[i], ctrl.initial_state_from_physical(Xs[i], us[i], params), rtol=0, atol=1e-12)
+    # compiled once per controller: new values reuse the compiled programs (map and margin check)
+    sizes = (dynamic._physical_jit._cache_size(), law.margin_at._cache_size())
+    ctrl.initial_state_from_physical(Xs[3] + 0.01, us[3], params)
+    assert (dynamic._physical_jit._cache_size(), law.margin_at._cache_size()) == sizes
 
 
 def test_singular_initial_conditions_raise():

@@ -168,5 +168,6 @@ class Gains(NamedTuple):
         """
         k0, k1 = self.coeffs[:, 0], self.coeffs[:, 1]
         disc = k1 * k1 - 4.0 * k0
-        root = jnp.sqrt(jnp.where(disc >= 0, disc, 0.0))
+        pos = disc > 0
+        root = jnp.where(pos, jnp.sqrt(jnp.where(pos, disc, 1.0)), 0.0)   # double where: finite gradients at a double pole
         return jnp.where(disc >= 0, 0.5 * (k1 - root), jnp.nan)

@@ -319,7 +319,8 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
         ``margin`` (e.g. :class:`wmrjax.controllers.DynamicLinearization`), and optionally
         ``post_step(t, z, params) -> z``, a discrete transition applied at the end of every
         step (hybrid systems, e.g. :class:`wmrjax.controllers.hybrid.Hybrid`).
-      z0: initial state, shape (n,), unbatched (``vmap`` to batch).
+      z0: initial state, unbatched (``vmap`` to batch): an array of shape (n,) or a pytree of
+        arrays with n components in all (e.g. :class:`wmrjax.HybridState`).
       params: pytree of arrays the closed loop depends on (gains, reference, geometry).
       dt: step [s], > 0.
       n_steps: number of steps (static).

@@ -1,8 +1,11 @@
 r"""Certification: from which initial errors the dynamic linearizing law provably stays away
 from its singular set (paper §6, Lemma 2, Remark 16, Lemma 3, eqs 50-65), and how tight that is.
 
-Every function of this package takes the closed loop first, ``(ctrl, params, *, t_final,
-eps, ...)``, keyword-only after that, and returns a NamedTuple with fixed fields:
+Every radius-producing function (:func:`lemma2`, :func:`exact_map_radius`,
+:func:`empirical_radius`, :func:`falsified_radius`, :func:`analyse`) is ``(ctrl, params, *,
+t_final, eps, ...)``, and the rollout helpers (:func:`verify`, :func:`min_distance`,
+:func:`falsify`) are ``(ctrl, params, *, t_final, ...)``: the closed loop first, everything
+else keyword-only; each returns a NamedTuple with fixed fields:
 
 * :mod:`~wmrjax.certify.lemma2` -- M1 (closed form for every type, and Remark 16's local
   search), K2 three ways (eq 64, an automatic Lyapunov bound, the exact ||e^{At}||), F and

@@ -185,7 +185,7 @@ def empirical_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
       :class:`EmpiricalRadius`.
     """
     check_dynamic(ctrl)
-    check_lemma2_args(eps, t_final)
+    check_lemma2_args(t_final=t_final, eps=eps)
     dirs = np.asarray(directions)
     D = dirs.shape[0]
     g = np.linspace(0.0, r_max, n_grid + 1)[1:]
@@ -240,5 +240,3 @@ def empirical_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     k = int(np.argmin(per))
     return EmpiricalRadius(per, float(per[k]), dirs[k], runs)
 
-
-# --- falsification ----------------------------------------------------------------------

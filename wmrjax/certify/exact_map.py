@@ -1,7 +1,12 @@
 r"""Beyond Lemma 2: the exact error map.
 
 While a run stays regular the linearized error obeys zeta_err(t) = expm(A t) zeta_err(0)
-*exactly*, so the set of safe initial errors is known without any K2 bound."""
+*exactly*, so the set of safe initial errors is known without any K2 bound. For the types
+whose singular set in zeta coordinates is the linear subspace {velocity of the output point
+= 0} ((2,0), (2,1), (1,1)), the distance to it is ||C zeta|| with C selecting those two rows;
+the largest safe ball is then the solution of a semi-infinite problem over t whose inner
+problem (fixed t) is a convex QCQP solved in closed form up to a scalar secular equation.
+(1,2)'s singular set is curved: use the falsifier (an upper bound) there."""
 
 from __future__ import annotations
 
@@ -16,15 +21,6 @@ import numpy as np
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 
-
-#
-# While a run stays regular the linearized error obeys zeta_err(t) = expm(A t) zeta_err(0)
-# *exactly*, so the set of safe initial errors is known without any K2 bound. For the types
-# whose singular set in zeta coordinates is the linear subspace {velocity of the output
-# point = 0} ((2,0), (2,1), (1,1)), the distance to it is ||C zeta|| with C selecting those
-# two rows; the largest safe ball is then the solution of a semi-infinite problem over t whose
-# inner problem (fixed t) is a convex QCQP solved here in closed form up to a scalar secular
-# equation. (1,2)'s singular set is curved: use the falsifier (an upper bound) there.
 
 def singular_rows(ctrl: DynamicLinearization):
     """Flat indices (into ``ctrl.error(...).reshape(-1)``) of the output point's velocity,
@@ -118,7 +114,7 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
       ValueError: bad eps/horizon, a reference within eps of the singular set, or type (1,2).
     """
     check_dynamic(ctrl)
-    check_lemma2_args(eps, t_final)
+    check_lemma2_args(t_final=t_final, eps=eps)
     rows = singular_rows(ctrl)
     if rows is None:
         raise ValueError(f"type {ctrl.robot.name} has a curved singular set: no exact-map radius; "
@@ -128,7 +124,7 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     r = ctrl.relative_degree
     ts = jnp.linspace(0.0, t_final, n_t)
     m1 = jax.vmap(lambda t: jnp.linalg.norm(C @ ctrl.reference_jet(t, params)[:r].reshape(-1)))(ts)
-    check_lemma2_args(eps, t_final, m1)
+    check_lemma2_args(t_final=t_final, eps=eps, m1=m1)
     rho, rad, t_star, worst = _exact_map(ctrl, params, P, C, jnp.asarray(eps, ts.dtype), ts, refine)
     return ExactMapRadius(ts, rho, rad, t_star, worst)
 
@@ -161,5 +157,3 @@ def _exact_map(ctrl, params, P, C, eps, ts, refine):
     rad, xs = rho_x(t_star)
     return rho, rad, t_star, P @ xs
 
-
-# --- running the real closed loop from initial errors ---------------------------------------

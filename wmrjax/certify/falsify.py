@@ -137,7 +137,7 @@ def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
       :class:`FalsifiedRadius` (radius None if nothing failed up to 16 r_hi).
     """
     check_dynamic(ctrl)
-    check_lemma2_args(eps, t_final)
+    check_lemma2_args(t_final=t_final, eps=eps)
     P = slice_basis(ctrl, basis)
     if P.shape[1] == 2:     # a plane: evenly spaced angles, randomly rotated
         ang = jnp.linspace(0.0, 2.0 * math.pi, n_starts, endpoint=False) + jax.random.uniform(key, (), maxval=math.pi)
@@ -165,6 +165,7 @@ def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
         starts = dirs
         if ok:
             found = (hi, e, d)
+            searched = hi
             break
         r_lo, hi = hi, 2.0 * hi
     if found is None:
@@ -177,4 +178,4 @@ def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
             found, starts = (mid, e, d), dirs
         else:
             lo = mid
-    return FalsifiedRadius(found[0], np.asarray(found[1]), found[2], rollouts, (lo, found[0]), found[0])
+    return FalsifiedRadius(found[0], np.asarray(found[1]), found[2], rollouts, (lo, found[0]), searched)

@@ -14,7 +14,7 @@ keeps the closed loop regular. This module computes
   because under the linearizing law the error obeys :math:`\dot{\tilde\zeta} = A\tilde\zeta`
   exactly while the run is regular);
 * :math:`F(t)`, the certified radius :math:`\min_t F(t)` and condition (52);
-* :func:`verify`: batch rollouts from initial errors sampled in and around a radius,
+* :func:`wmrjax.certify.verify`: batch rollouts from initial errors sampled in and around a radius,
   counting violations of (53) and singularity events.
 """
 
@@ -72,7 +72,7 @@ def m1_numerical(ctrl: DynamicLinearization, params: DynamicParams, ts, iters: i
     it returns an upper bound of the true distance, equal to it when a start lies in the
     right basin (checked against the closed forms in the tests). An upper bound is not
     conservative for Lemma 2, which needs a lower bound on the distance: :func:`lemma2`
-    uses the closed form wherever it exists, and :func:`verify` checks any certificate
+    uses the closed form wherever it exists, and :func:`wmrjax.certify.verify` checks any certificate
     against simulation.
 
     Returns:
@@ -186,7 +186,7 @@ def certificate(ts, m1, k2, eps) -> Certificate:
     return Certificate(ts, m1, k2, F, F[i], ts[i])
 
 
-def check_lemma2_args(eps, t_final, m1=None) -> None:
+def check_lemma2_args(*, t_final, eps, m1=None) -> None:
     """ValueError for eps <= 0, horizon <= 0, or a reference reaching the singular set (M1 <= eps)."""
     if not (np.isfinite(eps) and eps > 0):
         raise ValueError(f"eps must be > 0 (Lemma 2's margin), got {eps!r}")
@@ -247,14 +247,14 @@ def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
     check_dynamic(ctrl)
     if m1 not in M1_METHODS:
         raise ValueError(f"m1 must be one of {M1_METHODS}, got {m1!r}")
-    check_lemma2_args(eps, t_final)
+    check_lemma2_args(t_final=t_final, eps=eps)
     A = ctrl.error_matrix(params.gains)
     ts = jnp.linspace(0.0, t_final, n_t)
     m1v = m1_closed_form(ctrl, params, ts) if m1 == "closed" else m1_numerical(ctrl, params, ts)
-    check_lemma2_args(eps, t_final, m1v)
+    check_lemma2_args(t_final=t_final, eps=eps, m1=m1v)
     paper = None
     if ctrl.relative_degree == 2 and params.gains.is_double_pole(1.0):
         paper = certificate(ts, m1v, k2_paper(ts), eps)
+    closed = "closed form (Lemma 3)" if ctrl.row.singular_set_is_linear else "closed form (1-D search over theta)"
     return Lemma2Report(paper, certificate(ts, m1v, k2_lyapunov(A, ts), eps),
-                        certificate(ts, m1v, k2_exact(A, ts), eps),
-                        "closed form (Lemma 3)" if m1 == "closed" else "numerical (Remark 16)")
+                        certificate(ts, m1v, k2_exact(A, ts), eps), closed if m1 == "closed" else "numerical (Remark 16)")

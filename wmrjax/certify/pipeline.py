@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax.certify.empirical import EmpiricalRadius, empirical_radius, sample_sphere, verify
+from wmrjax.certify.empirical import EmpiricalRadius, empirical_radius, n_steps_for, sample_sphere, verify
 from wmrjax.certify.exact_map import ExactMapRadius, exact_map_radius, singular_rows, slice_basis
 from wmrjax.certify.falsify import FalsifiedRadius, falsified_radius
 from wmrjax.certify.lemma2 import Lemma2Report, check_dynamic, k2_exact, k2_lyapunov, k2_paper, lemma2
@@ -126,7 +127,7 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     """
     check_dynamic(ctrl)
     t0 = time.time()
-    n_steps = int(round(t_final / dt))
+    n_steps = n_steps_for(t_final, dt)
     cert = lemma2(ctrl, params, t_final=t_final, eps=eps, n_t=n_steps + 1)
     A = ctrl.error_matrix(params.gains)
     k2s = {"lyapunov": lambda ts: k2_lyapunov(A, ts), "exact_norm": lambda ts: k2_exact(A, ts)}
@@ -160,7 +161,9 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
             emp[name] = EmpiricalCheck(int(inside.sum()), int((viol & inside).sum()), int((sing & inside).sum()),
                                        int(sing.sum()))
             if emp[name].violations_53_inside or emp[name].singular_inside:
-                log(f"LEMMA 2 VIOLATED inside the {name} certificate: {emp[name]}")
+                msg = f"LEMMA 2 VIOLATED inside the {name} certificate: {emp[name]}"
+                log(msg)
+                warnings.warn(msg, RuntimeWarning, stacklevel=2)
         log(f"  empirical: {n_empirical} runs per K2, violations inside "
             f"{sum(e.violations_53_inside + e.singular_inside for e in emp.values())}  ({time.time() - t0:.0f} s)")
 
@@ -187,5 +190,6 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     below = all(b not in fs or fs[b].radius is None or r <= fs[b].radius + 1e-9 for r, b in bounds)
     if not below:
         log("A CERTIFIED RADIUS EXCEEDS A FALSIFIED ONE: a certificate is wrong")
+        warnings.warn("a certified radius exceeds a falsified one: a certificate is wrong", RuntimeWarning, stacklevel=2)
     return CertificationReport(eps, t_final, cert, zeta0_norm, exact.get("full"), exact.get("position"), emp,
                                sampling, er, fs.get("full"), fs.get("position"), below, time.time() - t0)

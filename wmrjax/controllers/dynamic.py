@@ -269,6 +269,8 @@ class Table4Row:
         (rows 0 and 1 used) to the singular set in zeta coordinates; M1 of the reference.
       requires: geometry :class:`Requirement` s of the regularity condition.
       default_geometry: the geometry used by the examples and experiments [m, m, rad].
+      paper_geometry: the geometry of the paper's own examples of this type (§6: (2,0) with
+        e = 0), None where the paper has none.
       default_heading_offset: a reference heading offset [rad] keeping the reference
         regular on the default geometry (non-zero where a crab angle is needed).
     """
@@ -285,6 +287,7 @@ class Table4Row:
     singular_distance: Callable = dataclasses.field(repr=False)
     requires: tuple = ()
     default_geometry: Geometry = Geometry()
+    paper_geometry: Geometry | None = None
     default_heading_offset: float = 0.0
 
     @property
@@ -300,7 +303,7 @@ TABLE4: dict[str, Table4Row] = {row.robot.name: row for row in (
         psi_inverse=_psi_inv_20, from_physical=_phys_20,
         branch_quantity=functools.partial(_first_comp, n_x=3), branch_name="chi1", branch_follows_heading=True,
         singular_families=_families_first_comp(3), singular_set_is_linear=True,
-        singular_distance=_distance_point_speed, default_geometry=Geometry(e=0.2)),
+        singular_distance=_distance_point_speed, default_geometry=Geometry(e=0.2), paper_geometry=Geometry(e=0.0)),
     Table4Row(
         extension=Extension(robot=robots.TYPES["(2,1)"], outputs=_out_posture, relative_degree=2, n_comp=2,
                             comp_names=("eta1", "eta2"), plant_input=_pi_21, compensator=_comp_21,

@@ -313,7 +313,9 @@ class StaticLinearization:
         :math:`R^T(\theta)(\eta - \eta_{ref})` for (3,0)); zero at velocity level by construction.
 
         :math:`\Lambda_1` is the slower real root of each output's polynomial
-        (:meth:`wmrjax.Gains.cascade_pole`); NaN for complex poles, which have no real cascade.
+        (:meth:`wmrjax.Gains.cascade_pole`): the coefficients do not remember in which order
+        two real poles were given, so the slower one is the reference model's (eq 14) and the
+        faster one the inner loop's. NaN for complex poles, which have no real cascade.
         """
         if self.level == "velocity":
             return jnp.zeros(self.m, z.dtype)
@@ -377,8 +379,11 @@ class StaticLinearization:
         b = concrete(jax.vmap(params.steering)(ts))
         if b is None:
             return
+        delta = concrete(params.geometry.delta)
+        if delta is None:
+            return
         b = np.asarray(b)
-        lev = self.row.steering_level(b, float(params.geometry.delta))
+        lev = self.row.steering_level(b, float(delta))
         if not np.all(np.isfinite(lev)) or lev.min() < 1e-6:
             i = int(np.nanargmin(lev))
             raise ValueError(f"Table 3, type {self.robot.name}: the steering reference violates "
@@ -407,8 +412,10 @@ class StaticLinearization:
         """Raise ValueError if ``z`` is on (or numerically at) Table 3's singular set."""
         check_regular(self, z, params, name, "static linearizing law", "Table 3", self.row.regularity)
 
-    def check_reference(self, params, t_final, n: int = 201) -> None:
-        """ValueError if the steering reference reaches the singular set on [0, t_final]."""
+    def check_reference(self, params, t_final, n: int = 201, floor: float = 1e-6) -> None:
+        """ValueError if the steering reference reaches the singular set on [0, t_final] (the only
+        way a reference makes Table 3's K singular; ``floor`` is accepted for the dynamic laws' signature)."""
+        del floor
         if params.steering is not None:
             self.check_steering(params, t_final, n)
 
