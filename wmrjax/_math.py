@@ -12,6 +12,8 @@ autodiff sees the mathematical functions.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 
@@ -134,3 +136,27 @@ def jacfwd_small(fn, x):
     n = x.shape[0]
     eye = jnp.eye(n, dtype=x.dtype)
     return jnp.stack([jax.jvp(fn, (x,), (eye[j],))[1] for j in range(n)], axis=-1)
+
+
+_GOLDEN = 0.5 * (math.sqrt(5.0) - 1.0)
+
+
+def golden_section(f, lo, hi, iters: int):
+    """Shrink ``[lo, hi]`` around a minimum of the unimodal scalar ``f`` by golden section.
+
+    Args:
+      f: scalar function of a scalar (traceable).
+      lo, hi: bracket.
+      iters: iterations (static); the bracket shrinks by 0.618 per iteration.
+
+    Returns:
+      The final bracket ``(lo, hi)``.
+    """
+    def step(c, _):
+        lo, hi = c
+        x1, x2 = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
+        left = f(x1) <= f(x2)
+        return (jnp.where(left, lo, x1), jnp.where(left, x2, hi)), None
+
+    (lo, hi), _ = jax.lax.scan(step, (lo, hi), None, length=iters)
+    return lo, hi

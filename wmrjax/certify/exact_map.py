@@ -11,13 +11,13 @@ problem (fixed t) is a convex QCQP solved in closed form up to a scalar secular 
 from __future__ import annotations
 
 import functools
-import math
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wmrjax import _math
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 
@@ -142,15 +142,7 @@ def _exact_map(ctrl, params, P, C, eps, ts, refine):
     rho = jax.vmap(lambda t: rho_x(t)[0])(ts)
     i = jnp.argmin(rho)
     lo, hi = ts[jnp.maximum(i - 1, 0)], ts[jnp.minimum(i + 1, ts.shape[0] - 1)]
-    g = 0.5 * (math.sqrt(5.0) - 1.0)
-
-    def golden(c, _):
-        lo, hi = c
-        x1, x2 = hi - g * (hi - lo), lo + g * (hi - lo)
-        left = rho_x(x1)[0] <= rho_x(x2)[0]
-        return (jnp.where(left, lo, x1), jnp.where(left, x2, hi)), None
-
-    (lo, hi), _ = jax.lax.scan(golden, (lo, hi), None, length=refine)
+    lo, hi = _math.golden_section(lambda t: rho_x(t)[0], lo, hi, refine)
     tr = 0.5 * (lo + hi)
     rr, _ = rho_x(tr)
     t_star = jnp.where(rr < rho[i], tr, ts[i])

@@ -193,9 +193,6 @@ def _distance_point_speed(jet, g):
     return jnp.sqrt(jnp.sum(jet[1, :2] ** 2))
 
 
-_GOLDEN = 0.5 * (math.sqrt(5.0) - 1.0)
-
-
 def _distance_lateral_velocity(jet, g):
     r"""Distance in :math:`\zeta` coordinates to the singular set of (1,2).
 
@@ -219,14 +216,7 @@ def _distance_lateral_velocity(jet, g):
     vals = jax.vmap(d2)(grid)
     i = jnp.argmin(vals)
     lo, hi = grid[jnp.maximum(i - 1, 0)], grid[jnp.minimum(i + 1, grid.shape[0] - 1)]
-
-    def golden(c, _):
-        lo, hi = c
-        x1, x2 = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
-        left = d2(x1) <= d2(x2)
-        return (jnp.where(left, lo, x1), jnp.where(left, x2, hi)), None
-
-    (lo, hi), _ = jax.lax.scan(golden, (lo, hi), None, length=60)
+    lo, hi = _math.golden_section(d2, lo, hi, 60)
     return jnp.sqrt(jnp.minimum(d2(0.5 * (lo + hi)), vals[i]))
 
 
