@@ -21,7 +21,15 @@ from wmrjax.controllers.hybrid import (  # noqa: F401
     hybrid_parking,
     stabilizer,
 )
-from wmrjax.controllers.law import DET_FLOOR, LEVELS, Aux, ClosedLoop, Extension, LinearizingLaw  # noqa: F401
+from wmrjax.controllers.law import (  # noqa: F401
+    DET_FLOOR,
+    LEVELS,
+    Aux,
+    ClosedLoop,
+    Extension,
+    LinearizingController,
+    LinearizingLaw,
+)
 from wmrjax.controllers.static import (  # noqa: F401
     TABLE3,
     InternalDynamics,

@@ -27,11 +27,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax import _math, linearize, robots
+from wmrjax import _math, robots
 from wmrjax._validate import check_finite, check_shape, concrete
-from wmrjax.controllers.law import (DET_FLOOR, LEVELS, Extension, LinearizingLaw, Requirement,
-                                    check_reference_type, check_regular, check_requirements, make_gains,
-                                    physical_state_names, validated_physical)
+from wmrjax.controllers.law import (DET_FLOOR, LEVELS, Extension, LinearizingController, Requirement,
+                                    check_reference_type, check_requirements, make_gains, physical_state_names,
+                                    validated_physical)
 from wmrjax.gains import Gains
 from wmrjax.references import Reference, taylor
 from wmrjax.robots import Geometry, RobotType
@@ -336,7 +336,7 @@ class DynamicParams(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True)
-class DynamicLinearization:
+class DynamicLinearization(LinearizingController):
     """A dynamic linearizing posture-tracking controller (static, hashable).
 
     Build it with :func:`dynamic_linearization` or :func:`wmrjax.controller`. Its
@@ -348,27 +348,8 @@ class DynamicLinearization:
     row: Table4Row
     level: str  # "velocity" | "torque"
 
-    # -- static sizes --
-    @property
-    def law(self) -> LinearizingLaw:
-        """The generic law this controller runs (shared with the static laws)."""
-        return LinearizingLaw(self.row.extension, self.level)
-
-    @property
-    def robot(self) -> RobotType:
-        return self.row.robot
-
-    @property
-    def m(self) -> int:
-        return self.law.m
-
-    @property
-    def relative_degree(self) -> int:
-        return self.law.relative_degree
-
-    @property
-    def n_state(self) -> int:
-        return self.law.n_state
+    _law_name = "dynamic linearizing law"
+    _table = "Table 4"
 
     @property
     def state_names(self) -> tuple:
@@ -379,44 +360,10 @@ class DynamicLinearization:
     def velocity_level(self) -> "DynamicLinearization":
         return DynamicLinearization(self.row, "velocity")
 
-    # -- the law --
-    def outputs(self, z, params):
-        """Linearizing outputs Y of Table 4 at ``z``, shape (m,)."""
-        return self.law.outputs(z, params.geometry)
-
-    def jet(self, z, params):
-        """``(zeta, a, K)`` of :func:`wmrjax.linearize.output_jet` at ``z``."""
-        return self.law.jet(z, params.geometry)
-
-    def psi(self, z, params):
-        r"""The diffeomorphism :math:`\zeta = \Psi(X_e)` (eq 35), shape (r, m)."""
-        return self.law.jet(z, params.geometry)[0]
-
     def reference_jet(self, t, params: DynamicParams):
         """``Y_ref, Y_ref', ..., Y_ref^{(r)}`` at time t, shape (r + 1, m), by autodiff."""
         ref, g = params.reference, params.geometry
         return taylor(lambda s: self.row.extension.outputs(ref.posture(s), g), t, self.relative_degree)
-
-    def control(self, t, z, params: DynamicParams):
-        """New input U (Prop 8, eq 49) and the margin ``|det K|``; the division is clamped at ``DET_FLOOR``."""
-        return self.law.control(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
-
-    def margin(self, z, params):
-        """Singularity margin at ``z``: |det K(X_e)| (times |L sin b + e cos b| for (1,1)); 0 on the singular set."""
-        return self.law.margin(z, params.geometry)
-
-    def vector_field(self, t, z, params: DynamicParams):
-        """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin)."""
-        return self.law.closed_loop(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
-
-    # -- error coordinates --
-    def error(self, t, z, params: DynamicParams):
-        r""":math:`\tilde\zeta = \Psi(z) - \zeta_{ref}(t)`, shape (r, m); angle outputs wrapped."""
-        return self.law.error(self.reference_jet(t, params), z, params.geometry)
-
-    def error_matrix(self, gains: Gains):
-        """Matrix A with :math:`\\dot{\\tilde\\zeta} = A \\tilde\\zeta` on ``error(...).reshape(-1)``."""
-        return linearize.companion(gains.coeffs)
 
     def singular_distance(self, jet, params):
         """Distance from an output jet (r, m) to the singular set in zeta coordinates (Remark 16)."""
@@ -443,8 +390,7 @@ class DynamicLinearization:
 
     def params_unchecked(self, reference: Reference, poles, geometry: Geometry) -> DynamicParams:
         """Like :meth:`params` without validation: for use inside ``vmap``/``jit`` (traced values)."""
-        p = jnp.broadcast_to(jnp.asarray(poles, dtype=jnp.result_type(float)), (self.m, self.relative_degree))
-        return DynamicParams(Gains.from_poles(p), reference, geometry)
+        return DynamicParams(self._unchecked_gains(poles), reference, geometry)
 
     # -- Psi^-1, branches, initial states --
     def inverse_psi(self, zeta, params, branch=1.0):
@@ -543,10 +489,6 @@ class DynamicLinearization:
             raise ValueError(
                 f"initial branch {int(branch):+d} differs from the reference's branch {ref_branch:+d} "
                 f"(sign of {self.row.branch_name}); Remark 17: robot and reference must be on the same branch")
-
-    def check_regular(self, z, params: DynamicParams, name: str = "initial state") -> None:
-        """Raise ValueError if ``z`` is on (or numerically at) the singular set of Table 4."""
-        check_regular(self, z, params, name, "dynamic linearizing law", "Table 4", self.row.regularity)
 
     def reference_margins(self, params: DynamicParams, t_final, n: int = 201, t0=0.0):
         """Margin and branch quantity of :math:`(X_e)_{ref}(t)` on a uniform grid of n times."""

@@ -319,3 +319,82 @@ def check_regular(ctrl, z, params, name: str, law_name: str, table: str, regular
     if not m > 1e3 * DET_FLOOR:
         raise ValueError(f"{name} is on the singular set of the {law_name} for type {ctrl.robot.name}: "
                          f"margin |det K| = {m:.3g}; {table} requires {regularity}")
+
+
+class LinearizingController:
+    """What both sibling controllers delegate to their :class:`LinearizingLaw` (a method mixin).
+
+    :class:`~wmrjax.controllers.DynamicLinearization` and
+    :class:`~wmrjax.controllers.StaticLinearization` are frozen dataclasses with a table
+    ``row`` (whose ``extension`` the law runs) and a ``level``; each adds its own reference
+    jet (``reference_jet(t, params)``: Table 4's outputs of the reference posture, or Table
+    3's point path), parameters, initial states and checks. Neither is a kind of the other.
+    Methods take ``(t, z, params)`` or ``(z, params)``.
+    """
+
+    _law_name = ""      # for messages: "dynamic linearizing law", "static linearizing law"
+    _table = ""         # "Table 4", "Table 3"
+
+    @property
+    def law(self) -> LinearizingLaw:
+        """The generic law this controller runs (one implementation for both siblings)."""
+        return LinearizingLaw(self.row.extension, self.level)
+
+    @property
+    def robot(self) -> RobotType:
+        return self.row.robot
+
+    @property
+    def m(self) -> int:
+        return self.law.m
+
+    @property
+    def relative_degree(self) -> int:
+        return self.law.relative_degree
+
+    @property
+    def n_state(self) -> int:
+        return self.law.n_state
+
+    def outputs(self, z, params):
+        """Linearizing outputs Y at ``z``, shape (m,)."""
+        return self.law.outputs(z, params.geometry)
+
+    def jet(self, z, params):
+        """``(zeta, a, K)`` of :func:`wmrjax.linearize.output_jet` at ``z``."""
+        return self.law.jet(z, params.geometry)
+
+    def psi(self, z, params):
+        r"""The output jet :math:`\zeta = \Psi(z)` (eq 35), shape (r, m)."""
+        return self.law.jet(z, params.geometry)[0]
+
+    def control(self, t, z, params):
+        """New input U of eq (49) (the plant input for a static law) and the margin; the division
+        by ``det K`` is clamped at :data:`DET_FLOOR`."""
+        return self.law.control(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
+
+    def margin(self, z, params):
+        """Singularity margin at ``z``: |det K| (times the row's extra factor, the (1,1) lever of
+        Table 4); 0 on the singular set."""
+        return self.law.margin(z, params.geometry)
+
+    def vector_field(self, t, z, params):
+        """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin)."""
+        return self.law.closed_loop(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
+
+    def error(self, t, z, params):
+        r""":math:`\tilde\zeta = \Psi(z) - \zeta_{ref}(t)`, shape (r, m); angle outputs wrapped."""
+        return self.law.error(self.reference_jet(t, params), z, params.geometry)
+
+    def error_matrix(self, gains: Gains):
+        r"""Matrix A with :math:`\dot{\tilde\zeta} = A \tilde\zeta` on ``error(...).reshape(-1)``."""
+        return linearize.companion(gains.coeffs)
+
+    def check_regular(self, z, params, name: str = "initial state") -> None:
+        """Raise ValueError if a concrete ``z`` is on (or numerically at) the row's singular set."""
+        check_regular(self, z, params, name, self._law_name, self._table, self.row.regularity)
+
+    def _unchecked_gains(self, poles) -> Gains:
+        """Real poles broadcast to (m, r), without validation (traced values)."""
+        p = jnp.broadcast_to(jnp.asarray(poles, dtype=jnp.result_type(float)), (self.m, self.relative_degree))
+        return Gains.from_poles(p)

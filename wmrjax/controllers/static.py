@@ -39,11 +39,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax import _math, linearize, robots
+from wmrjax import _math, robots
 from wmrjax._validate import concrete
-from wmrjax.controllers.law import (LEVELS, Extension, LinearizingLaw, Requirement, check_reference_type,
-                                    check_regular, check_requirements, make_gains, physical_state_names,
-                                    validated_physical)
+from wmrjax.controllers.law import (LEVELS, Extension, LinearizingController, Requirement, check_reference_type,
+                                    check_requirements, make_gains, physical_state_names, validated_physical)
 from wmrjax.gains import Gains
 from wmrjax.references import Reference, taylor
 from wmrjax.robots import Geometry, RobotType
@@ -214,7 +213,7 @@ class InternalDynamics(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True)
-class StaticLinearization:
+class StaticLinearization(LinearizingController):
     """Static linearizing tracking law (posture for (3,0), point for the others).
 
     State: X at velocity level, (X, u) at torque level (model 8). Build it with
@@ -226,29 +225,12 @@ class StaticLinearization:
     row: Table3Row
     level: str
 
-    @property
-    def law(self) -> LinearizingLaw:
-        return LinearizingLaw(self.row.extension, self.level)
-
-    @property
-    def robot(self) -> RobotType:
-        return self.row.robot
+    _law_name = "static linearizing law"
+    _table = "Table 3"
 
     @property
     def task(self) -> str:
         return self.row.tracks
-
-    @property
-    def m(self) -> int:
-        return self.law.m
-
-    @property
-    def relative_degree(self) -> int:
-        return self.law.relative_degree
-
-    @property
-    def n_state(self) -> int:
-        return self.law.n_state
 
     @property
     def state_names(self) -> tuple:
@@ -258,18 +240,6 @@ class StaticLinearization:
         eta = tuple(f"eta{i + 1}" for i in range(self.robot.delta_m))
         zeta = tuple(f"zeta{i + 1}" for i in range(self.robot.delta_s))
         return X + eta + zeta
-
-    # -- the law --
-    def outputs(self, z, params):
-        """Table 3's linearizing outputs :math:`z_1 = h(\\xi, \\beta)` (posture for (3,0))."""
-        return self.law.outputs(z, params.geometry)
-
-    def jet(self, z, params):
-        return self.law.jet(z, params.geometry)
-
-    def psi(self, z, params):
-        """Outputs and, at torque level, their first derivatives, shape (r, m)."""
-        return self.law.jet(z, params.geometry)[0]
 
     def z3(self, z):
         """Table 3's nonlinear coordinates :math:`z_3 = k(\\xi, \\beta)` (theta; theta, beta(1))."""
@@ -287,26 +257,6 @@ class StaticLinearization:
 
     def reference_jet(self, t, params: StaticParams):
         return taylor(lambda s: self.reference_outputs(s, params), t, self.relative_degree)
-
-    def control(self, t, z, params: StaticParams):
-        """Plant input of the law (u, or v at torque level) and the margin ``|det K|``."""
-        return self.law.control(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
-
-    def margin(self, z, params):
-        """|det K(X)| (eq 22): zero on Table 3's singular set."""
-        return self.law.margin(z, params.geometry)
-
-    def vector_field(self, t, z, params: StaticParams):
-        """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin)."""
-        return self.law.closed_loop(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
-
-    def error(self, t, z, params: StaticParams):
-        r""":math:`\tilde z_1` (and :math:`\dot{\tilde z}_1` at torque level), shape (r, m); angles wrapped."""
-        return self.law.error(self.reference_jet(t, params), z, params.geometry)
-
-    def error_matrix(self, gains: Gains):
-        """Matrix A of the linear error dynamics on ``error(...).reshape(-1)``."""
-        return linearize.companion(gains.coeffs)
 
     def sigma_tilde(self, t, z, params: StaticParams):
         r"""Reference-model state :math:`\tilde\sigma = \dot{\tilde z}_1 + \Lambda_1\tilde z_1` (eq 14:
@@ -368,10 +318,9 @@ class StaticLinearization:
         return params
 
     def params_unchecked(self, reference: Reference, poles, geometry: Geometry, steering=None) -> StaticParams:
-        p = jnp.broadcast_to(jnp.asarray(poles, dtype=jnp.result_type(float)), (self.m, self.relative_degree))
         if self.row.steering_index is not None and steering is None:
             steering = default_steering(self.robot, geometry)
-        return StaticParams(Gains.from_poles(p), reference, geometry, steering)
+        return StaticParams(self._unchecked_gains(poles), reference, geometry, steering)
 
     def check_steering(self, params: StaticParams, t_final: float = 10.0, n: int = 201) -> None:
         """ValueError if the steering reference meets the singular set (delta = beta mod pi, sin beta2 = 0)."""
@@ -407,10 +356,6 @@ class StaticLinearization:
         z = self.physical_state(X, u, params)
         self.check_regular(z, params)
         return z
-
-    def check_regular(self, z, params, name: str = "initial state") -> None:
-        """Raise ValueError if ``z`` is on (or numerically at) Table 3's singular set."""
-        check_regular(self, z, params, name, "static linearizing law", "Table 3", self.row.regularity)
 
     def check_reference(self, params, t_final, n: int = 201, floor: float = 1e-6) -> None:
         """ValueError if the steering reference reaches the singular set on [0, t_final] (the only
