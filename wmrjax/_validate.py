@@ -42,11 +42,20 @@ def check_positive(name: str, x) -> None:
     v = concrete(x)
     if v is None:
         return
-    if not np.all(np.isfinite(v)) or not np.all(v > 0):
-        raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+    if not np.isrealobj(v) or not np.issubdtype(v.dtype, np.number) or not np.all(np.isfinite(v)) or not np.all(v > 0):
+        raise ValueError(f"{name} must be real, finite and > 0, got {v!r}")
 
 
 def check_int(name: str, x, minimum: int = 1) -> int:
     if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {x!r}")
     return int(x)
+
+
+def check_real(name: str, x) -> None:
+    """ValueError for a complex (or non-numeric) array: its imaginary part would be dropped silently."""
+    dt = np.result_type(x) if not hasattr(x, "dtype") else np.dtype(x.dtype)
+    if dt.kind == "c":
+        raise ValueError(f"{name} must be real, got a complex array of dtype {dt}")
+    if dt.kind not in "biuf":
+        raise ValueError(f"{name} must be a numeric array, got dtype {dt}")

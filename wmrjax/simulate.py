@@ -22,6 +22,7 @@ it explicitly instead of averaging NaN or a runaway value.
 from __future__ import annotations
 
 import functools
+import os
 from typing import Any, NamedTuple
 
 import jax
@@ -36,11 +37,16 @@ class Diagnostics(NamedTuple):
 
     Attributes:
       nonfinite: the state or the control became NaN/Inf.
-      singular: the margin reached ``margin_floor``.
-      failed: ``nonfinite | singular``; samples from the failure on are invalid.
+      singular: the margin reached ``margin_floor``, or the signed regularity function
+        (``Aux.regularity``, det K for the linearizing laws) changed sign between two
+        consecutive steps: the run crossed the singular set between samples.
+      failed: ``nonfinite | singular | inaccurate``; samples from the failure on are invalid.
       t_failure: time of the first failure [s] (``inf`` if none).
       min_margin: smallest margin over the valid states at step boundaries.
       t_min_margin: when it occurred [s].
+      inaccurate: a step's error estimate exceeded ``error_tol``.
+      error_estimate: largest local error estimate of a step before the failure (the
+        embedded third-order pair of RK4, see :func:`simulate`), relative to ``1 + |z_i|``.
       internal: what the system's optional ``final_report(t, z, params)`` returns at the
         final state (the static laws: :class:`wmrjax.controllers.static.InternalDynamics`,
         the heading error and ||z3|| of their uncontrolled coordinates); None otherwise.
@@ -52,6 +58,8 @@ class Diagnostics(NamedTuple):
     t_failure: jnp.ndarray
     min_margin: jnp.ndarray
     t_min_margin: jnp.ndarray
+    inaccurate: jnp.ndarray
+    error_estimate: jnp.ndarray
     internal: Any = None
 
 
@@ -94,12 +102,44 @@ def rk4_step(field, t, z, dt):
     ``z`` may be a pytree: its floating leaves are integrated, its integer leaves (discrete
     state such as a mode) are held and change only in a system's ``post_step``.
     """
+    z_next, aux, _, _ = _rk4(field, t, z, dt)
+    return z_next, aux
+
+
+def _rk4(field, t, z, dt):
+    """RK4 step returning ``(z_next, aux_at_t, k1, k4)`` (the stages the error estimate needs)."""
     k1, aux = field(t, z)
     k2, _ = field(t + 0.5 * dt, _axpy(z, 0.5 * dt, k1))
     k3, _ = field(t + 0.5 * dt, _axpy(z, 0.5 * dt, k2))
     k4, _ = field(t + dt, _axpy(z, dt, k3))
     combine = lambda zi, a, b, c, d: zi + (dt / 6.0) * (a + 2.0 * b + 2.0 * c + d) if _is_continuous(zi) else zi
-    return jax.tree_util.tree_map(combine, z, k1, k2, k3, k4), aux
+    return jax.tree_util.tree_map(combine, z, k1, k2, k3, k4), aux, k1, k4
+
+
+def _continuous(tree):
+    """The floating leaves of a pytree, flattened to one tuple of scalars."""
+    return tuple(x for leaf in jax.tree_util.tree_leaves(tree) if _is_continuous(leaf) for x in jnp.reshape(leaf, (-1,)))
+
+
+def _error_estimate(dt, k4_prev, k1, z):
+    r"""Local error estimate of the step that ended at ``z``, relative to ``1 + |z_i|``.
+
+    Classical RK4 (stages at c = 0, 1/2, 1/2, 1) with the first stage of the next step,
+    :math:`k_5 = f(t + h, z_{n+1})`, as a fifth stage has the embedded third-order weights
+    (1/6, 1/3, 1/3, 0, 1/6) (they satisfy the four order conditions up to order 3); the
+    difference of the two solutions is :math:`h (k_4 - k_5) / 6`, at no extra evaluation
+    of the vector field (k5 is the next step's k1).
+    """
+    terms = [jnp.abs(dt / 6.0 * (a - b)) / (1.0 + jnp.abs(x)) for a, b, x in zip(k4_prev, k1, z)]
+    return functools.reduce(jnp.maximum, terms)
+
+
+def _sign(regularity, like):
+    """+1/-1 from a signed regularity value; 0 where there is none (None or NaN)."""
+    if regularity is None:
+        return jnp.zeros_like(like)
+    r = jnp.asarray(regularity, like.dtype)
+    return jnp.where(jnp.isfinite(r), jnp.sign(r), 0.0)
 
 
 def _all_finite(tree):
@@ -107,6 +147,13 @@ def _all_finite(tree):
     ok = jnp.array(True)
     for leaf in leaves:
         ok = ok & jnp.all(jnp.isfinite(leaf))
+    return ok
+
+
+def _all_equal(a, b):
+    ok = jnp.array(True)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        ok = ok & jnp.all(x == y)
     return ok
 
 
@@ -132,41 +179,56 @@ def _first_float(z):
 
 
 @functools.partial(jax.jit, static_argnames=("system", "n_steps", "save_every"))
-def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
+def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol):
     dtype = jnp.result_type(*[x for x in jax.tree_util.tree_leaves(z0) if _is_continuous(x)])
     dt = jnp.asarray(dt, dtype)
     t0 = jnp.asarray(t0, dtype)
+    error_tol = jnp.asarray(error_tol, dtype)
     # traced once, reused by the four RK stages and the final evaluation (XLA inlines it):
     # cuts tracing and compile time of the rollout and of its gradient several-fold
     field = jax.jit(lambda t, z: system.vector_field(t, z, params))
     post_step = getattr(system, "post_step", None)
 
     def step(carry, i):
-        zt, alive, diag = carry
+        zt, alive, diag, sign_prev, k4_prev, est_ok = carry
         z = _from_scalars(zt, z0)
         t = t0 + i.astype(dtype) * dt
-        z_next, aux = rk4_step(field, t, z, dt)
+        z_next, aux, k1, k4 = _rk4(field, t, z, dt)
+        jumped = jnp.array(False)
         if post_step is not None:   # hybrid systems: discrete transition at the end of the step
-            z_next = post_step(t + dt, z_next, params)
+            z_post = post_step(t + dt, z_next, params)
+            jumped = ~_all_equal(z_post, z_next)
+            z_next = z_post
         margin = jnp.asarray(aux.margin, dtype)
+        sign = _sign(aux.regularity, margin)
+        crossed = sign_prev * sign < 0                              # det K changed sign since the last step
+        est = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1), _continuous(z)))
+        est = jnp.where(est_ok, est, 0.0)
         finite_here = _all_finite((aux.control, margin))
-        sample_ok = alive & finite_here & (margin > margin_floor)   # the state z at time t
+        regular = (margin > margin_floor) & ~crossed
+        accurate = ~(est > error_tol)
+        sample_ok = alive & finite_here & regular & accurate   # the state z at time t
         finite_next = _all_finite(z_next)
         ok = sample_ok & finite_next                                # may we go on from z?
         newly_failed = alive & ~ok
         better = sample_ok & (margin < diag.min_margin)
         diag = Diagnostics(
             nonfinite=diag.nonfinite | (alive & ~(finite_here & finite_next)),
-            singular=diag.singular | (alive & finite_here & ~(margin > margin_floor)),
+            singular=diag.singular | (alive & finite_here & ~regular),
             failed=diag.failed | newly_failed,
             t_failure=jnp.where(newly_failed, t, diag.t_failure),
             min_margin=jnp.where(better, margin, diag.min_margin),
             t_min_margin=jnp.where(better, t, diag.t_min_margin),
+            inaccurate=diag.inaccurate | (alive & finite_here & ~accurate),
+            error_estimate=jnp.where(alive & jnp.isfinite(est), jnp.maximum(diag.error_estimate, est),
+                                     diag.error_estimate),
         )
         # double where: no NaN leaks into grads
         z_keep = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, jnp.where(finite_next, a, b), b), z_next, z)
         zt_next = _to_scalars(z_keep)
-        return (zt_next, ok, diag), (z, aux.control, margin, sample_ok)
+        sign_next = jnp.where(sign != 0, sign, sign_prev)
+        carry = (zt_next, ok, diag, sign_next, _continuous(k4), ~jumped)
+        return carry, (z, aux.control, margin, sample_ok)
 
     # Reverse mode: rematerialise each step instead of storing its intermediates (the
     # jet of the linearizing law has hundreds); the backward pass then stays in cache.
@@ -176,8 +238,9 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
     first = _first_float(z0)
     bad0 = ~jnp.isfinite(first)
     inf = jnp.where(bad0, jnp.inf, jnp.inf * jnp.ones_like(first))
-    diag0 = Diagnostics(bad0, bad0 & False, bad0, jnp.where(bad0, t0, inf), inf, t0 + 0.0 * first)
-    carry = (_to_scalars(z0), ~bad0, diag0)
+    zero = 0.0 * jnp.where(bad0, 0.0, first)
+    diag0 = Diagnostics(bad0, bad0 & False, bad0, jnp.where(bad0, t0, inf), inf, t0 + zero, bad0 & False, zero)
+    carry = (_to_scalars(z0), ~bad0, diag0, zero, tuple(zero for _ in _continuous(z0)), bad0 & False)
 
     n_saves = n_steps // save_every
     rec0 = (z0, jnp.zeros_like(jnp.asarray(field(t0, z0)[1].control)), inf, ~bad0)
@@ -202,16 +265,24 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor):
     rest = jnp.arange(n_saves * save_every, n_steps)
     if rest.shape[0]:  # steps beyond the last saving chunk run without saving
         (carry, _), _ = jax.lax.scan(inner, (carry, rec0), (rest, jnp.ones_like(rest)))
-    zt, alive, diag = carry
+    zt, alive, diag, sign_prev, k4_prev, est_ok = carry
     z_final = _from_scalars(zt, z0)
     t_final = t0 + n_steps * dt
-    _, aux_f = field(t_final, z_final)
+    k1_f, aux_f = field(t_final, z_final)
     m_f = jnp.asarray(aux_f.margin, dtype)
-    final_ok = alive & _all_finite((aux_f.control, m_f)) & (m_f > margin_floor)
+    finite_f = _all_finite((aux_f.control, m_f))
+    regular_f = (m_f > margin_floor) & ~(sign_prev * _sign(aux_f.regularity, m_f) < 0)
+    est_f = jnp.where(est_ok, jax.lax.stop_gradient(
+        _error_estimate(dt, k4_prev, _continuous(k1_f), _continuous(z_final))), 0.0)
+    accurate_f = ~(est_f > error_tol)
+    final_ok = alive & finite_f & regular_f & accurate_f
     newly_failed = alive & ~final_ok
     diag = diag._replace(
-        nonfinite=diag.nonfinite | (alive & ~_all_finite((aux_f.control, m_f))),
-        singular=diag.singular | (alive & ~(m_f > margin_floor)),
+        nonfinite=diag.nonfinite | (alive & ~finite_f),
+        singular=diag.singular | (alive & finite_f & ~regular_f),
+        inaccurate=diag.inaccurate | (alive & finite_f & ~accurate_f),
+        error_estimate=jnp.where(alive & jnp.isfinite(est_f), jnp.maximum(diag.error_estimate, est_f),
+                                 diag.error_estimate),
         failed=diag.failed | newly_failed,
         t_failure=jnp.where(newly_failed, t_final, diag.t_failure))
     better = final_ok & (m_f < diag.min_margin)
@@ -310,39 +381,59 @@ def batch_map(fn, *args, chunk: int = 512, mesh=None):
     return jax.tree_util.tree_map(lambda x: x[:b], out)
 
 
-def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 1, margin_floor=1e-9) -> Trajectory:
+def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 1, margin_floor=1e-9,
+             error_tol=1e-3) -> Trajectory:
     """Simulate one closed loop with fixed-step RK4.
 
     Args:
       system: a closed-loop object (static, hashable) with
-        ``vector_field(t, z, params) -> (dz/dt, aux)``, ``aux`` having ``control`` and
-        ``margin`` (e.g. :class:`wmrjax.controllers.DynamicLinearization`), and optionally
+        ``vector_field(t, z, params) -> (dz/dt, aux)``, ``aux`` an :class:`wmrjax.Aux`
+        (``control``, ``margin``, optional signed ``regularity``), e.g.
+        :class:`wmrjax.controllers.DynamicLinearization`; optionally
         ``post_step(t, z, params) -> z``, a discrete transition applied at the end of every
-        step (hybrid systems, e.g. :class:`wmrjax.controllers.hybrid.Hybrid`).
+        step (hybrid systems, e.g. :class:`wmrjax.controllers.hybrid.Hybrid`), and
+        ``check_run(params, *, t0, dt, n_steps)``, which validates concrete parameters for
+        this run before compilation (the controllers: parameters of this controller, a step
+        inside RK4's stability region for the error dynamics, the reference over the horizon).
       z0: initial state, unbatched (``vmap`` to batch): an array of shape (n,) or a pytree of
-        arrays with n components in all (e.g. :class:`wmrjax.HybridState`).
+        arrays with n components in all (e.g. :class:`wmrjax.HybridState`). Real; a float32
+        state is promoted to the default float type.
       params: pytree of arrays the closed loop depends on (gains, reference, geometry).
       dt: step [s], > 0.
       n_steps: number of steps (static).
-      t0: initial time [s].
+      t0: initial time [s], finite.
       save_every: keep every k-th state (static); the final state is always kept.
         With ``save_every = n_steps`` only the initial and final states are stored.
-      margin_floor: a run fails when its margin is ``<= margin_floor``.
+      margin_floor: a run fails (``singular``) when its margin is ``<= margin_floor`` (>= 0),
+        or when the sign of its regularity function changes between two steps.
+      error_tol: a run fails (``inaccurate``) when a step's local error estimate (relative
+        to ``1 + |z_i|``; :attr:`Diagnostics.error_estimate`) exceeds it (> 0; ``inf``: never).
 
     Returns:
       :class:`Trajectory`.
 
     Raises:
-      ValueError: on a non-positive ``dt``, ``n_steps`` or ``save_every``, or a non-finite
-        or wrongly-shaped ``z0`` (checked before compilation).
+      ValueError: on a non-positive ``dt``, ``n_steps`` or ``save_every``, a non-finite
+        ``t0``, a negative or NaN ``margin_floor`` or ``error_tol``, a non-finite, complex or
+        wrongly-shaped ``z0``, a saved trajectory larger than the machine's memory, or
+        what the system's ``check_run`` refuses (all checked before compilation).
     """
     n_steps = check_int("n_steps", n_steps, 1)
     save_every = check_int("save_every", save_every, 1)
     if save_every > n_steps:
         raise ValueError(f"save_every must be <= n_steps ({n_steps}), got {save_every}")
     dtv = concrete(dt)
-    if dtv is not None and not (np.ndim(dtv) == 0 and np.isfinite(dtv) and dtv > 0):
-        raise ValueError(f"dt must be a finite scalar > 0 [s], got {dt!r}")
+    if dtv is not None and not (np.ndim(dtv) == 0 and np.isrealobj(dtv) and np.isfinite(dtv) and dtv > 0):
+        raise ValueError(f"dt must be a finite real scalar > 0 [s], got {dt!r}")
+    t0v = concrete(t0)
+    if t0v is not None and not (np.ndim(t0v) == 0 and np.isrealobj(t0v) and np.isfinite(t0v)):
+        raise ValueError(f"t0 must be a finite real scalar [s], got {t0!r}")
+    floor = concrete(margin_floor)
+    if floor is not None and not (np.ndim(floor) == 0 and np.isrealobj(floor) and np.isfinite(floor) and floor >= 0):
+        raise ValueError(f"margin_floor must be a finite real scalar >= 0, got {margin_floor!r}")
+    tol = concrete(error_tol)
+    if tol is not None and not (np.ndim(tol) == 0 and np.isrealobj(tol) and tol > 0):
+        raise ValueError(f"error_tol must be a real scalar > 0 (inf disables the check), got {error_tol!r}")
     leaves = jax.tree_util.tree_leaves(z0)
     if not leaves:
         raise ValueError("z0 must be a state array (or a pytree of arrays), got an empty pytree")
@@ -363,5 +454,27 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
                          + f"; got shape {np.shape(z0) if is_array else [np.shape(x) for x in jax.tree_util.tree_leaves(z0)]}"
                          " (use jax.vmap to batch)")
     for leaf in jax.tree_util.tree_leaves(z0):
+        if jnp.issubdtype(jnp.result_type(leaf), jnp.complexfloating):
+            raise ValueError(f"z0 must be real, got a complex state of dtype {jnp.result_type(leaf)}")
         check_finite("z0", leaf)
-    return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor)
+    z0 = jax.tree_util.tree_map(                  # float32 with float64 enabled: promote, never mix
+        lambda x: x.astype(floating) if _is_continuous(x) and jnp.result_type(x) != floating else x, z0)
+    _check_memory(n_steps, save_every, size, floating)
+    check_run = getattr(system, "check_run", None)
+    if check_run is not None:
+        check_run(params, t0=t0, dt=dt, n_steps=n_steps)
+    return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol)
+
+
+def _check_memory(n_steps: int, save_every: int, n_state: int, dtype) -> None:
+    """ValueError when one run's saved samples cannot fit in this machine's memory."""
+    samples = n_steps // save_every + 1
+    need = samples * (2 * n_state + 4) * np.dtype(dtype).itemsize     # states, controls (<= n), margin, valid
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):   # pragma: no cover - non-POSIX
+        return
+    if need > total:
+        raise ValueError(f"n_steps = {n_steps} with save_every = {save_every} saves {samples} samples per run, "
+                         f"{need / 1e9:.3g} GB, more than this machine's {total / 1e9:.3g} GB of memory: "
+                         "raise dt or save_every")

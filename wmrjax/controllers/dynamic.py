@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import _math, robots
-from wmrjax._validate import check_finite, check_shape, concrete
+from wmrjax._validate import check_finite, check_real, check_shape, concrete
 from wmrjax.controllers.law import (DET_FLOOR, LEVELS, Extension, LinearizingController, Requirement,
                                     check_reference_type, check_requirements, make_gains, physical_state_names,
                                     validated_physical)
@@ -350,6 +350,11 @@ class DynamicLinearization(LinearizingController):
 
     _law_name = "dynamic linearizing law"
     _table = "Table 4"
+    _params_type = DynamicParams
+
+    @property
+    def _reference_requirement(self) -> str:
+        return self.row.regularity
 
     @property
     def state_names(self) -> tuple:
@@ -386,6 +391,11 @@ class DynamicLinearization(LinearizingController):
         robots.check_geometry(geometry)
         check_reference_type(reference)
         check_requirements(self.row.requires, geometry, f"type {self.robot.name} ({self.row.regularity})")
+        v0 = concrete(reference.velocity(jnp.zeros((), jnp.result_type(float))))
+        if v0 is not None and not (np.all(np.isfinite(v0)) and np.hypot(*v0) > 1e-9):
+            raise ValueError(f"reference {reference.name!r} is at rest at t = 0 (velocity {np.asarray(v0).tolist()} m/s): "
+                             f"Table 4 requires a moving reference ({self.row.regularity} along it); its heading "
+                             "is the path tangent, undefined at a stop")
         return DynamicParams(make_gains(gains, poles, self.m, self.relative_degree), reference, geometry)
 
     def params_unchecked(self, reference: Reference, poles, geometry: Geometry) -> DynamicParams:
@@ -444,6 +454,7 @@ class DynamicLinearization(LinearizingController):
         Raises:
           ValueError: if ``zeta0`` is on the singular set or on the other branch than the reference.
         """
+        check_real("zeta0", zeta0)
         zeta0 = jnp.asarray(zeta0, dtype=jnp.result_type(float))
         check_shape("zeta0", zeta0, (self.relative_degree, self.m), "(Y, Y', ...) stacked by derivative order")
         check_finite("zeta0", zeta0)
@@ -496,20 +507,10 @@ class DynamicLinearization(LinearizingController):
         zr = jax.vmap(lambda t: self.reference_state(t, params))(ts)
         return ts, jax.vmap(lambda z: self.margin(z, params))(zr), jax.vmap(lambda z: self.branch_quantity(z, params))(zr)
 
-    def check_reference(self, params: DynamicParams, t_final, n: int = 201, floor: float = 1e-6) -> None:
-        """Raise ValueError if the reference reaches the singular set on [0, t_final].
-
-        The reference's own extended state must stay regular (Lemma 2, condition 2) and
-        on one branch (Remark 17); a reference that stops (zero speed) fails.
-        """
-        ts, m, q = (np.asarray(a) for a in self.reference_margins(params, t_final, n))
-        bad = ~np.isfinite(m) | (m <= floor) | (np.sign(q) != self.reference_branch(params))
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise ValueError(
-                f"reference {params.reference.name!r} reaches the singular set of type {self.robot.name} at "
-                f"t = {ts[i]:.3g} s (margin {m[i]:.3g}); Table 4 requires {self.row.regularity} along "
-                "the reference (it must not stop or reverse)")
+    def reference_regularity(self, t, params: DynamicParams):
+        """Margin and branch quantity of the reference's extended state at time t (Lemma 2, condition 2)."""
+        z = self.reference_state(t, params)
+        return self.margin(z, params), self.branch_quantity(z, params)
 
 
 @functools.partial(jax.jit, static_argnums=0)

@@ -174,7 +174,16 @@ class Hybrid:
         zdot = HybridState(jnp.concatenate([Xdot, chi_dot[None]]), jnp.zeros_like(z.mode),
                            jnp.zeros_like(z.t_switch), jnp.zeros_like(z.at_switch))
         margin = jnp.where(parking, jnp.ones_like(aux_t.margin), aux_t.margin)
-        return zdot, Aux(u, margin)   # applied (eta1, eta2); |chi1| while tracking, 1 while parking
+        regularity = jnp.where(parking, jnp.nan, aux_t.regularity)   # no singular set while parking
+        return zdot, Aux(u, margin, regularity)   # applied (eta1, eta2); |chi1| while tracking, 1 while parking
+
+    def check_run(self, params, *, t0, dt, n_steps: int) -> None:
+        """Before compiling: hybrid parameters, and a step that is stable for the tracking phase."""
+        del t0, n_steps
+        if not isinstance(params, HybridParams):
+            raise ValueError(f"params must be HybridParams (build them with hybrid_parking().params), got {type(params).__name__}")
+        self.tracking.check_params(params.tracking)
+        self.tracking.check_step(params.tracking, dt)
 
     def post_step(self, t, z: HybridState, params: HybridParams) -> HybridState:
         """Discrete transition at the end of a step: switch when inside the disk (once)."""

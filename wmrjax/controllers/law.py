@@ -30,10 +30,11 @@ import math
 from typing import Any, Callable, NamedTuple, Protocol, runtime_checkable
 
 import jax
+import numpy as np
 import jax.numpy as jnp
 
 from wmrjax import _math, linearize, robots
-from wmrjax._validate import check_finite, check_shape, concrete
+from wmrjax._validate import check_finite, check_real, check_shape, concrete
 from wmrjax.gains import Gains
 from wmrjax.references import Reference
 from wmrjax.robots import Geometry, RobotType
@@ -46,10 +47,21 @@ LEVELS = ("velocity", "torque")
 
 
 class Aux(NamedTuple):
-    """What a closed-loop evaluation reports besides the state derivative."""
+    """What a closed-loop evaluation reports besides the state derivative.
 
-    control: jnp.ndarray   # plant input: u (velocity level) or v (torque level)
-    margin: jnp.ndarray    # singularity margin (|det K| for the linearizing laws; Remark 14)
+    Attributes:
+      control: plant input: u (velocity level) or v (torque level).
+      margin: singularity margin, >= 0 (|det K| for the linearizing laws; Remark 14).
+      regularity: optional signed regularity function whose zero set is the singular set
+        (``det K`` for the linearizing laws), so that ``margin = |regularity|``; a change of
+        its sign between two evaluations of a run is a crossing of the singular set
+        (:func:`wmrjax.simulate` flags it however large the sampled margins are). NaN (or
+        None) where the system has no singular set at that point.
+    """
+
+    control: jnp.ndarray
+    margin: jnp.ndarray
+    regularity: Any = None
 
 
 @runtime_checkable
@@ -217,12 +229,15 @@ class LinearizingLaw:
             err = err.at[0, i].set(_math.wrap_angle(err[0, i]))
         return err
 
+    def regularity_from_det(self, z, det, g):
+        """Signed regularity: ``det K`` (times the extension's extra factor); zero on the singular set."""
+        if self.extension.extra_margin is not None:
+            return det * self.extension.extra_margin(z, g)
+        return det
+
     def margin_from_det(self, z, det, g):
         """Singularity margin from ``det K``: |det K| (times the extension's extra factor)."""
-        m = jnp.abs(det)
-        if self.extension.extra_margin is not None:
-            m = m * jnp.abs(self.extension.extra_margin(z, g))
-        return m
+        return jnp.abs(self.regularity_from_det(z, det, g))
 
     def margin(self, z, g):
         """Singularity margin at ``z``; 0 on the singular set."""
@@ -238,6 +253,11 @@ class LinearizingLaw:
         Returns:
           ``(U, margin)``; the division by ``det K`` is clamped at :data:`DET_FLOOR`.
         """
+        U, reg = self._control(yref, z, coeffs, g)
+        return U, jnp.abs(reg)
+
+    def _control(self, yref, z, coeffs, g):
+        """``(U, signed regularity)`` of :meth:`control`."""
         zeta, a, K = self.jet(z, g)
         r = self.relative_degree
         err = self.wrap_error(zeta - yref[:r])
@@ -245,12 +265,12 @@ class LinearizingLaw:
         for j in range(r):
             w = w - coeffs[:, j] * err[j]
         num, det = _math.adjugate_solve(K, w - a)
-        return num / _math.safe_divisor(det, DET_FLOOR), self.margin_from_det(z, det, g)
+        return num / _math.safe_divisor(det, DET_FLOOR), self.regularity_from_det(z, det, g)
 
     def closed_loop(self, yref, z, coeffs, g):
-        """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin) under :meth:`control`."""
-        U, margin = self.control(yref, z, coeffs, g)
-        return self.field(z, U, g), Aux(self.plant_control(z, U, g), margin)
+        """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin, det K) under :meth:`control`."""
+        U, reg = self._control(yref, z, coeffs, g)
+        return self.field(z, U, g), Aux(self.plant_control(z, U, g), jnp.abs(reg), reg)
 
     def error(self, yref, z, g):
         r""":math:`\Psi(z) - \zeta_{ref}`, shape (r, m), angle outputs wrapped (``yref``: (>= r, m))."""
@@ -273,6 +293,8 @@ def physical_state_names(robot: RobotType) -> tuple:
 
 def validated_physical(robot: RobotType, X, u):
     """(X, u) as float arrays, with a ValueError for wrong shapes or non-finite values (concrete only)."""
+    check_real("X", X)
+    check_real("u", u)
     X = jnp.asarray(X, dtype=jnp.result_type(float))
     u = jnp.asarray(u, dtype=jnp.result_type(float))
     check_shape("X", X, (robot.n_state,), "(x, y, theta, beta...)")
@@ -295,8 +317,96 @@ def make_gains(gains, poles, m: int, r: int):
 
 
 def check_reference_type(reference) -> None:
+    """ValueError unless ``reference`` is a :class:`Reference` whose path returns a (2,) position."""
     if not isinstance(reference, Reference):
         raise ValueError(f"reference must be a wmrjax.references.Reference, got {type(reference).__name__}")
+    if reference.path is None:
+        raise ValueError("reference.path is None: build references with wmrjax.references (e.g. from_function)")
+    try:
+        out = jax.eval_shape(reference.path, jax.ShapeDtypeStruct((), jnp.result_type(float)), reference.params)
+    except Exception as exc:   # a path that cannot be traced (NumPy calls, Python control flow on t)
+        raise ValueError(f"reference {reference.name!r}: its path(t, params) cannot be traced by JAX ({type(exc).__name__}: "
+                         f"{str(exc).splitlines()[0][:200]}); write it with jax.numpy so that its derivatives exist") from None
+    if getattr(out, "shape", None) != (2,):
+        raise ValueError(f"reference {reference.name!r}: path(t, params) must return the position (x, y) of shape (2,) "
+                         f"[m], got {getattr(out, 'shape', type(out).__name__)}; a heading comes from the path's "
+                         "tangent (add a constant with heading_offset)")
+
+
+# --- run checks shared by the siblings ---------------------------------------------------------
+
+REFERENCE_GRID_STEP = 0.01     # [s] spacing of the grid on which a reference is checked
+_BLOCK = 512                   # grid points per compiled evaluation (one compilation per controller)
+KINK_TOLERANCE = 1e-3          # relative jump of a derivative (per unit step) flagged as a kink
+
+# RK4's stability function R(s) = 1 + s + s^2/2 + s^3/6 + s^4/24; |R| <= 1 on its region
+_RK4 = np.array([1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0])
+
+
+def rk4_amplification(s):
+    """|R(s)| of classical RK4 at ``s = dt * lambda`` (stable where <= 1)."""
+    return np.abs(np.polyval(_RK4, np.asarray(s, complex)))
+
+
+def rk4_max_step(poles) -> float:
+    """Largest dt with every ``dt * pole`` in RK4's stability region (poles with Re < 0) [s]."""
+    hi = 3.0 / max(float(np.max(np.abs(poles))), 1e-300)
+    lo = 0.0
+    for _ in range(60):                 # the region is star-shaped along these rays: bisect
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.all(rk4_amplification(mid * np.asarray(poles)) <= 1.0) else (lo, mid)
+    return lo
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _reference_profile(ctrl, ts, params):
+    """The reference jet (n, r + 1, m) and the controller's regularity of the reference on ``ts``."""
+    jets = jax.vmap(lambda t: ctrl.reference_jet(t, params))(ts)
+    level, branch = jax.vmap(lambda t: ctrl.reference_regularity(t, params))(ts)
+    return jets, level, branch
+
+
+def reference_profile(ctrl, params, t0: float, t_final: float, step: float = REFERENCE_GRID_STEP):
+    """``(ts, jets, level, branch)`` as NumPy arrays on a uniform grid of spacing <= ``step``
+    over [t0, t_final], evaluated in fixed-size compiled blocks; None if ``params`` are traced."""
+    n = max(2, int(np.ceil((t_final - t0) / step - 1e-9)) + 1)
+    ts = np.linspace(t0, t_final, n)
+    blocks = []
+    for i in range(0, n, _BLOCK):
+        tb = ts[i:i + _BLOCK]
+        pad = np.concatenate([tb, np.full(_BLOCK - tb.size, tb[-1])])
+        out = _reference_profile(ctrl, jnp.asarray(pad, dtype=jnp.result_type(float)), params)
+        out = [concrete(x) for x in out]
+        if any(x is None for x in out):
+            return None
+        blocks.append([x[: tb.size] for x in out])
+    return (ts,) + tuple(np.concatenate([b[k] for b in blocks]) for k in range(3))
+
+
+def find_kink(ts, jets, angle_outputs=()):
+    r"""First grid interval where a derivative the law uses jumps, or None.
+
+    On each interval of length h the trapezoid rule predicts :math:`Y^{(j)}(t_{k+1}) -
+    Y^{(j)}(t_k)` from :math:`Y^{(j+1)}` to :math:`h^3 |Y^{(j+3)}|/12` for a smooth path; a
+    jump J of :math:`Y^{(j+1)}` inside the interval leaves a residual of order :math:`J h/2`.
+    Flagged: a residual above ``KINK_TOLERANCE * h * (1 + max|Y^{(j+1)}|)``.
+
+    Returns:
+      ``(t_k, t_{k+1}, j, residual)`` or None.
+    """
+    h = np.diff(ts)[:, None]
+    for j in range(jets.shape[1] - 1):
+        d = np.diff(jets[:, j], axis=0)
+        if j == 0 and angle_outputs:
+            idx = list(angle_outputs)
+            d[:, idx] = (d[:, idx] + np.pi) % (2 * np.pi) - np.pi
+        res = np.abs(d - 0.5 * h * (jets[1:, j + 1] + jets[:-1, j + 1]))
+        scale = 1.0 + np.max(np.abs(jets[:, j + 1]), axis=0)
+        bad = res > KINK_TOLERANCE * h * scale
+        if bad.any():
+            k = int(np.argmax(bad.any(axis=1)))
+            return float(ts[k]), float(ts[k + 1]), j + 1, float(res[k].max())
+    return None
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -373,6 +483,11 @@ class LinearizingController:
         by ``det K`` is clamped at :data:`DET_FLOOR`."""
         return self.law.control(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
 
+    def control_and_regularity(self, t, z, params):
+        """``(U, det K)``: the law's new input and its signed regularity (zero on the singular set;
+        a sign change between two evaluations of a run is a crossing)."""
+        return self.law._control(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
+
     def margin(self, z, params):
         """Singularity margin at ``z``: |det K| (times the row's extra factor, the (1,1) lever of
         Table 4); 0 on the singular set."""
@@ -393,6 +508,92 @@ class LinearizingController:
     def check_regular(self, z, params, name: str = "initial state") -> None:
         """Raise ValueError if a concrete ``z`` is on (or numerically at) the row's singular set."""
         check_regular(self, z, params, name, self._law_name, self._table, self.row.regularity)
+
+    # -- run checks --
+    def check_params(self, params) -> None:
+        """ValueError unless ``params`` are this controller's (type, gain shape, reference type)."""
+        want = self._params_type
+        if not isinstance(params, want):
+            raise ValueError(f"params must be the {want.__name__} of this {self._law_name} (type {self.robot.name}, "
+                             f"{self.level} level; build them with its .params()), got {type(params).__name__}")
+        shape = tuple(np.shape(params.gains.coeffs))
+        if shape[-2:] != (self.m, self.relative_degree):
+            raise ValueError(f"params.gains.coeffs must have shape ({self.m}, {self.relative_degree}) for this "
+                             f"{self._law_name} (type {self.robot.name}, {self.level} level: m = {self.m} outputs, "
+                             f"relative degree {self.relative_degree}), got {shape}: parameters of another controller?")
+        check_reference_type(params.reference)
+
+    def error_poles(self, gains: Gains):
+        """Eigenvalues of the error dynamics (the closed-loop poles), or None for traced gains."""
+        c = concrete(gains.coeffs)
+        if c is None or np.ndim(c) != 2:
+            return None
+        # the roots of each output's polynomial s^r + k_{r-1} s^{r-1} + ... + k_0 (NumPy: also
+        # concrete inside a jit trace, where jnp would stage the computation)
+        return np.concatenate([np.roots(np.concatenate([[1.0], row[::-1]])) for row in np.asarray(c, float)])
+
+    def check_step(self, params, dt) -> None:
+        """ValueError if ``dt`` times a closed-loop pole lies outside RK4's stability region."""
+        dtv, poles = concrete(dt), self.error_poles(params.gains)
+        if dtv is None or poles is None or np.ndim(poles) != 1:
+            return
+        amp = rk4_amplification(float(dtv) * poles)
+        if np.any(amp > 1.0):
+            i = int(np.argmax(amp))
+            raise ValueError(f"dt = {float(dtv):.4g} s is outside RK4's stability region for this closed loop: "
+                             f"its error dynamics have a pole at {complex(poles[i]):.4g} 1/s, and |R(dt * pole)| = "
+                             f"{amp[i]:.3g} > 1, so the run would diverge numerically; use dt <= "
+                             f"{rk4_max_step(poles):.4g} s (and much smaller for accuracy)")
+
+    def check_reference(self, params, t_final, *, t0=0.0, floor: float = 1e-6) -> None:
+        """ValueError if the reference is unusable on [t0, t_final]: it reaches the singular set
+        (a stop, a reversal, the wrong branch) or has a kink (a jump in a derivative the law
+        uses), checked on a grid of spacing <= :data:`REFERENCE_GRID_STEP`. No-op for traced params."""
+        for name, v in (("t0", t0), ("t_final", t_final)):
+            c = concrete(v)
+            if c is None:
+                return
+            if not (np.ndim(c) == 0 and np.isfinite(c)):
+                raise ValueError(f"{name} must be a finite time [s], got {v!r}")
+        t0, t_final = float(t0), float(t_final)
+        if not t_final > t0:
+            raise ValueError(f"the horizon must end after it starts: t0 = {t0} s, t_final = {t_final} s")
+        prof = reference_profile(self, params, t0, t_final)
+        if prof is None:
+            return
+        ts, jets, level, branch = prof
+        level = self._reference_level(level, params)
+        bad = ~np.isfinite(level) | (level <= floor) | (np.sign(branch) != self.reference_branch(params))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(
+                f"reference {params.reference.name!r} reaches the singular set of the {self._law_name} (type "
+                f"{self.robot.name}) at t = {ts[i]:.4g} s (regularity {level[i]:.3g}); {self._table} requires "
+                f"{self._reference_requirement} on [{t0:g}, {t_final:g}] s (it must not stop or reverse)")
+        if not np.all(np.isfinite(jets)):
+            i = int(np.argmax(~np.isfinite(jets).reshape(len(ts), -1).all(axis=1)))
+            raise ValueError(f"reference {params.reference.name!r} has a non-finite derivative at t = {ts[i]:.4g} s")
+        kink = find_kink(ts, jets, self.row.extension.angle_outputs)
+        if kink is not None:
+            a, b, j, res = kink
+            raise ValueError(f"reference {params.reference.name!r} is not smooth enough for the {self._law_name}: its "
+                             f"derivative of order {j} jumps between t = {a:.4g} and {b:.4g} s (trapezoid residual "
+                             f"{res:.3g}); the law uses derivatives up to order {self.relative_degree}, which must be "
+                             "continuous (a kink or corner in the path)")
+
+    def _reference_level(self, raw, params):
+        """The regularity level (>= 0, 0 singular) from what ``reference_regularity`` returned."""
+        del params
+        return raw
+
+    def check_run(self, params, *, t0, dt, n_steps: int) -> None:
+        """What :func:`wmrjax.simulate` checks before compiling: these are this controller's
+        parameters, ``dt`` is stable for the error dynamics, the reference is usable over the run."""
+        self.check_params(params)
+        self.check_step(params, dt)
+        dtv, t0v = concrete(dt), concrete(t0)
+        if dtv is not None and t0v is not None:
+            self.check_reference(params, float(t0v) + n_steps * float(dtv), t0=float(t0v))
 
     def _unchecked_gains(self, poles) -> Gains:
         """Real poles broadcast to (m, r), without validation (traced values)."""

@@ -227,6 +227,7 @@ class StaticLinearization(LinearizingController):
 
     _law_name = "static linearizing law"
     _table = "Table 3"
+    _params_type = StaticParams
 
     @property
     def task(self) -> str:
@@ -357,12 +358,25 @@ class StaticLinearization(LinearizingController):
         self.check_regular(z, params)
         return z
 
-    def check_reference(self, params, t_final, n: int = 201, floor: float = 1e-6) -> None:
-        """ValueError if the steering reference reaches the singular set on [0, t_final] (the only
-        way a reference makes Table 3's K singular; ``floor`` is accepted for the dynamic laws' signature)."""
-        del floor
-        if params.steering is not None:
-            self.check_steering(params, t_final, n)
+    def reference_branch(self, params) -> int:
+        """Static laws have one branch."""
+        del params
+        return 1
+
+    def reference_regularity(self, t, params: StaticParams):
+        """The steering reference at time t (its level is taken in :meth:`_reference_level`), or 1."""
+        one = jnp.ones((), jnp.result_type(float))
+        return (params.steering(t) if params.steering is not None else one), one
+
+    def _reference_level(self, raw, params):
+        if params.steering is None:
+            return raw
+        delta = concrete(params.geometry.delta)
+        return raw if delta is None else self.row.steering_level(np.asarray(raw), float(delta))
+
+    @property
+    def _reference_requirement(self) -> str:
+        return self.row.steering_condition or "a regular reference"
 
 
 def static_linearization(robot, level: str = "velocity") -> StaticLinearization:
