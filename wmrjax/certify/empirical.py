@@ -15,16 +15,43 @@ import numpy as np
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 from wmrjax.certify.exact_map import singular_rows
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
+from wmrjax._validate import check_int, check_positive, concrete
 from wmrjax.simulate import simulate
 
 
-def n_steps_for(t_final: float, dt: float) -> int:
+def check_vectors(name: str, x, width: int, what: str, nonzero: bool = False) -> np.ndarray:
+    """ValueError unless ``x`` is a non-empty (N, width) real finite array (rows nonzero if asked)."""
+    v = concrete(x)
+    if v is None:
+        return x
+    v = np.asarray(v)
+    if v.ndim != 2 or v.shape[0] < 1 or v.shape[1] != width:
+        raise ValueError(f"{name} must have shape (N, {width}) with N >= 1 ({what}), got shape {v.shape}")
+    if not np.isrealobj(v) or not np.issubdtype(v.dtype, np.number) or not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} must be real and finite ({what})")
+    if nonzero and np.any(np.linalg.norm(v, axis=1) == 0):
+        raise ValueError(f"{name} has a zero row: every row is a direction ({what})")
+    return v
+
+
+def error_width(ctrl) -> int:
+    """Size r m of an initial error in Table 4 ordering."""
+    return ctrl.relative_degree * ctrl.m
+
+
+def n_steps_for(t_final: float, dt: float, dt_name: str = "dt") -> int:
     """Number of RK4 steps covering [0, t_final] with step dt (ValueError for a bad pair)."""
-    if not (np.isfinite(dt) and dt > 0 and np.isfinite(t_final) and t_final > 0):
-        raise ValueError(f"t_final and dt must be finite and > 0 [s], got t_final = {t_final!r}, dt = {dt!r}")
+    def real_scalar(v):
+        a = np.asarray(v) if not isinstance(v, bool) else np.asarray(None)
+        return a.ndim == 0 and a.dtype.kind in "iuf"
+
+    if not (real_scalar(t_final) and real_scalar(dt)) or not (np.isfinite(dt) and dt > 0 and np.isfinite(t_final)
+                                                              and t_final > 0):
+        raise ValueError(f"t_final and {dt_name} must be finite real numbers > 0 [s], got t_final = {t_final!r}, "
+                         f"{dt_name} = {dt!r}")
     n = int(round(t_final / dt))
     if n < 1:
-        raise ValueError(f"dt = {dt} s is longer than the horizon t_final = {t_final} s")
+        raise ValueError(f"{dt_name} = {dt} s is longer than the horizon t_final = {t_final} s")
     return n
 
 
@@ -58,8 +85,14 @@ def verify(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
     Returns:
       :class:`Verification`.
     """
-    check_dynamic(ctrl)
+    check_dynamic(ctrl, params)
     n_steps = n_steps_for(t_final, dt)
+    check_vectors("initial_errors", initial_errors, error_width(ctrl), "initial errors, Table 4 ordering")
+    save_every = check_int("save_every", save_every, 1)
+    if not callable(k2):
+        raise ValueError(f"k2 must be a function ts -> K2(ts), got {type(k2).__name__}")
+    if not (np.isfinite(tol) and tol >= 0):
+        raise ValueError(f"tol must be finite and >= 0, got {tol!r}")
     branch = jnp.asarray(float(ctrl.reference_branch(params)))
     n_saves = n_steps // save_every
     ts = dt * save_every * jnp.arange(n_saves + 1, dtype=jnp.result_type(float))
@@ -88,10 +121,14 @@ def _verify(ctrl, params, errs, k2, branch, tol, dt, n_steps, save_every):
 
 
 def run_from_error(ctrl, params, e0, branch, dt, n_steps, save_every):
+    """Simulate from the initial error ``e0``. No error-estimate tolerance: these runs measure the
+    approach to the singular set, where the law's 1 / det K terms make any fixed step locally
+    inaccurate; singular states and crossings of the singular set are flagged as always, and the
+    falsifier confirms its failures on a ten times finer step."""
     r = ctrl.relative_degree
     zeta0 = ctrl.reference_jet(jnp.asarray(0.0), params)[:r] + e0.reshape(r, ctrl.m)
     z0 = ctrl.inverse_psi(zeta0, params, branch)
-    return simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=save_every), z0
+    return simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=save_every, error_tol=math.inf), z0
 
 
 def distance_along(ctrl, params, tr, chord=False):
@@ -134,8 +171,10 @@ def min_distance(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: 
     Returns:
       :class:`Distances`.
     """
-    check_dynamic(ctrl)
+    check_dynamic(ctrl, params)
     n_steps = n_steps_for(t_final, dt)
+    check_vectors("initial_errors", initial_errors, error_width(ctrl), "initial errors, Table 4 ordering")
+    save_every = check_int("save_every", save_every, 1)
     branch = jnp.asarray(float(ctrl.reference_branch(params)))
     return Distances(*_min_distance(ctrl, params, jnp.asarray(initial_errors), branch, dt, n_steps, save_every))
 
@@ -184,9 +223,14 @@ def empirical_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     Returns:
       :class:`EmpiricalRadius`.
     """
-    check_dynamic(ctrl)
+    check_dynamic(ctrl, params)
     check_lemma2_args(t_final=t_final, eps=eps)
-    dirs = np.asarray(directions)
+    n_steps_for(t_final, dt)
+    check_positive("r_max", r_max)
+    n_grid = check_int("n_grid", n_grid, 2)
+    for k, v in (("n_dips", n_dips), ("n_golden", n_golden), ("n_bisect", n_bisect)):
+        check_int(k, v, 1)
+    dirs = check_vectors("directions", directions, error_width(ctrl), "unit directions of initial errors", nonzero=True)
     D = dirs.shape[0]
     g = np.linspace(0.0, r_max, n_grid + 1)[1:]
     runs = 0

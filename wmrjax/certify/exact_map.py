@@ -113,7 +113,7 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     Raises:
       ValueError: bad eps/horizon, a reference within eps of the singular set, or type (1,2).
     """
-    check_dynamic(ctrl)
+    check_dynamic(ctrl, params)
     check_lemma2_args(t_final=t_final, eps=eps)
     rows = singular_rows(ctrl)
     if rows is None:

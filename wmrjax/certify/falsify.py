@@ -11,7 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax.certify.empirical import distance_along, run_from_error, min_distance, n_steps_for
+from wmrjax._validate import check_int, check_positive
+from wmrjax.certify.empirical import check_vectors, distance_along, min_distance, n_steps_for, run_from_error
 from wmrjax.certify.exact_map import slice_basis
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
@@ -49,9 +50,14 @@ def falsify(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
       steps, learning_rate: Adam iterations and initial step size (on the unit sphere).
       n_windows: number of time windows the starts are spread over.
     """
-    check_dynamic(ctrl)
+    check_dynamic(ctrl, params)
     n_steps = n_steps_for(t_final, dt)
     P = slice_basis(ctrl, basis)
+    check_positive("radius", radius)
+    check_vectors("starts", starts, P.shape[1], "initial directions in slice coordinates", nonzero=True)
+    steps = check_int("steps", steps, 1)
+    n_windows = check_int("n_windows", n_windows, 1)
+    check_positive("learning_rate", learning_rate)
     branch = jnp.asarray(float(ctrl.reference_branch(params)))
     u0 = jnp.asarray(starts)
     edges = jnp.linspace(0.0, dt * n_steps, n_windows + 1)
@@ -136,8 +142,17 @@ def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     Returns:
       :class:`FalsifiedRadius` (radius None if nothing failed up to 16 r_hi).
     """
-    check_dynamic(ctrl)
+    check_dynamic(ctrl, params)
     check_lemma2_args(t_final=t_final, eps=eps)
+    n_steps_for(t_final, dt)
+    check_positive("r_hi", r_hi)
+    if not (np.isfinite(r_lo) and 0 <= r_lo < r_hi):
+        raise ValueError(f"r_lo must satisfy 0 <= r_lo < r_hi = {r_hi}, got {r_lo!r}")
+    n_starts = check_int("n_starts", n_starts, 1)
+    check_int("steps", steps, 1)
+    check_int("n_bisect", n_bisect, 0)
+    check_int("n_windows", n_windows, 1)
+    check_positive("learning_rate", learning_rate)
     P = slice_basis(ctrl, basis)
     if P.shape[1] == 2:     # a plane: evenly spaced angles, randomly rotated
         ang = jnp.linspace(0.0, 2.0 * math.pi, n_starts, endpoint=False) + jax.random.uniform(key, (), maxval=math.pi)

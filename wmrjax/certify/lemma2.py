@@ -34,13 +34,16 @@ from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 
 # --- M1 -------------------------------------------------------------------------------
 
-def check_dynamic(ctrl) -> None:
-    """ValueError unless ``ctrl`` is a dynamic linearizing law (the only one Lemma 2 is about)."""
+def check_dynamic(ctrl, params=None) -> None:
+    """ValueError unless ``ctrl`` is a dynamic linearizing law (the only one Lemma 2 is about)
+    and ``params`` (when given) are its parameters."""
     if not isinstance(ctrl, DynamicLinearization):
         raise ValueError(
             f"certification needs a dynamic linearizing controller (wmrjax.dynamic_linearization), got "
             f"{type(ctrl).__name__}: Lemma 2's M1 is the distance of the reference's output jet to the singular "
             "set of Psi (Remark 16), which a static law does not have")
+    if params is not None:
+        ctrl.check_params(params)
 
 
 def m1_closed_form(ctrl: DynamicLinearization, params: DynamicParams, ts):
@@ -58,7 +61,7 @@ def m1_closed_form(ctrl: DynamicLinearization, params: DynamicParams, ts):
     Returns:
       (T,) array.
     """
-    check_dynamic(ctrl)
+    check_dynamic(ctrl, params)
     return jax.vmap(lambda t: ctrl.singular_distance(ctrl.reference_jet(t, params), params))(jnp.asarray(ts))
 
 
@@ -78,7 +81,7 @@ def m1_numerical(ctrl: DynamicLinearization, params: DynamicParams, ts, iters: i
     Returns:
       (T,) array.
     """
-    check_dynamic(ctrl)
+    check_dynamic(ctrl, params)
     r = ctrl.relative_degree
 
     def dist_family(t, idx, val, dtheta):
@@ -224,6 +227,8 @@ class Lemma2Report(NamedTuple):
 
 
 M1_METHODS = ("closed", "numerical")
+MIN_GRID = 3            # time samples of min F: at least both ends and a midpoint
+GRID_RTOL = 1e-4        # refining the grid may lower min F by at most this fraction
 
 
 def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float, n_t: int = 1001,
@@ -233,7 +238,8 @@ def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
     Args:
       ctrl, params: the closed loop (a dynamic linearizing law).
       t_final: horizon [s]; eps: Lemma 2's margin.
-      n_t: size of the uniform time grid on which min F is taken.
+      n_t: size of the uniform time grid on which min F is taken (>= 3); the grid is refused
+        when F at the grid's midpoints dips more than ``GRID_RTOL`` below its grid minimum.
       m1: "closed" (Remark 16 in closed form, every type) or "numerical" (Remark 16 by local
         search: an upper bound of the distance, so not conservative; for cross-checks).
 
@@ -241,20 +247,41 @@ def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
       :class:`Lemma2Report`.
 
     Raises:
-      ValueError: a static law, an unknown ``m1``, bad eps/horizon, or a reference within eps
-        of the singular set.
+      ValueError: a static law, an unknown ``m1``, bad eps/horizon, a grid too coarse to bound
+        min F, or a reference within eps of the singular set.
     """
-    check_dynamic(ctrl)
-    if m1 not in M1_METHODS:
+    check_dynamic(ctrl, params)
+    if not isinstance(m1, str) or m1 not in M1_METHODS:
         raise ValueError(f"m1 must be one of {M1_METHODS}, got {m1!r}")
+    if isinstance(n_t, bool) or not isinstance(n_t, (int, np.integer)) or n_t < MIN_GRID:
+        raise ValueError(f"n_t must be an integer >= {MIN_GRID} (time samples on which min F is taken), got {n_t!r}")
     check_lemma2_args(t_final=t_final, eps=eps)
     A = ctrl.error_matrix(params.gains)
+    paper_k2 = ctrl.relative_degree == 2 and params.gains.is_double_pole(1.0)
+
+    def certificates(ts):
+        m1v = m1_closed_form(ctrl, params, ts) if m1 == "closed" else m1_numerical(ctrl, params, ts)
+        check_lemma2_args(t_final=t_final, eps=eps, m1=m1v)
+        return (certificate(ts, m1v, k2_paper(ts), eps) if paper_k2 else None,
+                certificate(ts, m1v, k2_lyapunov(A, ts), eps), certificate(ts, m1v, k2_exact(A, ts), eps))
+
     ts = jnp.linspace(0.0, t_final, n_t)
-    m1v = m1_closed_form(ctrl, params, ts) if m1 == "closed" else m1_numerical(ctrl, params, ts)
-    check_lemma2_args(t_final=t_final, eps=eps, m1=m1v)
-    paper = None
-    if ctrl.relative_degree == 2 and params.gains.is_double_pole(1.0):
-        paper = certificate(ts, m1v, k2_paper(ts), eps)
+    certs = certificates(ts)
+    # the minimum of F over the grid must not move when the grid is refined (its midpoints, and
+    # 64 points on both intervals next to each certificate's grid minimum): a coarse grid can
+    # miss the dip of F and certify too much
+    tg = np.asarray(ts)
+    local = [np.linspace(tg[max(i - 1, 0)], tg[min(i + 1, n_t - 1)], 65)
+             for i in (int(np.argmin(np.asarray(c.F))) for c in certs if c is not None)]
+    refined = certificates(jnp.asarray(np.concatenate([0.5 * (tg[1:] + tg[:-1])] + local)))
+    for name, c, c2 in zip(("paper", "lyapunov", "exact_norm"), certs, refined):
+        if c is None:
+            continue
+        coarse, fine = float(c.radius), float(c2.radius)
+        if fine < coarse - GRID_RTOL * abs(coarse):
+            raise ValueError(f"n_t = {n_t} is too coarse to bound min F on [0, {t_final}] s: the {name} certificate's "
+                             f"min F is {coarse:.6g} on the grid but {fine:.6g} between its points (relative drop "
+                             f"{(coarse - fine) / abs(coarse):.2g} > {GRID_RTOL}); use a finer grid (e.g. n_t = {4 * n_t - 3} "
+                             "or more)")
     closed = "closed form (Lemma 3)" if ctrl.row.singular_set_is_linear else "closed form (1-D search over theta)"
-    return Lemma2Report(paper, certificate(ts, m1v, k2_lyapunov(A, ts), eps),
-                        certificate(ts, m1v, k2_exact(A, ts), eps), closed if m1 == "closed" else "numerical (Remark 16)")
+    return Lemma2Report(*certs, closed if m1 == "closed" else "numerical (Remark 16)")

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wmrjax._validate import check_int
 from wmrjax.certify.empirical import EmpiricalRadius, empirical_radius, n_steps_for, sample_sphere, verify
 from wmrjax.certify.exact_map import ExactMapRadius, exact_map_radius, singular_rows, slice_basis
 from wmrjax.certify.falsify import FalsifiedRadius, falsified_radius
@@ -125,9 +126,16 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     Returns:
       :class:`CertificationReport`.
     """
-    check_dynamic(ctrl)
+    check_dynamic(ctrl, params)
     t0 = time.time()
     n_steps = n_steps_for(t_final, dt)
+    n_steps_for(t_final, falsifier_dt, "falsifier_dt")
+    check_int("n_empirical", n_empirical, 0)
+    check_int("n_directions", n_directions, 1)
+    check_int("n_starts", n_starts, 0)
+    check_int("seed", seed, 0)
+    if not callable(log):
+        raise ValueError(f"log must be a function of one message, got {type(log).__name__}")
     cert = lemma2(ctrl, params, t_final=t_final, eps=eps, n_t=n_steps + 1)
     A = ctrl.error_matrix(params.gains)
     k2s = {"lyapunov": lambda ts: k2_lyapunov(A, ts), "exact_norm": lambda ts: k2_exact(A, ts)}
