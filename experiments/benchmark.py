@@ -219,23 +219,23 @@ def numpy_rollout_rhs(t, s):
 
 
 def main(argv=None) -> int:
+    from wmrjax import cli
+
     p = common.parser(__doc__.splitlines()[0], "results/benchmark")
-    p.add_argument("--batches", type=int, nargs="+", default=[1024, 16384, 65536])
-    p.add_argument("--reps", type=int, default=5, help="timed repetitions (best kept)")
-    p.add_argument("--grad-batch", type=int, default=1024)
-    p.add_argument("--scipy-trajectories", type=int, default=8)
-    p.add_argument("--devices", type=int, default=os.cpu_count() or 1,
-                   help="JAX host devices (one per core; sets XLA_FLAGS for this process only)")
+    p.add_argument("--batches", type=cli.count, nargs="+", default=[1024, 16384, 65536],
+                   help="batch sizes of the rollout comparison [trajectories]")
+    p.add_argument("--reps", type=cli.count, default=5, help="timed repetitions (best kept)")
+    p.add_argument("--grad-batch", type=cli.count, default=1024, help="batch of the gradient timing [trajectories]")
+    p.add_argument("--scipy-trajectories", type=cli.count, default=8, help="trajectories integrated one by one by SciPy")
+    p.add_argument("--devices", type=cli.count, default=os.cpu_count() or 1,
+                   help="JAX host devices (one per core; sets XLA_FLAGS for this process before JAX starts its backend)")
     here = Path(__file__).resolve().parent.parent
-    p.add_argument("--c-source", type=Path, default=here.parent / "shared" / "bench" / "closed_loop_simd.c")
+    p.add_argument("--c-source", type=Path, default=here.parent / "shared" / "bench" / "closed_loop_simd.c",
+                   help="the hand-vectorised C loop (the ceiling; skipped if missing)")
     a = p.parse_args(argv)
-    if any(b < 1 for b in a.batches) or a.reps < 1 or a.grad_batch < 1 or a.scipy_trajectories < 1 or a.devices < 1:
-        p.error("batch sizes, --reps, --grad-batch, --scipy-trajectories and --devices must be >= 1")
-    if "jax" in sys.modules:
-        print("note: JAX already imported; --devices has no effect", file=sys.stderr)
-    else:
-        flag = f"--xla_force_host_platform_device_count={a.devices}"
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
+    cli.prepare_output(p, a.out)
+    flag = f"--xla_force_host_platform_device_count={a.devices}"
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()   # read when the backend starts
     s = run(a.out, a.batches, a.reps, a.grad_batch, a.scipy_trajectories, a.c_source)
     g = s["gradient"]
     print(f"scipy solve_ivp: {s['scipy_solve_ivp_one_at_a_time']['equivalent_traj_steps_per_s'] / 1e6:.4f} M/s; "

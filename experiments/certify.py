@@ -22,7 +22,6 @@ empirical/falsifier measure is min_t |det K|.
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 
@@ -94,15 +93,17 @@ def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title="
 
 def run(out, robot="(2,0)", reference="paper_62", level="velocity", poles=1.0, t_final=10.0, eps=1e-2, dt=0.01,
         n_empirical=4096, n_directions=256, n_starts=16, heading_offset=None, map_grid=81, seed=0,
-        geometry=None) -> dict:
+        geometry=None, progress=None) -> dict:
+    say = progress or (lambda msg: print(msg, flush=True))
     common.enable_x64()
     t0 = time.time()
     ctrl, params = setup(robot, reference, level, poles, heading_offset, geometry)
-    print(f"certify {ctrl.robot.name} ({level}) along {reference}, T = {t_final} s, eps = {eps}", flush=True)
+    say(f"certify {ctrl.robot.name} ({level}) along {reference}, T = {t_final} s, eps = {eps}")
     from wmrjax import certify as C
 
     report = C.analyse(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_empirical=n_empirical,
-                       n_directions=n_directions, n_starts=n_starts, seed=seed, log=lambda m: print(m, flush=True))
+                       n_directions=n_directions, n_starts=n_starts, seed=seed, log=say)
+    say(f"slice map ({map_grid} x {map_grid} runs)")
     block = report.summary()
     out.mkdir(parents=True, exist_ok=True)
     summary = {"experiment": "certify", "robot": ctrl.robot.name, "level": level, "reference": reference,
@@ -119,30 +120,37 @@ def main(argv=None) -> int:
     import wmrjax as w
     from wmrjax import references as R
 
+    from wmrjax import cli
+
     p = common.parser(__doc__.splitlines()[0], "results/certify")
-    p.add_argument("--robot", default="(2,0)", help="robot type: (2,0), (2,1), (1,1) or (1,2) (default (2,0))")
-    p.add_argument("--reference", default="paper_62", help=f"named reference, one of {sorted(R.REFERENCES)}")
-    p.add_argument("--level", default="velocity", choices=["velocity", "torque"])
-    p.add_argument("--poles", type=float, default=1.0, help="closed-loop poles at -POLES (default 1, the paper's)")
-    p.add_argument("--t-final", type=float, default=10.0, help="horizon [s]")
-    p.add_argument("--eps", type=float, default=1e-2, help="Lemma 2's margin eps (default 0.01)")
-    p.add_argument("--dt", type=float, default=0.01, help="RK4 step of the empirical checks [s]")
-    p.add_argument("--n-empirical", type=int, default=4096, help="sampled initial errors per K2 (default 4096)")
-    p.add_argument("--n-directions", type=int, default=256, help="rays of the position-slice empirical radius")
-    p.add_argument("--n-starts", type=int, default=16, help="falsifier starts (default 16)")
-    p.add_argument("--heading-offset", type=float, default=None, help="reference heading offset [rad] (crab angle)")
-    p.add_argument("--map-grid", type=int, default=81, help="slice map resolution (default 81 x 81)")
-    p.add_argument("--geometry", type=float, nargs=3, default=None, metavar=("L", "E", "DELTA"),
-                   help="robot geometry [m, m, rad] (default: the paper's along paper_62/66 where it has one, "
+    p.add_argument("--robot", default="(2,0)", help="robot type: (2,0), (2,1), (1,1) or (1,2)")
+    p.add_argument("--reference", default="paper_62", choices=sorted(R.REFERENCES), help="named reference")
+    p.add_argument("--level", default="velocity", choices=["velocity", "torque"], help="velocity or torque level")
+    p.add_argument("--poles", type=cli.positive, default=1.0, help="closed-loop poles at -POLES [1/s] (1: the paper's)")
+    p.add_argument("--t-final", type=cli.positive, default=10.0, help="horizon [s]")
+    p.add_argument("--eps", type=cli.positive, default=1e-2, help="Lemma 2's margin eps [zeta units: m, m/s]")
+    p.add_argument("--dt", type=cli.positive, default=0.01, help="RK4 step of the empirical checks [s]")
+    p.add_argument("--n-empirical", type=cli.count, default=4096, help="sampled initial errors per K2")
+    p.add_argument("--n-directions", type=cli.count, default=256, help="rays of the position-slice empirical radius")
+    p.add_argument("--n-starts", type=cli.nonnegative_int, default=16, help="falsifier starts (0: no falsifier)")
+    p.add_argument("--heading-offset", type=cli.finite, default=None,
+                   help="reference heading offset [rad] (crab angle; None: the type's default)")
+    p.add_argument("--map-grid", type=cli.grid_size, default=81, help="slice map resolution (N x N runs)")
+    p.add_argument("--geometry", type=cli.finite, nargs=3, default=None, metavar=("L", "E", "DELTA"),
+                   help="robot geometry [m, m, rad] (None: the paper's along paper_62/66 where it has one, "
                         "else the type's default)")
     a = p.parse_args(argv)
+    cli.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=max(a.n_empirical, a.map_grid ** 2), saved_every=10)
     try:
         w.robot_type(a.robot)
-        for k in ("poles", "t_final", "eps", "dt"):
-            if not (math.isfinite(getattr(a, k)) and getattr(a, k) > 0):
-                raise ValueError(f"--{k.replace('_', '-')} must be finite and > 0, got {getattr(a, k)}")
-        s = run(a.out, a.robot, a.reference, a.level, a.poles, a.t_final, a.eps, a.dt, a.n_empirical,
-                a.n_directions, a.n_starts, a.heading_offset, a.map_grid, geometry=a.geometry)
+        setup(a.robot, a.reference, a.level, a.poles, a.heading_offset, a.geometry)   # geometry, reference: now
+    except ValueError as e:
+        p.error(str(e))
+    cli.prepare_output(p, a.out)
+    try:
+        with cli.heartbeat() as hb:
+            s = run(a.out, a.robot, a.reference, a.level, a.poles, a.t_final, a.eps, a.dt, a.n_empirical,
+                    a.n_directions, a.n_starts, a.heading_offset, a.map_grid, geometry=a.geometry, progress=hb.stage)
     except ValueError as e:
         p.error(str(e))
     keys = ["radius_paper", "radius_lyapunov", "radius_exact_norm", "radius_exact_map", "radius_exact_map_position_slice",

@@ -42,9 +42,10 @@ def enable_x64() -> None:
 
 
 def parser(description: str, default_out: str) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=description)
-    p.add_argument("--out", type=Path, default=Path(default_out), help=f"output directory (default {default_out})")
-    return p
+    """The experiments' parser (:func:`wmrjax.cli.parser`: defaults shown, ``--out``)."""
+    from wmrjax import cli
+
+    return cli.parser(description, default_out)
 
 
 def save_figure(fig, path: Path) -> None:
@@ -79,23 +80,29 @@ def section_6_1_setup():
 
 def tracking_cli(argv, doc, default_out, kinds, run_fn) -> int:
     """The command line shared by the tracking experiments."""
+    from wmrjax import cli
+
     p = parser(doc.splitlines()[0], default_out)
-    p.add_argument("--n-random", type=int, default=1024, help="random references per (type, level) (default 1024)")
-    p.add_argument("--t-final", type=float, default=15.0, help="horizon [s]")
-    p.add_argument("--dt", type=float, default=0.01, help="RK4 step [s]")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--n-random", type=cli.count, default=1024, help="random references per (type, level)")
+    p.add_argument("--t-final", type=cli.positive, default=15.0, help="horizon [s]")
+    p.add_argument("--dt", type=cli.positive, default=0.01, help="RK4 step [s]")
+    p.add_argument("--seed", type=cli.seed, default=0, help="PRNG seed of the random references and initial errors")
     p.add_argument("--types", nargs="+", default=list(kinds), help=f"subset of {' '.join(kinds)}")
     a = p.parse_args(argv)
-    if a.n_random < 1 or not a.t_final > 0 or not a.dt > 0:
-        p.error("--n-random must be >= 1, --t-final and --dt > 0")
+    cli.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=a.n_random, n_state=7, saved_every=10)
     import wmrjax as w
 
     try:
         chosen = tuple(w.robot_type(k).name for k in a.types)
     except ValueError as exc:
-        p.error(str(exc))
+        p.error(f"argument --types: {exc}")
+    bad = [k for k in chosen if k not in kinds]
+    if bad:
+        p.error(f"argument --types: {bad} not among this experiment's types {list(kinds)}")
+    cli.prepare_output(p, a.out)
     t0 = time.perf_counter()
-    run_fn(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=chosen)
+    with cli.heartbeat() as hb:
+        run_fn(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=chosen, progress=hb.stage)
     print(f"wrote {a.out}/summary.json and one PNG per type ({time.perf_counter() - t0:.0f} s)", file=sys.stdout)
     return 0
 

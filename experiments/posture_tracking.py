@@ -117,7 +117,7 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
 
 
 def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol_pos=1e-2, tol_head=1e-2, kinds=KINDS,
-        levels=LEVELS):
+        levels=LEVELS, progress=None):
     common.enable_x64()
     summary = {"experiment": "posture_tracking", "controller": "dynamic feedback linearization (Table 4, Prop 8)",
                "poles": "all at -1", "cases": {}}
@@ -125,6 +125,8 @@ def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol_pos=1e-2, tol
         per_level = {}
         for level in levels:
             t0 = time.perf_counter()
+            if progress is not None:
+                progress(f"{kind} {level}: compiling and running {n_random} random runs and two named references")
             res, traces, errs = run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head)
             per_level[level] = (traces, errs)
             summary["cases"][f"{kind} {level}"] = res

@@ -19,7 +19,8 @@ from experiments import common
 
 
 def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096, n_directions: int = 256,
-        n_starts: int = 16) -> dict:
+        n_starts: int = 16, progress=None) -> dict:
+    say = progress or (lambda msg: print(msg, flush=True))
     common.enable_x64()
     import jax
     import jax.numpy as jnp
@@ -29,6 +30,7 @@ def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096, n
 
     ctrl, params, z0, zeta0 = common.section_6_1_setup()
     n_steps = int(round(t_final / dt))
+    say("compiling and running the section 6.1 closed loop")
     traj = w.simulate(ctrl, z0, params, dt=dt, n_steps=n_steps)
     t = np.asarray(traj.t)
     state = np.asarray(traj.state)
@@ -72,7 +74,8 @@ def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096, n
         },
     }
     summary["lemma2"], cert = _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, n_directions=n_directions,
-                                            n_starts=n_starts)
+                                            n_starts=n_starts, log=say)
+    say("writing figures")
     out.mkdir(parents=True, exist_ok=True)
     _fig7(out, cert, summary["lemma2"])
     common.write_npz(out / "trajectories.npz", t=t, state=state, control=control, reference=ref_post,
@@ -82,7 +85,7 @@ def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096, n
     return summary
 
 
-def _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, eps=1e-2, n_directions=256, n_starts=16):
+def _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, eps=1e-2, n_directions=256, n_starts=16, log=print):
     """Lemma 2 with the paper's K2 (64), the automatic Lyapunov K2 and the exact ||e^{At}||; the
     exact-map radii; empirical checks and the falsifier (:func:`wmrjax.certify.analyse`)."""
     import jax.numpy as jnp
@@ -92,7 +95,7 @@ def _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, eps=1e-2, n_direct
     e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0, params)))
     report = C.analyse(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_empirical=n_empirical,
                        n_directions=n_directions, n_starts=n_starts, zeta0_norm=e0,
-                       log=lambda msg: print(msg, flush=True))
+                       log=log)
     block = report.summary()
     block["k2_paper"] = "eq (64)"
     block["lyapunov_K1_r1"] = [float(x) for x in C.lyapunov_bound(ctrl.error_matrix(params.gains))[:2]]
@@ -154,13 +157,19 @@ def _figures(out, t, state, ref, eta1, eta1_ref):
 
 
 def main(argv=None) -> int:
+    from wmrjax import cli
+
     p = common.parser(__doc__.splitlines()[0], "results/section_6_1")
-    p.add_argument("--dt", type=float, default=0.01, help="RK4 step [s] (default 0.01)")
-    p.add_argument("--t-final", type=float, default=10.0, help="horizon [s] (default 10)")
+    p.add_argument("--dt", type=cli.positive, default=0.01, help="RK4 step [s]")
+    p.add_argument("--t-final", type=cli.positive, default=10.0, help="horizon [s]")
     a = p.parse_args(argv)
-    if not (a.dt > 0 and a.t_final > 0 and math.isfinite(a.dt) and math.isfinite(a.t_final)):
-        p.error("--dt and --t-final must be finite and > 0")
-    s = run(a.out, a.dt, a.t_final)
+    cli.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=4096)
+    cli.prepare_output(p, a.out)
+    try:
+        with cli.heartbeat() as hb:
+            s = run(a.out, a.dt, a.t_final, progress=hb.stage)
+    except ValueError as e:
+        p.error(str(e))
     sim = s["simulation"]
     print(f"section 6.1: min eta1 = {sim['min_eta1']:.4f} m/s at t = {sim['t_min_eta1']:.2f} s; "
           f"position error max {sim['max_position_error']:.4f} m, final {sim['final_position_error']:.2e} m; "

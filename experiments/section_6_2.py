@@ -43,7 +43,8 @@ def _parked(final, tol_pos, tol_head):
 
 
 def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_switch=None, lam=None, seed=0,
-        eps=1e-2) -> dict:
+        eps=1e-2, progress=None) -> dict:
+    say = progress or (lambda msg: print(msg, flush=True))
     common.enable_x64()
     import jax
     import jax.numpy as jnp
@@ -55,6 +56,7 @@ def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_
     hy, params, zeta0 = setup(r_switch, lam)
     n_steps = int(round(t_final / dt))
     z0 = hy.initial_state(zeta0, params)
+    say("compiling and running the section 6.2 hybrid loop")
     tr = w.simulate(hy, z0, params, dt=dt, n_steps=n_steps)
     t, st, u = np.asarray(tr.t), np.asarray(tr.state.tracking), np.asarray(tr.control)
     fin = jax.tree_util.tree_map(np.asarray, tr.final_state)   # NumPy from here on
@@ -90,6 +92,7 @@ def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_
     }
     # -- Lemma 2 up to the switch (M1 -> 0 at rest: it certifies nothing beyond)
     if switched:
+        say("Lemma 2 up to the switch")
         ctrl, tp = hy.tracking, params.tracking
         cert = C.lemma2(ctrl, tp, t_final=t_sw, eps=eps, n_t=max(int(round(t_sw / dt)) + 1, 2))
         e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0.tracking, tp)))
@@ -101,6 +104,7 @@ def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_
                              "min_M1": float(jnp.min(cert.paper.m1))}
     # -- batch around the paper's initial conditions
     if n_batch:
+        say(f"compiling and running a batch of {n_batch} initial conditions")
         k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
         dp = jax.random.uniform(k1, (n_batch, 2), minval=-0.3, maxval=0.3)
         dv = jax.random.uniform(k2, (n_batch, 2), minval=-0.2, maxval=0.2)
@@ -194,28 +198,37 @@ def _figures(out, t, st, u, ref, eta1_ref, t_sw, r_s, batch):
 
 
 def main(argv=None) -> int:
+    from wmrjax import cli
+
     p = common.parser(__doc__.splitlines()[0], "results/section_6_2")
-    p.add_argument("--dt", type=float, default=0.01, help="RK4 step [s] (default 0.01)")
-    p.add_argument("--t-final", type=float, default=60.0, help="horizon [s] (default 60)")
-    p.add_argument("--n-batch", type=int, default=1024, help="initial conditions around the paper's (default 1024)")
-    p.add_argument("--tol-distance", type=float, default=0.05, help="parked: distance to the goal <= this [m]")
-    p.add_argument("--tol-heading", type=float, default=0.1, help="parked: |heading| <= this [rad]")
-    p.add_argument("--r-switch", type=float, default=None, help="switching radius [m] (default sqrt(sqrt(2)/10))")
-    p.add_argument("--lam", type=float, default=None, help="stabilizer gain lambda (default 40)")
+    p.add_argument("--dt", type=cli.positive, default=0.01, help="RK4 step [s]")
+    p.add_argument("--t-final", type=cli.positive, default=60.0,
+                   help="horizon [s]; must exceed 10 s, when the reference (66) comes to rest")
+    p.add_argument("--n-batch", type=cli.count, default=1024, help="initial conditions around the paper's")
+    p.add_argument("--tol-distance", type=cli.positive, default=0.05, help="parked: distance to the goal <= this [m]")
+    p.add_argument("--tol-heading", type=cli.positive, default=0.1, help="parked: |heading| <= this [rad]")
+    p.add_argument("--r-switch", type=cli.positive, default=None,
+                   help="switching radius [m] (None: the paper's sqrt(sqrt(2)/10) = 0.376 m)")
+    p.add_argument("--lam", type=cli.positive, default=None, help="stabilizer gain lambda [1/s] (None: the paper's 40)")
     a = p.parse_args(argv)
-    for k in ("dt", "t_final", "tol_distance", "tol_heading"):
-        if not (math.isfinite(getattr(a, k)) and getattr(a, k) > 0):
-            p.error(f"--{k.replace('_', '-')} must be finite and > 0")
+    if not a.t_final > 10.0:
+        p.error(f"argument --t-final: must exceed 10 s (the reference (66) stops at t = 10 s and parking follows), "
+                f"got {a.t_final}")
+    cli.check_horizon(p, t_final=a.t_final, dt=a.dt, n_state=10)   # the single run keeps every step
+    cli.prepare_output(p, a.out)
     try:
-        s = run(a.out, a.dt, a.t_final, a.n_batch, a.tol_distance, a.tol_heading, a.r_switch, a.lam)
+        with cli.heartbeat() as hb:
+            s = run(a.out, a.dt, a.t_final, a.n_batch, a.tol_distance, a.tol_heading, a.r_switch, a.lam,
+                    progress=hb.stage)
     except ValueError as e:
         p.error(str(e))
     print(f"section 6.2: switch at t = {s['t_switch']} s, state {s['state_at_switch']}, eta1 = {s['eta1_at_switch']}; "
           f"final distance {s['final_distance']:.4g} m, heading {s['final_heading']:.3g} rad")
     if "batch" in s:
         b = s["batch"]
+        median = (b["t_switch_s"] or {}).get("median")
         print(f"batch of {b['n_runs']}: parked {b['fraction_parked']:.3f} (within distance {b['fraction_within_distance']:.3f}), "
-              f"switch time median {b['t_switch_s']['median']:.2f} s")
+              + (f"switch time median {median:.2f} s" if median is not None else "no run switched"))
     print(f"wrote {a.out}/summary.json, fig10_paths.png, fig11_eta1.png, batch.png, trajectory.npz")
     return 0
 

@@ -130,7 +130,8 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
     return out, traces, (ep[ok], eh[ok])
 
 
-def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol=1e-2, kinds=KINDS, levels=LEVELS) -> dict:
+def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol=1e-2, kinds=KINDS, levels=LEVELS,
+        progress=None) -> dict:
     common.enable_x64()
     import wmrjax as w
 
@@ -141,6 +142,8 @@ def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol=1e-2, kinds=K
         per_level = {}
         for level in levels:
             t0 = time.perf_counter()
+            if progress is not None:
+                progress(f"{kind} {level}: compiling and running {n_random} random runs and two named references")
             res, traces, errs = run_case(kind, level, n_random, t_final, dt, seed, tol)
             per_level[level] = (traces, errs)
             summary["cases"][f"{kind} {level}"] = res

@@ -23,35 +23,39 @@ from wmrjax import io
 
 def parser():
     from tuning.losses import LossWeights
-    from tuning.loop import TuneConfig
+    from tuning.loop import REFERENCES, TuneConfig
+    from wmrjax import cli
 
     d = TuneConfig()
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", type=Path, default=Path("results/tuning"), help="output directory (default results/tuning)")
-    p.add_argument("--robot", default=d.robot, help="robot type (default (2,0))")
+    p = cli.parser(__doc__.splitlines()[0], "results/tuning")
+    p.add_argument("--robot", default=d.robot, help="robot type: (3,0), (2,0), (2,1), (1,1) or (1,2)")
     p.add_argument("--task", default=d.task, choices=["posture", "point"],
                    help="posture: dynamic law (restricted types) or Prop 3 (3,0); point: static Table 3 law")
-    p.add_argument("--reference", default=d.reference, help="paper_62, circle, figure_eight, line or random")
-    p.add_argument("--geometry", type=float, nargs=3, default=list(d.geometry), metavar=("L", "E", "DELTA"),
-                   help="nominal geometry the controller uses (default 1 0 0)")
-    p.add_argument("--n-train", type=int, default=d.n_train)
-    p.add_argument("--n-heldout", type=int, default=d.n_heldout)
-    p.add_argument("--steps", type=int, default=d.steps)
-    p.add_argument("--learning-rate", type=float, default=d.learning_rate)
-    p.add_argument("--poles-init", type=float, default=d.poles_init, help="initial pole magnitude (paper: 1)")
+    p.add_argument("--reference", default=d.reference, choices=REFERENCES, help="reference family")
+    p.add_argument("--geometry", type=cli.finite, nargs=3, default=list(d.geometry), metavar=("L", "E", "DELTA"),
+                   help="nominal geometry the controller uses [m, m, rad]")
+    p.add_argument("--n-train", type=cli.count, default=d.n_train, help="training scenarios per step")
+    p.add_argument("--n-heldout", type=cli.count, default=d.n_heldout, help="held-out scenarios")
+    p.add_argument("--steps", type=cli.count, default=d.steps, help="optimizer steps")
+    p.add_argument("--learning-rate", type=cli.positive, default=d.learning_rate,
+                   help="Adam learning rate (on the softplus-unconstrained parameters)")
+    p.add_argument("--poles-init", type=cli.positive, default=d.poles_init,
+                   help="initial pole magnitude [1/s] (the paper's: 1)")
     p.add_argument("--per-axis", action="store_true", help="one set of poles per output instead of shared")
     p.add_argument("--parameterization", default=d.parameterization, choices=["damping", "poles"],
                    help="damping: (omega, zeta) factors (real or complex poles); poles: real poles only")
-    p.add_argument("--mismatch", type=float, default=d.mismatch, help="+- relative input-scale/geometry error")
-    p.add_argument("--input-limit", type=float, nargs="*", default=list(d.input_limit),
-                   help="plant actuator limits per input (none: no saturation)")
-    p.add_argument("--noise-std", type=float, nargs="*", default=list(d.noise_std), help="x, y, theta noise std")
-    p.add_argument("--control-dt", type=float, default=d.control_dt, help="controller period [s]")
-    p.add_argument("--t-final", type=float, default=d.t_final)
+    p.add_argument("--mismatch", type=cli.fraction, default=d.mismatch,
+                   help="+- relative input-scale/geometry error of the plant (dimensionless, in [0, 1))")
+    p.add_argument("--input-limit", type=cli.limit, nargs="*", default=list(d.input_limit),
+                   help="plant actuator limits per input [m/s, rad/s] (> 0, inf: none; no values: no saturation)")
+    p.add_argument("--noise-std", type=cli.nonnegative, nargs="*", default=list(d.noise_std),
+                   help="measurement noise std of x, y [m] and theta [rad] (and steering angles [rad])")
+    p.add_argument("--control-dt", type=cli.positive, default=d.control_dt, help="controller period (zero-order hold) [s]")
+    p.add_argument("--t-final", type=cli.positive, default=d.t_final, help="horizon of every scenario [s]")
     for f, v in LossWeights()._asdict().items():
-        p.add_argument(f"--w-{f}", type=float, default=v, help=f"weight of the {f} term (default {v})")
-    p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint in --out")
+        p.add_argument(f"--w-{f}", type=cli.nonnegative, default=v, help=f"weight of the {f} loss term (>= 0)")
+    p.add_argument("--seed", type=cli.seed, default=d.seed, help="PRNG seed of the scenarios")
+    p.add_argument("--fresh", action="store_true", help="ignore (delete) an existing checkpoint in --out")
     return p
 
 
@@ -68,7 +72,7 @@ def config_from_args(a):
                       weights=tuple(LossWeights(*(getattr(a, f"w_{f}") for f in LossWeights._fields)))).check()
 
 
-def run(cfg, out: Path, fresh: bool = False, log=print) -> dict:
+def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)   # this entry point runs in float64
@@ -77,11 +81,14 @@ def run(cfg, out: Path, fresh: bool = False, log=print) -> dict:
 
     from tuning import loop
 
+    say = progress or log
     out.mkdir(parents=True, exist_ok=True)
     if fresh and (out / "checkpoint.json").exists():
         (out / "checkpoint.json").unlink()
     t0 = time.perf_counter()
+    say("building scenarios; compiling the batched rollout and its gradient (first step)")
     res = loop.tune(cfg, out, log=log)
+    say("evaluating the paper's and the tuned gains on the held-out scenarios")
     ctrl, spec, g, rcfg, train, heldout, w_arr = (res[k] for k in ("ctrl", "spec", "geometry", "rcfg", "train",
                                                                     "heldout", "w_arr"))
     st = res["state"]
@@ -99,6 +106,7 @@ def run(cfg, out: Path, fresh: bool = False, log=print) -> dict:
     log(f"held-out loss: paper gains {ho_paper:.5g}, tuned {ho_tuned:.5g} (ratio {ho_paper / ho_tuned:.2f}); "
         f"singular events {sing_paper} -> {sing_tuned}")
     grad_rollouts = st["rollouts"]
+    say(f"random search with the same budget ({grad_rollouts} rollouts)")
     rs = loop.random_search(cfg, ctrl, spec, g, rcfg, train, w_arr, res["cert_term"], grad_rollouts,
                             jax.random.PRNGKey(cfg.seed + 1))
     hist = st["history"]
@@ -133,6 +141,7 @@ def run(cfg, out: Path, fresh: bool = False, log=print) -> dict:
         "baseline": {k: rs[k] for k in ("name", "best_loss", "rollouts_to_best", "candidates", "best_params", "best_poles")},
         "certified_radius_lyapunov": radius,
     }
+    say("writing history, figures and summary")
     io.write_json(out / "history.json", {"gradient": hist, "random_search_best_so_far": rs["best_so_far"],
                                               "random_search_rollouts_per_candidate": rs["rollouts_per_candidate"]})
     _figures(out, cfg, res, hist, rs, paper_raw, tuned_raw)
@@ -199,13 +208,26 @@ def _figures(out, cfg, res, hist, rs, paper_raw, tuned_raw):
 
 
 def main(argv=None) -> int:
+    from wmrjax import cli
+
     p = parser()
     a = p.parse_args(argv)
     try:
         cfg = config_from_args(a)
-        s = run(cfg, a.out, a.fresh)
+        from tuning.loop import validate
+
+        validate(cfg)
     except ValueError as e:
         p.error(str(e))
+    cli.prepare_output(p, a.out)
+    try:
+        with cli.heartbeat() as hb:
+            s = run(cfg, a.out, a.fresh, log=hb.stage)
+    except ValueError as e:
+        msg = str(e)
+        if "checkpoint" in msg:
+            msg += "; or rerun with --fresh to start over"
+        p.error(msg)
     print(f"tuned {s['tuned_gains']['parameters']}; held-out loss paper {s['heldout_loss']['paper_gains']:.4g} -> "
           f"tuned {s['heldout_loss']['tuned']:.4g}; singular events {s['singularity_events']}; "
           f"rollouts {s['rollouts']}, to match random search {s['rollouts_to_match_baseline']} "

@@ -24,6 +24,9 @@ from tuning.losses import LossWeights, certificate_radius, scenario_loss
 from tuning.scenarios import RolloutConfig, Scenario, rollout
 
 
+REFERENCES = ("paper_62", "circle", "figure_eight", "line", "random")
+
+
 @dataclasses.dataclass(frozen=True)
 class TuneConfig:
     """Everything a tuning run depends on (its JSON form fingerprints checkpoints)."""
@@ -74,6 +77,27 @@ class TuneConfig:
             raise ValueError(f"parameterization must be 'damping' or 'poles', got {self.parameterization!r}")
         if not 0 < self.search_low < self.search_high:
             raise ValueError("random search range must satisfy 0 < search_low < search_high")
+        if self.reference not in REFERENCES:
+            raise ValueError(f"reference must be one of {REFERENCES}, got {self.reference!r}")
+        if len(self.geometry) != 3 or not np.all(np.isfinite(np.asarray(self.geometry, float))):
+            raise ValueError(f"geometry must be three finite numbers (L [m], e [m], delta [rad]), got {self.geometry}")
+        lim = np.asarray(self.input_limit, float)
+        if lim.size and not np.all(lim > 0):
+            raise ValueError(f"input_limit must be > 0 per input (inf: none), got {self.input_limit}")
+        noise = np.asarray(self.noise_std, float)
+        if noise.size and not (np.all(np.isfinite(noise)) and np.all(noise >= 0)):
+            raise ValueError(f"noise_std must be finite and >= 0 [m, m, rad], got {self.noise_std}")
+        for k in ("ic_position", "ic_velocity"):
+            if not (np.isfinite(getattr(self, k)) and getattr(self, k) >= 0):
+                raise ValueError(f"{k} must be finite and >= 0, got {getattr(self, k)}")
+        if self.control_dt > self.t_final:
+            raise ValueError(f"control_dt = {self.control_dt} s is longer than the horizon t_final = {self.t_final} s")
+        if self.control_dt * self.poles_init > 0.5:
+            raise ValueError(f"control_dt = {self.control_dt} s is too long for poles at -{self.poles_init} 1/s: the "
+                             f"zero-order-hold loop needs control_dt * pole <= 0.5 (here {self.control_dt * self.poles_init:.3g}); "
+                             "shorten control_dt")
+        if not 0 <= self.seed < 2**32:
+            raise ValueError(f"seed must be an integer in [0, 2**32), got {self.seed}")
         return self
 
     def fingerprint(self) -> str:
@@ -82,10 +106,29 @@ class TuneConfig:
 
 # --- set-up ----------------------------------------------------------------------------
 
-def build(cfg: TuneConfig):
-    """(controller, gain spec, nominal geometry, rollout config, train and held-out scenarios)."""
+def validate(cfg: TuneConfig):
+    """Check everything about a configuration that does not need a compiled rollout; returns the
+    controller. ValueError naming the setting otherwise (the robot type, the task, a geometry
+    the law excludes, the number of actuator limits and noise levels)."""
     cfg.check()
     ctrl = w.controller(cfg.robot, "velocity", cfg.task)
+    nX, nu = ctrl.robot.n_state, ctrl.robot.n_input
+    if cfg.input_limit and len(cfg.input_limit) != nu:
+        raise ValueError(f"input_limit needs {nu} entries for type {ctrl.robot.name}, got {cfg.input_limit}")
+    if len(cfg.noise_std) not in (0, 3, nX):
+        raise ValueError(f"noise_std needs 3 or {nX} entries, got {cfg.noise_std}")
+    ref = R.line() if cfg.reference == "random" else R.named(cfg.reference)
+    ctrl.params(ref, poles=cfg.poles_init, geometry=w.Geometry(*cfg.geometry))   # geometry and reference rules
+    if LossWeights(*cfg.weights).certificate > 0 and (cfg.reference == "random"
+                                                      or not isinstance(ctrl, w.DynamicLinearization)):
+        raise ValueError("the certificate term needs a dynamic (posture) controller of type (2,0), (2,1) or (1,1) "
+                         "and a named reference")
+    return ctrl
+
+
+def build(cfg: TuneConfig):
+    """(controller, gain spec, nominal geometry, rollout config, train and held-out scenarios)."""
+    ctrl = validate(cfg)
     spec = GainSpec(ctrl.m, ctrl.relative_degree, cfg.shared, tuple(cfg.frozen), cfg.parameterization)
     spec.init(cfg.poles_init)
     g = w.Geometry(*cfg.geometry)
@@ -183,6 +226,8 @@ def certificate_setup(ctrl, ref_name, g, t_final, eps=1e-2, n_t=501):
 
 # --- checkpoints --------------------------------------------------------------------------
 
+STATE_KEYS = ("history", "best", "best_raw", "since_best", "rollouts", "excluded", "wall_time_s", "stopped_early")
+
 def save_checkpoint(path: Path, cfg: TuneConfig, step, raw, opt_state, state: dict) -> None:
     """Atomic JSON checkpoint of the tuned parameters, the optimizer state and the history."""
     io.write_checkpoint(path, fingerprint=cfg.fingerprint(), config=dataclasses.asdict(cfg), step=step,
@@ -194,6 +239,11 @@ def load_checkpoint(path: Path, cfg: TuneConfig, raw_template, opt_state_templat
     or does not match the shapes of this configuration's parameters."""
     ck = io.read_checkpoint(path, fingerprint=cfg.fingerprint(), config=dataclasses.asdict(cfg),
                             templates={"raw": raw_template, "opt_state": opt_state_template})
+    missing = sorted(set(STATE_KEYS) - set(ck.state))
+    if missing:
+        raise ValueError(f"checkpoint {path} lacks {missing} in its state (an edited or partial checkpoint)")
+    if not 0 <= ck.step <= cfg.steps:
+        raise ValueError(f"checkpoint {path} is at step {ck.step}, outside [0, {cfg.steps}]")
     return ck.step, ck.trees["raw"], ck.trees["opt_state"], ck.state
 
 

@@ -62,12 +62,15 @@ def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, tra
         return robots.kinematic(ctrl.robot, X, u, sc.plant_geometry)
 
     def period(carry, k):
-        z, alive, acc = carry
+        z, alive, acc, sign_prev = carry
         t = k.astype(sc.noise_std.dtype) * cfg.control_dt
         X, c = z[:nX], z[nX:]
         noise = sc.noise_std * jax.random.normal(jax.random.fold_in(sc.key, k), (nX,))
         zm = jnp.concatenate([X + noise, c])
-        U, margin = ctrl.control(t, zm, params)
+        U, regularity = ctrl.control_and_regularity(t, zm, params)
+        margin = jnp.abs(regularity)
+        sign = jnp.sign(regularity)
+        crossed = sign_prev * sign < 0          # det K changed sign since the last sample: a crossing
         u_cmd = ext.plant_input(zm[:nX], c, U, nominal_geometry)
         u_true = jnp.clip(sc.input_scale * u_cmd, -sc.input_limit, sc.input_limit)
         c_next = c + cfg.control_dt * ext.compensator(zm[:nX], c, U, nominal_geometry)   # digital integrator
@@ -85,17 +88,18 @@ def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, tra
         terms = jnp.stack([jnp.sum(err**2), jnp.sum(u_cmd**2), jnp.sum(jnp.where(jnp.isfinite(excess), excess, 0.0) ** 2),
                            jax.nn.relu(1.0 - margin / cfg.margin_safe) ** 2])
         z_next = jnp.concatenate([X_next, c_next])
-        ok = alive & jnp.all(jnp.isfinite(z_next)) & jnp.all(jnp.isfinite(terms)) & (margin > cfg.margin_floor)
-        singular = alive & ~(margin > cfg.margin_floor)
+        regular = (margin > cfg.margin_floor) & ~crossed
+        ok = alive & jnp.all(jnp.isfinite(z_next)) & jnp.all(jnp.isfinite(terms)) & regular
+        singular = alive & ~regular
         z_keep = jnp.where(ok, z_next, z)                       # freeze a failed run: no NaN downstream
         terms = jnp.where(ok, terms, 0.0)
         acc = (acc[0] + terms, jnp.minimum(acc[1], jnp.where(alive, margin, jnp.inf)), acc[2] | singular)
         out = (z, u_cmd) if trajectory else None
-        return (z_keep, ok, acc), out
+        return (z_keep, ok, acc, jnp.where(sign != 0, sign, sign_prev)), out
 
     acc0 = (jnp.zeros(4), jnp.asarray(jnp.inf), jnp.asarray(False))
-    (zf, alive, (tot, mmin, sing)), traj = jax.lax.scan(period, (sc.z0, jnp.asarray(True), acc0),
-                                                        jnp.arange(cfg.n_periods))
+    (zf, alive, (tot, mmin, sing), _), traj = jax.lax.scan(period, (sc.z0, jnp.asarray(True), acc0, jnp.zeros(())),
+                                                           jnp.arange(cfg.n_periods))
     mean = tot / cfg.n_periods
     m = Metrics(mean[0], mean[1], mean[2], mean[3], alive, sing, mmin)
     return (m, traj) if trajectory else m

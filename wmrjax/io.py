@@ -23,6 +23,7 @@ def atomic_write(path, write: Callable) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.chmod(tmp, 0o666 & ~_umask())      # mkstemp makes 0600; results are as readable as the umask allows
         with os.fdopen(fd, "wb") as fh:
             write(fh)
         os.replace(tmp, path)
@@ -31,6 +32,12 @@ def atomic_write(path, write: Callable) -> Path:
             os.unlink(tmp)
         raise
     return path
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def jsonable(x):
@@ -115,8 +122,12 @@ def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) ->
     path = Path(path)
     try:
         d = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"checkpoint {path} is not readable JSON ({exc}); delete it or use another directory")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"checkpoint {path} is corrupt or truncated (not readable JSON: {exc}); "
+                         "delete it (or start fresh) to run from the beginning") from None
+    if not isinstance(d, dict):
+        raise ValueError(f"checkpoint {path} is not a checkpoint (a JSON {type(d).__name__}, expected an object); "
+                         "delete it (or start fresh) to run from the beginning")
     if d.get("fingerprint") != fingerprint:
         old = d.get("config", {}) or {}
         diff = sorted(k for k, v in config.items() if json.loads(json.dumps(jsonable(old.get(k))))
@@ -132,7 +143,11 @@ def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) ->
                              f"expected {len(tmpl)}")
         leaves = []
         for i, (v, t) in enumerate(zip(got, tmpl)):
-            a = np.asarray(v, dtype=np.asarray(t).dtype)
+            try:
+                a = np.asarray(v, dtype=np.asarray(t).dtype)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"checkpoint {path}: leaf {i} of {name!r} is not a numeric array ({exc}); "
+                                 "an edited or corrupt checkpoint") from None
             if a.shape != np.shape(t):
                 raise ValueError(f"checkpoint {path}: leaf {i} of {name!r} has shape {a.shape}, expected "
                                  f"{np.shape(t)} (a truncated or edited checkpoint)")

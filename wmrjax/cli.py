@@ -1,0 +1,217 @@
+"""What every command line of this project shares: argument types that refuse bad values at
+parse time, cross-argument checks, the output directory made and test-written before any
+work, and progress lines while long stages run.
+
+The experiments (``python -m experiments.*``) and the tuner (``python -m tuning``) build
+their parsers with :func:`parser` and declare each option with one of the types below, so a
+bad value stops the program in milliseconds with ``argument --name: ...`` naming the option
+and the expected form, before JAX compiles anything. Nothing here imports JAX.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import threading
+import time
+import uuid
+from contextlib import contextmanager
+from pathlib import Path
+
+# --- argument types ------------------------------------------------------------------------------
+
+
+def _number(text: str, kind=float):
+    try:
+        v = kind(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, got {text!r}") from None
+    if kind is float and not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    return v
+
+
+def finite(text: str) -> float:
+    """A finite real number."""
+    return _number(text)
+
+
+def positive(text: str) -> float:
+    """A finite number > 0."""
+    v = _number(text)
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return v
+
+
+def nonnegative(text: str) -> float:
+    """A finite number >= 0."""
+    v = _number(text)
+    if not v >= 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
+    return v
+
+
+def limit(text: str) -> float:
+    """An actuator limit: a number > 0 or ``inf`` (no limit)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0 or inf, got {text!r}") from None
+    if not v > 0:          # NaN, 0 and negative limits are refused
+        raise argparse.ArgumentTypeError(f"must be > 0 (or inf: no limit), got {text!r}")
+    return v
+
+
+def fraction(text: str) -> float:
+    """A number in [0, 1)."""
+    v = _number(text)
+    if not 0 <= v < 1:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {text!r}")
+    return v
+
+
+def count(text: str) -> int:
+    """An integer >= 1."""
+    v = _number(text, int)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return v
+
+
+def nonnegative_int(text: str) -> int:
+    """An integer >= 0."""
+    v = _number(text, int)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
+    return v
+
+
+def seed(text: str) -> int:
+    """A PRNG seed: an integer in [0, 2**32)."""
+    v = _number(text, int)
+    if not 0 <= v < 2**32:
+        raise argparse.ArgumentTypeError(f"must be an integer in [0, 2**32), got {text!r}")
+    return v
+
+
+def grid_size(text: str) -> int:
+    """A grid resolution: an integer >= 2."""
+    v = _number(text, int)
+    if v < 2:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 2, got {text!r}")
+    return v
+
+
+# --- the parser ------------------------------------------------------------------------------------
+
+class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Help text with each option's default appended."""
+
+
+def parser(description: str, default_out: str | None) -> argparse.ArgumentParser:
+    """An ``ArgumentParser`` whose help shows defaults, with ``--out`` when ``default_out`` is given."""
+    p = argparse.ArgumentParser(description=description, formatter_class=_Formatter)
+    if default_out is not None:
+        p.add_argument("--out", type=Path, default=Path(default_out), help="output directory (created if missing)")
+    return p
+
+
+def fail(p: argparse.ArgumentParser, message: str):
+    """Exit like argparse does for a bad argument (status 2, usage and message on stderr)."""
+    p.error(message)
+
+
+def check_horizon(p, *, t_final: float, dt: float, batch: int = 1, n_state: int = 4, saved_every: int = 1,
+                  t_name: str = "--t-final", dt_name: str = "--dt") -> int:
+    """Steps of a run of ``t_final`` in steps of ``dt``; exits if the step exceeds the horizon,
+    the horizon is not a whole number of steps (to 1e-6), or the saved samples of ``batch``
+    runs would not fit in this machine's memory."""
+    if dt > t_final:
+        fail(p, f"{dt_name} = {dt} s is longer than the horizon {t_name} = {t_final} s")
+    steps = t_final / dt
+    n = int(round(steps))
+    if abs(steps - n) > 1e-6 * max(1.0, steps):
+        fail(p, f"{t_name} = {t_final} s is not a whole number of steps of {dt_name} = {dt} s ({steps:.6g} steps)")
+    need = (n // saved_every + 1) * batch * (2 * n_state + 4) * 8
+    total = memory_bytes()
+    if total is not None and need > total / 2:
+        fail(p, f"{t_name} / {dt_name} = {n} steps for {batch} runs would store {need / 1e9:.3g} GB of samples, more than "
+                f"half of this machine's {total / 1e9:.3g} GB of memory: raise {dt_name} or shorten {t_name}")
+    return n
+
+
+def memory_bytes() -> int | None:
+    """Physical memory of this machine [bytes], None where unknown."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):   # pragma: no cover - non-POSIX
+        return None
+
+
+def prepare_output(p, out: Path) -> Path:
+    """Create ``out`` and prove it writable (write and delete a probe file) before any work; exits if not."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        fail(p, f"--out {out} exists and is not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".write-test-{uuid.uuid4().hex}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        fail(p, f"--out {out} is not a writable directory ({exc.strerror or exc})")
+    return out
+
+
+# --- progress --------------------------------------------------------------------------------------
+
+class Heartbeat:
+    """Prints the current stage when it starts and every ``every`` seconds while it runs.
+
+    Use as a context manager around a command's work and call :meth:`stage` at each long
+    step; a daemon thread prints ``[  12 s] still <stage> ...`` so that no stage (JAX's
+    compilation included) stays silent for more than ``every`` seconds.
+    """
+
+    def __init__(self, every: float = 10.0, stream=None):
+        self.every = every
+        self.stream = stream if stream is not None else sys.stdout
+        self._stage = "starting"
+        self._t0 = time.perf_counter()
+        self._last = self._t0
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _say(self, text: str) -> None:
+        with self._lock:
+            print(f"[{time.perf_counter() - self._t0:6.0f} s] {text}", file=self.stream, flush=True)
+            self._last = time.perf_counter()
+
+    def stage(self, text: str) -> None:
+        """Announce a new stage (e.g. ``"compiling and running the batch rollout"``)."""
+        self._stage = text
+        self._say(text)
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.5):
+            if time.perf_counter() - self._last >= self.every:
+                self._say(f"still {self._stage} ...")
+
+    def __enter__(self) -> "Heartbeat":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+@contextmanager
+def heartbeat(every: float = 10.0):
+    """``with heartbeat() as hb: hb.stage("..."); ...``: see :class:`Heartbeat`."""
+    with Heartbeat(every) as hb:
+        yield hb
