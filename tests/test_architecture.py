@@ -96,7 +96,7 @@ def test_signatures_are_uniform():
                "reference_jet": ["t", "params"], "margin": ["z", "params"], "psi": ["z", "params"],
                "outputs": ["z", "params"], "jet": ["z", "params"], "physical_state": ["X", "u", "params"],
                "initial_state_from_physical": ["X", "u", "params"], "check_regular": ["z", "params", "name"],
-               "check_reference": ["params", "t_final", "n", "floor"], "error_matrix": ["gains"]}
+               "check_reference": ["params", "t_final", "t0", "floor"], "error_matrix": ["gains"]}
     for cls in (w.DynamicLinearization, w.StaticLinearization):
         for name, args in methods.items():
             got = list(inspect.signature(getattr(cls, name)).parameters)[1:]
@@ -144,7 +144,7 @@ def test_lemma2_gives_eq64_only_for_the_double_pole_whatever_the_representation(
     by_damping = C.lemma2(ctrl, params._replace(gains=w.Gains.from_damping(1.0, 1.0, m=2)), **kw)
     assert by_poles.paper is not None and by_damping.paper is not None
     assert float(by_damping.paper.radius) == float(by_poles.paper.radius)
-    np.testing.assert_allclose(float(by_poles.paper.radius), 0.768181, atol=1e-6)     # §6.1 (summary.json)
+    np.testing.assert_allclose(float(by_poles.paper.radius), 0.7681795, atol=1e-7)    # §6.1 (summary.json)
 
     tuned = params._replace(gains=w.Gains.from_damping(3.76, 0.47, m=2))
     rep = C.lemma2(ctrl, tuned, **kw)
@@ -160,8 +160,10 @@ def test_lemma2_gives_eq64_only_for_the_double_pole_whatever_the_representation(
     P = solve_continuous_lyapunov(A.T, -np.eye(4))
     ev = np.linalg.eigvalsh(0.5 * (P + P.T))
     k2 = np.sqrt(ev[-1] / ev[0]) * np.exp(-0.5 / ev[-1] * np.asarray(rep.lyapunov.ts))
-    np.testing.assert_allclose(float(rep.lyapunov.radius), np.min((np.asarray(rep.lyapunov.m1) - 1e-2) / k2),
-                               rtol=1e-9)
+    F = (np.asarray(rep.lyapunov.m1) - 1e-2) / k2
+    np.testing.assert_allclose(np.asarray(rep.lyapunov.F), F, rtol=1e-9)
+    # the radius is min F refined between grid points: at most the grid minimum, and close to it
+    assert np.min(F) * (1 - 1e-4) <= float(rep.lyapunov.radius) <= np.min(F)
     with pytest.raises(ValueError, match="m1 must be one of"):
         C.lemma2(ctrl, params, t_final=10.0, eps=1e-2, m1="closedform")
 

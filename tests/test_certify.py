@@ -122,7 +122,9 @@ def test_exact_map_radius_is_tight_and_above_lemma2(paper61, cert61, exact61):
     w = pos.worst_error
     assert np.allclose(np.asarray(w)[2:], 0.0) and abs(float(jnp.linalg.norm(w)) - float(pos.radius)) < 1e-9
     d, s = C.min_distance(ctrl, params, t_final=10.0, initial_errors=jnp.stack([0.99 * w, 1.01 * w]), dt=0.01)
-    assert float(d[0]) > 1e-2 > float(d[1]) and not np.any(np.asarray(s))   # the real closed loop agrees
+    # the real closed loop agrees: 0.99 w stays eps away, 1.01 w comes within eps (it even crosses
+    # the singular set between samples, which the simulator flags)
+    assert float(d[0]) > 1e-2 and not bool(s[0]) and (float(d[1]) < 1e-2 or bool(s[1]))
 
 
 def test_empirical_radius_finds_the_exact_one(paper61, exact61):

@@ -196,9 +196,11 @@ def test_reference_reaching_singular_set_raises():
         ctrl.check_reference(params, 10.0)     # it stops at the origin at t = 10 s
     for kind in ("(2,1)", "(1,2)"):
         c = w.dynamic_linearization(kind)
-        p = c.params(R.line(velocity=(0.0, 0.0)), poles=1.0, geometry=GEOM)
+        with pytest.raises(ValueError, match="is at rest at t = 0"):       # refused when the params are built
+            c.params(R.line(velocity=(0.0, 0.0)), poles=1.0, geometry=GEOM)
+        p = c.params(R.paper_66(), poles=1.0, geometry=GEOM)
         with pytest.raises(ValueError, match="reaches the singular set"):
-            c.check_reference(p, 1.0)
+            c.check_reference(p, 11.0)
 
 
 def test_heading_reference_crossing_pi_is_tracked_without_a_turn():

@@ -172,8 +172,8 @@ class Heartbeat:
     """Prints the current stage when it starts and every ``every`` seconds while it runs.
 
     Use as a context manager around a command's work and call :meth:`stage` at each long
-    step; a daemon thread prints ``[  12 s] still <stage> ...`` so that no stage (JAX's
-    compilation included) stays silent for more than ``every`` seconds.
+    step; a daemon thread prints ``[  12 s] still working (last: <stage>)`` so that no stage
+    (JAX's compilation included) stays silent for more than ``every`` seconds.
     """
 
     def __init__(self, every: float = 10.0, stream=None):
@@ -197,9 +197,9 @@ class Heartbeat:
         self._say(text)
 
     def _run(self) -> None:
-        while not self._stop.wait(0.5):
+        while not self._stop.wait(min(0.5, self.every / 4)):
             if time.perf_counter() - self._last >= self.every:
-                self._say(f"still {self._stage} ...")
+                self._say(f"still working (last: {self._stage})")
 
     def __enter__(self) -> "Heartbeat":
         self._thread.start()

@@ -194,7 +194,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         z = _from_scalars(zt, z0)
         t = t0 + i.astype(dtype) * dt
         z_next, aux, k1, k4 = _rk4(field, t, z, dt)
-        jumped = jnp.array(False)
+        jumped = jnp.zeros_like(alive)   # (keeps the batch's sharding type under shard_map)
         if post_step is not None:   # hybrid systems: discrete transition at the end of the step
             z_post = post_step(t + dt, z_next, params)
             jumped = ~_all_equal(z_post, z_next)
