@@ -1,7 +1,8 @@
 r"""Side-by-side speed of the §6.1 closed-loop batch rollout (RK4, dt = 0.01, 1000 steps, float64).
 
 Compares, in one run and on the same initial conditions: wmrjax (``batch_map``: one
-device per core, 512-trajectory chunks; and plain ``jit(vmap)`` on one device), a NumPy
+device per core, 512-trajectory chunks, with and without the per-step error estimate of
+``simulate``; and plain ``jit(vmap)`` on one device), a NumPy
 implementation vectorised over the batch, SciPy ``solve_ivp`` one trajectory at a time,
 and the hand-vectorised C loop ``../shared/bench/closed_loop_simd.c`` (the ceiling; skipped
 with a note if no C compiler or source is found). Also times a reverse-mode gradient of a
@@ -107,6 +108,10 @@ def run(out: Path, batches, reps: int, grad_batch: int, scipy_trajs: int, source
     ctrl, params, _, _ = common.section_6_1_setup()
     sim_final = lambda z: w.simulate(ctrl, z, params, dt=DT, n_steps=N_STEPS, save_every=N_STEPS).final_state
     fast = jax.jit(lambda z: w.batch_map(sim_final, z, chunk=512))
+    # the same loop without the per-step error estimate (error_tol=None): what the guard costs
+    sim_bare = lambda z: w.simulate(ctrl, z, params, dt=DT, n_steps=N_STEPS, save_every=N_STEPS,
+                                    error_tol=None).final_state
+    bare = jax.jit(lambda z: w.batch_map(sim_bare, z, chunk=512))
     plain = jax.jit(jax.vmap(sim_final))
     rows = {}
     c_res, c_note = c_ceiling(batches, source)
@@ -119,6 +124,10 @@ def run(out: Path, batches, reps: int, grad_batch: int, scipy_trajs: int, source
         row["wmrjax_compile_s"] = time.perf_counter() - t_compile0
         t, zf = _best_time(lambda: fast(Z).block_until_ready(), reps)
         row["wmrjax_batch_map"] = b * N_STEPS / t
+        bare(Z).block_until_ready()
+        tb, zb = _best_time(lambda: bare(Z).block_until_ready(), reps)
+        row["wmrjax_batch_map_no_error_estimate"] = b * N_STEPS / tb
+        row["max_abs_diff_with_vs_without_error_estimate"] = float(np.max(np.abs(np.asarray(zf) - np.asarray(zb))))
         plain(jax.device_put(Z, jax.devices()[0])).block_until_ready()
         t1, _ = _best_time(lambda: plain(Z).block_until_ready(), reps)
         row["wmrjax_jit_vmap_1_device"] = b * N_STEPS / t1
@@ -128,10 +137,12 @@ def run(out: Path, batches, reps: int, grad_batch: int, scipy_trajs: int, source
         if c_res:
             row["c_simd_ceiling"] = c_res[b]
             row["ratio_wmrjax_over_c"] = row["wmrjax_batch_map"] / c_res[b]
+            row["ratio_wmrjax_no_error_estimate_over_c"] = row["wmrjax_batch_map_no_error_estimate"] / c_res[b]
             row["ratio_numpy_over_c"] = row["numpy_vectorised"] / c_res[b]
             row["ratio_jit_vmap_1_device_over_c"] = row["wmrjax_jit_vmap_1_device"] / c_res[b]
         rows[str(b)] = row
-        print(f"B={b}: wmrjax {row['wmrjax_batch_map'] / 1e6:.2f} M/s (jit(vmap) 1 device "
+        print(f"B={b}: wmrjax {row['wmrjax_batch_map'] / 1e6:.2f} M/s (without the error estimate "
+              f"{row['wmrjax_batch_map_no_error_estimate'] / 1e6:.2f}; jit(vmap) 1 device "
               f"{row['wmrjax_jit_vmap_1_device'] / 1e6:.2f}), numpy {row['numpy_vectorised'] / 1e6:.2f}"
               + (f", C {c_res[b] / 1e6:.2f} -> ratio {row['ratio_wmrjax_over_c']:.2f}" if c_res else ""), flush=True)
 

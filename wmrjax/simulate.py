@@ -46,7 +46,7 @@ class Diagnostics(NamedTuple):
       t_min_margin: when it occurred [s].
       inaccurate: a step's error estimate exceeded ``error_tol``.
       error_estimate: largest local error estimate of a step before the failure (the
-        embedded third-order pair of RK4, see :func:`simulate`), relative to ``1 + |z_i|``.
+        embedded third-order pair of RK4, see :func:`simulate`), relative to ``1 + max_i |z_i|``.
       internal: what the system's optional ``final_report(t, z, params)`` returns at the
         final state (the static laws: :class:`wmrjax.controllers.static.InternalDynamics`,
         the heading error and ||z3|| of their uncontrolled coordinates); None otherwise.
@@ -61,6 +61,18 @@ class Diagnostics(NamedTuple):
     inaccurate: jnp.ndarray
     error_estimate: jnp.ndarray
     internal: Any = None
+
+
+class _Running(NamedTuple):
+    """The diagnostics carried by the time loop (``Diagnostics.inaccurate`` is derived at the end)."""
+
+    nonfinite: jnp.ndarray
+    singular: jnp.ndarray
+    failed: jnp.ndarray
+    t_failure: jnp.ndarray
+    min_margin: jnp.ndarray
+    t_min_margin: jnp.ndarray
+    error_estimate: jnp.ndarray
 
 
 class Trajectory(NamedTuple):
@@ -122,7 +134,7 @@ def _continuous(tree):
 
 
 def _error_estimate(dt, k4_prev, k1, z):
-    r"""Local error estimate of the step that ended at ``z``, relative to ``1 + |z_i|``.
+    r"""Local error estimate of the step that ended at ``z``, relative to ``1 + max_i |z_i|``.
 
     Classical RK4 (stages at c = 0, 1/2, 1/2, 1) with the first stage of the next step,
     :math:`k_5 = f(t + h, z_{n+1})`, as a fifth stage has the embedded third-order weights
@@ -130,8 +142,9 @@ def _error_estimate(dt, k4_prev, k1, z):
     difference of the two solutions is :math:`h (k_4 - k_5) / 6`, at no extra evaluation
     of the vector field (k5 is the next step's k1).
     """
-    terms = [jnp.abs(dt / 6.0 * (a - b)) / (1.0 + jnp.abs(x)) for a, b, x in zip(k4_prev, k1, z)]
-    return functools.reduce(jnp.maximum, terms)
+    diff = functools.reduce(jnp.maximum, [jnp.abs(a - b) for a, b in zip(k4_prev, k1)])
+    scale = functools.reduce(jnp.maximum, [jnp.abs(x) for x in z])
+    return (jnp.abs(dt) / 6.0) * diff / (1.0 + scale)
 
 
 def _sign(regularity, like):
@@ -183,27 +196,32 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     dtype = jnp.result_type(*[x for x in jax.tree_util.tree_leaves(z0) if _is_continuous(x)])
     dt = jnp.asarray(dt, dtype)
     t0 = jnp.asarray(t0, dtype)
-    error_tol = jnp.asarray(error_tol, dtype)
+    estimate = error_tol is not None     # static: None compiles the loop without the error estimate
+    error_tol = jnp.asarray(jnp.inf if error_tol is None else error_tol, dtype)
     # traced once, reused by the four RK stages and the final evaluation (XLA inlines it):
     # cuts tracing and compile time of the rollout and of its gradient several-fold
     field = jax.jit(lambda t, z: system.vector_field(t, z, params))
     post_step = getattr(system, "post_step", None)
 
     def step(carry, i):
-        zt, alive, diag, sign_prev, k4_prev, est_ok = carry
+        zt, alive, diag, sign_prev, k4_prev, est_ok = carry   # est_ok is None without post_step
         z = _from_scalars(zt, z0)
         t = t0 + i.astype(dtype) * dt
         z_next, aux, k1, k4 = _rk4(field, t, z, dt)
-        jumped = jnp.zeros_like(alive)   # (keeps the batch's sharding type under shard_map)
+        jumped = None
         if post_step is not None:   # hybrid systems: discrete transition at the end of the step
             z_post = post_step(t + dt, z_next, params)
-            jumped = ~_all_equal(z_post, z_next)
+            jumped = ~_all_equal(z_post, z_next) if estimate else None
             z_next = z_post
         margin = jnp.asarray(aux.margin, dtype)
         sign = _sign(aux.regularity, margin)
         crossed = sign_prev * sign < 0                              # det K changed sign since the last step
-        est = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1), _continuous(z)))
-        est = jnp.where(est_ok, est, 0.0)
+        if estimate:
+            est = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1), _continuous(z)))
+            if est_ok is not None:      # no estimate across a discrete jump
+                est = jnp.where(est_ok, est, 0.0)
+        else:
+            est = jnp.zeros_like(margin)
         finite_here = _all_finite((aux.control, margin))
         regular = (margin > margin_floor) & ~crossed
         accurate = ~(est > error_tol)
@@ -212,22 +230,22 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         ok = sample_ok & finite_next                                # may we go on from z?
         newly_failed = alive & ~ok
         better = sample_ok & (margin < diag.min_margin)
-        diag = Diagnostics(
+        diag = _Running(
             nonfinite=diag.nonfinite | (alive & ~(finite_here & finite_next)),
             singular=diag.singular | (alive & finite_here & ~regular),
             failed=diag.failed | newly_failed,
             t_failure=jnp.where(newly_failed, t, diag.t_failure),
             min_margin=jnp.where(better, margin, diag.min_margin),
             t_min_margin=jnp.where(better, t, diag.t_min_margin),
-            inaccurate=diag.inaccurate | (alive & finite_here & ~accurate),
-            error_estimate=jnp.where(alive & jnp.isfinite(est), jnp.maximum(diag.error_estimate, est),
+            error_estimate=jnp.where(alive & finite_here & jnp.isfinite(est), jnp.maximum(diag.error_estimate, est),
                                      diag.error_estimate),
         )
         # double where: no NaN leaks into grads
         z_keep = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, jnp.where(finite_next, a, b), b), z_next, z)
         zt_next = _to_scalars(z_keep)
         sign_next = jnp.where(sign != 0, sign, sign_prev)
-        carry = (zt_next, ok, diag, sign_next, _continuous(k4), ~jumped)
+        carry = (zt_next, ok, diag, sign_next, _continuous(k4) if estimate else (),
+                 None if est_ok is None else ~jumped)
         return carry, (z, aux.control, margin, sample_ok)
 
     # Reverse mode: rematerialise each step instead of storing its intermediates (the
@@ -239,11 +257,14 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     bad0 = ~jnp.isfinite(first)
     inf = jnp.where(bad0, jnp.inf, jnp.inf * jnp.ones_like(first))
     zero = 0.0 * jnp.where(bad0, 0.0, first)
-    diag0 = Diagnostics(bad0, bad0 & False, bad0, jnp.where(bad0, t0, inf), inf, t0 + zero, bad0 & False, zero)
-    carry = (_to_scalars(z0), ~bad0, diag0, zero, tuple(zero for _ in _continuous(z0)), bad0 & False)
+    diag0 = _Running(bad0, bad0 & False, bad0, jnp.where(bad0, t0, inf), inf, t0 + zero, zero)
+    k0, aux0 = field(t0, z0)
+    # k4_prev := k1 at t0, so that the first step's estimate is zero without a flag in the carry
+    carry = (_to_scalars(z0), ~bad0, diag0, zero, _continuous(k0) if estimate else (),
+             None if post_step is None or not estimate else bad0 & False)
 
     n_saves = n_steps // save_every
-    rec0 = (z0, jnp.zeros_like(jnp.asarray(field(t0, z0)[1].control)), inf, ~bad0)
+    rec0 = (z0, jnp.zeros_like(jnp.asarray(aux0.control)), inf, ~bad0)
 
     def inner(c, ij):
         # one step; keep the record of the first step of each saving chunk (one copy of
@@ -272,19 +293,23 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     m_f = jnp.asarray(aux_f.margin, dtype)
     finite_f = _all_finite((aux_f.control, m_f))
     regular_f = (m_f > margin_floor) & ~(sign_prev * _sign(aux_f.regularity, m_f) < 0)
-    est_f = jnp.where(est_ok, jax.lax.stop_gradient(
-        _error_estimate(dt, k4_prev, _continuous(k1_f), _continuous(z_final))), 0.0)
+    est_f = jnp.zeros_like(m_f)
+    if estimate:
+        est_f = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1_f), _continuous(z_final)))
+        if est_ok is not None:
+            est_f = jnp.where(est_ok, est_f, 0.0)
     accurate_f = ~(est_f > error_tol)
     final_ok = alive & finite_f & regular_f & accurate_f
     newly_failed = alive & ~final_ok
     diag = diag._replace(
         nonfinite=diag.nonfinite | (alive & ~finite_f),
         singular=diag.singular | (alive & finite_f & ~regular_f),
-        inaccurate=diag.inaccurate | (alive & finite_f & ~accurate_f),
-        error_estimate=jnp.where(alive & jnp.isfinite(est_f), jnp.maximum(diag.error_estimate, est_f),
-                                 diag.error_estimate),
+        error_estimate=jnp.where(alive & finite_f, jnp.maximum(diag.error_estimate, est_f), diag.error_estimate),
         failed=diag.failed | newly_failed,
         t_failure=jnp.where(newly_failed, t_final, diag.t_failure))
+    # a step was too inaccurate exactly when the largest estimate of the live run exceeds the
+    # tolerance (the estimate stops growing at the failure): derived here, not carried
+    diag = Diagnostics(*diag[:6], inaccurate=diag.error_estimate > error_tol, error_estimate=diag.error_estimate)
     better = final_ok & (m_f < diag.min_margin)
     diag = diag._replace(min_margin=jnp.where(better, m_f, diag.min_margin),
                          t_min_margin=jnp.where(better, t_final, diag.t_min_margin))
@@ -407,7 +432,9 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
       margin_floor: a run fails (``singular``) when its margin is ``<= margin_floor`` (>= 0),
         or when the sign of its regularity function changes between two steps.
       error_tol: a run fails (``inaccurate``) when a step's local error estimate (relative
-        to ``1 + |z_i|``; :attr:`Diagnostics.error_estimate`) exceeds it (> 0; ``inf``: never).
+        to ``1 + max_i |z_i|``; :attr:`Diagnostics.error_estimate`) exceeds it (> 0). ``None``
+        compiles the loop without the estimate (``error_estimate`` is then 0): about 10 %
+        faster on CPUs, for sweeps whose step is known to be accurate.
 
     Returns:
       :class:`Trajectory`.
@@ -431,9 +458,9 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
     floor = concrete(margin_floor)
     if floor is not None and not (np.ndim(floor) == 0 and np.isrealobj(floor) and np.isfinite(floor) and floor >= 0):
         raise ValueError(f"margin_floor must be a finite real scalar >= 0, got {margin_floor!r}")
-    tol = concrete(error_tol)
+    tol = concrete(error_tol) if error_tol is not None else 1.0
     if tol is not None and not (np.ndim(tol) == 0 and np.isrealobj(tol) and tol > 0):
-        raise ValueError(f"error_tol must be a real scalar > 0 (inf disables the check), got {error_tol!r}")
+        raise ValueError(f"error_tol must be a real scalar > 0 (or None: no error estimate), got {error_tol!r}")
     leaves = jax.tree_util.tree_leaves(z0)
     if not leaves:
         raise ValueError("z0 must be a state array (or a pytree of arrays), got an empty pytree")
