@@ -260,7 +260,9 @@ def _run_cli(name, argv, tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         mod.main(argv)
     assert exc.value.code == 2
-    return capsys.readouterr().err
+    err = capsys.readouterr().err.strip().splitlines()
+    assert ": error: " in err[-1], err                        # argparse's "prog: error: message" line
+    return err[-1].split(": error: ", 1)[1]                   # the message, not the usage (which names every option)
 
 
 def _option_cases():
@@ -281,34 +283,35 @@ CROSS_CASES = [   # (cli, argv, what the message must say)
     ("section_6_1", ["--dt", "1e-9"], "GB of samples"),
     ("section_6_2", ["--t-final", "5"], "must exceed 10 s"),
     ("section_6_2", ["--dt", "1e-9"], "GB of samples"),
-    ("posture_tracking", ["--types", "(9,9)"], "--types"),
+    ("posture_tracking", ["--types", "(9,9)"], "argument --types: unknown robot type"),
     ("posture_tracking", ["--types", "(3,0)"], "not among"),
-    ("posture_tracking", ["--t-final", "inf"], "--t-final"),
+    ("posture_tracking", ["--t-final", "inf"], "argument --t-final: must be finite"),
     ("static_tracking", ["--dt", "1e-9"], "GB of samples"),
     ("certify", ["--dt", "20"], "longer than the horizon"),
     ("certify", ["--robot", "(3,0)"], "no dynamic extension"),
-    ("certify", ["--robot", "(7,7)"], "type"),
-    ("certify", ["--reference", "spiral"], "--reference"),
-    ("certify", ["--level", "jerk"], "--level"),
-    ("certify", ["--robot", "(1,2)", "--geometry", "0", "0.3", "0"], "L"),
+    ("certify", ["--robot", "(7,7)"], "unknown robot type"),
+    ("certify", ["--reference", "spiral"], "argument --reference: invalid choice"),
+    ("certify", ["--level", "jerk"], "argument --level: invalid choice"),
+    ("certify", ["--robot", "(1,2)", "--geometry", "0", "0.3", "0"], "geometry.L must be != 0"),
     ("certify", ["--reference", "paper_66", "--t-final", "12"], "singular set"),
     ("tuning", ["--control-dt", "100"], "control_dt"),
     ("tuning", ["--t-final", "0.01"], "longer than the horizon"),
-    ("tuning", ["--robot", "(2,0)", "--task", "point", "--geometry", "1", "0", "1.57"], "e"),
-    ("tuning", ["--robot", "(1,2)", "--geometry", "0", "0.3", "0"], "L"),
-    ("tuning", ["--input-limit", "-1", "-1"], "--input-limit"),
-    ("tuning", ["--input-limit", "0", "1"], "--input-limit"),
+    ("tuning", ["--robot", "(2,0)", "--task", "point", "--geometry", "1", "0", "1.57"], "geometry.e must be != 0"),
+    ("tuning", ["--robot", "(1,2)", "--geometry", "0", "0.3", "0", "--input-limit", "1", "1", "1"],
+     "geometry.L must be != 0"),
+    ("tuning", ["--input-limit", "-1", "-1"], "argument --input-limit: must be > 0"),
+    ("tuning", ["--input-limit", "0", "1"], "argument --input-limit: must be > 0"),
     ("tuning", ["--input-limit", "1", "2", "3"], "input_limit needs 2 entries"),
-    ("tuning", ["--noise-std", "-0.01", "-0.01", "-0.01"], "--noise-std"),
-    ("tuning", ["--noise-std", "nan", "0", "0"], "--noise-std"),
+    ("tuning", ["--noise-std", "-0.01", "-0.01", "-0.01"], "argument --noise-std: must be >= 0"),
+    ("tuning", ["--noise-std", "nan", "0", "0"], "argument --noise-std: must be finite"),
     ("tuning", ["--noise-std", "0.1", "0.1"], "noise_std needs 3"),
-    ("tuning", ["--geometry", "1", "0", "nan"], "--geometry"),
-    ("tuning", ["--robot", "(5,5)"], "type"),
-    ("tuning", ["--reference", "spiral"], "--reference"),
-    ("tuning", ["--task", "parking"], "--task"),
-    ("tuning", ["--parameterization", "gains"], "--parameterization"),
+    ("tuning", ["--geometry", "1", "0", "nan"], "argument --geometry: must be finite"),
+    ("tuning", ["--robot", "(5,5)"], "unknown robot type"),
+    ("tuning", ["--reference", "spiral"], "argument --reference: invalid choice"),
+    ("tuning", ["--task", "parking"], "argument --task: invalid choice"),
+    ("tuning", ["--parameterization", "gains"], "argument --parameterization: invalid choice"),
     ("tuning", ["--w-tracking", "0", "--w-effort", "0", "--w-saturation", "0", "--w-barrier", "0"], "at least one"),
-    ("tuning", ["--w-certificate", "1", "--reference", "random"], "certificate"),
+    ("tuning", ["--w-certificate", "1", "--reference", "random"], "the certificate term needs"),
 ]
 
 
