@@ -119,6 +119,10 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
                                    "forward axis x2): the point is tracked with the robot facing backwards",
         "final_abs_heading_error_vs_reference_rad": q(np.abs(np.asarray(diag.internal.heading_error))[ok]),
         "fraction_flagged_singular": float(failed.mean()),
+        "fraction_flagged_inaccurate": float(np.asarray(diag.inaccurate).mean()),
+        "flagged_definition": "failed in simulate: singular (margin floor, or det K changed sign between steps), "
+                              "inaccurate (a step's error estimate above 1e-3, often on the way to the singular "
+                              "set) or non-finite; the first key counts them all (its name predates the split)",
         "min_abs_det_K_over_runs": float(np.min(np.asarray(diag.min_margin))),
         "min_initial_abs_det_K": float(np.min(np.asarray(m0))),
         "max_norm_z3": q(z3n[ok]) if ctrl.row.z3 else None,
