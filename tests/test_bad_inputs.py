@@ -22,6 +22,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import refpaths
 import wmrjax as w
 from wmrjax import certify as C
 from wmrjax import references as R
@@ -92,7 +93,8 @@ def _api_cases():
     add("simulate-reference-stops",
         lambda c, p, z: sim(c, p, z, params=p._replace(reference=R.paper_66()), n_steps=1500), "singular set")
     add("simulate-reference-kink",
-        lambda c, p, z: sim(c, p, z, params=p._replace(reference=R.from_function(_kink)), n_steps=500), "not smooth")
+        lambda c, p, z: sim(c, p, z, params=p._replace(reference=R.from_function(refpaths.kink)), n_steps=500),
+        "not smooth")
 
     # parameters and references
     g0 = w.Geometry(e=0.0)
@@ -105,7 +107,7 @@ def _api_cases():
     add("params-gains-not-hurwitz", lambda c, p, z: c.params(R.paper_62(), gains=w.Gains(-jnp.ones((2, 2))), geometry=g0),
         "Hurwitz")
     for name, ref in (("function", lambda t: t), ("string", "paper_62"), ("stopped", R.line(velocity=(0.0, 0.0))),
-                      ("shape3", R.from_function(_three)), ("numpy", R.from_function(_numpy_path))):
+                      ("shape3", R.from_function(refpaths.three)), ("numpy", R.from_function(refpaths.numpy_path))):
         add(f"params-reference-{name}", lambda c, p, z, ref=ref: c.params(ref, poles=1.0, geometry=g0), "reference")
     for name, g in (("nan-e", w.Geometry(e=math.nan)), ("inf-L", w.Geometry(L=math.inf))):
         add(f"params-geometry-{name}", lambda c, p, z, g=g: c.params(R.paper_62(), geometry=g), "geometry")
@@ -187,21 +189,6 @@ def _api_cases():
             R.figure_eight(heading_offset=0.5), geometry=w.Geometry(L=0.5, e=0.3)), t_final=1.0, eps=0.01), "curved")
     add("batch_map-sizes", lambda c, p, z: w.batch_map(lambda a, b: a + b, jnp.ones(3), jnp.ones(4)), "leading batch")
     return cases
-
-
-def _kink(t, p):
-    del p
-    return jnp.stack([t + jnp.maximum(t - 2.0, 0.0), t])
-
-
-def _three(t, p):
-    del p
-    return jnp.stack([t, t, t])
-
-
-def _numpy_path(t, p):
-    del p
-    return np.array([float(t), 0.0])
 
 
 API_CASES = _api_cases()

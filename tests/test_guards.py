@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
+import refpaths
 import wmrjax as w
 from wmrjax import certify as C
 from wmrjax import io
@@ -142,25 +143,6 @@ def test_float32_state_is_promoted(paper61):
 
 # --- references -----------------------------------------------------------------------------
 
-def _kink(t, p):
-    del p
-    return jnp.stack([t + jnp.maximum(t - 2.0, 0.0), t])
-
-
-def _accel_kink(t, p):       # continuous velocity, a jump of the acceleration at t = 2.5 s
-    del p
-    return jnp.stack([t + 0.5 * jnp.maximum(t - 2.5, 0.0) ** 2, t])
-
-
-def _three(t, p):
-    del p
-    return jnp.stack([t, t, t])
-
-
-def _numpy_path(t, p):
-    del p
-    return np.array([float(t), 0.0])
-
 
 @pytest.fixture(scope="module")
 def ctrl61():
@@ -178,7 +160,7 @@ def test_reference_stop_is_caught_on_any_horizon(ctrl61):
         w.simulate(ctrl61, z0, p66, dt=0.01, n_steps=1500)
 
 
-@pytest.mark.parametrize("path, order, where", [(_kink, 1, "2"), (_accel_kink, 2, "2.5")])
+@pytest.mark.parametrize("path, order, where", [(refpaths.kink, 1, "2"), (refpaths.accel_kink, 2, "2.5")])
 def test_reference_kink_is_caught(ctrl61, path, order, where):
     ref = R.from_function(path, name="kinked")
     params = ctrl61.params(ref, poles=1.0, geometry=w.Geometry(e=0.0))
@@ -202,11 +184,11 @@ def test_stopped_or_malformed_references_are_refused(ctrl61):
     with pytest.raises(ValueError, match="is at rest at t = 0"):
         ctrl61.params(R.line(velocity=(0.0, 0.0)), poles=1.0, geometry=g)
     with pytest.raises(ValueError, match=r"must return the position \(x, y\) of shape \(2,\).*got \(3,\)"):
-        ctrl61.params(R.from_function(_three), poles=1.0, geometry=g)
+        ctrl61.params(R.from_function(refpaths.three), poles=1.0, geometry=g)
     with pytest.raises(ValueError, match="cannot be traced by JAX"):
-        ctrl61.params(R.from_function(_numpy_path), poles=1.0, geometry=g)
+        ctrl61.params(R.from_function(refpaths.numpy_path), poles=1.0, geometry=g)
     with pytest.raises(ValueError, match=r"must return the position"):
-        w.static_linearization("(3,0)").params(R.from_function(_three))
+        w.static_linearization("(3,0)").params(R.from_function(refpaths.three))
 
 
 # --- certificates ---------------------------------------------------------------------------

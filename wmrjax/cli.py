@@ -73,36 +73,25 @@ def fraction(text: str) -> float:
     return v
 
 
-def count(text: str) -> int:
-    """An integer >= 1."""
-    v = _number(text, int)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-    return v
+def _integer(minimum: int, maximum: int | None = None, what: str = ""):
+    """An argparse type: an integer in [minimum, maximum)."""
+    bound = f"in [{minimum}, {maximum})" if maximum is not None else f">= {minimum}"
+
+    def parse(text: str) -> int:
+        v = _number(text, int)
+        if v < minimum or (maximum is not None and v >= maximum):
+            raise argparse.ArgumentTypeError(f"must be an integer {bound}, got {text!r}")
+        return v
+
+    parse.__name__ = what or f"integer {bound}"
+    parse.__doc__ = f"{what.capitalize() or 'An integer'}: an integer {bound}."
+    return parse
 
 
-def nonnegative_int(text: str) -> int:
-    """An integer >= 0."""
-    v = _number(text, int)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
-    return v
-
-
-def seed(text: str) -> int:
-    """A PRNG seed: an integer in [0, 2**32)."""
-    v = _number(text, int)
-    if not 0 <= v < 2**32:
-        raise argparse.ArgumentTypeError(f"must be an integer in [0, 2**32), got {text!r}")
-    return v
-
-
-def grid_size(text: str) -> int:
-    """A grid resolution: an integer >= 2."""
-    v = _number(text, int)
-    if v < 2:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 2, got {text!r}")
-    return v
+count = _integer(1, what="count")                                  # runs, steps, samples
+nonnegative_int = _integer(0, what="nonnegative integer")
+seed = _integer(0, 2**32, what="seed")                             # a PRNG seed
+grid_size = _integer(2, what="grid size")                          # points per axis of a grid
 
 
 # --- the parser ------------------------------------------------------------------------------------

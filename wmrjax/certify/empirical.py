@@ -39,6 +39,14 @@ def error_width(ctrl) -> int:
     return ctrl.relative_degree * ctrl.m
 
 
+def check_runs(ctrl, params, t_final, dt, initial_errors, save_every) -> tuple[int, int]:
+    """The checks of a batch of runs from initial errors: ``(n_steps, save_every)`` or ValueError."""
+    check_dynamic(ctrl, params)
+    n_steps = n_steps_for(t_final, dt)
+    check_vectors("initial_errors", initial_errors, error_width(ctrl), "initial errors, Table 4 ordering")
+    return n_steps, check_int("save_every", save_every, 1)
+
+
 def n_steps_for(t_final: float, dt: float, dt_name: str = "dt") -> int:
     """Number of RK4 steps covering [0, t_final] with step dt (ValueError for a bad pair)."""
     def real_scalar(v):
@@ -85,10 +93,7 @@ def verify(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
     Returns:
       :class:`Verification`.
     """
-    check_dynamic(ctrl, params)
-    n_steps = n_steps_for(t_final, dt)
-    check_vectors("initial_errors", initial_errors, error_width(ctrl), "initial errors, Table 4 ordering")
-    save_every = check_int("save_every", save_every, 1)
+    n_steps, save_every = check_runs(ctrl, params, t_final, dt, initial_errors, save_every)
     if not callable(k2):
         raise ValueError(f"k2 must be a function ts -> K2(ts), got {type(k2).__name__}")
     if not (np.isfinite(tol) and tol >= 0):
@@ -171,10 +176,7 @@ def min_distance(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: 
     Returns:
       :class:`Distances`.
     """
-    check_dynamic(ctrl, params)
-    n_steps = n_steps_for(t_final, dt)
-    check_vectors("initial_errors", initial_errors, error_width(ctrl), "initial errors, Table 4 ordering")
-    save_every = check_int("save_every", save_every, 1)
+    n_steps, save_every = check_runs(ctrl, params, t_final, dt, initial_errors, save_every)
     branch = jnp.asarray(float(ctrl.reference_branch(params)))
     return Distances(*_min_distance(ctrl, params, jnp.asarray(initial_errors), branch, dt, n_steps, save_every))
 
