@@ -12,7 +12,6 @@ reference; no pickle), ``fig7_F.png``, ``fig8_paths.png`` and ``fig9_errors.png`
 
 from __future__ import annotations
 
-import math
 import sys
 
 from experiments import common

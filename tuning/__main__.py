@@ -12,7 +12,6 @@ geometry mismatch, and sensor noise (1 cm, 0.005 rad). Writes ``summary.json``,
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 import time
