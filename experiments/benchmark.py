@@ -232,7 +232,7 @@ def numpy_rollout_rhs(t, s):
 def main(argv=None) -> int:
     from wmrjax import cli
 
-    p = common.parser(__doc__.splitlines()[0], "results/benchmark")
+    p = common.parser(__doc__.splitlines()[0], "results/benchmark", compile_cache=False)   # it times compilation
     p.add_argument("--batches", type=cli.count, nargs="+", default=[1024, 16384, 65536],
                    help="batch sizes of the rollout comparison [trajectories]")
     p.add_argument("--reps", type=cli.count, default=5, help="timed repetitions (best kept)")
@@ -245,6 +245,7 @@ def main(argv=None) -> int:
                    help="the hand-vectorised C loop (the ceiling; skipped if missing)")
     a = p.parse_args(argv)
     cli.prepare_output(p, a.out)
+    cli.use_compilation_cache(a)
     flag = f"--xla_force_host_platform_device_count={a.devices}"
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()   # read when the backend starts
     s = run(a.out, a.batches, a.reps, a.grad_batch, a.scipy_trajectories, a.c_source)

@@ -147,6 +147,7 @@ def main(argv=None) -> int:
     except ValueError as e:
         p.error(str(e))
     cli.prepare_output(p, a.out)
+    cli.use_compilation_cache(a)
     try:
         with cli.heartbeat() as hb:
             s = run(a.out, a.robot, a.reference, a.level, a.poles, a.t_final, a.eps, a.dt, a.n_empirical,

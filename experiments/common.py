@@ -41,11 +41,12 @@ def enable_x64() -> None:
     jax.config.update("jax_enable_x64", True)
 
 
-def parser(description: str, default_out: str) -> argparse.ArgumentParser:
-    """The experiments' parser (:func:`wmrjax.cli.parser`: defaults shown, ``--out``)."""
+def parser(description: str, default_out: str, compile_cache: bool = True) -> argparse.ArgumentParser:
+    """The experiments' parser (:func:`wmrjax.cli.parser`: defaults shown, ``--out``, the
+    persistent compilation cache on unless ``compile_cache`` is False)."""
     from wmrjax import cli
 
-    return cli.parser(description, default_out)
+    return cli.parser(description, default_out, compile_cache)
 
 
 def save_figure(fig, path: Path) -> None:
@@ -100,6 +101,7 @@ def tracking_cli(argv, doc, default_out, kinds, run_fn) -> int:
     if bad:
         p.error(f"argument --types: {bad} not among this experiment's types {list(kinds)}")
     cli.prepare_output(p, a.out)
+    cli.use_compilation_cache(a)
     t0 = time.perf_counter()
     with cli.heartbeat() as hb:
         run_fn(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=chosen, progress=hb.stage)

@@ -164,6 +164,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     cli.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=4096)
     cli.prepare_output(p, a.out)
+    cli.use_compilation_cache(a)
     try:
         with cli.heartbeat() as hb:
             s = run(a.out, a.dt, a.t_final, progress=hb.stage)

@@ -216,6 +216,7 @@ def main(argv=None) -> int:
                 f"got {a.t_final}")
     cli.check_horizon(p, t_final=a.t_final, dt=a.dt, n_state=10)   # the single run keeps every step
     cli.prepare_output(p, a.out)
+    cli.use_compilation_cache(a)
     try:
         with cli.heartbeat() as hb:
             s = run(a.out, a.dt, a.t_final, a.n_batch, a.tol_distance, a.tol_heading, a.r_switch, a.lam,

@@ -241,7 +241,7 @@ BAD = {   # concrete bad values of each kind
 
 def _run_cli(name, argv, tmp_path, capsys):
     mod = importlib.import_module(CLIS[name])
-    argv = list(argv)
+    argv = list(argv) + ["--no-compile-cache"]      # never touch the user's cache from the tests
     if "--out" not in argv:
         argv += ["--out", str(tmp_path / "out")]
     with pytest.raises(SystemExit) as exc:

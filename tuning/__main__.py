@@ -219,6 +219,7 @@ def main(argv=None) -> int:
     except ValueError as e:
         p.error(str(e))
     cli.prepare_output(p, a.out)
+    cli.use_compilation_cache(a)
     try:
         with cli.heartbeat() as hb:
             s = run(cfg, a.out, a.fresh, log=hb.stage)

@@ -100,12 +100,45 @@ class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescription
     """Help text with each option's default appended."""
 
 
-def parser(description: str, default_out: str | None) -> argparse.ArgumentParser:
-    """An ``ArgumentParser`` whose help shows defaults, with ``--out`` when ``default_out`` is given."""
+def default_cache_dir() -> Path:
+    """Where compiled programs are kept between runs: ``$XDG_CACHE_HOME/wmrjax/xla`` (``~/.cache/...``)."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "wmrjax" / "xla"
+
+
+def parser(description: str, default_out: str | None, compile_cache: bool = True) -> argparse.ArgumentParser:
+    """An ``ArgumentParser`` whose help shows defaults, with ``--out`` when ``default_out`` is given
+    and the persistent compilation cache options (see :func:`use_compilation_cache`)."""
     p = argparse.ArgumentParser(description=description, formatter_class=_Formatter)
     if default_out is not None:
         p.add_argument("--out", type=Path, default=Path(default_out), help="output directory (created if missing)")
+    p.add_argument("--compile-cache", type=Path, default=default_cache_dir() if compile_cache else None,
+                   help="directory of JAX's persistent compilation cache: a second run reuses the compiled programs "
+                        "of the first (None: off)")
+    p.add_argument("--no-compile-cache", action="store_true", help="do not read or write the compilation cache")
     return p
+
+
+def use_compilation_cache(args) -> Path | None:
+    """Turn on JAX's persistent compilation cache in ``args.compile_cache`` (unless
+    ``--no-compile-cache``): programs that took more than 0.5 s to compile are stored there and
+    loaded by later runs of any command line. Call it after parsing, before any JAX work; the
+    library never does this on import. Returns the directory, or None when off."""
+    path = None if args.no_compile_cache else args.compile_cache
+    if path is None:
+        return None
+    import jax
+
+    path = Path(path).expanduser()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"note: compilation cache {path} unavailable ({exc.strerror or exc}); compiling from scratch",
+              file=sys.stderr)
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
 
 
 def fail(p: argparse.ArgumentParser, message: str):
