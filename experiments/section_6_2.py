@@ -94,7 +94,7 @@ def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_
     if switched:
         say("Lemma 2 up to the switch")
         ctrl, tp = hy.tracking, params.tracking
-        cert = C.lemma2(ctrl, tp, t_final=t_sw, eps=eps, n_t=max(int(round(t_sw / dt)) + 1, 2))
+        cert = C.lemma2(ctrl, tp, t_final=t_sw, eps=eps, n_t=max(int(round(t_sw / dt)) + 1, 3))
         e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0.tracking, tp)))
         summary["lemma2"] = {"eps": eps, "horizon": t_sw, "zeta0_norm": e0,
                              "radius_paper": float(cert.paper.radius), "argmin_F_paper": float(cert.paper.argmin),

@@ -27,3 +27,15 @@ def numpy_path(t, p):
     """Written with NumPy: JAX cannot trace it."""
     del p
     return np.array([float(t), 0.0])
+
+
+def velocity_kink_midway(t, p):
+    """A velocity corner at t = 2.005 s: midway between two points of the 0.01 s grid."""
+    del p
+    return jnp.stack([t + jnp.maximum(t - 2.005, 0.0), t])
+
+
+def accel_kink_midway(t, p):
+    """An acceleration jump at t = 2.505 s: midway between two points of the 0.01 s grid."""
+    del p
+    return jnp.stack([t + 0.5 * jnp.maximum(t - 2.505, 0.0) ** 2, t])

@@ -295,3 +295,19 @@ def test_error_estimate_can_be_compiled_out(paper61):
     np.testing.assert_array_equal(np.asarray(a.state), np.asarray(b.state))
     assert float(b.diagnostics.error_estimate) == 0.0 and float(a.diagnostics.error_estimate) > 0.0
     assert not bool(b.diagnostics.inaccurate)
+
+
+def test_kink_in_the_middle_of_a_grid_interval_is_caught_and_named(ctrl61):
+    """A jump halfway between two grid points leaves no trapezoid residual on that grid: the check
+    also runs on the midpoints' grid, and names the order that jumps."""
+    for path, order in ((refpaths.velocity_kink_midway, 1), (refpaths.accel_kink_midway, 2)):
+        params = ctrl61.params(R.from_function(path), poles=1.0, geometry=w.Geometry(e=0.0))
+        with pytest.raises(ValueError, match=rf"derivative of order {order} jumps"):
+            ctrl61.check_reference(params, 10.0)
+
+
+def test_reference_checked_under_an_outer_jit(ctrl61):
+    params = ctrl61.params(R.from_function(refpaths.kink), poles=1.0, geometry=w.Geometry(e=0.0))
+    z0 = ctrl61.reference_state(0.0, params)
+    with pytest.raises(ValueError, match="not smooth enough"):
+        jax.jit(lambda z: w.simulate(ctrl61, z, params, dt=0.01, n_steps=500).final_state)(z0)

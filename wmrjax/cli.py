@@ -113,7 +113,7 @@ def parser(description: str, default_out: str | None, compile_cache: bool = True
         p.add_argument("--out", type=Path, default=Path(default_out), help="output directory (created if missing)")
     p.add_argument("--compile-cache", type=Path, default=default_cache_dir() if compile_cache else None,
                    help="directory of JAX's persistent compilation cache: a second run reuses the compiled programs "
-                        "of the first (None: off)")
+                        "of the first (turn it off with --no-compile-cache)")
     p.add_argument("--no-compile-cache", action="store_true", help="do not read or write the compilation cache")
     return p
 

@@ -23,7 +23,10 @@ def atomic_write(path, write: Callable) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        os.chmod(tmp, 0o666 & ~_umask())      # mkstemp makes 0600; results are as readable as the umask allows
+        try:                                  # mkstemp makes 0600; results are as readable as the umask allows
+            os.fchmod(fd, 0o666 & ~_umask())
+        except OSError:                       # file systems without modes: keep what they give
+            pass
         with os.fdopen(fd, "wb") as fh:
             write(fh)
         os.replace(tmp, path)
@@ -35,7 +38,8 @@ def atomic_write(path, write: Callable) -> Path:
 
 
 def _umask() -> int:
-    mask = os.umask(0o022)
+    """The process umask (reading it means setting it for an instant: to the strictest one)."""
+    mask = os.umask(0o077)
     os.umask(mask)
     return mask
 
@@ -128,6 +132,10 @@ def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) ->
     if not isinstance(d, dict):
         raise ValueError(f"checkpoint {path} is not a checkpoint (a JSON {type(d).__name__}, expected an object); "
                          "delete it (or start fresh) to run from the beginning")
+    for key in ("config", "trees", "state"):
+        if key in d and not isinstance(d[key], dict):
+            raise ValueError(f"checkpoint {path}: '{key}' is a JSON {type(d[key]).__name__}, expected an object "
+                             "(an edited or corrupt checkpoint)")
     if d.get("fingerprint") != fingerprint:
         old = d.get("config", {}) or {}
         diff = sorted(k for k, v in config.items() if json.loads(json.dumps(jsonable(old.get(k))))
@@ -138,6 +146,8 @@ def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) ->
     for name, template in templates.items():
         got = (d.get("trees") or {}).get(name)
         tmpl, treedef = jax.tree_util.tree_flatten(template)
+        if got is not None and not isinstance(got, list):
+            raise ValueError(f"checkpoint {path}: tree {name!r} is a JSON {type(got).__name__}, expected a list of leaves")
         if got is None or len(got) != len(tmpl):
             raise ValueError(f"checkpoint {path}: tree {name!r} has {None if got is None else len(got)} leaves, "
                              f"expected {len(tmpl)}")

@@ -13,8 +13,10 @@ Two implementation choices matter for speed on CPUs (measured in
   whole RK4 step fuses into one vectorised loop;
 * the vector fields use :func:`wmrjax._math.sincos`, which XLA vectorises.
 
-A run *fails* when its state becomes non-finite or its singularity margin drops to
-``margin_floor`` or below. From then on its state is frozen at the last good value and
+A run *fails* when its state becomes non-finite, its singularity margin drops to
+``margin_floor`` or below, the sign of its regularity function (det K) changes between two
+steps (a crossing of the singular set between samples), or a step's embedded error estimate
+exceeds ``error_tol``. From then on its state is frozen at the last good value and
 its samples are marked invalid (``Trajectory.valid``), so batch statistics can exclude
 it explicitly instead of averaging NaN or a runaway value.
 """
@@ -143,7 +145,9 @@ def _error_estimate(dt, k4_prev, k1, z):
     of the vector field (k5 is the next step's k1).
     """
     diff = functools.reduce(jnp.maximum, [jnp.abs(a - b) for a, b in zip(k4_prev, k1)])
-    scale = functools.reduce(jnp.maximum, [jnp.abs(x) for x in z])
+    # components that do not move (derivative exactly 0: e.g. a hybrid system's switch records)
+    # do not set the scale
+    scale = functools.reduce(jnp.maximum, [jnp.where(k == 0, 0.0, jnp.abs(x)) for k, x in zip(k1, z)])
     return (jnp.abs(dt) / 6.0) * diff / (1.0 + scale)
 
 
@@ -214,7 +218,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
             jumped = ~_all_equal(z_post, z_next) if estimate else None
             z_next = z_post
         margin = jnp.asarray(aux.margin, dtype)
-        sign = _sign(aux.regularity, margin)
+        sign = _sign(getattr(aux, "regularity", None), margin)
         crossed = sign_prev * sign < 0                              # det K changed sign since the last step
         if estimate:
             est = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1), _continuous(z)))
@@ -292,12 +296,13 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     k1_f, aux_f = field(t_final, z_final)
     m_f = jnp.asarray(aux_f.margin, dtype)
     finite_f = _all_finite((aux_f.control, m_f))
-    regular_f = (m_f > margin_floor) & ~(sign_prev * _sign(aux_f.regularity, m_f) < 0)
+    regular_f = (m_f > margin_floor) & ~(sign_prev * _sign(getattr(aux_f, "regularity", None), m_f) < 0)
     est_f = jnp.zeros_like(m_f)
     if estimate:
         est_f = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1_f), _continuous(z_final)))
         if est_ok is not None:
             est_f = jnp.where(est_ok, est_f, 0.0)
+        finite_f = finite_f & jnp.isfinite(est_f)
     accurate_f = ~(est_f > error_tol)
     final_ok = alive & finite_f & regular_f & accurate_f
     newly_failed = alive & ~final_ok

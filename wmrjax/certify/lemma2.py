@@ -177,8 +177,8 @@ class Certificate(NamedTuple):
     m1: jnp.ndarray
     k2: jnp.ndarray
     F: jnp.ndarray
-    radius: jnp.ndarray      # min_t F(t) (from lemma2: over the grid and a refinement between its points)
-    argmin: jnp.ndarray      # where the minimum is attained [s]
+    radius: jnp.ndarray      # min_t F(t); from lemma2, over the grid and points between them (<= F.min())
+    argmin: jnp.ndarray      # where that minimum is attained [s] (from lemma2: possibly between grid points)
 
 
 def certificate(ts, m1, k2, eps) -> Certificate:

@@ -136,7 +136,13 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     check_int("seed", seed, 0)
     if not callable(log):
         raise ValueError(f"log must be a function of one message, got {type(log).__name__}")
-    cert = lemma2(ctrl, params, t_final=t_final, eps=eps, n_t=n_steps + 1)
+    try:
+        cert = lemma2(ctrl, params, t_final=t_final, eps=eps, n_t=n_steps + 1)
+    except ValueError as exc:
+        if "n_t" not in str(exc):
+            raise
+        raise ValueError(f"dt = {dt} s gives Lemma 2 a grid of n_t = {n_steps + 1} times over [0, {t_final}] s, "
+                         f"too coarse: use a smaller dt ({exc})") from None
     A = ctrl.error_matrix(params.gains)
     k2s = {"lyapunov": lambda ts: k2_lyapunov(A, ts), "exact_norm": lambda ts: k2_exact(A, ts)}
     if cert.paper is not None:

@@ -391,7 +391,8 @@ class DynamicLinearization(LinearizingController):
         robots.check_geometry(geometry)
         check_reference_type(reference)
         check_requirements(self.row.requires, geometry, f"type {self.robot.name} ({self.row.regularity})")
-        v0 = concrete(reference.velocity(jnp.zeros((), jnp.result_type(float))))
+        with jax.ensure_compile_time_eval():
+            v0 = concrete(reference.velocity(jnp.zeros((), jnp.result_type(float))))
         if v0 is not None and not (np.all(np.isfinite(v0)) and np.hypot(*v0) > 1e-9):
             raise ValueError(f"reference {reference.name!r} is at rest at t = 0 (velocity {np.asarray(v0).tolist()} m/s): "
                              f"Table 4 requires a moving reference ({self.row.regularity} along it); its heading "
