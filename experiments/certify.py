@@ -146,14 +146,9 @@ def main(argv=None) -> int:
         setup(a.robot, a.reference, a.level, a.poles, a.heading_offset, a.geometry)   # geometry, reference: now
     except ValueError as e:
         p.error(str(e))
-    cli.prepare_output(p, a.out)
-    cli.use_compilation_cache(a)
-    try:
-        with cli.heartbeat() as hb:
-            s = run(a.out, a.robot, a.reference, a.level, a.poles, a.t_final, a.eps, a.dt, a.n_empirical,
-                    a.n_directions, a.n_starts, a.heading_offset, a.map_grid, geometry=a.geometry, progress=hb.stage)
-    except ValueError as e:
-        p.error(str(e))
+    s = cli.work(p, a, lambda progress: run(a.out, a.robot, a.reference, a.level, a.poles, a.t_final, a.eps, a.dt,
+                                            a.n_empirical, a.n_directions, a.n_starts, a.heading_offset,
+                                            a.map_grid, geometry=a.geometry, progress=progress))
     keys = ["radius_paper", "radius_lyapunov", "radius_exact_norm", "radius_exact_map", "radius_exact_map_position_slice",
             "empirical_radius_position_slice"]
     print("  ".join(f"{k} {s[k]:.4f}" for k in keys if s.get(k) is not None))

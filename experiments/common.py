@@ -100,11 +100,8 @@ def tracking_cli(argv, doc, default_out, kinds, run_fn) -> int:
     bad = [k for k in chosen if k not in kinds]
     if bad:
         p.error(f"argument --types: {bad} not among this experiment's types {list(kinds)}")
-    cli.prepare_output(p, a.out)
-    cli.use_compilation_cache(a)
     t0 = time.perf_counter()
-    with cli.heartbeat() as hb:
-        run_fn(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=chosen, progress=hb.stage)
+    cli.work(p, a, lambda progress: run_fn(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=chosen, progress=progress))
     print(f"wrote {a.out}/summary.json and one PNG per type ({time.perf_counter() - t0:.0f} s)", file=sys.stdout)
     return 0
 

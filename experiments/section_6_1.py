@@ -163,13 +163,7 @@ def main(argv=None) -> int:
     p.add_argument("--t-final", type=cli.positive, default=10.0, help="horizon [s]")
     a = p.parse_args(argv)
     cli.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=4096)
-    cli.prepare_output(p, a.out)
-    cli.use_compilation_cache(a)
-    try:
-        with cli.heartbeat() as hb:
-            s = run(a.out, a.dt, a.t_final, progress=hb.stage)
-    except ValueError as e:
-        p.error(str(e))
+    s = cli.work(p, a, lambda progress: run(a.out, a.dt, a.t_final, progress=progress))
     sim = s["simulation"]
     print(f"section 6.1: min eta1 = {sim['min_eta1']:.4f} m/s at t = {sim['t_min_eta1']:.2f} s; "
           f"position error max {sim['max_position_error']:.4f} m, final {sim['final_position_error']:.2e} m; "

@@ -215,14 +215,8 @@ def main(argv=None) -> int:
         p.error(f"argument --t-final: must exceed 10 s (the reference (66) stops at t = 10 s and parking follows), "
                 f"got {a.t_final}")
     cli.check_horizon(p, t_final=a.t_final, dt=a.dt, n_state=10)   # the single run keeps every step
-    cli.prepare_output(p, a.out)
-    cli.use_compilation_cache(a)
-    try:
-        with cli.heartbeat() as hb:
-            s = run(a.out, a.dt, a.t_final, a.n_batch, a.tol_distance, a.tol_heading, a.r_switch, a.lam,
-                    progress=hb.stage)
-    except ValueError as e:
-        p.error(str(e))
+    s = cli.work(p, a, lambda progress: run(a.out, a.dt, a.t_final, a.n_batch, a.tol_distance, a.tol_heading,
+                                            a.r_switch, a.lam, progress=progress))
     print(f"section 6.2: switch at t = {s['t_switch']} s, state {s['state_at_switch']}, eta1 = {s['eta1_at_switch']}; "
           f"final distance {s['final_distance']:.4g} m, heading {s['final_heading']:.3g} rad")
     if "batch" in s:

@@ -218,16 +218,8 @@ def main(argv=None) -> int:
         validate(cfg)
     except ValueError as e:
         p.error(str(e))
-    cli.prepare_output(p, a.out)
-    cli.use_compilation_cache(a)
-    try:
-        with cli.heartbeat() as hb:
-            s = run(cfg, a.out, a.fresh, log=hb.stage)
-    except ValueError as e:
-        msg = str(e)
-        if "checkpoint" in msg:
-            msg += "; or rerun with --fresh to start over"
-        p.error(msg)
+    s = cli.work(p, a, lambda progress: run(cfg, a.out, a.fresh, log=progress),
+                 hint=lambda msg: msg + "; or rerun with --fresh to start over" if "checkpoint" in msg else msg)
     print(f"tuned {s['tuned_gains']['parameters']}; held-out loss paper {s['heldout_loss']['paper_gains']:.4g} -> "
           f"tuned {s['heldout_loss']['tuned']:.4g}; singular events {s['singularity_events']}; "
           f"rollouts {s['rollouts']}, to match random search {s['rollouts_to_match_baseline']} "

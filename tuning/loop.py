@@ -150,12 +150,8 @@ def make_scenarios(ctrl, cfg: TuneConfig, g, key, n) -> Scenario:
     """n scenarios: initial errors x references x geometry/input-scale mismatch x noise keys."""
     nX, nu = ctrl.robot.n_state, ctrl.robot.n_input
     limit = jnp.full(nu, jnp.inf)
-    if cfg.input_limit:
-        if len(cfg.input_limit) != nu:
-            raise ValueError(f"input_limit needs {nu} entries for type {ctrl.robot.name}, got {cfg.input_limit}")
+    if cfg.input_limit:                 # lengths checked by validate()
         limit = jnp.asarray(cfg.input_limit, float)
-    if len(cfg.noise_std) not in (0, 3, nX):
-        raise ValueError(f"noise_std needs 3 or {nX} entries, got {cfg.noise_std}")
     noise = jnp.zeros(nX).at[: len(cfg.noise_std)].set(jnp.asarray(cfg.noise_std, float))
 
     def one(k):

@@ -20,6 +20,8 @@ import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
+from wmrjax._validate import memory_bytes
+
 # --- argument types ------------------------------------------------------------------------------
 
 
@@ -165,14 +167,6 @@ def check_horizon(p, *, t_final: float, dt: float, batch: int = 1, n_state: int 
     return n
 
 
-def memory_bytes() -> int | None:
-    """Physical memory of this machine [bytes], None where unknown."""
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):   # pragma: no cover - non-POSIX
-        return None
-
-
 def prepare_output(p, out: Path) -> Path:
     """Create ``out`` and prove it writable (write and delete a probe file) before any work; exits if not."""
     out = Path(out)
@@ -186,6 +180,19 @@ def prepare_output(p, out: Path) -> Path:
     except OSError as exc:
         fail(p, f"--out {out} is not a writable directory ({exc.strerror or exc})")
     return out
+
+
+def work(p, args, fn, hint=lambda message: message):
+    """Run a command's work: ``--out`` made and test-written, the compilation cache on, a
+    heartbeat, and a ``ValueError`` raised by the work turned into the parser's error exit
+    (``hint`` may add advice to its message). ``fn(progress)`` gets the heartbeat's ``stage``."""
+    prepare_output(p, args.out)
+    use_compilation_cache(args)
+    try:
+        with heartbeat() as hb:
+            return fn(hb.stage)
+    except ValueError as exc:
+        fail(p, hint(str(exc)))
 
 
 # --- progress --------------------------------------------------------------------------------------

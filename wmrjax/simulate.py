@@ -24,14 +24,13 @@ it explicitly instead of averaging NaN or a runaway value.
 from __future__ import annotations
 
 import functools
-import os
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax._validate import check_finite, check_int, concrete
+from wmrjax._validate import check_finite, check_int, concrete, memory_bytes
 
 
 class Diagnostics(NamedTuple):
@@ -502,11 +501,8 @@ def _check_memory(n_steps: int, save_every: int, n_state: int, dtype) -> None:
     """ValueError when one run's saved samples cannot fit in this machine's memory."""
     samples = n_steps // save_every + 1
     need = samples * (2 * n_state + 4) * np.dtype(dtype).itemsize     # states, controls (<= n), margin, valid
-    try:
-        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):   # pragma: no cover - non-POSIX
-        return
-    if need > total:
+    total = memory_bytes()
+    if total is not None and need > total:
         raise ValueError(f"n_steps = {n_steps} with save_every = {save_every} saves {samples} samples per run, "
                          f"{need / 1e9:.3g} GB, more than this machine's {total / 1e9:.3g} GB of memory: "
                          "raise dt or save_every")
