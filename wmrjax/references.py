@@ -20,8 +20,10 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from wmrjax import _math
+from wmrjax._validate import concrete
 
 
 def taylor(fn: Callable, t, order: int):
@@ -209,3 +211,213 @@ def named(name: str) -> Reference:
     if name not in REFERENCES:
         raise ValueError(f"unknown reference {name!r}; expected one of {sorted(REFERENCES)}")
     return REFERENCES[name]()
+
+
+# --- references from the user's own samples ---------------------------------------------
+
+SPLINE_DEGREE = 5     # quintic: C^4, enough for the torque-level dynamic laws (they use p up to order 4)
+
+
+def _span(knots, s, n_coef: int, k: int):
+    """Index ``l`` with ``knots[l] <= s < knots[l + 1]``, clamped to ``[k, n_coef - 1]`` (end pieces extend)."""
+    l = jnp.searchsorted(knots, s, side="right").astype(jnp.result_type(int)) - 1
+    return jnp.clip(l, k, n_coef - 1)
+
+
+def _basis(knots, l, s, k: int):
+    """The ``k + 1`` B-spline basis functions of degree ``k`` that are non-zero on span ``l``, at ``s``.
+
+    Cox-de Boor recursion (Piegl & Tiller, Algorithm A2.2); polynomial in ``s`` on the span,
+    so every derivative with respect to ``s`` (and to the knots) comes from autodiff.
+    """
+    window = jax.lax.dynamic_slice(knots, (l - k + 1,), (2 * k,))     # knots[l-k+1 .. l+k]
+    left = [s - window[k - j] for j in range(1, k + 1)]            # s - knots[l+1-j]
+    right = [window[k - 1 + j] - s for j in range(1, k + 1)]       # knots[l+j] - s
+    n = [jnp.ones_like(s)]
+    for j in range(1, k + 1):
+        saved = jnp.zeros_like(s)
+        new = []
+        for r in range(j):
+            denom = right[r] + left[j - r - 1]
+            temp = n[r] / jnp.where(denom == 0, 1.0, denom)
+            new.append(saved + right[r] * temp)
+            saved = left[j - r - 1] * temp
+        n = new + [saved]
+    return jnp.stack(n)
+
+
+def _spline_value(knots, coef, s):
+    """Value of the B-spline ``sum_j coef[j] B_j(s)``; ``coef``: (n, d)."""
+    k = SPLINE_DEGREE
+    n = coef.shape[0]
+    l = _span(knots, s, n, k)
+    b = _basis(knots, l, s, k)
+    return b @ jax.lax.dynamic_slice_in_dim(coef, l - k, k + 1, axis=0)
+
+
+def _path_spline(t, params):
+    return _spline_value(params["knots"], params["coef"], t)
+
+
+def _spline_knots(ts):
+    """Not-a-knot knots of an interpolating spline of odd degree k at ``ts`` (as SciPy's
+    ``make_interp_spline``): the end sample repeated k + 1 times, interior knots at the
+    interior samples except the (k - 1) / 2 nearest each end."""
+    k = SPLINE_DEGREE
+    h = (k - 1) // 2
+    return jnp.concatenate([jnp.repeat(ts[:1], k + 1), ts[h + 1: ts.shape[0] - h - 1], jnp.repeat(ts[-1:], k + 1)])
+
+
+def _check_samples(t, xy):
+    """ValueError for samples a quintic spline cannot interpolate (concrete inputs only)."""
+    tv, xv = concrete(t), concrete(xy)
+    if tv is not None:
+        tv = np.asarray(tv)
+        if tv.ndim != 1:
+            raise ValueError(f"from_samples: t must be a 1-D array of times [s], got shape {tv.shape}")
+        if tv.shape[0] < SPLINE_DEGREE + 1:
+            raise ValueError(f"from_samples needs at least {SPLINE_DEGREE + 1} samples for a quintic spline, "
+                             f"got {tv.shape[0]}")
+        if not np.all(np.isfinite(tv)):
+            raise ValueError("from_samples: t has non-finite values")
+        steps = np.diff(tv)
+        if not np.all(steps > 0):
+            i = int(np.argmin(steps > 0))
+            raise ValueError(f"from_samples: times must be strictly increasing, got t[{i}] = {tv[i]} "
+                             f"then t[{i + 1}] = {tv[i + 1]}")
+    if xv is not None:
+        xv = np.asarray(xv)
+        n = None if tv is None else tv.shape[0]
+        if xv.ndim != 2 or xv.shape[1] != 2 or (n is not None and xv.shape[0] != n):
+            raise ValueError(f"from_samples: xy must have shape ({n if n is not None else 'N'}, 2) (x, y per time) [m], "
+                             f"got {xv.shape}")
+        if not np.all(np.isfinite(xv)):
+            raise ValueError("from_samples: xy has non-finite values")
+
+
+def from_samples(t, xy, *, min_speed: float | None = None, heading_offset=0.0, name: str = "samples") -> Reference:
+    r"""A reference through sampled positions: the quintic interpolating spline (C^4).
+
+    The spline is the one SciPy's ``make_interp_spline(t, xy, k=5)`` builds (not-a-knot
+    ends), solved in JAX: the reference is differentiable with respect to time (every
+    derivative up to order 4 is continuous, as the torque-level dynamic laws need) and with
+    respect to the samples ``t`` and ``xy`` (call ``from_samples`` inside the differentiated
+    function). Beyond the last sample the end pieces are extended polynomially: keep the
+    horizon inside ``[t[0], t[-1]]``.
+
+    Args:
+      t: (N,) strictly increasing sample times [s], N >= 6.
+      xy: (N, 2) positions of P at those times [m].
+      min_speed: if given, a ValueError when the interpolant's speed drops below it [m/s]
+        anywhere in ``[t[0], t[-1]]`` (checked at 8 points per interval): the dynamic laws
+        need a moving reference (its heading is the path tangent).
+      heading_offset: constant heading offset [rad].
+      name: label used in reports.
+
+    Returns:
+      A :class:`Reference` whose params are ``{"knots": (N + 6,), "coef": (N, 2)}``.
+
+    Raises:
+      ValueError: times not strictly increasing, fewer than 6 samples, wrong shapes,
+        non-finite values, or a stop (with ``min_speed``).
+    """
+    _check_samples(t, xy)
+    dtype = jnp.result_type(float)
+    t = jnp.asarray(t, dtype)
+    xy = jnp.asarray(xy, dtype)
+    knots = _spline_knots(t)
+    k = SPLINE_DEGREE
+    n = t.shape[0]
+
+    def row(s):
+        l = _span(knots, s, n, k)
+        return jnp.zeros(n, dtype).at[l - k + jnp.arange(k + 1)].set(_basis(knots, l, s, k))
+
+    collocation = jax.vmap(row)(t)
+    coef = jnp.linalg.solve(collocation, xy)
+    ref = Reference(params=dict(knots=knots, coef=coef), heading_offset=_as_array(heading_offset),
+                    path=_path_spline, name=name)
+    if min_speed is not None:
+        _check_min_speed(ref, t, float(min_speed))
+    return ref
+
+
+def _check_min_speed(ref: Reference, t, min_speed: float) -> None:
+    tv = concrete(t)
+    if tv is None:
+        return
+    tv = np.asarray(tv)
+    frac = np.arange(8) / 8.0
+    grid = np.concatenate([(tv[:-1, None] + frac * np.diff(tv)[:, None]).ravel(), tv[-1:]])
+    with jax.ensure_compile_time_eval():
+        speed = np.asarray(_speeds(ref, jnp.asarray(grid, jnp.result_type(float))))
+    if not np.all(speed >= min_speed):
+        i = int(np.nanargmin(speed)) if np.any(np.isfinite(speed)) else 0
+        raise ValueError(f"reference {ref.name!r} slows to {speed[i]:.3g} m/s at t = {grid[i]:.4g} s, below "
+                         f"min_speed = {min_speed} m/s: the dynamic laws need a moving reference (its heading "
+                         "is the path tangent); resample the path or pass min_speed=None")
+
+
+@jax.jit
+def _speeds(ref, ts):
+    return jax.vmap(ref.speed)(ts)
+
+
+def from_waypoints(points, *, speed: float = 1.0, t0: float = 0.0, min_speed: float | None = None,
+                   heading_offset=0.0, name: str = "waypoints") -> Reference:
+    """A reference through position-only waypoints, timed at constant chord speed.
+
+    Waypoint ``i`` is reached at ``t0 + (chord length from the first waypoint) / speed``;
+    the path is the quintic spline of :func:`from_samples` through them, so its speed
+    follows the chord speed closely when the waypoints are dense and the turns gentle.
+
+    Args:
+      points: (N, 2) waypoints [m], N >= 6, consecutive points distinct.
+      speed: chord speed [m/s], > 0.
+      t0: time of the first waypoint [s].
+      min_speed, heading_offset, name: as in :func:`from_samples`.
+    """
+    pv = np.asarray(points, float)
+    if pv.ndim != 2 or pv.shape[1] != 2:
+        raise ValueError(f"from_waypoints: points must have shape (N, 2) [m], got {pv.shape}")
+    if not (np.isfinite(speed) and speed > 0):
+        raise ValueError(f"from_waypoints: speed must be a finite number > 0 [m/s], got {speed}")
+    chords = np.hypot(*np.diff(pv, axis=0).T)
+    if np.any(chords == 0):
+        i = int(np.argmin(chords))
+        raise ValueError(f"from_waypoints: waypoints {i} and {i + 1} coincide ({pv[i].tolist()}); "
+                         "consecutive waypoints must be distinct")
+    t = t0 + np.concatenate([[0.0], np.cumsum(chords)]) / speed
+    return from_samples(t, pv, min_speed=min_speed, heading_offset=heading_offset, name=name)
+
+
+def load_samples(path, *, min_speed: float | None = None, heading_offset=0.0) -> Reference:
+    """:func:`from_samples` of a CSV file with a header naming columns ``t``, ``x``, ``y``
+    (other columns ignored; ``#`` starts a comment).
+
+    Raises:
+      ValueError: an unreadable file, missing columns, or what :func:`from_samples` refuses.
+    """
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        with open(path) as fh:
+            lines = [ln for ln in fh if ln.strip() and not ln.lstrip().startswith("#")]
+    except OSError as err:
+        raise ValueError(f"cannot read reference samples {str(path)!r}: {err.strerror}") from None
+    if not lines:
+        raise ValueError(f"{path}: no header line; expected a CSV file with columns t, x, y")
+    header = [h.strip() for h in lines[0].split(",")]
+    missing = [c for c in ("t", "x", "y") if c not in header]
+    if missing:
+        raise ValueError(f"{path}: missing column(s) {missing}; the header must name t, x, y (got {header})")
+    try:
+        rows = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]], float)
+    except ValueError as err:
+        raise ValueError(f"{path}: a value is not a number ({err})") from None
+    if rows.ndim != 2 or rows.shape[0] == 0 or rows.shape[1] != len(header):
+        raise ValueError(f"{path}: every row needs {len(header)} values like the header")
+    col = {h: rows[:, i] for i, h in enumerate(header)}
+    return from_samples(col["t"], np.stack([col["x"], col["y"]], axis=1), min_speed=min_speed,
+                        heading_offset=heading_offset, name=path.stem)
