@@ -12,11 +12,14 @@ from wmrjax.controllers import (  # noqa: F401
     DynamicLinearization,
     HybridState,
     InternalDynamics,
+    PlantLoop,
+    PlantParams,
     StaticLinearization,
     controller,
     dynamic_linearization,
     hybrid_parking,
     static_linearization,
+    with_plant,
 )
 from wmrjax.gains import Gains  # noqa: F401
 from wmrjax.references import Reference  # noqa: F401

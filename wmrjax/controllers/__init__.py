@@ -3,7 +3,8 @@
 * :mod:`~wmrjax.controllers.law` -- the closed-loop protocol and the one generic law;
 * :mod:`~wmrjax.controllers.dynamic` -- Table 4 (dynamic linearization, posture tracking);
 * :mod:`~wmrjax.controllers.static` -- Prop 3 and Table 3 (static linearization);
-* :mod:`~wmrjax.controllers.hybrid` -- §6.2 (tracking, then a time-varying stabilizer).
+* :mod:`~wmrjax.controllers.hybrid` -- §6.2 (tracking, then a time-varying stabilizer);
+* :mod:`~wmrjax.controllers.plant` -- a law closed around a saturating, mismatched plant.
 """
 
 from wmrjax.controllers.dynamic import (  # noqa: F401
@@ -30,6 +31,7 @@ from wmrjax.controllers.law import (  # noqa: F401
     LinearizingController,
     LinearizingLaw,
 )
+from wmrjax.controllers.plant import PlantLoop, PlantParams, with_plant  # noqa: F401
 from wmrjax.controllers.static import (  # noqa: F401
     TABLE3,
     InternalDynamics,
