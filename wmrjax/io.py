@@ -189,3 +189,29 @@ def write_png(fig, path, dpi: int = 120) -> Path:
     buf = _io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
     return write_bytes(path, buf.getvalue())
+
+
+def write_parquet(path, batches) -> Path:
+    """Stream ``pyarrow.RecordBatch`` es into a Parquet file, one row group each, atomically.
+
+    Memory stays at one batch whatever the number of rows; the file appears (by rename) only
+    when complete. Needs ``pyarrow``.
+
+    Args:
+      path: target ``.parquet`` path.
+      batches: an iterable of record batches sharing one schema (the first batch's).
+    """
+    import pyarrow.parquet as pq
+
+    def write(fh):
+        writer = None
+        try:
+            for batch in batches:
+                if writer is None:
+                    writer = pq.ParquetWriter(fh, batch.schema)
+                writer.write_batch(batch)
+        finally:
+            if writer is not None:
+                writer.close()
+
+    return atomic_write(path, write)

@@ -34,7 +34,7 @@ import numpy as np
 import jax.numpy as jnp
 
 from wmrjax import _math, linearize, robots
-from wmrjax._validate import check_finite, check_real, check_shape, concrete
+from wmrjax._validate import check_finite, check_real, check_shape, concrete, is_concrete
 from wmrjax.gains import Gains
 from wmrjax.references import Reference
 from wmrjax.robots import Geometry, RobotType
@@ -369,6 +369,8 @@ def _reference_profile(ctrl, ts, params):
 def reference_profile(ctrl, params, t0: float, t_final: float, step: float = REFERENCE_GRID_STEP):
     """``(ts, jets, level, branch)`` as NumPy arrays on a uniform grid of spacing <= ``step``
     over [t0, t_final], evaluated in fixed-size compiled blocks; None if ``params`` are traced."""
+    if any(not is_concrete(x) for x in jax.tree_util.tree_leaves(params)):
+        return None                             # traced (inside vmap/shard_map): checked by the caller
     n = max(2, int(np.ceil((t_final - t0) / step - 1e-9)) + 1)
     ts = np.linspace(t0, t_final, n)
     blocks = []

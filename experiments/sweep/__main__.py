@@ -1,0 +1,7 @@
+"""``python -m experiments.sweep SPEC.toml --out DIR``: run a sweep file (see the README)."""
+
+import sys
+
+from experiments.sweep.cli import main
+
+sys.exit(main())

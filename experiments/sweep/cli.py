@@ -1,0 +1,167 @@
+"""The sweep's command line: one process, ``--processes N`` local processes, or one process of
+a multi-host run (``--coordinator HOST:PORT --process-id I --num-processes N``)."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from experiments import common
+
+DOC = """Run a sweep file: a controller over robots, references, initial conditions, gains and
+actuator limits. Writes DIR/runs.parquet (one row per run), DIR/summary.json and PNG maps.
+A killed sweep resumes from its finished blocks when rerun with the same file and --out."""
+
+
+def parser():
+    from wmrjax import cli
+
+    p = common.parser(DOC, default_out=None)
+    p.add_argument("spec", type=Path, help="the sweep file (TOML; see the README and experiments/sweeps/)")
+    p.add_argument("--out", type=Path, default=None, help="output directory (default: results/sweeps/<spec name>)")
+    p.add_argument("--fresh", action="store_true", help="discard finished blocks of an earlier run in --out")
+    p.add_argument("--processes", type=cli.count, default=1,
+                   help="local processes joined by jax.distributed, each computing its share of the blocks")
+    p.add_argument("--devices", type=cli.count, default=None,
+                   help="JAX host devices per process (default: the cores divided among the processes)")
+    p.add_argument("--coordinator", default=None, help="HOST:PORT of process 0, for a run over several hosts")
+    p.add_argument("--process-id", type=cli.nonnegative_int, default=None, help="this process's index (with --coordinator)")
+    p.add_argument("--num-processes", type=cli.count, default=None, help="number of processes (with --coordinator)")
+    return p
+
+
+def main(argv=None) -> int:
+    p = parser()
+    a = p.parse_args(argv)
+    from wmrjax import cli
+
+    distributed = a.coordinator is not None
+    if distributed and (a.process_id is None or a.num_processes is None):
+        cli.fail(p, "--coordinator needs --process-id and --num-processes")
+    if not distributed and (a.process_id is not None or a.num_processes is not None):
+        cli.fail(p, "--process-id and --num-processes need --coordinator HOST:PORT")
+    if distributed and a.process_id >= a.num_processes:
+        cli.fail(p, f"--process-id {a.process_id} must be < --num-processes {a.num_processes}")
+    if distributed and a.processes != 1:
+        cli.fail(p, "--processes starts local processes itself; do not combine it with --coordinator")
+    if not a.spec.is_file():
+        cli.fail(p, f"sweep file {str(a.spec)!r} not found")
+    if a.out is None:
+        a.out = Path("results") / "sweeps" / a.spec.stem
+    n_proc = a.num_processes if distributed else a.processes
+    devices = a.devices or max(1, (os.cpu_count() or 1) // n_proc)
+    flag = f"--xla_force_host_platform_device_count={devices}"
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()   # before JAX starts
+    cli.prepare_output(p, a.out)
+    if a.processes > 1:
+        return _launch(p, a, devices)
+    return _run(p, a, a.process_id or 0, a.num_processes or 1)
+
+
+def _launch(p, a, devices: int) -> int:
+    """Start ``--processes`` local processes (jax.distributed over 127.0.0.1) and wait for them."""
+    from wmrjax import cli
+
+    from experiments.sweep import spec as S
+    common.enable_x64()
+    try:
+        S.load(a.spec)              # refuse a bad file here, once, before starting anything
+    except ValueError as err:
+        cli.fail(p, str(err))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    base = [sys.executable, "-m", "experiments.sweep", str(a.spec), "--out", str(a.out), "--devices", str(devices),
+            "--coordinator", f"127.0.0.1:{port}", "--num-processes", str(a.processes)]
+    if a.fresh:
+        base.append("--fresh")
+    if a.no_compile_cache:
+        base.append("--no-compile-cache")
+    elif a.compile_cache is not None:
+        base += ["--compile-cache", str(a.compile_cache)]
+    procs = [subprocess.Popen(base + ["--process-id", str(i)]) for i in range(a.processes)]
+    codes = [pr.wait() for pr in procs]
+    bad = [i for i, c in enumerate(codes) if c]
+    if bad:
+        print(f"process(es) {bad} failed (exit codes {[codes[i] for i in bad]})", file=sys.stderr)
+        return max(codes)
+    return 0
+
+
+def _run(p, a, pid: int, n_proc: int) -> int:
+    from wmrjax import cli
+
+    t_start = time.perf_counter()
+    common.enable_x64()
+    import jax
+
+    if n_proc > 1:
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+        jax.distributed.initialize(coordinator_address=a.coordinator, num_processes=n_proc, process_id=pid)
+    cli.use_compilation_cache(a)
+    from experiments.sweep import report, run
+    from experiments.sweep import spec as S
+
+    def barrier(name):
+        if n_proc > 1:
+            from jax.experimental import multihost_utils
+
+            multihost_utils.sync_global_devices(name)
+
+    say = (lambda m: print(m, file=sys.stderr, flush=True)) if pid == 0 else (lambda m: None)
+    try:
+        plan = S.load(a.spec)
+        say(f"{a.spec}: {plan.n_runs} runs in {len(plan.blocks())} blocks of {plan.block} "
+            f"({len(plan.groups)} group(s); {plan.n_steps} RK4 steps each), {n_proc} process(es) x "
+            f"{len(jax.local_devices())} device(s)")
+        if pid == 0:
+            resumed = run.prepare(plan, a.out, a.fresh)
+            if resumed:
+                say(f"resuming: {resumed} of {len(plan.blocks())} blocks already done in {a.out}")
+        barrier("sweep-prepared")
+        if pid != 0 and run.read_state(a.out) is None:
+            raise ValueError(f"{a.out}/{run.STATE_FILE} missing: process 0 did not prepare the output directory")
+        t0 = time.perf_counter()
+        stats = run.compute(plan, a.out, process_id=pid, num_processes=n_proc)
+        stats["wall_s"] = time.perf_counter() - t0
+        from wmrjax import io
+
+        io.write_json(a.out / "blocks" / f"process_{pid}.json", stats)
+        barrier("sweep-computed")
+        if pid != 0:
+            return 0
+        say("writing runs.parquet")
+        path = run.assemble(plan, a.out)
+        table = report.read_table(path)
+        say("certified radii and figures")
+        certified = report.certified_radii(plan)
+        summary = report.summarize(plan, table, certified)
+        procs = [json.loads((a.out / "blocks" / f"process_{i}.json").read_text()) for i in range(n_proc)]
+        computed = sum(s["runs_computed"] for s in procs)
+        compute_wall = max(s["wall_s"] for s in procs)
+        summary = {"sweep": str(a.spec), "title": plan.spec.get("title", a.spec.stem), "law": plan.law,
+                   "task": plan.task, "initial_space": plan.space, "swept": plan.swept, "fingerprint": plan.fingerprint,
+                   "t_final": plan.t_final, "dt": plan.dt, "n_steps": plan.n_steps} | summary
+        summary["execution"] = {
+            "processes": n_proc, "devices_per_process": len(jax.local_devices()), "block": plan.block,
+            "blocks": len(plan.blocks()), "runs_computed": computed, "runs_resumed": plan.n_runs - computed,
+            "compute_wall_s": compute_wall,
+            "first_calls_s": max(s["first_calls_s"] for s in procs),
+            "throughput_runs_per_s": computed / compute_wall if compute_wall > 0 and computed else None,
+            "throughput_trajectory_steps_per_s": computed * plan.n_steps / compute_wall if compute_wall > 0 and computed else None,
+        }
+        summary["figures"] = report.figures(plan, table, certified, a.out)
+        summary["wall_time_s"] = time.perf_counter() - t_start
+        io.write_json(a.out / "summary.json", summary)
+        c = summary["counts"]
+        print(f"{plan.n_runs} runs: {c['converged']} converged, {c['not_converged']} not converged, {c['singular']} "
+              f"singular, {c['failed']} failed; wrote {a.out}/runs.parquet, summary.json and "
+              f"{len(summary['figures'])} figures ({summary['wall_time_s']:.0f} s)")
+        return 0
+    except ValueError as err:
+        cli.fail(p, str(err))

@@ -1,0 +1,182 @@
+"""What a finished sweep reports: ``summary.json`` (counts, fractions, quantiles, certified
+radii) and the figures -- outcome maps over every pair of swept quantities and histograms of
+final errors and margins -- read back from ``runs.parquet``."""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+
+import numpy as np
+
+from experiments import common
+from experiments.sweep import spec as S
+from experiments.sweep.run import OUTCOMES
+
+COLORS = {"converged": "#2ca02c", "not_converged": "#ff7f0e", "singular": "#d62728", "failed": "#7f7f7f"}
+MAX_MAPS = 12
+UNITS = {"initial_error_x": "m", "initial_error_y": "m", "initial_error_vx": "m/s", "initial_error_vy": "m/s",
+         "initial_error_theta": "rad", "initial_error_beta": "rad", "initial_error_beta1": "rad",
+         "initial_error_beta2": "rad", "geometry_L": "m", "geometry_e": "m", "geometry_delta": "rad",
+         "gains_poles": "1/s", "gains_omega": "rad/s", "reference_heading_offset": "rad", "reference_radius": "m",
+         "reference_omega": "rad/s", "reference_size": "m"}
+
+
+def label(col: str) -> str:
+    unit = UNITS.get(col)
+    return f"{col} [{unit}]" if unit else col
+
+
+def read_table(path: Path, columns=None) -> dict:
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(path, columns=columns)
+    return {name: t.column(name).to_numpy(zero_copy_only=False) for name in t.column_names}
+
+
+def quantiles(a) -> dict:
+    a = np.asarray(a, float)
+    a = a[np.isfinite(a)]
+    return common.quantiles(a) | ({"min": float(a.min())} if a.size else {})
+
+
+def summarize(plan: S.Plan, table: dict, certified: dict) -> dict:
+    n = len(table["run"])
+    counts = {o: int(np.sum(table["outcome"] == o)) for o in OUTCOMES}
+    ok = ~table["failed"]
+    out = {
+        "runs": n,
+        "counts": counts,
+        "fractions": {o: (c / n if n else None) for o, c in counts.items()},
+        "converged_definition": (f"regular run with final position error <= {plan.position_tol} m"
+                                 + (f" and heading error <= {plan.heading_tol} rad" if plan.task == "posture" else "")),
+        "quantiles_regular_runs": {
+            "final_position_error_m": quantiles(table["final_position_error"][ok]),
+            "final_heading_error_rad": quantiles(table["final_heading_error"][ok]),
+            "min_margin": quantiles(table["min_margin"][ok]),
+        },
+        "fraction_flagged_inaccurate": float(np.mean(table["inaccurate"])) if n else None,
+    }
+    if plan.law == "dynamic":
+        out["quantiles_regular_runs"]["min_distance"] = quantiles(table["min_distance"][ok])
+    groups = {}
+    for g in plan.groups:
+        sel = (table["robot"] == g.robot) & (table["level"] == g.level)
+        groups[f"{g.robot} {g.level}"] = {"runs": int(sel.sum()),
+                                          **{o: int(np.sum(sel & (table["outcome"] == o))) for o in OUTCOMES}}
+    out["by_group"] = groups
+    if certified:
+        out["certified_radii"] = certified
+    return out
+
+
+def certified_radii(plan: S.Plan) -> dict:
+    """Certified radii of the position slice, when the sweep is one dynamic closed loop (one
+    geometry, reference, gain; no plant mismatch) swept over initial output errors."""
+    if not (plan.law == "dynamic" and plan.space == "output" and len(plan.groups) == 1 and not plan.plant):
+        return {}
+    g = plan.groups[0]
+    geo, _, ref, gains, _ = g.axes
+    if geo.size != 1 or ref.size != 1 or gains.size != 1:
+        return {}
+    import jax
+    import jax.numpy as jnp
+
+    import wmrjax as w
+    from wmrjax import certify
+    from wmrjax import references as R
+
+    ctrl = S.controller(plan.law, g.robot, g.level, plan.task)
+    reference = R.Reference(jax.tree_util.tree_map(lambda x: jnp.asarray(x[0]), ref.payload["reference"]),
+                            jnp.asarray(ref.payload["heading_offset"][0]), g.reference_path, g.reference_name)
+    params = ctrl.params(reference, geometry=w.Geometry(**{k: float(geo.payload[k][0]) for k in S.GEOMETRY_KEYS}),
+                         gains=w.Gains(jnp.asarray(gains.payload["coeffs"][0])))
+    eps = 0.01
+    out = {"eps": eps}
+    rep = certify.lemma2(ctrl, params, t_final=plan.t_final, eps=eps)
+    for name, c in rep.certificates().items():
+        if c is not None:
+            out[f"lemma2_{name}"] = float(c.radius)
+    try:
+        out["exact_map_position_slice"] = float(certify.exact_map_radius(ctrl, params, t_final=plan.t_final, eps=eps,
+                                                                         basis="position").radius)
+    except ValueError as err:         # (1,2): curved singular set
+        out["exact_map_note"] = str(err)
+    return out
+
+
+def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
+    plt = common.pyplot()
+    written = []
+    numeric = [c for c in plan.swept if c not in ("robot", "level")]
+    random_cols = {c for g in plan.groups for a in g.axes if a.name == "initial" and a.random for c in a.columns}
+    pairs = list(itertools.combinations(numeric, 2))[:MAX_MAPS]
+    groups = [(g.robot, g.level) for g in plan.groups]
+    for gi, (robot, level) in enumerate(groups):
+        gsel = (table["robot"] == robot) & (table["level"] == level)
+        tag = f"_{robot.strip('()').replace(',', '')}_{level}" if len(groups) > 1 else ""
+        for a, b in pairs:
+            sel = gsel.copy()
+            fixed = []
+            for c in numeric:
+                if c in (a, b) or c in random_cols and (a in random_cols or b in random_cols):
+                    continue
+                vals = table[c][gsel]
+                if vals.size:
+                    v0 = vals[0]
+                    sel &= table[c] == v0
+                    fixed.append(f"{c} = {v0:.4g}")
+            fig, ax = plt.subplots(figsize=(6.4, 5.6))
+            xa, yb = table[a][sel], table[b][sel]
+            nx, ny = len(np.unique(xa)), len(np.unique(yb))
+            size = max(2.0, min(60.0, 40000.0 / max(1, len(xa)))) if not (a in random_cols) else 8.0
+            for o in OUTCOMES:
+                m = table["outcome"][sel] == o
+                if m.any():
+                    ax.scatter(xa[m], yb[m], s=size, marker="s" if a not in random_cols else "o", c=COLORS[o],
+                               linewidths=0, label=f"{o.replace('_', ' ')} ({int(m.sum())})")
+            if certified and {a, b} == {"initial_error_x", "initial_error_y"}:
+                th = np.linspace(0, 2 * np.pi, 400)
+                styles = {"lemma2_paper": ("k", ":"), "lemma2_lyapunov": ("k", "-."), "lemma2_exact_norm": ("k", "--"),
+                          "exact_map_position_slice": ("b", "-")}
+                for name, (col, ls) in styles.items():
+                    rad = certified.get(name)
+                    if rad:
+                        ax.plot(rad * np.cos(th), rad * np.sin(th), color=col, ls=ls, lw=1.2,
+                                label=f"{name.replace('_', ' ')}: {rad:.3g} m")
+            ax.set_xlabel(label(a))
+            ax.set_ylabel(label(b))
+            title = f"{robot}, {plan.law} law, {level} level"
+            ax.set_title(title + ("\n" + ", ".join(fixed) if fixed else ""), fontsize=9)
+            ax.legend(fontsize=7, loc="upper right", framealpha=0.85)
+            ax.grid(alpha=0.3)
+            if nx > 1 and ny > 1 and {a, b} <= {"initial_error_x", "initial_error_y"}:
+                ax.set_aspect("equal")
+            fig.tight_layout()
+            path = out / f"map_{a}_{b}{tag}.png"
+            common.save_figure(fig, path)
+            plt.close(fig)
+            written.append(path.name)
+    fig, axs = plt.subplots(1, 3 if plan.law == "dynamic" else 2, figsize=(14 if plan.law == "dynamic" else 10, 4))
+    ok = ~table["failed"]
+    for (robot, level), c in zip(groups, itertools.cycle([f"C{i}" for i in range(10)])):
+        sel = ok & (table["robot"] == robot) & (table["level"] == level)
+        lab = f"{robot} {level}"
+        axs[0].hist(np.log10(np.maximum(table["final_position_error"][sel], 1e-16)), bins=50, alpha=0.6, color=c, label=lab)
+        axs[1].hist(np.log10(np.maximum(table["min_margin"][sel], 1e-16)), bins=50, alpha=0.6, color=c, label=lab)
+        if plan.law == "dynamic":
+            d = table["min_distance"][sel]
+            axs[2].hist(d[np.isfinite(d)], bins=50, alpha=0.6, color=c, label=lab)
+    axs[0].set_xlabel("log10 final position error [m]")
+    axs[1].set_xlabel("log10 min margin |det K| over the run")
+    if plan.law == "dynamic":
+        axs[2].set_xlabel("min distance to the singular set (output jet) [m/s]")
+    for ax in axs:
+        ax.set_ylabel("regular runs")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    common.save_figure(fig, out / "histograms.png")
+    plt.close(fig)
+    written.append("histograms.png")
+    return written

@@ -1,0 +1,316 @@
+"""Running a planned sweep: one compiled program per group, blocks of runs spread over the
+local devices (one block per device at a time, dispatched asynchronously so they run
+together), every finished block written atomically (so a killed sweep resumes where it
+stopped), several processes joined by ``jax.distributed``, and the table streamed into
+Parquet by process 0.
+
+A block is ``Plan.block`` runs and every device runs the same single-device program on it,
+so every number in the table is the same whatever the number of devices or processes
+(tested bit for bit; a program sharded over D devices is partitioned differently and
+differs in the last bits).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from experiments.sweep import spec as S
+
+RESULT_COLUMNS = ("failed", "singular", "nonfinite", "inaccurate", "t_failure", "min_margin", "error_estimate",
+                  "final_position_error", "final_heading_error", "min_distance")
+STATE_FILE = "sweep_state.json"
+
+
+# --- the rollout of one run ------------------------------------------------------------------
+
+def rollout_fn(plan: S.Plan, group: S.Group):
+    """``one(payload) -> results`` for one run of ``group`` (pure; batched by the caller)."""
+    import jax
+    import jax.numpy as jnp
+
+    import wmrjax as w
+    from wmrjax import references as R
+
+    ctrl = S.controller(plan.law, group.robot, group.level, plan.task)
+    loop = w.with_plant(ctrl) if plan.plant else ctrl
+    nX, r = ctrl.robot.n_state, ctrl.relative_degree
+    velocity_ctrl = S.controller(plan.law, group.robot, "velocity", plan.task) if plan.law == "static" else None
+    dynamic = plan.law == "dynamic"
+
+    def one(p):
+        g = w.Geometry(L=p["L"], e=p["e"], delta=p["delta"])
+        ref = R.Reference(p["reference"], p["heading_offset"], group.reference_path, group.reference_name)
+        params = ctrl.params_unchecked(ref, 1.0, g)._replace(gains=w.Gains(p["coeffs"]))
+        t0 = jnp.zeros((), p["L"].dtype)
+        d = p["initial"]
+        if dynamic:
+            zeta = ctrl.reference_jet(t0, params)[:r]
+            if plan.space == "output":
+                zeta = zeta.at[0, 0].add(d[0]).at[0, 1].add(d[1])
+                if r >= 2:
+                    zeta = zeta.at[1, 0].add(d[2]).at[1, 1].add(d[3])
+                z0 = ctrl.inverse_psi(zeta, params, p["branch"])
+            else:
+                z0 = ctrl.inverse_psi(zeta, params, p["branch"]).at[:nX].add(d)
+        else:
+            post = ref.posture(t0)
+            steer = [] if ctrl.robot.delta_s == 0 else _steering(ctrl, params, t0)
+            X = jnp.concatenate([jnp.zeros(2, t0.dtype), post[2:3], jnp.asarray(steer, t0.dtype).reshape(-1)])
+            X = X.at[2:].add(d[2:])
+            offset = ctrl.law.outputs(X, g)[:2]              # the tracked point relative to (x, y)
+            target = ref.position(t0) if plan.task == "point" else post[:2]
+            X = X.at[:2].set(target + d[:2] - (offset if plan.task == "point" else 0.0))
+            if ctrl.level == "torque":
+                vl = velocity_ctrl
+                u = vl.law.solve_top(X, vl.reference_jet(t0, params)[1], g)   # output velocity = the reference's
+                z0 = ctrl.physical_state(X, u, params)
+            else:
+                z0 = X
+        if plan.plant:
+            pg = w.Geometry(L=p["geometry_scale"] * g.L, e=p["geometry_scale"] * g.e, delta=g.delta)
+            lp = w.PlantParams(params, pg, jnp.broadcast_to(p["input_scale"], (ctrl.robot.n_input,)), p["limit"])
+            z0s, sp = loop.initial_state(z0, lp), lp
+        else:
+            z0s, sp = z0, params
+        tr = w.simulate(loop, z0s, sp, dt=plan.dt, n_steps=plan.n_steps, save_every=plan.save_every,
+                        error_tol=plan.error_tol)
+        zf = tr.final_state[: ctrl.n_state]
+        tf = tr.t[-1]
+        post_f = ref.posture(tf)
+        if plan.task == "point" and not dynamic:
+            pos = ctrl.law.outputs(zf, g)[:2] - ref.position(tf)
+        else:
+            pos = zf[:2] - post_f[:2]
+        head = jnp.abs(_wrap(zf[2] - post_f[2]))
+        dg = tr.diagnostics
+        out = dict(failed=dg.failed, singular=dg.singular, nonfinite=dg.nonfinite, inaccurate=dg.inaccurate,
+                   t_failure=dg.t_failure, min_margin=dg.min_margin, error_estimate=dg.error_estimate,
+                   final_position_error=jnp.linalg.norm(pos), final_heading_error=head)
+        if dynamic:
+            states = tr.state[:, : ctrl.n_state]
+            dist = jax.vmap(lambda z: ctrl.singular_distance(ctrl.psi(z, params), params))(states)
+            out["min_distance"] = jnp.min(jnp.where(tr.valid, dist, jnp.inf))
+        else:
+            out["min_distance"] = jnp.full((), jnp.nan, p["L"].dtype)
+        return out
+
+    return one
+
+
+def _steering(ctrl, params, t0):
+    import jax.numpy as jnp
+
+    if params.steering is not None:
+        b = jnp.reshape(params.steering(t0), (-1,))
+    else:
+        b = jnp.zeros((0,), t0.dtype)
+    n = ctrl.robot.delta_s
+    # (1,2): beta1 free (0), beta2 the steering reference; (2,1): beta the steering reference
+    return jnp.concatenate([jnp.zeros(n - b.shape[0], t0.dtype), b]) if b.shape[0] < n else b[:n]
+
+
+def _wrap(a):
+    import jax.numpy as jnp
+
+    return jnp.mod(a + jnp.pi, 2 * jnp.pi) - jnp.pi
+
+
+def payload(plan: S.Plan, group: S.Group, start: int, n: int, pad_to: int) -> dict:
+    """The rollout inputs of runs ``start .. start + n - 1`` of ``group``, padded (with copies
+    of the last run) to ``pad_to`` runs."""
+    import jax
+
+    idx = S.unravel(group, start, n)
+    if pad_to > n:
+        idx = [np.concatenate([i, np.full(pad_to - n, i[-1])]) for i in idx]
+    geo, plant, ref, gains, init = (a.payload for a in group.axes)
+    gi, pi, ri, ki, ii = idx
+    out = {k: np.asarray(geo[k])[gi] for k in S.GEOMETRY_KEYS}
+    out |= {"limit": plant["limit"][pi], "input_scale": plant["input_scale"][pi],
+            "geometry_scale": plant["geometry_scale"][pi]}
+    out["reference"] = jax.tree_util.tree_map(lambda x: np.asarray(x)[ri], ref["reference"])
+    out["heading_offset"] = np.asarray(ref["heading_offset"])[ri]
+    out["branch"] = group.branch[ri].astype(float)
+    out["coeffs"] = gains["coeffs"][ki]
+    out["initial"] = init["initial"][ii]
+    return out
+
+
+# --- execution ---------------------------------------------------------------------------------
+
+class Progress:
+    """Chunks done, runs/s and ETA: a rewritten line on a terminal, plain lines every
+    ``every`` seconds otherwise (a log)."""
+
+    def __init__(self, total_runs: int, total_blocks: int, done_runs: int, done_blocks: int, every: float = 10.0,
+                 stream=None, prefix: str = ""):
+        self.total_runs, self.total_blocks = total_runs, total_blocks
+        self.done_runs, self.done_blocks = done_runs, done_blocks
+        self.start_runs = done_runs
+        self.t0 = self.last = time.perf_counter()
+        self.every = every
+        self.stream = stream or sys.stderr
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.prefix = prefix
+
+    def update(self, runs: int, blocks: int) -> None:
+        self.done_runs += runs
+        self.done_blocks += blocks
+        now = time.perf_counter()
+        if self.tty or now - self.last >= self.every or self.done_blocks == self.total_blocks:
+            self.last = now
+            rate = (self.done_runs - self.start_runs) / max(now - self.t0, 1e-9)
+            left = self.total_runs - self.done_runs
+            eta = left / rate if rate > 0 else float("inf")
+            line = (f"{self.prefix}blocks {self.done_blocks}/{self.total_blocks}, runs {self.done_runs}/{self.total_runs}, "
+                    f"{rate:,.0f} runs/s, ETA {eta:.0f} s")
+            if self.tty:
+                end = "\n" if self.done_blocks == self.total_blocks else ""
+                print("\r" + line + " " * 8, end=end, file=self.stream, flush=True)
+            else:
+                print(line, file=self.stream, flush=True)
+
+
+def block_path(out: Path, b: int) -> Path:
+    return out / "blocks" / f"block_{b:06d}.npz"
+
+
+def read_state(out: Path):
+    p = out / STATE_FILE
+    if not p.exists():
+        return None
+    try:
+        return json.loads(p.read_text())
+    except ValueError as err:
+        raise ValueError(f"{p} is not valid JSON ({err}); delete it or pass --fresh") from None
+
+
+def prepare(plan: S.Plan, out: Path, fresh: bool) -> int:
+    """Write (or check) the sweep's state file; returns the number of blocks already done.
+
+    Raises:
+      ValueError: the directory holds blocks of another sweep (and ``fresh`` is False).
+    """
+    from wmrjax import io
+
+    state = read_state(out)
+    blocks = plan.blocks()
+    want = {"fingerprint": plan.fingerprint, "n_runs": plan.n_runs, "n_blocks": len(blocks), "block": plan.block}
+    if fresh or state is None or state.get("fingerprint") != plan.fingerprint:
+        if state is not None and state.get("fingerprint") != plan.fingerprint and not fresh:
+            done = list((out / "blocks").glob("block_*.npz")) if (out / "blocks").exists() else []
+            if done:
+                raise ValueError(f"{out} holds {len(done)} finished blocks of another sweep (fingerprint "
+                                 f"{state.get('fingerprint')}, this one {plan.fingerprint}); use another --out or --fresh")
+        for f in (out / "blocks").glob("block_*.npz") if (out / "blocks").exists() else []:
+            f.unlink()
+        io.write_json(out / STATE_FILE, want)
+        return 0
+    return sum(block_path(out, b).exists() for b in range(len(blocks)))
+
+
+def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int = 1, log=print) -> dict:
+    """Compute this process's share of the blocks that are not on disk yet (block ``b`` belongs
+    to process ``b % num_processes``); returns timing figures."""
+    import jax
+
+    from wmrjax import io
+
+    devices = jax.local_devices()
+    D = len(devices)
+    blocks = plan.blocks()
+    mine = [b for b in range(len(blocks)) if b % num_processes == process_id]
+    todo = [b for b in mine if not block_path(out, b).exists()]
+    done_runs = sum(blocks[b][2] for b in mine if b not in set(todo))
+    prog = Progress(sum(blocks[b][2] for b in mine), len(mine), done_runs, len(mine) - len(todo),
+                    prefix=f"[process {process_id}] " if num_processes > 1 else "")
+    t_first, t_run, n_run = 0.0, 0.0, 0
+    by_group = {}
+    for b in todo:
+        by_group.setdefault(blocks[b][0], []).append(b)
+    for gi, bs in by_group.items():
+        group = plan.groups[gi]
+        # one single-device program per group, the same on every device of every process: the
+        # table does not depend on how blocks are spread (a sharded program over D devices is
+        # partitioned differently and differs in the last bits)
+        fn = jax.jit(jax.vmap(rollout_fn(plan, group)))
+        for k in range(0, len(bs), D):
+            ids = bs[k:k + D]
+            t = time.perf_counter()
+            pending = [fn(jax.device_put(payload(plan, group, blocks[b][1], blocks[b][2], plan.block), devices[j]))
+                       for j, b in enumerate(ids)]          # dispatched asynchronously: the devices run together
+            for b, res in zip(ids, pending):
+                _, start, n = blocks[b]
+                res = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], res)
+                io.write_npz(block_path(out, b), **{c: res[c] for c in RESULT_COLUMNS})
+                n_run += n
+            dt_ = time.perf_counter() - t
+            if k == 0:              # the group's first call compiles
+                t_first += dt_
+            else:
+                t_run += dt_
+            prog.update(sum(blocks[b][2] for b in ids), len(ids))
+    return {"blocks_computed": len(todo), "runs_computed": n_run, "first_calls_s": t_first, "later_calls_s": t_run}
+
+
+def assemble(plan: S.Plan, out: Path):
+    """Stream every block into ``runs.parquet`` (one row group per block) with its swept values;
+    returns the path. Memory: one block at a time."""
+    import pyarrow as pa
+
+    from wmrjax import io
+
+    blocks = plan.blocks()
+    missing = [b for b in range(len(blocks)) if not block_path(out, b).exists()]
+    if missing:
+        raise RuntimeError(f"{len(missing)} blocks are missing (first: {missing[0]}); rerun the sweep to finish them")
+    names = column_names(plan)
+
+    def batches():
+        for b, (gi, start, n) in enumerate(blocks):
+            group = plan.groups[gi]
+            idx = S.unravel(group, start, n)
+            cols = S.columns_of(group, idx)
+            with np.load(block_path(out, b), allow_pickle=False) as f:
+                res = {c: f[c] for c in RESULT_COLUMNS}
+            data = {"run": np.arange(start, start + n) + sum(g.size for g in plan.groups[:gi]),
+                    "robot": np.full(n, group.robot), "level": np.full(n, group.level)}
+            for k in names["swept"]:
+                data[k] = cols[k] if k in cols else np.full(n, np.nan)
+            data |= res
+            data |= classify(plan, res)
+            yield data
+
+    def to_batch(d):
+        return pa.record_batch({k: pa.array(v) for k, v in d.items()})
+
+    return io.write_parquet(out / "runs.parquet", (to_batch(d) for d in batches()))
+
+
+def column_names(plan: S.Plan) -> dict:
+    swept = []
+    for g in plan.groups:
+        for a in g.axes:
+            for k in a.columns:
+                if k not in swept:
+                    swept.append(k)
+    return {"swept": swept}
+
+
+OUTCOMES = ("converged", "not_converged", "singular", "failed")
+
+
+def classify(plan: S.Plan, res: dict) -> dict:
+    """``converged`` (regular, final errors within the tolerances), ``singular`` (flagged
+    singular), ``failed`` (non-finite or inaccurate), else ``not_converged``."""
+    pos_ok = res["final_position_error"] <= plan.position_tol
+    head_ok = res["final_heading_error"] <= plan.heading_tol
+    conv = ~res["failed"] & pos_ok & (head_ok if plan.task == "posture" else True)
+    outcome = np.where(res["singular"], "singular", np.where(res["failed"], "failed",
+                                                             np.where(conv, "converged", "not_converged")))
+    return {"converged": conv, "outcome": outcome}
