@@ -14,7 +14,9 @@ from experiments.sweep import spec as S
 from experiments.sweep.run import OUTCOMES
 
 COLORS = {"converged": "#2ca02c", "not_converged": "#ff7f0e", "singular": "#d62728", "failed": "#7f7f7f"}
-MAX_MAPS = 12
+# "failed": non-finite or inaccurate (the step's error estimate above error_tol), not singular
+MAX_MAPS = 12              # maps of a one-group sweep
+MAX_MAPS_PER_GROUP = 3     # and per group of a sweep over several types or levels
 UNITS = {"initial_error_x": "m", "initial_error_y": "m", "initial_error_vx": "m/s", "initial_error_vy": "m/s",
          "initial_error_theta": "rad", "initial_error_beta": "rad", "initial_error_beta1": "rad",
          "initial_error_beta2": "rad", "geometry_L": "m", "geometry_e": "m", "geometry_delta": "rad",
@@ -105,12 +107,33 @@ def certified_radii(plan: S.Plan) -> dict:
     return out
 
 
+def _determines(table, a, c) -> bool:
+    """Whether column ``c`` is a function of column ``a`` (e.g. two entries of one limit vector)."""
+    pairs = np.unique(np.stack([table[a], table[c]], axis=1), axis=0)
+    return len(pairs) == len(np.unique(table[a]))
+
+
+def _edges(v):
+    """Cell edges around sorted grid values."""
+    if len(v) == 1:
+        return np.array([v[0] - 0.5, v[0] + 0.5])
+    mid = 0.5 * (v[1:] + v[:-1])
+    return np.concatenate([[2 * v[0] - mid[0]], mid, [2 * v[-1] - mid[-1]]])
+
+
 def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
     plt = common.pyplot()
     written = []
     numeric = [c for c in plan.swept if c not in ("robot", "level")]
-    random_cols = {c for g in plan.groups for a in g.axes if a.name == "initial" and a.random for c in a.columns}
-    pairs = list(itertools.combinations(numeric, 2))[:MAX_MAPS]
+    # one map axis per quantity: drop a column in one-to-one correspondence with an earlier one
+    numeric = [c for i, c in enumerate(numeric)
+               if not any(_determines(table, q, c) and _determines(table, c, q) for q in numeric[:i])]
+    random_cols = {c for g in plan.groups for a in g.axes[-1:] if a.random for c in a.columns}   # the initial axis
+    pairs = [(a, b) for a, b in itertools.combinations(numeric, 2)
+             if not (_determines(table, a, b) or _determines(table, b, a))]
+    # initial errors first (x against y above all), then the rest in the file's order
+    pairs.sort(key=lambda ab: -sum(c.startswith("initial_error_") for c in ab) - 2 * (ab == ("initial_error_x", "initial_error_y")))
+    pairs = pairs[:MAX_MAPS if len(plan.groups) == 1 else MAX_MAPS_PER_GROUP]
     groups = [(g.robot, g.level) for g in plan.groups]
     for gi, (robot, level) in enumerate(groups):
         gsel = (table["robot"] == robot) & (table["level"] == level)
@@ -119,22 +142,35 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
             sel = gsel.copy()
             fixed = []
             for c in numeric:
-                if c in (a, b) or c in random_cols and (a in random_cols or b in random_cols):
-                    continue
+                if c in (a, b) or c in random_cols and (a in random_cols or b in random_cols) \
+                        or _determines(table, a, c) or _determines(table, b, c):
+                    continue            # c varies with a or b (one vector, one random draw): not fixed
                 vals = table[c][gsel]
                 if vals.size:
                     v0 = vals[0]
                     sel &= table[c] == v0
                     fixed.append(f"{c} = {v0:.4g}")
             fig, ax = plt.subplots(figsize=(6.4, 5.6))
-            xa, yb = table[a][sel], table[b][sel]
-            nx, ny = len(np.unique(xa)), len(np.unique(yb))
-            size = max(2.0, min(60.0, 40000.0 / max(1, len(xa)))) if not (a in random_cols) else 8.0
-            for o in OUTCOMES:
-                m = table["outcome"][sel] == o
-                if m.any():
-                    ax.scatter(xa[m], yb[m], s=size, marker="s" if a not in random_cols else "o", c=COLORS[o],
-                               linewidths=0, label=f"{o.replace('_', ' ')} ({int(m.sum())})")
+            xa, yb, oc = table[a][sel], table[b][sel], table["outcome"][sel]
+            ux, uy = np.unique(xa), np.unique(yb)
+            grid = a not in random_cols and b not in random_cols and len(xa) == len(ux) * len(uy) > 1
+            if grid and len(ux) > 1 and len(uy) > 1:     # a full grid: cells that touch
+                from matplotlib.colors import ListedColormap
+
+                code = np.full((len(uy), len(ux)), np.nan)
+                code[np.searchsorted(uy, yb), np.searchsorted(ux, xa)] = [OUTCOMES.index(o) for o in oc]
+                ax.pcolormesh(_edges(ux), _edges(uy), code, cmap=ListedColormap([COLORS[o] for o in OUTCOMES]),
+                              vmin=-0.5, vmax=len(OUTCOMES) - 0.5, shading="flat")
+                for o in OUTCOMES:
+                    m = int(np.sum(oc == o))
+                    if m:
+                        ax.scatter([], [], marker="s", c=COLORS[o], label=f"{o.replace('_', ' ')} ({m})")
+            else:
+                for o in OUTCOMES:
+                    m = oc == o
+                    if m.any():
+                        ax.scatter(xa[m], yb[m], s=12, c=COLORS[o], linewidths=0,
+                                   label=f"{o.replace('_', ' ')} ({int(m.sum())})")
             if certified and {a, b} == {"initial_error_x", "initial_error_y"}:
                 th = np.linspace(0, 2 * np.pi, 400)
                 styles = {"lemma2_paper": ("k", ":"), "lemma2_lyapunov": ("k", "-."), "lemma2_exact_norm": ("k", "--"),
@@ -150,7 +186,7 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
             ax.set_title(title + ("\n" + ", ".join(fixed) if fixed else ""), fontsize=9)
             ax.legend(fontsize=7, loc="upper right", framealpha=0.85)
             ax.grid(alpha=0.3)
-            if nx > 1 and ny > 1 and {a, b} <= {"initial_error_x", "initial_error_y"}:
+            if len(ux) > 1 and len(uy) > 1 and {a, b} <= {"initial_error_x", "initial_error_y"}:
                 ax.set_aspect("equal")
             fig.tight_layout()
             path = out / f"map_{a}_{b}{tag}.png"

@@ -1,0 +1,213 @@
+"""The sweep file and its runner: every bad key refused before compiling, the table against
+direct simulations, a killed sweep resumed to the same table, 2 processes giving the same
+table as 1, and the shipped sweep files valid."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+import wmrjax as w
+from experiments.sweep import cli as sweep_cli
+from experiments.sweep import run as sweep_run
+from experiments.sweep import spec as S
+from wmrjax import references as R
+
+ROOT = Path(__file__).resolve().parents[1]
+
+TINY = """
+title = "tiny"
+[controller]
+law = "dynamic"
+robot = "(2,0)"
+level = "velocity"
+[geometry]
+e = 0.0
+[reference]
+family = "circle"
+options = { radius = [2.0, 3.0], omega = 0.5 }
+[initial]
+space = "output"
+x = [-0.5, 0.0, 0.7]
+y = { min = -1.0, max = 1.0, num = 3 }
+[gains]
+poles = 1.0
+[simulation]
+t_final = 2.0
+dt = 0.02
+block = 4
+"""
+
+
+def _write(tmp_path, text, name="s.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def _table(path):
+    t = pq.read_table(path)
+    return {n: t.column(n).to_numpy(zero_copy_only=False) for n in t.column_names}
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """The tiny sweep run once in this process: (spec path, output directory)."""
+    d = tmp_path_factory.mktemp("sweep")
+    spec = _write(d, TINY)
+    assert sweep_cli.main([str(spec), "--out", str(d / "out"), "--no-compile-cache"]) == 0
+    return spec, d / "out"
+
+
+def test_table_matches_direct_simulations(tiny):
+    spec, out = tiny
+    t = _table(out / "runs.parquet")
+    assert len(t["run"]) == 2 * 3 * 3 and list(t["run"]) == list(range(18))
+    for col in ("reference_radius", "initial_error_x", "initial_error_y", "failed", "t_failure", "min_margin",
+                "final_position_error", "final_heading_error", "min_distance", "outcome"):
+        assert col in t
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    for i in (0, 7, 17):
+        ref = R.circle(radius=t["reference_radius"][i], omega=0.5)
+        params = ctrl.params(ref, poles=1.0, geometry=w.Geometry(e=0.0))
+        zeta = ctrl.reference_jet(0.0, params)[:2]
+        zeta = zeta.at[0].add(jnp.array([t["initial_error_x"][i], t["initial_error_y"][i]]))
+        tr = w.simulate(ctrl, ctrl.initial_state(zeta, params), params, dt=0.02, n_steps=100, save_every=5)
+        post = ref.posture(jnp.asarray(2.0))
+        np.testing.assert_allclose(t["final_position_error"][i], float(jnp.linalg.norm(tr.final_state[:2] - post[:2])),
+                                   rtol=1e-12)
+        np.testing.assert_allclose(t["min_margin"][i], float(tr.diagnostics.min_margin), rtol=1e-12)
+        dist = jax.vmap(lambda z: ctrl.singular_distance(ctrl.psi(z, params), params))(tr.state)
+        np.testing.assert_allclose(t["min_distance"][i], float(jnp.min(dist)), rtol=1e-12)
+    # the grid, last axis fastest: radius, then x, then y
+    np.testing.assert_array_equal(t["reference_radius"][:9], 2.0)
+    np.testing.assert_array_equal(t["initial_error_y"][:3], [-1.0, 0.0, 1.0])
+    np.testing.assert_array_equal(t["initial_error_x"][:9:3], [-0.5, 0.0, 0.7])
+    s = json.loads((out / "summary.json").read_text())
+    assert s["runs"] == 18 and sum(s["counts"].values()) == 18
+    assert s["counts"]["converged"] == int(np.sum(t["outcome"] == "converged"))
+    assert s["execution"]["blocks"] == 5 and s["execution"]["runs_computed"] == 18
+    assert set(s["swept"]) == {"reference_radius", "initial_error_x", "initial_error_y"}
+    assert "map_initial_error_x_initial_error_y.png" in s["figures"]
+    assert (out / "map_initial_error_x_initial_error_y.png").stat().st_size > 10_000
+
+
+def test_killed_sweep_resumes_to_the_same_table(tiny, tmp_path, monkeypatch):
+    spec, out = tiny
+    done = []
+    original = sweep_run.Progress.update
+
+    def dies_after_first(self, runs, blocks):
+        original(self, runs, blocks)
+        done.append(blocks)
+        raise KeyboardInterrupt                         # killed after the first call (one block per device)
+    monkeypatch.setattr(sweep_run.Progress, "update", dies_after_first)
+    with pytest.raises(KeyboardInterrupt):
+        sweep_cli.main([str(spec), "--out", str(tmp_path), "--no-compile-cache"])
+    finished = len(list((tmp_path / "blocks").glob("block_*.npz")))
+    assert finished == done[0] < 5
+    monkeypatch.setattr(sweep_run.Progress, "update", original)
+    assert sweep_cli.main([str(spec), "--out", str(tmp_path), "--no-compile-cache"]) == 0
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["execution"]["runs_resumed"] == 4 * finished and s["execution"]["runs_computed"] == 18 - 4 * finished
+    assert pq.read_table(tmp_path / "runs.parquet").equals(pq.read_table(out / "runs.parquet"))
+    # another sweep file in the same directory is refused, not mixed in
+    other = _write(tmp_path, TINY.replace("poles = 1.0", "poles = 2.0"), "other.toml")
+    with pytest.raises(SystemExit):
+        sweep_cli.main([str(other), "--out", str(tmp_path), "--no-compile-cache"])
+
+
+def test_two_processes_give_the_same_table(tiny, tmp_path):
+    spec, out = tiny
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-m", "experiments.sweep", str(spec), "--out", str(tmp_path), "--processes", "2",
+                        "--no-compile-cache"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "[process 1]" in r.stderr and "[process 0]" in r.stderr
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["execution"]["processes"] == 2
+    assert pq.read_table(tmp_path / "runs.parquet").equals(pq.read_table(out / "runs.parquet"))
+
+
+BAD = [
+    ("[controller]\nlaw = 'dynamic'\nrobot = '(2,0)'\ncolour = 1", r"\[controller\]: unknown key\(s\) \['colour'\]"),
+    ("[controllr]\nlaw = 'dynamic'", r"unknown section\(s\) \['controllr'\]"),
+    ("[controller]\nlaw = 'adaptive'\nrobot = '(2,0)'", r"\[controller\] law: expected one of \['dynamic', 'static'\]"),
+    ("[controller]\nlaw = 'dynamic'\nrobot = '(3,0)'", r"no dynamic linearizing law \(Table 4\) for type\(s\) \['\(3,0\)'\]"),
+    ("[controller]\nlaw = 'dynamic'\nrobot = '(2,0)'\nlevel = 'jerk'", r"\[controller\] level: expected one of"),
+    ("[geometry]\ne = []", r"\[geometry\] e: an empty list"),
+    ("[geometry]\ne = 'zero'", r"\[geometry\] e: expected a number, a list of numbers"),
+    ("[geometry]\ne = { min = 0.0, max = 1.0 }", r"\[geometry\] e: a grid table needs exactly min, max, num"),
+    ("[initial]\nx = { min = 1.0, max = 0.0, num = 3 }", r"\[initial\] x: max must be > min"),
+    ("[initial]\nx = { low = -1.0, high = 1.0 }", r"\[initial\] x: a \{ low, high \} range needs \[initial.random\]"),
+    ("[initial]\nrandom = { count = 0 }", r"\[initial.random\] count: expected an integer >= 1"),
+    ("[initial]\ntheta = 0.1", r"\[initial\]: unknown key\(s\) \['theta'\]"),
+    ("[simulation]\nt_final = 2.0\ndt = 0.03", r"t_final = 2.0 s is not a whole number of steps"),
+    ("[simulation]\nt_final = -2.0\ndt = 0.02", r"\[simulation\] t_final: expected a number > 0"),
+    ("[gains]\npoles = [1.0, -1.0]", r"\[gains\] poles: values must be > 0"),
+    ("[gains]\nomega = 2.0", r"\[gains\]: give either poles, or omega and zeta"),
+    ("[gains]\nfile = 'missing.json'", r"\[gains\] file: cannot read tuned gains"),
+    ("[plant]\ninput_limit = [1.0, 2.0, 3.0]", r"\[plant\] input_limit: expected a list of 2 numbers"),
+    ("[plant]\ninput_limit = [1.0, 0.0]", r"\[plant\] input_limit: values must be > 0"),
+    ("[reference]\nfamily = 'spiral'", r"\[reference\] family: expected one of"),
+    ("[reference]\nfamily = 'circle'\noptions = { radius = 2.0, speed = 1.0 }", r"\[reference.options\]: unknown key\(s\) \['speed'\]"),
+    ("[reference]\nfamily = 'samples'\nfile = 'nope.csv'", r"\[reference\] file: cannot read reference samples"),
+    # combinations the paper excludes
+    ("[reference]\nfamily = 'paper_66'\n[simulation]\nt_final = 12.0\ndt = 0.02",
+     r"\[reference\] paper_66 .* reaches the singular set .* at t = 9.99 s"),
+    ("[controller]\nlaw = 'dynamic'\nrobot = '(1,1)'\n[geometry]\nL = 0.0", r"\[geometry\] for type \(1,1\): .*L"),
+    ("[controller]\nlaw = 'static'\nrobot = '(2,0)'\n[geometry]\ne = 0.0\n[initial]\nspace = 'physical'",
+     r"\[geometry\] for type \(2,0\): .*e"),
+    ("[controller]\nlaw = 'static'\nrobot = '(2,0)'\n[geometry]\ne = 0.3", r"space = \"output\" .* needs a dynamic law"),
+    ("[simulation]\nt_final = 2.0\ndt = 3.5", r"not a whole number of steps"),
+]
+
+
+def _spec(fragment: str) -> str:
+    """TINY with the sections named in ``fragment`` replaced by it."""
+    sections = {}
+    current = None
+    for line in (TINY + "\n" + fragment).splitlines():
+        if line.startswith("["):
+            current = line.split("]")[0].strip("[")
+            sections[current] = []
+        elif current is not None:
+            sections[current].append(line)
+    keep = TINY.split("[controller]")[0]
+    return keep + "\n".join(f"[{k}]\n" + "\n".join(v) for k, v in sections.items())
+
+
+@pytest.mark.parametrize("fragment, match", BAD)
+def test_bad_sweep_files_are_refused_before_compiling(fragment, match, tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(jax.lax, "scan", lambda *a, **k: calls.append("scan"))
+    with pytest.raises(S.SpecError, match=match):
+        S.load(_write(tmp_path, _spec(fragment)))
+    assert not calls
+
+
+def test_cli_refuses_bad_files_and_options(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        sweep_cli.main([str(tmp_path / "none.toml")])
+    assert e.value.code == 2 and "not found" in capsys.readouterr().err
+    bad = _write(tmp_path, "[controller\nlaw=")
+    with pytest.raises(SystemExit):
+        sweep_cli.main([str(bad), "--out", str(tmp_path / "o")])
+    assert "not valid TOML" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        sweep_cli.main([str(bad), "--process-id", "1"])
+    assert "need --coordinator" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["section_6_1_position_grid", "random_references", "sampled_lane_change"])
+def test_shipped_sweeps_are_valid(name):
+    plan = S.load(ROOT / "experiments" / "sweeps" / f"{name}.toml")
+    expect = {"section_6_1_position_grid": 81 * 81, "random_references": 8 * 32 * 32, "sampled_lane_change": 2 * 2 * 21 * 21}
+    assert plan.n_runs == expect[name]
