@@ -1,5 +1,5 @@
 # Two commands do everything on a fresh machine with Python >= 3.11 and make:
-#   make demo   -- create .venv if missing, install, run the main experiments into results/
+#   make demo   -- create .venv if missing, install, run section 6.1 and its position-grid sweep into results/
 #   make test   -- create .venv if missing, install with test extras, run the whole suite
 PYTHON ?= python3
 VENV   := .venv
@@ -20,8 +20,7 @@ venv: $(STAMP)
 
 demo: $(STAMP)
 	$(PY) -m experiments.section_6_1 --out results/section_6_1
-	$(PY) -m experiments.section_6_2 --out results/section_6_2
-	$(PY) -m experiments.posture_tracking --out results/posture_tracking
+	$(PY) -m experiments.sweep experiments/sweeps/section_6_1_position_grid.toml --out results/sweeps/section_6_1_position_grid
 
 test: $(STAMP)
 	$(PY) -m pytest -q -n auto --dist loadfile
