@@ -211,3 +211,19 @@ def test_shipped_sweeps_are_valid(name):
     plan = S.load(ROOT / "experiments" / "sweeps" / f"{name}.toml")
     expect = {"section_6_1_position_grid": 81 * 81, "random_references": 8 * 32 * 32, "sampled_lane_change": 2 * 2 * 21 * 21}
     assert plan.n_runs == expect[name]
+
+
+def test_sweep_options_documented_and_output_checked(tmp_path, capsys):
+    p = sweep_cli.parser()
+    for action in p._actions:
+        if action.option_strings and action.dest != "help":
+            assert action.help and len(action.help) > 8, action.option_strings
+    spec = _write(tmp_path, TINY)
+    f = tmp_path / "a_file"
+    f.write_text("x")
+    with pytest.raises(SystemExit):
+        sweep_cli.main([str(spec), "--out", str(f)])
+    assert "exists and is not a directory" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        sweep_cli.main([str(spec), "--out", str(tmp_path / "o"), "--processes", "0"])
+    assert "argument --processes" in capsys.readouterr().err

@@ -137,7 +137,7 @@ def _run(p, a, pid: int, n_proc: int) -> int:
             return 0
         say("writing runs.parquet")
         path = run.assemble(plan, a.out)
-        table = report.read_table(path)
+        table = report.read_table(path, columns=report.columns_needed(plan))
         say("certified radii and figures")
         certified = report.certified_radii(plan)
         summary = report.summarize(plan, table, certified)

@@ -36,6 +36,12 @@ def read_table(path: Path, columns=None) -> dict:
     return {name: t.column(name).to_numpy(zero_copy_only=False) for name in t.column_names}
 
 
+def columns_needed(plan: S.Plan) -> list:
+    """The columns the summary and the figures read back (not the whole table)."""
+    return ["run", "robot", "level", *[c for c in plan.swept if c not in ("robot", "level")], "outcome", "failed",
+            "inaccurate", "final_position_error", "final_heading_error", "min_margin", "min_distance"]
+
+
 def quantiles(a) -> dict:
     a = np.asarray(a, float)
     a = a[np.isfinite(a)]

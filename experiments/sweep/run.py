@@ -29,7 +29,8 @@ STATE_FILE = "sweep_state.json"
 # --- the rollout of one run ------------------------------------------------------------------
 
 def rollout_fn(plan: S.Plan, group: S.Group):
-    """``one(payload) -> results`` for one run of ``group`` (pure; batched by the caller)."""
+    """``one(varying) -> results`` for one run of ``group`` (pure; batched by the caller), with
+    ``varying`` the run's inputs that differ across the group (:func:`payload`)."""
     import jax
     import jax.numpy as jnp
 
@@ -42,7 +43,11 @@ def rollout_fn(plan: S.Plan, group: S.Group):
     velocity_ctrl = S.controller(plan.law, group.robot, "velocity", plan.task) if plan.law == "static" else None
     dynamic = plan.law == "dynamic"
 
-    def one(p):
+    treedef, constant, values = split(group)
+
+    def one(varying):
+        it = iter(varying)
+        p = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(v) if c else next(it) for c, v in zip(constant, values)])
         g = w.Geometry(L=p["L"], e=p["e"], delta=p["delta"])
         ref = R.Reference(p["reference"], p["heading_offset"], group.reference_path, group.reference_name)
         params = ctrl.params_unchecked(ref, 1.0, g)._replace(gains=w.Gains(p["coeffs"]))
@@ -120,25 +125,47 @@ def _wrap(a):
     return jnp.mod(a + jnp.pi, 2 * jnp.pi) - jnp.pi
 
 
-def payload(plan: S.Plan, group: S.Group, start: int, n: int, pad_to: int) -> dict:
-    """The rollout inputs of runs ``start .. start + n - 1`` of ``group``, padded (with copies
-    of the last run) to ``pad_to`` runs."""
+_AXIS_OF = {"L": 0, "e": 0, "delta": 0, "limit": 1, "input_scale": 1, "geometry_scale": 1,
+            "reference": 2, "heading_offset": 2, "branch": 2, "coeffs": 3, "initial": 4}
+
+
+def _sources(group: S.Group) -> dict:
+    """Every rollout input at the level of its axis: key -> (axis size, ...) arrays (or a pytree)."""
+    geo, plant, ref, gains, init = (a.payload for a in group.axes)
+    return {"L": geo["L"], "e": geo["e"], "delta": geo["delta"], "limit": plant["limit"],
+            "input_scale": plant["input_scale"], "geometry_scale": plant["geometry_scale"],
+            "reference": ref["reference"], "heading_offset": ref["heading_offset"], "branch": group.branch.astype(float),
+            "coeffs": gains["coeffs"], "initial": init["initial"]}
+
+
+def split(group: S.Group):
+    """``(treedef, constant, values)``: the rollout inputs' structure, which leaves are the same
+    for every run of the group, and their values. Constant leaves are compiled in (XLA folds
+    them: the §6.1 loop runs twice as fast with its fixed geometry, gains and reference folded
+    than with them as per-run arrays); the others are batched."""
+    import jax
+
+    src = _sources(group)
+    leaves, treedef = jax.tree_util.tree_flatten(src)
+    # the initial conditions are always batched: they carry the batch axis, even for one run
+    flags = {k: jax.tree_util.tree_map(lambda x, k=k: k != "initial" and bool(np.all(np.asarray(x) == np.asarray(x)[:1])), v)
+             for k, v in src.items()}
+    constant = jax.tree_util.tree_leaves(flags)
+    return treedef, constant, [np.asarray(x)[0] for x in leaves]
+
+
+def payload(plan: S.Plan, group: S.Group, start: int, n: int, pad_to: int) -> list:
+    """The varying rollout inputs (leaves, in :func:`split`'s order) of runs ``start .. start + n - 1``
+    of ``group``, padded (with copies of the last run) to ``pad_to`` runs."""
     import jax
 
     idx = S.unravel(group, start, n)
     if pad_to > n:
         idx = [np.concatenate([i, np.full(pad_to - n, i[-1])]) for i in idx]
-    geo, plant, ref, gains, init = (a.payload for a in group.axes)
-    gi, pi, ri, ki, ii = idx
-    out = {k: np.asarray(geo[k])[gi] for k in S.GEOMETRY_KEYS}
-    out |= {"limit": plant["limit"][pi], "input_scale": plant["input_scale"][pi],
-            "geometry_scale": plant["geometry_scale"][pi]}
-    out["reference"] = jax.tree_util.tree_map(lambda x: np.asarray(x)[ri], ref["reference"])
-    out["heading_offset"] = np.asarray(ref["heading_offset"])[ri]
-    out["branch"] = group.branch[ri].astype(float)
-    out["coeffs"] = gains["coeffs"][ki]
-    out["initial"] = init["initial"][ii]
-    return out
+    src = _sources(group)
+    per_key = {k: jax.tree_util.tree_map(lambda x, k=k: np.asarray(x)[idx[_AXIS_OF[k]]], v) for k, v in src.items()}
+    _, constant, _ = split(group)
+    return [x for x, c in zip(jax.tree_util.tree_leaves(per_key), constant) if not c]
 
 
 # --- execution ---------------------------------------------------------------------------------
@@ -214,7 +241,7 @@ def prepare(plan: S.Plan, out: Path, fresh: bool) -> int:
     return sum(block_path(out, b).exists() for b in range(len(blocks)))
 
 
-def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int = 1, log=print) -> dict:
+def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int = 1) -> dict:
     """Compute this process's share of the blocks that are not on disk yet (block ``b`` belongs
     to process ``b % num_processes``); returns timing figures."""
     import jax
@@ -226,7 +253,7 @@ def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int 
     blocks = plan.blocks()
     mine = [b for b in range(len(blocks)) if b % num_processes == process_id]
     todo = [b for b in mine if not block_path(out, b).exists()]
-    done_runs = sum(blocks[b][2] for b in mine if b not in set(todo))
+    done_runs = sum(blocks[b][2] for b in set(mine) - set(todo))
     prog = Progress(sum(blocks[b][2] for b in mine), len(mine), done_runs, len(mine) - len(todo),
                     prefix=f"[process {process_id}] " if num_processes > 1 else "")
     t_first, t_run, n_run = 0.0, 0.0, 0

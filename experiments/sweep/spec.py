@@ -225,9 +225,6 @@ def load(path) -> Plan:
 
 def plan(spec: dict, source: Path) -> Plan:
     """Validate a parsed sweep file (see :func:`load`)."""
-    import jax
-    import jax.numpy as jnp
-
     import wmrjax as w
 
     unknown = sorted(set(spec) - set(SECTIONS))
@@ -296,12 +293,12 @@ def plan(spec: dict, source: Path) -> Plan:
         for level in levels:
             ctrl = controller(law, kind, level, task)
             groups.append(_group(ctrl, spec, source, law, space, t_final, dt, n_steps))
-    columns = {}
+    swept = []            # columns with more than one value within a group (defaults differ across groups)
     for g in groups:
         for a in g.axes:
             for k, v in a.columns.items():
-                columns.setdefault(k, set()).update(np.asarray(v).tolist())
-    swept = [k for k, vals in columns.items() if len(vals) > 1]
+                if k not in swept and len(set(np.asarray(v).tolist())) > 1:
+                    swept.append(k)
     if len(groups) > 1:
         swept = (["robot"] if len(kinds) > 1 else []) + (["level"] if len(levels) > 1 else []) + swept
     fp = hashlib.sha256(json.dumps([spec, _samples_digest(spec, source)], sort_keys=True, default=str).encode())
