@@ -58,11 +58,18 @@ def _table(path):
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def cache(tmp_path_factory):
+    """A persistent compilation cache shared by this module's sweeps (a rerun loads the compiled
+    rollout, as a user's resumed sweep does)."""
+    return str(tmp_path_factory.mktemp("xla_cache"))
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory, cache):
     """The tiny sweep run once in this process: (spec path, output directory)."""
     d = tmp_path_factory.mktemp("sweep")
     spec = _write(d, TINY)
-    assert sweep_cli.main([str(spec), "--out", str(d / "out"), "--no-compile-cache"]) == 0
+    assert sweep_cli.main([str(spec), "--out", str(d / "out"), "--compile-cache", cache]) == 0
     return spec, d / "out"
 
 
@@ -99,7 +106,7 @@ def test_table_matches_direct_simulations(tiny):
     assert (out / "map_initial_error_x_initial_error_y.png").stat().st_size > 10_000
 
 
-def test_killed_sweep_resumes_to_the_same_table(tiny, tmp_path, monkeypatch):
+def test_killed_sweep_resumes_to_the_same_table(tiny, cache, tmp_path, monkeypatch):
     spec, out = tiny
     done = []
     original = sweep_run.Progress.update
@@ -110,11 +117,11 @@ def test_killed_sweep_resumes_to_the_same_table(tiny, tmp_path, monkeypatch):
         raise KeyboardInterrupt                         # killed after the first call (one block per device)
     monkeypatch.setattr(sweep_run.Progress, "update", dies_after_first)
     with pytest.raises(KeyboardInterrupt):
-        sweep_cli.main([str(spec), "--out", str(tmp_path), "--no-compile-cache"])
+        sweep_cli.main([str(spec), "--out", str(tmp_path), "--compile-cache", cache])
     finished = len(list((tmp_path / "blocks").glob("block_*.npz")))
     assert finished == done[0] < 5
     monkeypatch.setattr(sweep_run.Progress, "update", original)
-    assert sweep_cli.main([str(spec), "--out", str(tmp_path), "--no-compile-cache"]) == 0
+    assert sweep_cli.main([str(spec), "--out", str(tmp_path), "--compile-cache", cache]) == 0
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["execution"]["runs_resumed"] == 4 * finished and s["execution"]["runs_computed"] == 18 - 4 * finished
     assert pq.read_table(tmp_path / "runs.parquet").equals(pq.read_table(out / "runs.parquet"))
@@ -124,11 +131,11 @@ def test_killed_sweep_resumes_to_the_same_table(tiny, tmp_path, monkeypatch):
         sweep_cli.main([str(other), "--out", str(tmp_path), "--no-compile-cache"])
 
 
-def test_two_processes_give_the_same_table(tiny, tmp_path):
+def test_two_processes_give_the_same_table(tiny, cache, tmp_path):
     spec, out = tiny
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     r = subprocess.run([sys.executable, "-m", "experiments.sweep", str(spec), "--out", str(tmp_path), "--processes", "2",
-                        "--no-compile-cache"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+                        "--compile-cache", cache], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "[process 1]" in r.stderr and "[process 0]" in r.stderr
     s = json.loads((tmp_path / "summary.json").read_text())
