@@ -234,3 +234,48 @@ def test_sweep_options_documented_and_output_checked(tmp_path, capsys):
     with pytest.raises(SystemExit):
         sweep_cli.main([str(spec), "--out", str(tmp_path / "o"), "--processes", "0"])
     assert "argument --processes" in capsys.readouterr().err
+
+
+STATIC = """
+[controller]
+law = "static"
+robot = "(2,0)"
+level = "torque"
+task = "point"
+[geometry]
+e = 0.3
+delta = 1.5707963267948966
+[reference]
+family = "circle"
+[initial]
+space = "physical"
+random = { count = 3, seed = 7 }
+x = { low = -0.2, high = 0.2 }
+theta = 0.0
+[gains]
+poles = 1.0
+[simulation]
+t_final = 1.0
+dt = 0.02
+"""
+
+
+def test_static_physical_sweep_starts_on_the_reference_and_draws_reproducibly(tmp_path, cache):
+    """Physical-space initial errors for a static torque-level law: the tracked point starts at the
+    reference's plus (x, y), its output velocity equal to the reference's (so a zero error stays
+    zero: exact linearization), and the random draws follow numpy's Generator(seed), key by key."""
+    zero = _write(tmp_path, STATIC.replace("random = { count = 3, seed = 7 }\nx = { low = -0.2, high = 0.2 }",
+                                           "x = [0.0, 0.2]"), "zero.toml")
+    assert sweep_cli.main([str(zero), "--out", str(tmp_path / "zero"), "--compile-cache", cache]) == 0
+    t = _table(tmp_path / "zero" / "runs.parquet")
+    assert t["final_position_error"][0] < 1e-8          # on the reference from the start, and stays there (RK4: 1.6e-9)
+    assert t["final_position_error"][1] > 1e-3          # 0.2 m off: decays like (1 + t) e^-t, still 0.15 m at 1 s
+    np.testing.assert_allclose(t["final_position_error"][1], 0.2 * 2 * np.exp(-1.0), rtol=1e-6)
+    rnd = _write(tmp_path, STATIC, "random.toml")
+    plan = S.load(rnd)
+    rng = np.random.default_rng(7)
+    x = rng.uniform(-0.2, 0.2, 3)
+    cols = S.columns_of(plan.groups[0], S.unravel(plan.groups[0], 0, 3))
+    np.testing.assert_array_equal(cols["initial_error_x"], x)
+    np.testing.assert_array_equal(cols["initial_error_theta"], 0.0)
+    assert plan.swept == ["initial_error_x"]
