@@ -1,4 +1,4 @@
-"""Results on disk: atomic JSON/NPZ/bytes writing and JSON checkpoints of pytrees.
+"""Results on disk: atomic JSON/NPZ/bytes/Parquet writing and JSON checkpoints of pytrees.
 
 Every writer goes through :func:`atomic_write` (write a temporary file in the target
 directory, then ``os.replace``), so a killed run leaves either the previous file or the

@@ -69,8 +69,9 @@ def _launch(p, a, devices: int) -> int:
 
     from experiments.sweep import spec as S
     common.enable_x64()
-    try:
-        S.load(a.spec)              # refuse a bad file here, once, before starting anything
+    from experiments.sweep import run
+    try:                            # refuse a bad file or another sweep's --out here, before starting anything
+        run.prepare(S.load(a.spec), a.out, a.fresh)
     except ValueError as err:
         cli.fail(p, str(err))
     with socket.socket() as s:
@@ -78,8 +79,6 @@ def _launch(p, a, devices: int) -> int:
         port = s.getsockname()[1]
     base = [sys.executable, "-m", "experiments.sweep", str(a.spec), "--out", str(a.out), "--devices", str(devices),
             "--coordinator", f"127.0.0.1:{port}", "--num-processes", str(a.processes)]
-    if a.fresh:
-        base.append("--fresh")
     if a.no_compile_cache:
         base.append("--no-compile-cache")
     elif a.compile_cache is not None:
@@ -114,7 +113,7 @@ def _run(p, a, pid: int, n_proc: int) -> int:
             multihost_utils.sync_global_devices(name)
 
     say = (lambda m: print(m, file=sys.stderr, flush=True)) if pid == 0 else (lambda m: None)
-    try:
+    try:                            # the user's errors (the file, --out): an argparse-style exit
         plan = S.load(a.spec)
         say(f"{a.spec}: {plan.n_runs} runs in {len(plan.blocks())} blocks of {plan.block} "
             f"({len(plan.groups)} group(s); {plan.n_steps} RK4 steps each), {n_proc} process(es) x "
@@ -123,45 +122,46 @@ def _run(p, a, pid: int, n_proc: int) -> int:
             resumed = run.prepare(plan, a.out, a.fresh)
             if resumed:
                 say(f"resuming: {resumed} of {len(plan.blocks())} blocks already done in {a.out}")
-        barrier("sweep-prepared")
-        if pid != 0 and run.read_state(a.out) is None:
-            raise ValueError(f"{a.out}/{run.STATE_FILE} missing: process 0 did not prepare the output directory")
-        t0 = time.perf_counter()
-        stats = run.compute(plan, a.out, process_id=pid, num_processes=n_proc)
-        stats["wall_s"] = time.perf_counter() - t0
-        from wmrjax import io
-
-        io.write_json(a.out / "blocks" / f"process_{pid}.json", stats)
-        barrier("sweep-computed")
-        if pid != 0:
-            return 0
-        say("writing runs.parquet")
-        path = run.assemble(plan, a.out)
-        table = report.read_table(path, columns=report.columns_needed(plan))
-        say("certified radii and figures")
-        certified = report.certified_radii(plan)
-        summary = report.summarize(plan, table, certified)
-        procs = [json.loads((a.out / "blocks" / f"process_{i}.json").read_text()) for i in range(n_proc)]
-        computed = sum(s["runs_computed"] for s in procs)
-        compute_wall = max(s["wall_s"] for s in procs)
-        summary = {"sweep": str(a.spec), "title": plan.spec.get("title", a.spec.stem), "law": plan.law,
-                   "task": plan.task, "initial_space": plan.space, "swept": plan.swept, "fingerprint": plan.fingerprint,
-                   "t_final": plan.t_final, "dt": plan.dt, "n_steps": plan.n_steps} | summary
-        summary["execution"] = {
-            "processes": n_proc, "devices_per_process": len(jax.local_devices()), "block": plan.block,
-            "blocks": len(plan.blocks()), "runs_computed": computed, "runs_resumed": plan.n_runs - computed,
-            "compute_wall_s": compute_wall,
-            "first_calls_s": max(s["first_calls_s"] for s in procs),
-            "throughput_runs_per_s": computed / compute_wall if compute_wall > 0 and computed else None,
-            "throughput_trajectory_steps_per_s": computed * plan.n_steps / compute_wall if compute_wall > 0 and computed else None,
-        }
-        summary["figures"] = report.figures(plan, table, certified, a.out)
-        summary["wall_time_s"] = time.perf_counter() - t_start
-        io.write_json(a.out / "summary.json", summary)
-        c = summary["counts"]
-        print(f"{plan.n_runs} runs: {c['converged']} converged, {c['not_converged']} not converged, {c['singular']} "
-              f"singular, {c['failed']} failed; wrote {a.out}/runs.parquet, summary.json and "
-              f"{len(summary['figures'])} figures ({summary['wall_time_s']:.0f} s)")
-        return 0
     except ValueError as err:
         cli.fail(p, str(err))
+    barrier("sweep-prepared")
+    if pid != 0 and run.read_state(a.out) is None:
+        raise RuntimeError(f"{a.out}/{run.STATE_FILE} missing: process 0 did not prepare the output directory "
+                           "(with several hosts, --out must be one shared directory)")
+    t0 = time.perf_counter()
+    stats = run.compute(plan, a.out, process_id=pid, num_processes=n_proc)
+    stats["wall_s"] = time.perf_counter() - t0
+    from wmrjax import io
+
+    io.write_json(a.out / "blocks" / f"process_{pid}.json", stats)
+    barrier("sweep-computed")
+    if pid != 0:
+        return 0
+    say("writing runs.parquet")
+    path = run.assemble(plan, a.out)
+    table = report.read_table(path, columns=report.columns_needed(plan))
+    say("certified radii and figures")
+    certified = report.certified_radii(plan)
+    summary = report.summarize(plan, table, certified)
+    procs = [json.loads((a.out / "blocks" / f"process_{i}.json").read_text()) for i in range(n_proc)]
+    computed = sum(s["runs_computed"] for s in procs)
+    compute_wall = max(s["wall_s"] for s in procs)
+    summary = {"sweep": str(a.spec), "title": plan.spec.get("title", a.spec.stem), "law": plan.law,
+               "task": plan.task, "initial_space": plan.space, "swept": plan.swept, "fingerprint": plan.fingerprint,
+               "t_final": plan.t_final, "dt": plan.dt, "n_steps": plan.n_steps} | summary
+    summary["execution"] = {
+        "processes": n_proc, "devices_per_process": len(jax.local_devices()), "block": plan.block,
+        "blocks": len(plan.blocks()), "runs_computed": computed, "runs_resumed": plan.n_runs - computed,
+        "compute_wall_s": compute_wall,
+        "first_calls_s": max(s["first_calls_s"] for s in procs),
+        "throughput_runs_per_s": computed / compute_wall if compute_wall > 0 and computed else None,
+        "throughput_trajectory_steps_per_s": computed * plan.n_steps / compute_wall if compute_wall > 0 and computed else None,
+    }
+    summary["figures"] = report.figures(plan, table, certified, a.out)
+    summary["wall_time_s"] = time.perf_counter() - t_start
+    io.write_json(a.out / "summary.json", summary)
+    c = summary["counts"]
+    print(f"{plan.n_runs} runs: {c['converged']} converged, {c['not_converged']} not converged, {c['singular']} "
+          f"singular, {c['failed']} failed; wrote {a.out}/runs.parquet, summary.json and "
+          f"{len(summary['figures'])} figures ({summary['wall_time_s']:.0f} s)")
+    return 0

@@ -15,6 +15,8 @@ from experiments.sweep.run import OUTCOMES
 
 COLORS = {"converged": "#2ca02c", "not_converged": "#ff7f0e", "singular": "#d62728", "failed": "#7f7f7f"}
 # "failed": non-finite or inaccurate (the step's error estimate above error_tol), not singular
+LABELS = {"converged": "converged", "not_converged": "not converged", "singular": "singular",
+          "failed": "failed (inaccurate or non-finite)"}
 MAX_MAPS = 12              # maps of a one-group sweep
 MAX_MAPS_PER_GROUP = 3     # and per group of a sweep over several types or levels
 UNITS = {"initial_error_x": "m", "initial_error_y": "m", "initial_error_vx": "m/s", "initial_error_vy": "m/s",
@@ -130,13 +132,16 @@ def _edges(v):
 def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
     plt = common.pyplot()
     written = []
+    for old in out.glob("map_*.png"):       # an earlier run's maps (other quantities) must not linger
+        old.unlink()
     numeric = [c for c in plan.swept if c not in ("robot", "level")]
     # one map axis per quantity: drop a column in one-to-one correspondence with an earlier one
-    numeric = [c for i, c in enumerate(numeric)
-               if not any(_determines(table, q, c) and _determines(table, c, q) for q in numeric[:i])]
+    # (random draws of several columns are one-to-one by construction: they are kept, and mapped as scatter plots)
     random_cols = {c for g in plan.groups for a in g.axes[-1:] if a.random for c in a.columns}   # the initial axis
+    numeric = [c for i, c in enumerate(numeric)
+               if c in random_cols or not any(_determines(table, q, c) and _determines(table, c, q) for q in numeric[:i])]
     pairs = [(a, b) for a, b in itertools.combinations(numeric, 2)
-             if not (_determines(table, a, b) or _determines(table, b, a))]
+             if {a, b} <= random_cols or not (_determines(table, a, b) or _determines(table, b, a))]
     # initial errors first (x against y above all), then the rest in the file's order
     pairs.sort(key=lambda ab: -sum(c.startswith("initial_error_") for c in ab) - 2 * (ab == ("initial_error_x", "initial_error_y")))
     pairs = pairs[:MAX_MAPS if len(plan.groups) == 1 else MAX_MAPS_PER_GROUP]
@@ -170,13 +175,13 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
                 for o in OUTCOMES:
                     m = int(np.sum(oc == o))
                     if m:
-                        ax.scatter([], [], marker="s", c=COLORS[o], label=f"{o.replace('_', ' ')} ({m})")
+                        ax.scatter([], [], marker="s", c=COLORS[o], label=f"{LABELS[o]} ({m})")
             else:
                 for o in OUTCOMES:
                     m = oc == o
                     if m.any():
                         ax.scatter(xa[m], yb[m], s=12, c=COLORS[o], linewidths=0,
-                                   label=f"{o.replace('_', ' ')} ({int(m.sum())})")
+                                   label=f"{LABELS[o]} ({int(m.sum())})")
             if certified and {a, b} == {"initial_error_x", "initial_error_y"}:
                 th = np.linspace(0, 2 * np.pi, 400)
                 styles = {"lemma2_paper": ("k", ":"), "lemma2_lyapunov": ("k", "-."), "lemma2_exact_norm": ("k", "--"),
