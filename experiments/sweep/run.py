@@ -154,9 +154,9 @@ def split(group: S.Group):
     return treedef, constant, [np.asarray(x)[0] for x in leaves]
 
 
-def payload(plan: S.Plan, group: S.Group, start: int, n: int, pad_to: int) -> list:
-    """The varying rollout inputs (leaves, in :func:`split`'s order) of runs ``start .. start + n - 1``
-    of ``group``, padded (with copies of the last run) to ``pad_to`` runs."""
+def payload(group: S.Group, start: int, n: int, pad_to: int, constant: list) -> list:
+    """The varying rollout inputs (leaves, in :func:`split`'s order; ``constant`` is its mask) of
+    runs ``start .. start + n - 1`` of ``group``, padded (with copies of the last run) to ``pad_to``."""
     import jax
 
     idx = S.unravel(group, start, n)
@@ -164,7 +164,6 @@ def payload(plan: S.Plan, group: S.Group, start: int, n: int, pad_to: int) -> li
         idx = [np.concatenate([i, np.full(pad_to - n, i[-1])]) for i in idx]
     src = _sources(group)
     per_key = {k: jax.tree_util.tree_map(lambda x, k=k: np.asarray(x)[idx[_AXIS_OF[k]]], v) for k, v in src.items()}
-    _, constant, _ = split(group)
     return [x for x, c in zip(jax.tree_util.tree_leaves(per_key), constant) if not c]
 
 
@@ -266,10 +265,11 @@ def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int 
         # table does not depend on how blocks are spread (a sharded program over D devices is
         # partitioned differently and differs in the last bits)
         fn = jax.jit(jax.vmap(rollout_fn(plan, group)))
+        _, constant, _ = split(group)
         for k in range(0, len(bs), D):
             ids = bs[k:k + D]
             t = time.perf_counter()
-            pending = [fn(jax.device_put(payload(plan, group, blocks[b][1], blocks[b][2], plan.block), devices[j]))
+            pending = [fn(jax.device_put(payload(group, blocks[b][1], blocks[b][2], plan.block, constant), devices[j]))
                        for j, b in enumerate(ids)]          # dispatched asynchronously: the devices run together
             for b, res in zip(ids, pending):
                 _, start, n = blocks[b]

@@ -301,17 +301,20 @@ def plan(spec: dict, source: Path) -> Plan:
                     swept.append(k)
     if len(groups) > 1:
         swept = (["robot"] if len(kinds) > 1 else []) + (["level"] if len(levels) > 1 else []) + swept
-    fp = hashlib.sha256(json.dumps([spec, _samples_digest(spec, source)], sort_keys=True, default=str).encode())
+    fp = hashlib.sha256(json.dumps([spec, _files_digest(spec, source)], sort_keys=True, default=str).encode())
     return Plan(spec, source, law, task, space, groups, t_final, dt, n_steps, block, every, tol,
                 position_tol, heading_tol, plant, swept, fp.hexdigest()[:16])
 
 
-def _samples_digest(spec, source):
-    f = spec.get("reference", {}).get("file")
-    if not isinstance(f, str):
-        return None
-    p = (Path(source).parent / f)
-    return hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None
+def _files_digest(spec, source):
+    """Digests of the files a sweep reads (reference samples, tuned gains): part of its fingerprint,
+    so that a changed file is not resumed from blocks computed with the old one."""
+    out = []
+    for section in ("reference", "gains"):
+        f = spec.get(section, {}).get("file") if isinstance(spec.get(section), dict) else None
+        p = Path(source).parent / f if isinstance(f, str) else None
+        out.append(hashlib.sha256(p.read_bytes()).hexdigest() if p is not None and p.is_file() else None)
+    return out
 
 
 def controller(law: str, kind: str, level: str, task: str):
