@@ -146,7 +146,7 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
     pairs.sort(key=lambda ab: -sum(c.startswith("initial_error_") for c in ab) - 2 * (ab == ("initial_error_x", "initial_error_y")))
     pairs = pairs[:MAX_MAPS if len(plan.groups) == 1 else MAX_MAPS_PER_GROUP]
     groups = [(g.robot, g.level) for g in plan.groups]
-    for gi, (robot, level) in enumerate(groups):
+    for robot, level in groups:
         gsel = (table["robot"] == robot) & (table["level"] == level)
         tag = f"_{robot.strip('()').replace(',', '')}_{level}" if len(groups) > 1 else ""
         for a, b in pairs:

@@ -35,6 +35,7 @@ def rollout_fn(plan: S.Plan, group: S.Group):
     import jax.numpy as jnp
 
     import wmrjax as w
+    from wmrjax import _math
     from wmrjax import references as R
 
     ctrl = S.controller(plan.law, group.robot, group.level, plan.task)
@@ -91,7 +92,7 @@ def rollout_fn(plan: S.Plan, group: S.Group):
             pos = ctrl.law.outputs(zf, g)[:2] - ref.position(tf)
         else:
             pos = zf[:2] - post_f[:2]
-        head = jnp.abs(_wrap(zf[2] - post_f[2]))
+        head = jnp.abs(_math.wrap_angle(zf[2] - post_f[2]))
         dg = tr.diagnostics
         out = dict(failed=dg.failed, singular=dg.singular, nonfinite=dg.nonfinite, inaccurate=dg.inaccurate,
                    t_failure=dg.t_failure, min_margin=dg.min_margin, error_estimate=dg.error_estimate,
@@ -117,12 +118,6 @@ def _steering(ctrl, params, t0):
     n = ctrl.robot.delta_s
     # (1,2): beta1 free (0), beta2 the steering reference; (2,1): beta the steering reference
     return jnp.concatenate([jnp.zeros(n - b.shape[0], t0.dtype), b]) if b.shape[0] < n else b[:n]
-
-
-def _wrap(a):
-    import jax.numpy as jnp
-
-    return jnp.mod(a + jnp.pi, 2 * jnp.pi) - jnp.pi
 
 
 _AXIS_OF = {"L": 0, "e": 0, "delta": 0, "limit": 1, "input_scale": 1, "geometry_scale": 1,
@@ -296,7 +291,7 @@ def assemble(plan: S.Plan, out: Path):
     missing = [b for b in range(len(blocks)) if not block_path(out, b).exists()]
     if missing:
         raise RuntimeError(f"{len(missing)} blocks are missing (first: {missing[0]}); rerun the sweep to finish them")
-    names = column_names(plan)
+    names = value_columns(plan)
 
     def batches():
         for b, (gi, start, n) in enumerate(blocks):
@@ -307,7 +302,7 @@ def assemble(plan: S.Plan, out: Path):
                 res = {c: f[c] for c in RESULT_COLUMNS}
             data = {"run": np.arange(start, start + n) + sum(g.size for g in plan.groups[:gi]),
                     "robot": np.full(n, group.robot), "level": np.full(n, group.level)}
-            for k in names["swept"]:
+            for k in names:
                 data[k] = cols[k] if k in cols else np.full(n, np.nan)
             data |= res
             data |= classify(plan, res)
@@ -319,14 +314,9 @@ def assemble(plan: S.Plan, out: Path):
     return io.write_parquet(out / "runs.parquet", (to_batch(d) for d in batches()))
 
 
-def column_names(plan: S.Plan) -> dict:
-    swept = []
-    for g in plan.groups:
-        for a in g.axes:
-            for k in a.columns:
-                if k not in swept:
-                    swept.append(k)
-    return {"swept": swept}
+def value_columns(plan: S.Plan) -> list:
+    """The columns of the runs' values (swept or fixed), over every group, in axis order."""
+    return list(dict.fromkeys(k for g in plan.groups for a in g.axes for k in a.columns))
 
 
 OUTCOMES = ("converged", "not_converged", "singular", "failed")
