@@ -17,7 +17,7 @@ import sys
 from experiments import common
 
 
-def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096, n_directions: int = 256,
+def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096, n_directions: int = 128,
         n_starts: int = 16, progress=None) -> dict:
     say = progress or (lambda msg: print(msg, flush=True))
     common.enable_x64()
@@ -84,7 +84,7 @@ def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096, n
     return summary
 
 
-def _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, eps=1e-2, n_directions=256, n_starts=16, log=print):
+def _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, eps=1e-2, n_directions=128, n_starts=16, log=print):
     """Lemma 2 with the paper's K2 (64), the automatic Lyapunov K2 and the exact ||e^{At}||; the
     exact-map radii; empirical checks and the falsifier (:func:`wmrjax.certify.analyse`)."""
     import jax.numpy as jnp

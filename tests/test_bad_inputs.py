@@ -184,9 +184,8 @@ def _api_cases():
                     ("seed", dict(seed=-1))):
         add(f"analyse-{name}", lambda c, p, z, k=k: an(c, p, **k),
             "slice" if "basis" in k else next(iter(k)))
-    add("exact_map-curved", lambda c, p, z: C.exact_map_radius(
-        w.dynamic_linearization("(1,2)"), w.dynamic_linearization("(1,2)").params(
-            R.figure_eight(heading_offset=0.5), geometry=w.Geometry(L=0.5, e=0.3)), t_final=1.0, eps=0.01), "curved")
+    add("curved_exact_map-linear", lambda c, p, z: C.curved_exact_map_radius(c, p, t_final=1.0, eps=0.01),
+        "linear singular set")
     add("batch_map-sizes", lambda c, p, z: w.batch_map(lambda a, b: a + b, jnp.ones(3), jnp.ones(4)), "leading batch")
     return cases
 

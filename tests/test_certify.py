@@ -165,10 +165,8 @@ def test_bad_exact_map_arguments(paper61):
         C.slice_basis(ctrl, "velocity-ish")
     with pytest.raises(ValueError, match="eps must be > 0"):
         C.exact_map_radius(ctrl, params, t_final=10.0, eps=-1.0)
-    c12 = w.dynamic_linearization("(1,2)")
-    p12 = c12.params(R.circle(), geometry=w.Geometry(L=0.5, e=0.3, delta=0.5))
-    with pytest.raises(ValueError, match="curved singular set"):
-        C.exact_map_radius(c12, p12, t_final=5.0, eps=1e-2)
+    with pytest.raises(ValueError, match="linear singular set"):
+        C.curved_exact_map_radius(ctrl, params, t_final=10.0, eps=1e-2)
 
 
 def test_m1_closed_form_12_is_the_distance_to_its_singular_set(rng):

@@ -11,10 +11,12 @@ else keyword-only; each returns a NamedTuple with fixed fields:
   search), K2 three ways (eq 64, an automatic Lyapunov bound, the exact ||e^{At}||), F and
   the certified radius :math:`\min_t F(t)`: :func:`lemma2`;
 * :mod:`~wmrjax.certify.exact_map` -- the exact-map radius from
-  :math:`\tilde\zeta(t) = e^{At}\tilde\zeta(0)` (types with a linear singular set);
+  :math:`\tilde\zeta(t) = e^{At}\tilde\zeta(0)`: closed form per time for the linear
+  singular sets, branch and bound with a proved lower bound for (1,2)'s curved one;
 * :mod:`~wmrjax.certify.empirical` -- batch rollouts: (53) and regularity inside a ball,
   distances to the singular set, the empirical radius per direction;
-* :mod:`~wmrjax.certify.falsify` -- gradient falsification (an upper bound);
+* :mod:`~wmrjax.certify.falsify` -- falsification (an upper bound): instantaneous, sampling
+  and gradient stages, failures confirmed on a finer simulation;
 * :mod:`~wmrjax.certify.pipeline` -- :func:`analyse`, all of the above in one report.
 
 Only dynamic linearizing laws are certified: a static law raises ``ValueError``.
@@ -28,8 +30,16 @@ from wmrjax.certify.empirical import (  # noqa: F401
     min_distance,
     sample_sphere,
     verify,
+    verify_all,
 )
-from wmrjax.certify.exact_map import ExactMapRadius, exact_map_radius, min_norm_to_ball, singular_rows, slice_basis  # noqa: F401
+from wmrjax.certify.exact_map import (  # noqa: F401
+    ExactMapRadius,
+    curved_exact_map_radius,
+    exact_map_radius,
+    min_norm_to_ball,
+    singular_rows,
+    slice_basis,
+)
 from wmrjax.certify.falsify import Falsification, FalsifiedRadius, falsified_radius, falsify  # noqa: F401
 from wmrjax.certify.lemma2 import (  # noqa: F401
     Certificate,

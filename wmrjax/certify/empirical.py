@@ -16,7 +16,7 @@ from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 from wmrjax.certify.exact_map import singular_rows
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
 from wmrjax._validate import check_int, check_positive, concrete
-from wmrjax.simulate import simulate
+from wmrjax.simulate import batch_map, simulate
 
 
 def check_vectors(name: str, x, width: int, what: str, nonzero: bool = False) -> np.ndarray:
@@ -93,33 +93,36 @@ def verify(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
     Returns:
       :class:`Verification`.
     """
-    n_steps, save_every = check_runs(ctrl, params, t_final, dt, initial_errors, save_every)
     if not callable(k2):
         raise ValueError(f"k2 must be a function ts -> K2(ts), got {type(k2).__name__}")
+    return verify_all(ctrl, params, t_final=t_final, initial_errors=initial_errors, k2s={"k2": k2}, dt=dt,
+                      save_every=save_every, tol=tol)["k2"]
+
+
+def verify_all(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, initial_errors, k2s: dict,
+               dt: float, save_every: int = 10, tol: float = 1e-6) -> dict:
+    """:func:`verify` for several K2 bounds on the same runs (simulated once).
+
+    Args:
+      k2s: name -> ``ts -> K2(ts)``.
+
+    Returns:
+      name -> :class:`Verification`.
+    """
+    n_steps, save_every = check_runs(ctrl, params, t_final, dt, initial_errors, save_every)
+    if not isinstance(k2s, dict) or not k2s or not all(callable(f) for f in k2s.values()):
+        raise ValueError(f"k2 must be a function ts -> K2(ts) (k2s: a non-empty dict of them), got {k2s!r}")
     if not (np.isfinite(tol) and tol >= 0):
         raise ValueError(f"tol must be finite and >= 0, got {tol!r}")
-    branch = jnp.asarray(float(ctrl.reference_branch(params)))
     n_saves = n_steps // save_every
     ts = dt * save_every * jnp.arange(n_saves + 1, dtype=jnp.result_type(float))
     ts = ts.at[-1].set(dt * n_steps)
-    k2v = jnp.asarray(k2(ts))   # the bound on the saved grid: one compiled program for every K2
-    return Verification(*_verify(ctrl, params, jnp.asarray(initial_errors), k2v, branch, tol, dt, n_steps, save_every))
-
-
-@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8))
-def _verify(ctrl, params, errs, k2, branch, tol, dt, n_steps, save_every):
-    def one(e0):
-        tr, z0 = run_from_error(ctrl, params, e0, branch, dt, n_steps, save_every)
-        err = jax.vmap(lambda t, z: ctrl.error(t, z, params).reshape(-1))(tr.t, tr.state)
-        nrm = jnp.linalg.norm(err, axis=1)
-        n0 = jnp.linalg.norm(e0)
-        bound = k2 * n0
-        viol = jnp.any(tr.valid & (nrm > bound + tol))
-        ratio = jnp.max(jnp.where(tr.valid, nrm / jnp.maximum(bound, 1e-300), 0.0))
-        wrong_branch = ctrl.branch_quantity(z0, params) * branch <= 0
-        return n0, viol, tr.diagnostics.failed | wrong_branch, ratio, tr.diagnostics.min_margin
-
-    return jax.vmap(one)(errs)
+    k2v = np.stack([np.asarray(f(ts)) for f in k2s.values()])   # every bound on the saved grid
+    if len(k2v) > _N_BOUNDS:
+        raise ValueError(f"verify_all checks at most {_N_BOUNDS} K2 bounds at once, got {len(k2v)}")
+    st = _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, 4, 512, k2v, tol)
+    return {name: Verification(jnp.asarray(st.norm0), jnp.asarray(st.violation[:, i]), jnp.asarray(st.failed),
+                               jnp.asarray(st.ratio[:, i]), jnp.asarray(st.min_margin)) for i, name in enumerate(k2s)}
 
 
 # --- running the real closed loop from initial errors ---------------------------------------
@@ -136,18 +139,22 @@ def run_from_error(ctrl, params, e0, branch, dt, n_steps, save_every):
     return simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=save_every, error_tol=math.inf), z0
 
 
-def distance_along(ctrl, params, tr, chord=False):
-    """Per saved interval, dist(zeta(t), singular set) at its samples (closed-form types; else
-    the margin |det K|). Returns ``(distance (N-1,), valid (N-1,))``.
+def distance_along(ctrl, params, tr, chord=False, within=1.0):
+    """Per saved interval, dist(zeta(t), singular set) at its samples. Returns
+    ``(distance (N-1,), valid (N-1,))``.
 
-    With ``chord``, minimised over the chord between the two samples instead: the velocity of
-    the output point can sweep past zero between samples, and the chord sees that, for the
-    falsifier's gradient. The chord cuts inside the curve by O(dt^2), so it may under-estimate;
-    failures are therefore always confirmed on samples, which over-estimate."""
-    rows = singular_rows(ctrl)
+    With ``chord`` (linear singular sets), minimised over the chord between the two samples
+    instead: the velocity of the output point can sweep past zero between samples, and the
+    chord sees that, for the falsifier's gradient. The chord cuts inside the curve by
+    O(dt^2), so it may under-estimate; failures are therefore always confirmed on samples,
+    which over-estimate. For (1,2)'s curved set the samples' distances are used, capped at
+    ``within`` (``ctrl.singular_distance``: a local search, ten times cheaper than the
+    global one and exact below the cap; None: uncapped)."""
     valid = tr.valid[1:] & tr.valid[:-1]
+    rows = singular_rows(ctrl)
     if rows is None:
-        return jnp.minimum(tr.margin[1:], tr.margin[:-1]), valid
+        d = jax.vmap(lambda z: ctrl.singular_distance(ctrl.psi(z, params), params, within))(tr.state)
+        return jnp.minimum(d[1:], d[:-1]), valid
     v = jax.vmap(lambda z: ctrl.psi(z, params).reshape(-1))(tr.state)[:, jnp.asarray(rows)]
     if not chord:
         return jnp.minimum(jnp.linalg.norm(v[1:], axis=1), jnp.linalg.norm(v[:-1], axis=1)), valid
@@ -159,7 +166,7 @@ def distance_along(ctrl, params, tr, chord=False):
 class Distances(NamedTuple):
     """Per-run results of :func:`min_distance`, each (N,)."""
 
-    distance: jnp.ndarray   # min_t dist(zeta(t), S) (min_t |det K| for (1,2)); 0 for failed runs
+    distance: jnp.ndarray   # min_t dist(zeta(t), S) over the samples (capped at 1 for (1,2)); 0: failed
     singular: jnp.ndarray   # flagged by the simulator (or started on the other branch)
 
 
@@ -168,7 +175,9 @@ def min_distance(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: 
     r"""Simulate from :math:`\zeta_{ref}(0) + \tilde\zeta_0` and return, per run,
     :math:`\min_t \mathrm{dist}(\zeta(t), S)` and whether the simulator flagged it singular.
 
-    For (1,2), whose singular set is curved, the measure is :math:`\min_t |\det K|` instead.
+    The distance is ``ctrl.singular_distance`` of the output jet (Remark 16); for (1,2), to its
+    curved singular set, capped at 1 (exact below: see :func:`distance_along`). The runs go
+    through :func:`window_distances`: fixed-size blocks, one compiled program whatever N is.
 
     Args:
       t_final: horizon [s]; initial_errors: (N, r m); dt: RK4 step [s]; save_every: stride.
@@ -177,21 +186,88 @@ def min_distance(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: 
       :class:`Distances`.
     """
     n_steps, save_every = check_runs(ctrl, params, t_final, dt, initial_errors, save_every)
+    per, fail, _ = window_distances(ctrl, params, initial_errors, dt=dt, n_steps=n_steps, save_every=save_every)
+    return Distances(jnp.asarray(np.where(fail, 0.0, per.min(axis=1))), jnp.asarray(fail))
+
+
+def window_distances(ctrl, params, initial_errors, *, dt: float, n_steps: int, save_every: int = 1,
+                     n_windows: int = 4, block: int = 512):
+    """Per run: the smallest distance to the singular set in each of ``n_windows`` equal windows
+    of the horizon (samples), whether it failed, and the time of its closest approach.
+
+    The batch is cut into blocks of ``block`` runs (the last one padded), so every batch size
+    shares one compiled program per (closed loop, dt, n_steps); each block is spread over the
+    host devices (:func:`wmrjax.batch_map`). The certification stages (empirical radius,
+    falsifier sampling and confirmation, slice map) all run through it.
+
+    Returns:
+      ``(minima (N, n_windows), failed (N,), t_closest (N,))`` as NumPy arrays (failed runs:
+      minima 0, t_closest the failure time).
+    """
+    st = _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, n_windows, block, None, 0.0)
+    return st.window_minima, st.failed, st.t_closest
+
+
+_N_BOUNDS = 4     # K2 bounds one compiled program checks (unused rows: an infinite bound)
+
+
+class _Stats(NamedTuple):
+    """What :func:`_rollout_stats` measures per run (NumPy arrays with a leading run axis)."""
+
+    window_minima: np.ndarray   # (N, W) smallest distance to the singular set per window (0: failed)
+    failed: np.ndarray          # (N,) flagged singular / non-finite, or started on the other branch
+    t_closest: np.ndarray       # (N,) time of the closest approach (of the failure, for failed runs)
+    norm0: np.ndarray           # (N,) ||initial error||
+    violation: np.ndarray       # (N, K) (53) violated at a valid sample, per bound
+    ratio: np.ndarray           # (N, K) max_t ||err(t)|| / (K2(t) ||err(0)||), per bound
+    min_margin: np.ndarray      # (N,) min_t |det K|
+
+
+def _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, n_windows, block, k2v, tol) -> _Stats:
+    """:func:`_rollout_stats` over fixed-size blocks (the last padded): one compiled program per
+    (closed loop, dt, n_steps, save_every, block), whatever the batch size and the bounds."""
+    errs = np.asarray(initial_errors, dtype=np.result_type(float))
+    n = len(errs)
+    block = min(block, max(16, 1 << (n - 1).bit_length()))
+    n_saved = n_steps // save_every + 1
+    bounds = np.full((_N_BOUNDS, n_saved), np.inf)
+    if k2v is not None:
+        bounds[: len(k2v)] = k2v
     branch = jnp.asarray(float(ctrl.reference_branch(params)))
-    return Distances(*_min_distance(ctrl, params, jnp.asarray(initial_errors), branch, dt, n_steps, save_every))
+    out = []
+    for i in range(0, n, block):
+        e = errs[i:i + block]
+        e = np.concatenate([e, np.repeat(e[:1], block - len(e), axis=0)])
+        out.append(_rollout_stats(ctrl, params, jnp.asarray(e), jnp.asarray(bounds), jnp.asarray(tol, e.dtype), branch,
+                                  dt, n_steps, save_every, n_windows))
+    return _Stats(*(np.concatenate([np.asarray(o[j]) for o in out])[:n] for j in range(len(_Stats._fields))))
 
 
-@functools.partial(jax.jit, static_argnums=(0, 4, 5, 6))
-def _min_distance(ctrl, params, errs, branch, dt, n_steps, save_every):
+@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9))
+def _rollout_stats(ctrl, params, errs, k2, tol, branch, dt, n_steps, save_every, n_windows):
+    """Every batch measurement of the certification stages from one rollout per initial error."""
+    edges = jnp.linspace(0.0, dt * n_steps, n_windows + 1)
+
     def one(e0):
         tr, z0 = run_from_error(ctrl, params, e0, branch, dt, n_steps, save_every)
         dist, valid = distance_along(ctrl, params, tr)
-        d = jnp.min(jnp.where(valid, dist, jnp.inf))
-        wrong = ctrl.branch_quantity(z0, params) * branch <= 0
-        fail = tr.diagnostics.failed | wrong
-        return jnp.where(fail, 0.0, d), fail
+        d = jnp.where(valid, dist, jnp.inf)
+        mid = 0.5 * (tr.t[1:] + tr.t[:-1])
+        inside = (mid[None] >= edges[:-1, None]) & (mid[None] <= edges[1:, None])
+        per = jnp.min(jnp.where(inside, d[None], jnp.inf), axis=1)
+        fail = tr.diagnostics.failed | (ctrl.branch_quantity(z0, params) * branch <= 0)
+        i = jnp.argmin(d)
+        # (53) against every bound on the saved grid
+        err = jax.vmap(lambda t, z: ctrl.error(t, z, params).reshape(-1))(tr.t, tr.state)
+        nrm = jnp.linalg.norm(err, axis=1)
+        n0 = jnp.linalg.norm(e0)
+        bound = k2 * n0                                                   # (K, T)
+        viol = jnp.any(tr.valid[None] & (nrm[None] > bound + tol), axis=1)
+        ratio = jnp.max(jnp.where(tr.valid[None], nrm[None] / jnp.maximum(bound, 1e-300), 0.0), axis=1)
+        return (jnp.where(fail, 0.0, per), fail, jnp.where(fail, tr.diagnostics.t_failure, tr.t[i]), n0, viol, ratio,
+                tr.diagnostics.min_margin)
 
-    return jax.vmap(one)(errs)
+    return batch_map(one, errs, chunk=64)
 
 
 class EmpiricalRadius(NamedTuple):
@@ -204,8 +280,8 @@ class EmpiricalRadius(NamedTuple):
 
 
 def empirical_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float, directions,
-                     r_max: float, dt: float, n_grid: int = 48, n_dips: int = 3, n_golden: int = 30,
-                     n_bisect: int = 20) -> EmpiricalRadius:
+                     r_max: float, dt: float, n_grid: int = 48, n_dips: int = 3, n_golden: int = 16,
+                     n_bisect: int = 14) -> EmpiricalRadius:
     r"""Empirical safe radius per direction by simulation: the smallest :math:`\rho \le` ``r_max``
     at which the run from :math:`\rho d` comes within ``eps`` of the singular set (or is flagged).
 
@@ -240,11 +316,8 @@ def empirical_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     def m_of(dd, rr):
         nonlocal runs
         runs += rr.size
-        e = dd * rr[:, None]
-        n = max(64, 1 << (len(e) - 1).bit_length())       # few distinct batch sizes: few compilations
-        e = np.concatenate([e, np.repeat(e[:1], n - len(e), axis=0)])
-        d, s = min_distance(ctrl, params, t_final=t_final, initial_errors=jnp.asarray(e), dt=dt)
-        return np.where(np.asarray(s), 0.0, np.asarray(d))[: len(rr)]
+        d, s = min_distance(ctrl, params, t_final=t_final, initial_errors=dd * rr[:, None], dt=dt)
+        return np.where(np.asarray(s), 0.0, np.asarray(d))
 
     m = m_of(np.repeat(dirs, n_grid, axis=0), np.tile(g, D)).reshape(D, n_grid)
     padded = np.concatenate([np.full((D, 1), np.inf), m, np.full((D, 1), np.inf)], axis=1)

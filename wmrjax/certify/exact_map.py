@@ -6,7 +6,12 @@ whose singular set in zeta coordinates is the linear subspace {velocity of the o
 = 0} ((2,0), (2,1), (1,1)), the distance to it is ||C zeta|| with C selecting those two rows;
 the largest safe ball is then the solution of a semi-infinite problem over t whose inner
 problem (fixed t) is a convex QCQP solved in closed form up to a scalar secular equation.
-(1,2)'s singular set is curved: use the falsifier (an upper bound) there."""
+
+(1,2)'s singular set {sigma(zeta) = 0} is curved, but for a fixed heading phi of the nearest
+point its distance condition is again a QCQP in the initial error (two rows, both linear in
+it), so the radius is a minimum over (t, phi) of closed-form problems: a branch and bound over
+boxes of (t, phi) returns the attained radius (an upper bound: a real initial error that
+comes within eps) and a proved lower bound, with their gap."""
 
 from __future__ import annotations
 
@@ -84,13 +89,30 @@ def min_norm_to_ball(M, a, eps, iters: int = 200):
 
 
 class ExactMapRadius(NamedTuple):
-    """Largest ball of initial errors (in a slice) keeping dist(zeta(t), singular set) >= eps on [0, T]."""
+    """Largest ball of initial errors (in a slice) keeping dist(zeta(t), singular set) >= eps on [0, T].
 
-    ts: jnp.ndarray               # (T,) grid [s]
-    rho: jnp.ndarray              # (T,) smallest initial error reaching the eps-neighbourhood at t
-    radius: jnp.ndarray           # min_t rho(t), refined by golden-section search
-    argmin: jnp.ndarray           # time of the worst case [s]
-    worst_error: jnp.ndarray      # (r m,) the initial error achieving it (full coordinates)
+    Attributes:
+      ts: (T,) time grid [s].
+      rho: (T,) smallest initial error reaching the eps-neighbourhood at each t.
+      radius: min_t rho(t): attained by ``worst_error`` (refined by golden section; for (1,2)
+        the best box centre of the branch and bound), so an upper bound on the safe radius.
+      argmin: time of the worst case [s].
+      worst_error: (r m,) the initial error achieving it (full coordinates).
+      lower_bound: for (1,2), a proved lower bound on the safe radius (every initial error
+        below it stays eps away over [0, T]); None for the linear singular sets, where
+        ``radius`` is exact up to the time grid and its refinement.
+      gap: ``(radius - lower_bound) / radius`` (None where ``lower_bound`` is).
+      boxes: (t, phi) boxes the branch and bound evaluated (0 for the linear sets).
+    """
+
+    ts: jnp.ndarray
+    rho: jnp.ndarray
+    radius: jnp.ndarray
+    argmin: jnp.ndarray
+    worst_error: jnp.ndarray
+    lower_bound: float | None = None
+    gap: float | None = None
+    boxes: int = 0
 
 
 def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float,
@@ -104,21 +126,22 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     initial error inside the ball keeps distance :math:`\ge\epsilon` over the horizon, and the
     returned ``worst_error`` (scaled by any factor > 1) does not: the radius is tight.
 
+    For (1,2)'s curved singular set see :func:`curved_exact_map_radius` (called from here).
+
     Args:
-      ctrl, params: the closed loop (types (2,0), (2,1), (1,1)).
+      ctrl, params: the closed loop.
       t_final: horizon T [s]; eps: Lemma 2's margin.
       basis: slice, see :func:`slice_basis`.
       n_t: grid size; refine: golden-section iterations around the grid minimum.
 
     Raises:
-      ValueError: bad eps/horizon, a reference within eps of the singular set, or type (1,2).
+      ValueError: bad eps/horizon or a reference within eps of the singular set.
     """
     check_dynamic(ctrl, params)
     check_lemma2_args(t_final=t_final, eps=eps)
     rows = singular_rows(ctrl)
     if rows is None:
-        raise ValueError(f"type {ctrl.robot.name} has a curved singular set: no exact-map radius; "
-                         "use falsify/falsified_radius")
+        return curved_exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=basis)
     P = slice_basis(ctrl, basis)
     C = jnp.eye(ctrl.relative_degree * ctrl.m)[jnp.asarray(rows)]
     r = ctrl.relative_degree
@@ -149,3 +172,177 @@ def _exact_map(ctrl, params, P, C, eps, ts, refine):
     rad, xs = rho_x(t_star)
     return rho, rad, t_star, P @ xs
 
+
+
+# --- (1,2): the curved singular set, by branch and bound over (t, phi) ----------------------
+
+def curved_exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float,
+                            basis="full", n_t: int = 400, phi_width: float = 0.05, rtol: float = 2e-3,
+                            max_rounds: int = 24, max_boxes: int = 1 << 18) -> ExactMapRadius:
+    r"""Exact-map radius of (1,2) with a proved lower bound (branch and bound over (t, phi)).
+
+    The singular set is :math:`\{\sigma_\theta(\zeta) = 0\}` with
+    :math:`\sigma_\phi(\zeta) = \cos\phi\,\dot h_1 + \sin\phi\,\dot h_2 + e\sin\delta\,\dot\theta`,
+    and :math:`\mathrm{dist}(\zeta, S) = \min_\phi D_\phi(\zeta)`,
+    :math:`D_\phi = \|(\phi - \theta,\ \sigma_\phi / \sqrt{1 + e^2\sin^2\delta})\|` (Remark 16).
+    For fixed :math:`(t, \phi)`, with :math:`\zeta(t) = \zeta_{ref}(t) + e^{At} P s`, both
+    entries of :math:`D_\phi` are affine in s, so the smallest :math:`\|s\|` with
+    :math:`D_\phi \le \epsilon` is :func:`min_norm_to_ball`. The radius is its minimum over
+    :math:`t \in [0, T]` and :math:`\phi \in \mathbb R`.
+
+    Branch and bound over boxes of :math:`(t, \phi)`: the centre of a box gives an attained
+    initial error (an upper bound). For its lower bound, every :math:`(t, \phi)` in the box and
+    every s with :math:`\|s\| \le \bar\rho` (the best upper bound) satisfy
+    :math:`D_\phi(\zeta(t)) \ge D_{\phi_c}(\zeta(t_c)) - \Delta_t - h_\phi\sqrt{1 + W^2/c}`:
+    :math:`D_\phi` is 1-Lipschitz in :math:`\zeta` (its two rows are orthonormal) and
+    :math:`\sqrt{1 + W^2/c}`-Lipschitz in :math:`\phi` (W bounds the output point's speed),
+    and :math:`\|\zeta(t) - \zeta(t_c)\| \le \Delta_t = h_t\|\dot\zeta_{ref}(t_c)\| + h_t^2 G/2
+    + \|e^{At_c}\|(e^{\|A\|h_t} - 1)\bar\rho`. So the problem at the centre with eps inflated
+    by those terms bounds the whole box from below. Boxes whose bound reaches
+    :math:`(1 - \mathrm{rtol})\bar\rho` are closed; the others are split in four. G bounds
+    :math:`\|\ddot\zeta_{ref}\|` on [0, T]: twice its maximum on a 4001-point grid (the one
+    assumption the bound rests on; it enters only through the :math:`h_t^2` term).
+
+    Args:
+      ctrl, params: a (1,2) closed loop (any level).
+      t_final: horizon [s]; eps: the margin; basis: slice (:func:`slice_basis`).
+      n_t: initial time boxes; phi_width: initial heading box width [rad].
+      rtol: relative gap at which the search stops; max_rounds, max_boxes: work limits
+        (reaching them leaves a wider, still valid, gap).
+
+    Returns:
+      :class:`ExactMapRadius` with ``lower_bound``, ``gap`` and ``boxes``.
+    """
+    check_dynamic(ctrl, params)
+    check_lemma2_args(t_final=t_final, eps=eps)
+    if singular_rows(ctrl) is not None:
+        raise ValueError(f"type {ctrl.robot.name} has a linear singular set: use exact_map_radius")
+    P = slice_basis(ctrl, basis)
+    dtype = jnp.result_type(float)
+    eps_a = jnp.asarray(eps, dtype)
+    tg = jnp.linspace(0.0, t_final, 4001)
+    m1 = jax.vmap(lambda t: ctrl.singular_distance(ctrl.reference_jet(t, params), params))(tg)
+    check_lemma2_args(t_final=t_final, eps=eps, m1=m1)
+    G = 2.0 * float(jnp.max(_zeta_ref_accel(ctrl, params, tg)))
+    # a first upper bound from box centres over a full turn of headings around theta_ref
+    t_c = (np.arange(n_t) + 0.5) * (t_final / n_t)
+    n_phi0 = 2 * int(np.ceil(np.pi / phi_width)) + 1      # odd: the reference's own heading is one of them
+    psi_c = np.linspace(-np.pi, np.pi, n_phi0)
+    theta_c = np.asarray(jax.vmap(lambda t: ctrl.reference_jet(t, params)[0, 2])(jnp.asarray(t_c)))
+    T, Ps = np.meshgrid(t_c, psi_c, indexing="ij")
+    tt, pp = jnp.asarray(T.ravel()), jnp.asarray((Ps + theta_c[:, None]).ravel())
+    ub0, x0 = _curved_centres(ctrl, params, P, eps_a, tt, pp)
+    ub0 = np.asarray(ub0)
+    best = int(np.argmin(ub0))
+    rho_up, t_best, x_best = float(ub0[best]), float(T.ravel()[best]), np.asarray(x0[best])
+    if not np.isfinite(rho_up):
+        raise ValueError("no initial error in this slice brings zeta within eps of the singular set over the horizon")
+    # boxes: per time box, headings within reach of theta(t) for errors up to rho_up
+    reach = np.asarray(_heading_reach(ctrl, params, P, jnp.asarray(t_c), t_final / (2 * n_t), rho_up, G))
+    half = float(np.max(reach)) + eps + phi_width
+    n_phi = int(np.ceil(2 * half / phi_width))
+    edges = np.linspace(-half, half, n_phi + 1)
+    t_lo = np.repeat(t_c - 0.5 * t_final / n_t, n_phi)
+    t_hi = np.repeat(t_c + 0.5 * t_final / n_t, n_phi)
+    p_lo = (theta_c[:, None] + edges[None, :-1]).ravel()
+    p_hi = (theta_c[:, None] + edges[None, 1:]).ravel()
+    closed_min = np.inf          # smallest lower bound of the closed boxes
+    evaluated = 0
+    for _ in range(max_rounds):
+        lb, ub, xs = _curved_boxes(ctrl, params, P, eps_a, jnp.asarray(rho_up), jnp.asarray(G), *map(jnp.asarray, (
+            t_lo, t_hi, p_lo, p_hi)))
+        lb, ub = np.asarray(lb), np.asarray(ub)
+        evaluated += len(lb)
+        k = int(np.argmin(ub))
+        if ub[k] < rho_up:
+            rho_up, t_best, x_best = float(ub[k]), float(0.5 * (t_lo[k] + t_hi[k])), np.asarray(xs[k])
+        done = lb >= (1.0 - rtol) * rho_up
+        if done.any():
+            closed_min = min(closed_min, float(lb[done].min()))
+        open_ = ~done
+        if not open_.any() or 4 * open_.sum() > max_boxes:
+            break
+        t_lo, t_hi, p_lo, p_hi = (x[open_] for x in (t_lo, t_hi, p_lo, p_hi))
+        tm, pm = 0.5 * (t_lo + t_hi), 0.5 * (p_lo + p_hi)
+        t_lo, t_hi = np.concatenate([t_lo, t_lo, tm, tm]), np.concatenate([tm, tm, t_hi, t_hi])
+        p_lo, p_hi = np.concatenate([p_lo, pm, p_lo, pm]), np.concatenate([pm, p_hi, pm, p_hi])
+    lower = min(closed_min, float(lb[open_].min()) if open_.any() else np.inf, rho_up)
+    worst = np.asarray(P) @ x_best
+    return ExactMapRadius(jnp.asarray(t_c), jnp.asarray(ub0.reshape(T.shape).min(axis=1)), jnp.asarray(rho_up),
+                          jnp.asarray(t_best), jnp.asarray(worst), lower, (rho_up - lower) / rho_up, evaluated)
+
+
+def _zeta_ref_accel(ctrl, params, ts):
+    """||d^2 zeta_ref / dt^2|| on a grid (the reference's output jet differentiated twice)."""
+    r = ctrl.relative_degree
+    zeta = lambda t: ctrl.reference_jet(t, params)[:r].reshape(-1)
+    acc = jax.vmap(lambda t: jax.jacfwd(jax.jacfwd(zeta))(t))(ts)
+    return jnp.linalg.norm(acc, axis=1)
+
+
+def _curved_rows(ctrl, params, t, phi):
+    """(zeta_ref(t), zeta_ref'(t), the two unit rows (theta, n_phi) of D_phi), flat (r m,) vectors."""
+    r, m = ctrl.relative_degree, ctrl.m
+    g = params.geometry
+    jet = ctrl.reference_jet(t, params)
+    es = g.e * jnp.sin(g.delta)
+    n = r * m
+    e_th = jnp.zeros(n).at[2].set(1.0)
+    n_phi = jnp.zeros(n).at[m].set(jnp.cos(phi)).at[m + 1].set(jnp.sin(phi)).at[m + 2].set(es) / jnp.sqrt(1.0 + es**2)
+    return jet[:r].reshape(-1), jet[1:r + 1].reshape(-1), e_th, n_phi
+
+
+def _centre_problem(ctrl, params, P, eps, t, phi):
+    """(M, a, zeta_ref, zeta_ref', expm(A t)) of the QCQP at (t, phi)."""
+    A = ctrl.error_matrix(params.gains)
+    zr, zd, e_th, n_phi = _curved_rows(ctrl, params, t, phi)
+    E = jax.scipy.linalg.expm(A * t)
+    Phi = E @ P
+    M = jnp.stack([e_th @ Phi, n_phi @ Phi])
+    a = jnp.stack([e_th @ zr - phi, n_phi @ zr])
+    return M, a, zr, zd, E
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _curved_centres(ctrl, params, P, eps, ts, phis):
+    """Attained radius (and the slice coordinates of its error) at each (t, phi)."""
+    def one(t, phi):
+        M, a, _, _, _ = _centre_problem(ctrl, params, P, eps, t, phi)
+        return min_norm_to_ball(M, a, eps)
+
+    return jax.vmap(one)(ts, phis)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 4))
+def _heading_reach(ctrl, params, P, ts, ht, rho_up, G):
+    """Per time box: how far theta(t) can move from theta_ref(t_c) for errors up to rho_up."""
+    A = ctrl.error_matrix(params.gains)
+    nA = jnp.linalg.norm(A, 2)
+
+    def one(t):
+        M, _, _, zd, E = _centre_problem(ctrl, params, P, 0.0, t, 0.0)
+        dt_ = ht * jnp.linalg.norm(zd) + 0.5 * ht**2 * G + jnp.linalg.norm(E, 2) * jnp.expm1(nA * ht) * rho_up
+        return jnp.linalg.norm(M[0]) * rho_up + dt_
+
+    return jax.vmap(one)(ts)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _curved_boxes(ctrl, params, P, eps, rho_up, G, t_lo, t_hi, p_lo, p_hi):
+    """Per box: (lower bound, attained radius at the centre, its slice coordinates)."""
+    A = ctrl.error_matrix(params.gains)
+    nA = jnp.linalg.norm(A, 2)
+    g = params.geometry
+    c2 = 1.0 + (g.e * jnp.sin(g.delta)) ** 2
+    m = ctrl.m
+
+    def one(t0, t1, p0, p1):
+        tc, ht, pc, hp = 0.5 * (t0 + t1), 0.5 * (t1 - t0), 0.5 * (p0 + p1), 0.5 * (p1 - p0)
+        M, a, zr, zd, E = _centre_problem(ctrl, params, P, eps, tc, pc)
+        ub, x = min_norm_to_ball(M, a, eps)
+        move = ht * jnp.linalg.norm(zd) + 0.5 * ht**2 * G + jnp.linalg.norm(E, 2) * jnp.expm1(nA * ht) * rho_up
+        speed = jnp.linalg.norm(zr[m:m + 2]) + jnp.linalg.norm((E @ P)[m:m + 2], 2) * rho_up + move
+        lb, _ = min_norm_to_ball(M, a, eps + move + hp * jnp.sqrt(1.0 + speed**2 / c2))
+        return jnp.minimum(lb, rho_up), ub, x
+
+    return jax.vmap(one)(t_lo, t_hi, p_lo, p_hi)

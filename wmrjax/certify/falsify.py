@@ -1,10 +1,26 @@
-r"""Falsification: gradient search through the simulated closed loop for initial errors that
-come within eps of the singular set; an upper bound on every certified radius."""
+r"""Falsification: search through the simulated closed loop for initial errors that come within
+eps of the singular set; an upper bound on every certified radius.
+
+:func:`falsified_radius` needs nothing but the closed loop and the distance to the singular
+set: no exact map, no known worst case. Per radius it combines three stages, each covering
+what the others miss, and every failure it reports is confirmed on a ten times finer
+simulation:
+
+1. *instantaneous*: minimise the distance at t = 0 over the sphere directly (no rollout):
+   a failure visible at the initial state, such as a velocity error cancelling the
+   reference's velocity, is found exactly;
+2. *global sampling*: many random directions on the sphere, simulated once (forward only),
+   ranked by their distance within each time window of the horizon;
+3. *gradient refinement* (:func:`falsify`): Adam on the sphere through the simulated loop,
+   from the best of both stages per window and from the previous radius's iterates.
+
+The radius is then searched by bisection, and each confirmed failure is pulled in along
+its own ray (the smallest failing radius on a grid of the ray, refined), which moves the
+upper end of the bracket further than halving would."""
 
 from __future__ import annotations
 
 import functools
-import math
 from typing import NamedTuple
 
 import jax
@@ -12,10 +28,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax._validate import check_int, check_positive
-from wmrjax.certify.empirical import check_vectors, distance_along, min_distance, n_steps_for, run_from_error
+from wmrjax.certify.empirical import check_vectors, distance_along, n_steps_for, run_from_error, window_distances
 from wmrjax.certify.exact_map import slice_basis
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
+from wmrjax.simulate import batch_map
 
 
 
@@ -23,16 +40,17 @@ class Falsification(NamedTuple):
     """Result of :func:`falsify` at one radius."""
 
     initial_errors: jnp.ndarray   # (S, r m) final iterate of every start
-    distance: jnp.ndarray         # (S,) min_t dist(zeta(t), S) (margin for (1,2)) of each
+    distance: jnp.ndarray         # (S,) min_t dist(zeta(t), S) of each (0: the run failed)
     best: jnp.ndarray             # index of the worst case found
 
 
 def falsify(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, radius, starts, dt: float,
-            basis="full", steps: int = 60, learning_rate: float = 0.1, n_windows: int = 8) -> Falsification:
+            basis="full", steps: int = 60, learning_rate: float = 0.1, n_windows: int = 8,
+            windows=None) -> Falsification:
     r"""Gradient search for the worst initial error on the sphere :math:`\|\tilde\zeta_0\| = \rho`.
 
-    Minimises :math:`\min_t \mathrm{dist}(\zeta(t), S)` over the simulated closed loop (reverse-mode
-    through the RK4 scan) with optax Adam on an unconstrained :math:`u`, mapped to the sphere by
+    Minimises :math:`\min_t \mathrm{dist}(\zeta(t), S)` over the simulated closed loop (forward-mode
+    sensitivities through the RK4 scan, one per slice coordinate) with optax Adam on an unconstrained :math:`u`, mapped to the sphere by
     :math:`\tilde\zeta_0 = \rho P u / \|u\|` (projection), from every start at once (vmapped).
     Random sampling misses thin unsafe cones; following the gradient does not need to hit them.
 
@@ -49,6 +67,7 @@ def falsify(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
       basis: slice, see :func:`slice_basis`.
       steps, learning_rate: Adam iterations and initial step size (on the unit sphere).
       n_windows: number of time windows the starts are spread over.
+      windows: (S, 2) explicit time window [s] of each start instead (overrides ``n_windows``).
     """
     check_dynamic(ctrl, params)
     n_steps = n_steps_for(t_final, dt)
@@ -60,12 +79,20 @@ def falsify(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     check_positive("learning_rate", learning_rate)
     branch = jnp.asarray(float(ctrl.reference_branch(params)))
     u0 = jnp.asarray(starts)
-    edges = jnp.linspace(0.0, dt * n_steps, n_windows + 1)
-    win = jnp.arange(u0.shape[0]) % n_windows
-    windows = jnp.stack([edges[win] - 0.5 * dt, edges[win + 1] + 0.5 * dt], axis=1)
-    us, vals = _falsify(ctrl, params, jnp.asarray(radius, dtype=u0.dtype), u0 / jnp.linalg.norm(u0, axis=1, keepdims=True),
-                        windows, P, branch, dt, n_steps, steps, learning_rate)
-    errs = radius * (us / jnp.linalg.norm(us, axis=1, keepdims=True)) @ P.T
+    if windows is None:
+        edges = jnp.linspace(0.0, dt * n_steps, n_windows + 1)
+        win = jnp.arange(u0.shape[0]) % n_windows
+        windows = jnp.stack([edges[win] - 0.5 * dt, edges[win + 1] + 0.5 * dt], axis=1)
+    else:
+        windows = jnp.asarray(check_vectors("windows", windows, 2, "time windows [s] of the starts"))
+        if windows.shape[0] != u0.shape[0] or not bool(jnp.all(windows[:, 0] <= windows[:, 1])):
+            raise ValueError(f"windows must be ({u0.shape[0]}, 2) intervals [t0, t1] with t0 <= t1 [s], one per start, "
+                             f"got shape {windows.shape}")
+    Q = _square(P)       # every slice through one compiled program: directions padded with zeros
+    us, vals = _falsify(ctrl, params, jnp.asarray(radius, dtype=u0.dtype),
+                        _pad(u0 / jnp.linalg.norm(u0, axis=1, keepdims=True), Q), windows, Q, branch, dt, n_steps, steps,
+                        learning_rate)
+    errs = radius * (us / jnp.linalg.norm(us, axis=1, keepdims=True)) @ Q.T
     return Falsification(errs, vals, jnp.argmin(vals))
 
 
@@ -83,7 +110,14 @@ def _falsify(ctrl, params, radius, us, windows, P, branch, dt, n_steps, steps, l
         d = jnp.min(jnp.where(valid & inside, dist, jnp.inf))
         return jnp.where(tr.diagnostics.failed, 0.0, d)
 
-    vg = jax.vmap(jax.value_and_grad(objective))
+    def value_and_grad(u, window):
+        # forward mode over the (at most r m) directions: one jvp per direction sharing the primal
+        # run; it compiles about twice as fast as reverse mode through the rollout
+        eye = jnp.eye(u.shape[0], dtype=u.dtype)
+        vals, tangents = jax.vmap(lambda v: jax.jvp(lambda x: objective(x, window), (u,), (v,)))(eye)
+        return vals[0], tangents
+
+    vg = lambda us, windows: batch_map(value_and_grad, us, windows, chunk=64)
 
     def step(c, _):
         us, state, best_u, best_v = c
@@ -112,9 +146,13 @@ class FalsifiedRadius(NamedTuple):
       radius: smallest radius at which a confirmed failure was found (None: none).
       initial_error: (r m,) that failure's initial error (None: none).
       distance: its confirmed min_t distance to the singular set (None: none).
-      rollouts: simulations used (a gradient evaluation counts one).
+      rollouts: simulations used: sampled, gradient (one per start and iteration), confirming
+        and ray runs (a fine confirming run counts one).
       bracket: (lo, hi): the last bisection bracket (None: nothing failed).
       searched_up_to: the largest radius searched.
+      rollouts_by_stage: ``{"sampling", "gradient", "confirmation"}`` -> simulations, and
+        ``"instantaneous"`` -> evaluations of the distance at t = 0 (no simulation).
+      t_failure: time [s] at which the confirmed failure comes closest (None: none).
     """
 
     radius: float | None
@@ -123,74 +161,212 @@ class FalsifiedRadius(NamedTuple):
     rollouts: int
     bracket: tuple | None
     searched_up_to: float
+    rollouts_by_stage: dict | None = None
+    t_failure: float | None = None
 
 
-def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float, r_hi: float,
-                     key, dt: float, basis="full", n_starts: int = 16, steps: int = 60, n_bisect: int = 8,
-                     learning_rate: float = 0.1, r_lo: float = 0.0, n_windows: int = 4) -> FalsifiedRadius:
-    """The smallest radius at which the falsifier finds a failure (dist < eps or singular), by bisection.
+def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float, key, dt: float,
+                     basis="full", r_lo: float = 0.0, r_hi: float | None = None, n_starts: int = 16, steps: int = 30,
+                     n_samples: int = 512, n_bisect: int = 16, rtol: float = 2e-3, learning_rate: float = 0.1,
+                     n_windows: int = 4) -> FalsifiedRadius:
+    """The smallest radius at which the falsifier finds a confirmed failure (dist < eps or singular).
 
-    Starts at ``r_hi`` (doubled up to 4 times until a failure is found), then bisects between
-    ``r_lo`` (typically a certified radius) and the failing radius, warm-starting the directions.
-    Any failure found is confirmed by a fresh simulation. An upper bound on the true safe radius:
-    every certified radius must be below it.
+    Tries ``r_hi`` (default: twice ``r_lo``, or 1 when ``r_lo`` is 0), doubled up to 4 times
+    until a failure is found, then bisects between ``r_lo`` (typically a certified radius)
+    and the smallest failing radius until the bracket is narrower than ``rtol`` times it.
+    Every attempt runs the three stages of the module docstring; each failure is confirmed
+    by a simulation ten times finer and pulled in along its ray. The result is an upper
+    bound on the true safe radius: every certified radius must lie below it.
 
     Args:
-      t_final: horizon [s]; eps: the margin; r_hi: first radius tried; key: PRNG key of the starts;
+      t_final: horizon [s]; eps: the margin; key: PRNG key of the random starts and samples.
       dt: RK4 step of the search [s] (failures are confirmed at dt / 10).
+      basis: slice, see :func:`slice_basis`.
+      r_lo, r_hi: lower end of the search (a radius known safe) and the first radius tried.
+      n_starts: gradient starts per attempt; steps, learning_rate: their Adam iterations.
+      n_samples: random directions simulated per attempt (global stage).
+      n_bisect: largest number of bisection steps; rtol: relative width that stops them.
+      n_windows: time windows the samples are ranked in and the gradient starts spread over.
 
     Returns:
-      :class:`FalsifiedRadius` (radius None if nothing failed up to 16 r_hi).
+      :class:`FalsifiedRadius` (radius None if nothing failed up to 16 times the first radius).
     """
     check_dynamic(ctrl, params)
     check_lemma2_args(t_final=t_final, eps=eps)
-    n_steps_for(t_final, dt)
+    n_steps = n_steps_for(t_final, dt)
+    if not (isinstance(r_lo, (int, float, np.floating, np.integer)) and np.isfinite(r_lo) and r_lo >= 0):
+        raise ValueError(f"r_lo must be a finite radius >= 0, got {r_lo!r}")
+    if r_hi is None:
+        r_hi = 2.0 * float(r_lo) if r_lo > 0 else 1.0
     check_positive("r_hi", r_hi)
-    if not (np.isfinite(r_lo) and 0 <= r_lo < r_hi):
+    if not r_lo < r_hi:
         raise ValueError(f"r_lo must satisfy 0 <= r_lo < r_hi = {r_hi}, got {r_lo!r}")
     n_starts = check_int("n_starts", n_starts, 1)
-    check_int("steps", steps, 1)
-    check_int("n_bisect", n_bisect, 0)
-    check_int("n_windows", n_windows, 1)
+    steps = check_int("steps", steps, 1)
+    n_samples = check_int("n_samples", n_samples, 1)
+    n_bisect = check_int("n_bisect", n_bisect, 0)
+    n_windows = check_int("n_windows", n_windows, 1)
     check_positive("learning_rate", learning_rate)
+    check_positive("rtol", rtol)
     P = slice_basis(ctrl, basis)
-    if P.shape[1] == 2:     # a plane: evenly spaced angles, randomly rotated
-        ang = jnp.linspace(0.0, 2.0 * math.pi, n_starts, endpoint=False) + jax.random.uniform(key, (), maxval=math.pi)
-        starts = jnp.stack([jnp.cos(ang), jnp.sin(ang)], axis=1)
-    else:
-        starts = jax.random.normal(key, (n_starts, P.shape[1]))
-    rollouts = 0
+    k = P.shape[1]
+    counts = {"instantaneous": 0, "sampling": 0, "gradient": 0, "confirmation": 0}
+    fine = 0.1 * dt
+    n_fine = n_steps_for(t_final, fine)
+    keys = iter(jax.random.split(key, 64))
+    n_inst = 64
 
-    def attempt(rad, st):
-        nonlocal rollouts
-        f = falsify(ctrl, params, t_final=t_final, radius=rad, starts=st, dt=dt, basis=basis, steps=steps,
-                    learning_rate=learning_rate, n_windows=n_windows)
-        rollouts += n_starts * (steps + 1)
-        e = f.initial_errors[int(f.best)]
-        # confirm on samples (which over-estimate the distance) of a ten times finer run: the
-        # velocity can sweep past zero within one coarse step
-        d, s = min_distance(ctrl, params, t_final=t_final, initial_errors=e[None], dt=0.1 * dt)
-        ok = bool(d[0] < eps) or bool(s[0])
-        dirs = jnp.einsum("nk,sn->sk", P, f.initial_errors)
-        return ok, e, float(d[0]), dirs
+    def confirm(errs):
+        """Fine runs (blocks of 32) of initial errors: (failed, distance, time of the closest approach)."""
+        per, s, t = window_distances(ctrl, params, errs, dt=fine, n_steps=n_fine, block=32)
+        counts["confirmation"] += len(per)
+        d = per.min(axis=1)
+        return (d < eps) | s, np.where(s, 0.0, d), t
 
-    hi, found = float(r_hi), None
+    def along_rays(errs, lo, hi):
+        """Per failing error (its radius ``hi`` fails), the smallest confirmed failing radius on its
+        ray: three rounds of an 8-point grid between ``lo`` and the current failing radius."""
+        u = errs / np.linalg.norm(errs, axis=1, keepdims=True)
+        lo = np.full(len(u), float(lo))
+        hi = np.full(len(u), float(hi))
+        frac = np.arange(1, 9) / 8.0
+        rows = np.arange(len(u))
+        for _ in range(3):
+            rs = lo[:, None] + (hi - lo)[:, None] * frac[None]            # (n, 8)
+            fail, _, _ = confirm((rs[..., None] * u[:, None, :]).reshape(-1, u.shape[1]))
+            fail = fail.reshape(rs.shape)
+            j = np.argmax(fail, axis=1)
+            any_fail = fail.any(axis=1)
+            prev = np.where(j > 0, rs[rows, np.maximum(j - 1, 0)], lo)
+            hi = np.where(any_fail, rs[rows, j], hi)
+            lo = np.where(any_fail, prev, rs[:, -2])
+        return hi
+
+    Pn = np.asarray(P)
+    Q = _square(P)
+
+    def on_sphere(dirs, rad):
+        """(N, k) slice directions -> (N, r m) initial errors of norm ``rad``."""
+        dirs = np.asarray(dirs)
+        return rad * (dirs / np.linalg.norm(dirs, axis=1, keepdims=True)) @ Pn.T
+
+    def settle(cands, rad):
+        """Confirm the (at most 8) best candidates at ``rad`` (a coarse failure may be spurious); pull
+        the two best confirmed failures in along their rays. (radius, error, distance, t) or None."""
+        cands = cands[:8]
+        fail, _, _ = confirm(cands)
+        if not fail.any():
+            return None
+        failing = cands[np.where(fail)[0][:2]]
+        r_ray = along_rays(failing, lo_now[0], rad)
+        j = int(np.argmin(r_ray))
+        e = failing[j] / np.linalg.norm(failing[j]) * r_ray[j]
+        _, d, t = confirm(e[None])
+        return float(r_ray[j]), e, float(d[0]), float(t[0])
+
+    def attempt(rad, warm):
+        """The three stages at one radius: ((radius <= rad, error, distance) or None, warm directions).
+        The gradient stage runs only when the cheap stages find no confirmed failure."""
+        # 1. instantaneous distance at t = 0, over the sphere (no rollout)
+        u_inst, d_inst = _instantaneous(ctrl, params, jnp.asarray(rad), Q,
+                                        _pad(jax.random.normal(next(keys), (n_inst, k)), Q), 200, learning_rate)
+        counts["instantaneous"] += n_inst * 201
+        best_inst = np.argsort(np.asarray(d_inst))[:2]
+        u_inst, d_inst = np.asarray(u_inst)[best_inst, :k], np.asarray(d_inst)[best_inst]
+        # 2. global sampling, ranked per time window
+        dirs = np.asarray(jax.random.normal(next(keys), (n_samples, k)))
+        per_win, _, _ = window_distances(ctrl, params, on_sphere(dirs, rad), dt=dt, n_steps=n_steps, n_windows=n_windows)
+        counts["sampling"] += n_samples
+        best_samples = np.argsort(per_win.min(axis=1))[:2]
+        cheap = np.concatenate([u_inst, dirs[best_samples]])
+        order = np.argsort(np.concatenate([d_inst, per_win.min(axis=1)[best_samples]]))
+        found = settle(on_sphere(cheap[order], rad), rad)
+        if found is not None:
+            return found, warm
+        # 3. gradient refinement: the best samples of every window, the instantaneous minimisers
+        # (on the first interval) and the previous attempt's iterates (on the whole horizon)
+        # a fixed number of starts (one compiled program): slots without a warm start get samples
+        n_slots = n_starts // 4
+        n_warm = 0 if warm is None else min(len(warm), n_slots)
+        n_samp = max(n_starts - len(u_inst) - n_slots, n_windows) + n_slots - n_warm
+        ranked = np.argsort(per_win, axis=0)
+        wins = np.arange(n_samp) % n_windows
+        starts = [dirs[ranked[i // n_windows, w]] for i, w in enumerate(wins)] + list(u_inst)
+        edges = np.linspace(0.0, dt * n_steps, n_windows + 1)
+        windows = [(edges[w] - 0.5 * dt, edges[w + 1] + 0.5 * dt) for w in wins] + [(-0.5 * dt, 0.5 * dt)] * len(u_inst)
+        if n_warm:
+            starts += list(warm[:n_warm])
+            windows += [(-0.5 * dt, dt * n_steps + 0.5 * dt)] * n_warm
+        f = falsify(ctrl, params, t_final=t_final, radius=rad, starts=np.stack(starts), dt=dt, basis=basis,
+                    steps=steps, learning_rate=learning_rate, windows=np.asarray(windows))
+        counts["gradient"] += len(starts) * (steps + 1)
+        errs = np.asarray(f.initial_errors)
+        return settle(errs[np.argsort(np.asarray(f.distance))], rad), errs @ Pn
+
+    lo_now = [float(r_lo)]
+    rad, found, warm = float(r_hi), None, None
     for _ in range(5):
-        ok, e, d, dirs = attempt(hi, starts)
-        starts = dirs
-        if ok:
-            found = (hi, e, d)
-            searched = hi
+        found, warm = attempt(rad, warm)
+        if found is not None:
+            searched = rad
             break
-        r_lo, hi = hi, 2.0 * hi
+        lo_now[0], rad = rad, 2.0 * rad
     if found is None:
-        return FalsifiedRadius(None, None, None, rollouts, None, hi / 2.0)
-    lo = r_lo
+        return FalsifiedRadius(None, None, None, sum(v for n, v in counts.items() if n != "instantaneous"), None,
+                               rad / 2.0, counts, None)
+    step = 0.02
     for _ in range(n_bisect):
-        mid = 0.5 * (lo + found[0])
-        ok, e, d, dirs = attempt(mid, starts)
-        if ok:
-            found, starts = (mid, e, d), dirs
+        lo, hi = lo_now[0], found[0]
+        if hi - lo <= rtol * hi:
+            break
+        # a step below the smallest failure that doubles while failures keep being found, and
+        # halving once one is not: the bracket shrinks fast whether or not its lower end (often
+        # a loose certified radius) is near the answer
+        mid = max(0.5 * (lo + hi), (1.0 - step) * hi)
+        new, warm = attempt(mid, warm)
+        if new is not None:
+            found, step = new, min(2.0 * step, 0.5)
         else:
-            lo = mid
-    return FalsifiedRadius(found[0], np.asarray(found[1]), found[2], rollouts, (lo, found[0]), searched)
+            lo_now[0] = mid
+    return FalsifiedRadius(float(found[0]), np.asarray(found[1]), found[2],
+                           sum(v for n, v in counts.items() if n != "instantaneous"), (lo_now[0], float(found[0])),
+                           searched, counts, found[3])
+
+
+def _square(P):
+    """The (n, k) slice basis padded with zero columns to (n, n): one compiled program per type."""
+    return jnp.concatenate([P, jnp.zeros((P.shape[0], P.shape[0] - P.shape[1]), P.dtype)], axis=1)
+
+
+def _pad(u, Q):
+    """(S, k) slice directions padded with zeros to (S, n) (they stay zero: Q's extra columns are)."""
+    return jnp.concatenate([u, jnp.zeros((u.shape[0], Q.shape[1] - u.shape[1]), u.dtype)], axis=1)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 5, 6))
+def _instantaneous(ctrl, params, radius, P, us, steps, learning_rate):
+    """Adam on the sphere for the distance of zeta_ref(0) + radius P u/|u| to the singular set (no rollout)."""
+    import optax
+
+    r = ctrl.relative_degree
+    jet0 = ctrl.reference_jet(jnp.zeros((), us.dtype), params)[:r]
+
+    def objective(u):
+        e0 = radius * (P @ (u / jnp.linalg.norm(u)))
+        return ctrl.singular_distance(jet0 + e0.reshape(jet0.shape), params, 1.0)
+
+    opt = optax.adam(optax.exponential_decay(learning_rate, steps, 0.01))
+    vg = jax.vmap(jax.value_and_grad(objective))
+
+    def step(c, _):
+        us, state = c
+        _, g = vg(us)
+        g = jnp.where(jnp.isfinite(g), g, 0.0)
+        with jax.numpy_dtype_promotion("standard"):
+            upd, state = opt.update(g, state, us)
+        us = optax.apply_updates(us, upd)
+        return (us / jnp.linalg.norm(us, axis=1, keepdims=True), state), None
+
+    us = us / jnp.linalg.norm(us, axis=1, keepdims=True)
+    (us, _), _ = jax.lax.scan(step, (us, opt.init(us)), None, length=steps)
+    return us, jax.vmap(objective)(us)

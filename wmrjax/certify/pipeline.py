@@ -19,8 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax._validate import check_int
-from wmrjax.certify.empirical import EmpiricalRadius, empirical_radius, n_steps_for, sample_sphere, verify
-from wmrjax.certify.exact_map import ExactMapRadius, exact_map_radius, singular_rows, slice_basis
+from wmrjax.certify.empirical import EmpiricalRadius, empirical_radius, n_steps_for, sample_sphere, verify_all
+from wmrjax.certify.exact_map import ExactMapRadius, exact_map_radius, slice_basis
 from wmrjax.certify.falsify import FalsifiedRadius, falsified_radius
 from wmrjax.certify.lemma2 import Lemma2Report, check_dynamic, k2_exact, k2_lyapunov, k2_paper, lemma2
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
@@ -42,7 +42,7 @@ class CertificationReport(NamedTuple):
       eps, t_final: the margin and horizon [s].
       lemma2: :class:`~wmrjax.certify.lemma2.Lemma2Report`.
       zeta0_norm: ||initial error|| of a given run (condition 52 is checked against it), or None.
-      exact_full, exact_position: exact-map radii (None for a curved singular set, (1,2)).
+      exact_full, exact_position: exact-map radii (for (1,2) with a proved lower bound).
       empirical: K2 name -> :class:`EmpiricalCheck` (empty when no samples were drawn).
       empirical_sampling: how the samples were drawn (count, radius range).
       empirical_position: empirical safe radius per ray of the position slice.
@@ -80,15 +80,12 @@ class CertificationReport(NamedTuple):
             ref = certs["paper"] if "paper" in certs else certs["exact_norm"]
             block.update(zeta0_norm=self.zeta0_norm, min_F=float(ref.radius), argmin_F=float(ref.argmin),
                          condition_52=bool(self.zeta0_norm <= float(ref.radius)))
-        if self.exact_full is not None:
-            for key, em in (("radius_exact_map", self.exact_full),
-                            ("radius_exact_map_position_slice", self.exact_position)):
-                block[key] = float(em.radius)
-                block[key.replace("radius", "worst")] = {"t": float(em.argmin),
-                                                         "initial_error": np.asarray(em.worst_error)}
-        else:
-            block["radius_exact_map"] = block["radius_exact_map_position_slice"] = None
-            block["exact_map_note"] = "singular set is curved for (1,2): no exact-map radius (see falsified radii)"
+        for key, em in (("radius_exact_map", self.exact_full), ("radius_exact_map_position_slice", self.exact_position)):
+            block[key] = float(em.radius)
+            block[key.replace("radius", "worst")] = {"t": float(em.argmin), "initial_error": np.asarray(em.worst_error)}
+            if em.lower_bound is not None:      # the curved singular set of (1,2): attained radius and proved bound
+                block[key + "_lower_bound"] = em.lower_bound
+                block[key.replace("radius_exact_map", "radius_exact_map_gap")] = em.gap
         block["empirical"] = {**self.empirical_sampling, **{k: v._asdict() for k, v in self.empirical.items()}}
         er = self.empirical_position
         block["empirical_radius_position_slice"] = er.radius if np.isfinite(er.radius) else None
@@ -99,14 +96,28 @@ class CertificationReport(NamedTuple):
         for name, f in (("falsified_full", self.falsified_full), ("falsified_position_slice", self.falsified_position)):
             block[name] = ({"radius": None, "skipped": "n_starts = 0"} if f is None else
                            {"radius": f.radius, "initial_error": f.initial_error, "distance": f.distance,
-                            "rollouts": f.rollouts, "bracket": None if f.bracket is None else list(f.bracket)})
+                            "t": f.t_failure, "rollouts": f.rollouts, "rollouts_by_stage": f.rollouts_by_stage,
+                            "bracket": None if f.bracket is None else list(f.bracket)})
         block["certified_below_falsified"] = self.certified_below_falsified
+        # tightness of every certificate: certified radius / the falsifier's (1: tight)
+        ff = None if self.falsified_full is None else self.falsified_full.radius
+        fp = None if self.falsified_position is None else self.falsified_position.radius
+        tight = {}
+        for name, c in certs.items():
+            tight[name] = None if ff is None else float(c.radius) / ff
+        tight["exact_map"] = None if ff is None else float(self.exact_full.radius) / ff
+        tight["exact_map_position_slice"] = None if fp is None else float(self.exact_position.radius) / fp
+        if self.exact_full.lower_bound is not None:
+            tight["exact_map_lower_bound"] = None if ff is None else self.exact_full.lower_bound / ff
+        er = self.empirical_position.radius
+        tight["empirical_position_slice"] = None if fp is None or not np.isfinite(er) else er / fp
+        block["tightness"] = tight
         return block
 
 
 def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float = 1e-2,
-            dt: float = 0.01, n_empirical: int = 4096, n_directions: int = 256, n_starts: int = 16,
-            falsifier_dt: float = 0.02, seed: int = 0, zeta0_norm: float | None = None,
+            dt: float = 0.01, n_empirical: int = 4096, n_directions: int = 128, n_starts: int = 16,
+            falsifier_dt: float | None = None, seed: int = 0, zeta0_norm: float | None = None,
             log: Callable[[str], None] = lambda msg: None) -> CertificationReport:
     """Every certificate of one closed loop, checked by simulation and falsification.
 
@@ -114,11 +125,13 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
       ctrl, params: the closed loop (a dynamic linearizing law).
       t_final: horizon [s]; eps: Lemma 2's margin.
       dt: RK4 step of the empirical checks [s].
-      n_empirical: sampled initial errors per K2 (uniform direction, uniform radius up to
-        twice the largest certified radius); 0 skips the check.
+      n_empirical: sampled initial errors, every K2 checked on the same runs (uniform
+        direction, uniform radius up to twice the largest certified radius); 0 skips the check.
       n_directions: rays of the position-slice empirical radius.
-      n_starts: falsifier starts (0 skips the falsifier).
-      falsifier_dt: RK4 step of the falsifier [s] (failures are confirmed ten times finer).
+      n_starts: falsifier gradient starts per radius (0 skips the falsifier).
+      falsifier_dt: RK4 step of the falsifier's search [s] (default: ``dt``; failures are
+        confirmed ten times finer). It starts from the largest Lemma 2 radius, never from
+        the exact map's.
       seed: PRNG seed of the samples and starts.
       zeta0_norm: ||initial error|| of a run of interest (condition 52 is reported for it).
       log: progress messages (e.g. ``print``).
@@ -129,6 +142,7 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     check_dynamic(ctrl, params)
     t0 = time.time()
     n_steps = n_steps_for(t_final, dt)
+    falsifier_dt = dt if falsifier_dt is None else falsifier_dt
     n_steps_for(t_final, falsifier_dt, "falsifier_dt")
     check_int("n_empirical", n_empirical, 0)
     check_int("n_directions", n_directions, 1)
@@ -151,12 +165,12 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     certified = max(radii.values())
     log("  Lemma 2 radii " + ", ".join(f"{n} {r:.4f}" for n, r in radii.items()) + f"  ({time.time() - t0:.0f} s)")
 
-    exact = {}
-    if singular_rows(ctrl) is not None:
-        for b in ("full", "position"):
-            exact[b] = exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=b, n_t=4 * n_steps + 1)
-        log(f"  exact-map radius full {float(exact['full'].radius):.4f}, position slice "
-            f"{float(exact['position'].radius):.4f}  ({time.time() - t0:.0f} s)")
+    exact = {b: exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=b, n_t=4 * n_steps + 1)
+             for b in ("full", "position")}
+    gaps = "".join(f" (proved lower bound {exact[b].lower_bound:.4f})" if exact[b].lower_bound is not None else ""
+                   for b in ("full",))
+    log(f"  exact-map radius full {float(exact['full'].radius):.4f}{gaps}, position slice "
+        f"{float(exact['position'].radius):.4f}  ({time.time() - t0:.0f} s)")
     r_top = max([certified] + [float(e.radius) for e in exact.values()])
 
     # -- empirical: (53) and regularity inside every ball
@@ -168,8 +182,9 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
         dirs = sample_sphere(kd, n_empirical, A.shape[0])
         errs = dirs * (2.0 * r_top * jax.random.uniform(kr, (n_empirical,)))[:, None]
         n0 = np.asarray(jnp.linalg.norm(errs, axis=1))
-        for name, k2 in k2s.items():
-            res = verify(ctrl, params, t_final=t_final, initial_errors=errs, k2=k2, dt=dt, save_every=10)
+        # every step saved: the same compiled rollout as the distance measurements below
+        checks = verify_all(ctrl, params, t_final=t_final, initial_errors=errs, k2s=k2s, dt=dt, save_every=1)
+        for name, res in checks.items():
             inside = n0 <= radii[name]
             sing, viol = np.asarray(res.singular), np.asarray(res.violation_53)
             emp[name] = EmpiricalCheck(int(inside.sum()), int((viol & inside).sum()), int((sing & inside).sum()),
@@ -178,16 +193,15 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
                 msg = f"LEMMA 2 VIOLATED inside the {name} certificate: {emp[name]}"
                 log(msg)
                 warnings.warn(msg, RuntimeWarning, stacklevel=2)
-        log(f"  empirical: {n_empirical} runs per K2, violations inside "
+        log(f"  empirical: {n_empirical} runs, every K2 checked on them, violations inside "
             f"{sum(e.violations_53_inside + e.singular_inside for e in emp.values())}  ({time.time() - t0:.0f} s)")
 
     # -- empirical safe radius per direction of the position slice
     P = slice_basis(ctrl, "position")
     ang = np.linspace(0.0, 2.0 * math.pi, n_directions, endpoint=False)
     ring = np.stack([np.cos(ang), np.sin(ang)], 1)
-    if "position" in exact:  # make sure the worst direction of the exact map is among the rays
-        wd = np.asarray(P.T @ exact["position"].worst_error)
-        ring = np.concatenate([ring, (wd / np.linalg.norm(wd))[None]])
+    wd = np.asarray(P.T @ exact["position"].worst_error)    # the exact map's worst direction is among the rays
+    ring = np.concatenate([ring, (wd / np.linalg.norm(wd))[None]])
     er = empirical_radius(ctrl, params, t_final=t_final, eps=eps, directions=ring @ np.asarray(P).T,
                           r_max=2.0 * r_top, dt=dt)
     log(f"  empirical safe radius (position slice, {len(ring)} rays): {er.radius:.4f}  ({time.time() - t0:.0f} s)")
@@ -195,15 +209,16 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     # -- gradient falsifier, full and position slice
     fs = {}
     for b, kf in (("full", kf1), ("position", kf2)) if n_starts else ():
-        r_hi = 1.05 * float(exact[b].radius) if b in exact else 2.0 * certified
-        fs[b] = falsified_radius(ctrl, params, t_final=t_final, eps=eps, r_hi=r_hi, key=kf, dt=falsifier_dt,
-                                 basis=b, n_starts=n_starts, r_lo=certified)
-        log(f"  falsifier ({b}): smallest failing radius {fs[b].radius}  ({time.time() - t0:.0f} s)")
+        fs[b] = falsified_radius(ctrl, params, t_final=t_final, eps=eps, key=kf, dt=falsifier_dt, basis=b,
+                                 n_starts=n_starts, r_lo=certified)
+        log(f"  falsifier ({b}): smallest failing radius {fs[b].radius} after {fs[b].rollouts} rollouts  "
+            f"({time.time() - t0:.0f} s)")
     bounds = [(r, "full") for r in radii.values()]
-    bounds += [(float(e.radius), b) for b, e in exact.items()]
+    # the exact map's proved radius: the radius itself for the linear singular sets, its lower bound for (1,2)
+    bounds += [(float(e.radius) if e.lower_bound is None else e.lower_bound, b) for b, e in exact.items()]
     below = all(b not in fs or fs[b].radius is None or r <= fs[b].radius + 1e-9 for r, b in bounds)
     if not below:
         log("A CERTIFIED RADIUS EXCEEDS A FALSIFIED ONE: a certificate is wrong")
         warnings.warn("a certified radius exceeds a falsified one: a certificate is wrong", RuntimeWarning, stacklevel=2)
-    return CertificationReport(eps, t_final, cert, zeta0_norm, exact.get("full"), exact.get("position"), emp,
+    return CertificationReport(eps, t_final, cert, zeta0_norm, exact["full"], exact["position"], emp,
                                sampling, er, fs.get("full"), fs.get("position"), below, time.time() - t0)
