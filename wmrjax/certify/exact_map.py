@@ -292,7 +292,7 @@ def _curved_rows(ctrl, params, t, phi):
     return jet[:r].reshape(-1), jet[1:r + 1].reshape(-1), e_th, n_phi
 
 
-def _centre_problem(ctrl, params, P, eps, t, phi):
+def _centre_problem(ctrl, params, P, t, phi):
     """(M, a, zeta_ref, zeta_ref', expm(A t)) of the QCQP at (t, phi)."""
     A = ctrl.error_matrix(params.gains)
     zr, zd, e_th, n_phi = _curved_rows(ctrl, params, t, phi)
@@ -307,7 +307,7 @@ def _centre_problem(ctrl, params, P, eps, t, phi):
 def _curved_centres(ctrl, params, P, eps, ts, phis):
     """Attained radius (and the slice coordinates of its error) at each (t, phi)."""
     def one(t, phi):
-        M, a, _, _, _ = _centre_problem(ctrl, params, P, eps, t, phi)
+        M, a, _, _, _ = _centre_problem(ctrl, params, P, t, phi)
         return min_norm_to_ball(M, a, eps)
 
     return jax.vmap(one)(ts, phis)
@@ -320,7 +320,7 @@ def _heading_reach(ctrl, params, P, ts, ht, rho_up, G):
     nA = jnp.linalg.norm(A, 2)
 
     def one(t):
-        M, _, _, zd, E = _centre_problem(ctrl, params, P, 0.0, t, 0.0)
+        M, _, _, zd, E = _centre_problem(ctrl, params, P, t, 0.0)
         dt_ = ht * jnp.linalg.norm(zd) + 0.5 * ht**2 * G + jnp.linalg.norm(E, 2) * jnp.expm1(nA * ht) * rho_up
         return jnp.linalg.norm(M[0]) * rho_up + dt_
 
@@ -338,7 +338,7 @@ def _curved_boxes(ctrl, params, P, eps, rho_up, G, t_lo, t_hi, p_lo, p_hi):
 
     def one(t0, t1, p0, p1):
         tc, ht, pc, hp = 0.5 * (t0 + t1), 0.5 * (t1 - t0), 0.5 * (p0 + p1), 0.5 * (p1 - p0)
-        M, a, zr, zd, E = _centre_problem(ctrl, params, P, eps, tc, pc)
+        M, a, zr, zd, E = _centre_problem(ctrl, params, P, tc, pc)
         ub, x = min_norm_to_ball(M, a, eps)
         move = ht * jnp.linalg.norm(zd) + 0.5 * ht**2 * G + jnp.linalg.norm(E, 2) * jnp.expm1(nA * ht) * rho_up
         speed = jnp.linalg.norm(zr[m:m + 2]) + jnp.linalg.norm((E @ P)[m:m + 2], 2) * rho_up + move
