@@ -76,3 +76,28 @@ def test_named_reference_errors():
     assert R.named("paper_62").name == "paper_62"
     with pytest.raises(ValueError, match="unknown reference"):
         R.named("spiral")
+
+
+def test_taylor_mode_jet_equals_nested_jvp_and_falls_back_for_loops():
+    """references.taylor (Taylor mode) against nested jvp on a path heading along x at t = 0
+    (heading derivatives through atan2 at a zero argument), and on a path written with a
+    lax loop, which has no Taylor rule: the nested fallback gives the same numbers."""
+    import jax
+
+    def lane(t, params):
+        s = t / 8.0
+        return jnp.stack([2.0 * t, 3.5 * (10 * s**3 - 15 * s**4 + 6 * s**5)])
+
+    def looped(t, params):
+        x = jax.lax.fori_loop(0, 3, lambda i, x: x + jnp.sin(t * (i + 1.0)), 0.0)
+        return jnp.stack([t + 0.1 * x, 0.3 * x])
+
+    for path in (lane, looped):
+        ref = R.from_function(path)
+        for t in (0.0, 1.3):
+            t = jnp.asarray(t)
+            np.testing.assert_allclose(R.taylor(ref.posture, t, 4), R.taylor_nested(ref.posture, t, 4),
+                                       rtol=1e-12, atol=1e-12)
+    # heading theta = atan2(-x', y') at t = 0: -pi/2, theta' = 0, theta'' = x' y''' / |p'|^2
+    np.testing.assert_allclose(R.taylor(R.from_function(lane).posture, jnp.asarray(0.0), 2)[:, 2],
+                               [-np.pi / 2, 0.0, 2.0 * (3.5 * 60 / 8**3) / 4.0], rtol=1e-14)

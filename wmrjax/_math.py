@@ -6,8 +6,8 @@ of a fused multiply-add), which made the batched closed loop trig-bound. The fdl
 kernels below are plain polynomials, so XLA vectorises them; they agree with
 ``jnp.sin``/``jnp.cos`` within 2.3e-16 absolute (2 ulp where |value| > 1/2) for
 |x| <= 1e4 (see ``tests/test_math.py``). Their
-derivatives are defined exactly (d sin = cos, d cos = -sin) through ``custom_jvp``, so
-autodiff sees the mathematical functions.
+derivatives are defined exactly (d sin = cos, d cos = -sin, and the Taylor recurrence
+of ``jax.experimental.jet``) on a primitive, so autodiff sees the mathematical functions.
 """
 
 from __future__ import annotations
@@ -15,7 +15,10 @@ from __future__ import annotations
 import math
 
 import jax
+import jax.extend
 import jax.numpy as jnp
+from jax.experimental import jet as _jet
+from jax.interpreters import ad, batching, mlir
 
 # fdlibm __kernel_sin / __kernel_cos minimax coefficients on [-pi/4, pi/4].
 _SIN = (-1.66666666666666324348e-01, 8.33333333332248946124e-03,
@@ -38,7 +41,57 @@ def _horner(z, coeffs):
     return acc
 
 
-@jax.custom_jvp
+def _sincos_kernel(x):
+    """The fdlibm polynomials with one Cody-Waite range reduction (traced into the caller's program)."""
+    k = jnp.round(x * _TWO_OVER_PI)
+    r = ((x - k * _PIO2_1) - k * _PIO2_2) - k * _PIO2_3
+    z = r * r
+    s = r + r * z * _horner(z, _SIN)
+    c = 1.0 - 0.5 * z + z * z * _horner(z, _COS)
+    q = jnp.mod(k, 4.0)
+    sin_x = jnp.where(q == 0, s, jnp.where(q == 1, c, jnp.where(q == 2, -s, -c)))
+    cos_x = jnp.where(q == 0, c, jnp.where(q == 1, -s, jnp.where(q == 2, -c, s)))
+    return sin_x, cos_x
+
+
+# ``sincos`` is a primitive (not a custom_jvp function) so that every transformation the
+# library uses sees the mathematical functions: jvp (d sin = cos dx), batching, and the
+# Taylor-mode rule of ``jax.experimental.jet`` that the linearization engine runs on.
+sincos_p = jax.extend.core.Primitive("wmrjax_sincos")
+sincos_p.multiple_results = True
+sincos_p.def_impl(lambda x: tuple(jax.jit(_sincos_kernel)(x)))
+sincos_p.def_abstract_eval(lambda x: (jax.core.ShapedArray(x.shape, x.dtype),) * 2)
+mlir.register_lowering(sincos_p, mlir.lower_fun(_sincos_kernel, multiple_results=True))
+
+
+def _sincos_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    s, c = sincos_p.bind(x)
+    return (s, c), (c * dx, -s * dx)
+
+
+def _sincos_batch(args, dims):
+    return sincos_p.bind(*args), (dims[0], dims[0])
+
+
+def _sincos_taylor(primals_in, series_in):
+    # jet's internal convention: normalised Taylor coefficients u_k (x(t) = sum u_k t^k);
+    # the recurrence of jax.experimental.jet's own sin/cos rule, sharing one reduction.
+    (x,), (series,) = primals_in, series_in
+    u = [x] + list(series)
+    s0, c0 = sincos_p.bind(x)
+    s, c = [s0] + [None] * len(series), [c0] + [None] * len(series)
+    for k in range(1, len(u)):
+        s[k] = sum(j * u[j] * c[k - j] for j in range(1, k + 1)) / k
+        c[k] = -sum(j * u[j] * s[k - j] for j in range(1, k + 1)) / k
+    return (s[0], c[0]), (s[1:], c[1:])
+
+
+ad.primitive_jvps[sincos_p] = _sincos_jvp
+batching.primitive_batchers[sincos_p] = _sincos_batch
+_jet.jet_rules[sincos_p] = _sincos_taylor
+
+
 def sincos(x):
     """Return ``(sin x, cos x)``, elementwise, with one shared range reduction.
 
@@ -51,22 +104,51 @@ def sincos(x):
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
-    k = jnp.round(x * _TWO_OVER_PI)
-    r = ((x - k * _PIO2_1) - k * _PIO2_2) - k * _PIO2_3
-    z = r * r
-    s = r + r * z * _horner(z, _SIN)
-    c = 1.0 - 0.5 * z + z * z * _horner(z, _COS)
-    q = jnp.mod(k, 4.0)
-    sin_x = jnp.where(q == 0, s, jnp.where(q == 1, c, jnp.where(q == 2, -s, -c)))
-    cos_x = jnp.where(q == 0, c, jnp.where(q == 1, -s, jnp.where(q == 2, -c, s)))
-    return sin_x, cos_x
+    s, c = sincos_p.bind(x)
+    return s, c
 
 
-@sincos.defjvp
-def _sincos_jvp(primals, tangents):
-    (x,), (dx,) = primals, tangents
-    s, c = sincos(x)
-    return (s, c), (c * dx, -s * dx)
+# ``atan2`` with a Taylor rule that holds where its second argument vanishes (the rule of
+# ``jax.experimental.jet`` expands x / y and returns NaN there, e.g. for a path heading
+# along x): theta' = (y x' - x y') / (x^2 + y^2), expanded term by term.
+atan2_p = jax.extend.core.Primitive("wmrjax_atan2")
+atan2_p.def_impl(lambda x, y: jax.jit(jax.lax.atan2)(x, y))
+atan2_p.def_abstract_eval(lambda x, y: jax.core.ShapedArray(x.shape, x.dtype))
+mlir.register_lowering(atan2_p, mlir.lower_fun(jax.lax.atan2, multiple_results=False))
+ad.defjvp(atan2_p,
+          lambda dx, x, y: dx * y / (x * x + y * y),
+          lambda dy, x, y: -dy * x / (x * x + y * y))
+batching.defbroadcasting(atan2_p)
+
+
+def _product(a, b, k):
+    return sum(a[j] * b[k - j] for j in range(k + 1))
+
+
+def _atan2_taylor(primals_in, series_in):
+    # normalised Taylor coefficients (jet's internal convention)
+    (x, y), (xs, ys) = primals_in, series_in
+    u, w = [x] + list(xs), [y] + list(ys)
+    order = len(xs)
+    du = [(k + 1) * u[k + 1] for k in range(order)]          # coefficients of x'(t)
+    dw = [(k + 1) * w[k + 1] for k in range(order)]
+    num = [_product(w, du, k) - _product(u, dw, k) for k in range(order)]
+    den = [_product(u, u, k) + _product(w, w, k) for k in range(order)]
+    q = []
+    for k in range(order):
+        q.append((num[k] - sum(den[j] * q[k - j] for j in range(1, k + 1))) / den[0])
+    return atan2_p.bind(x, y), [q[k - 1] / k for k in range(1, order + 1)]
+
+
+_jet.jet_rules[atan2_p] = _atan2_taylor
+
+
+def atan2(x, y):
+    """``arctan2(x, y)`` [rad], elementwise; exact derivatives of every order (jvp and Taylor mode)."""
+    x, y = jnp.asarray(x), jnp.asarray(y)
+    dtype = jnp.result_type(x, y, float)
+    x, y = jnp.broadcast_arrays(x.astype(dtype), y.astype(dtype))
+    return atan2_p.bind(x, y)
 
 
 def wrap_angle(a):

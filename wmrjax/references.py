@@ -20,6 +20,7 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+from jax.experimental import jet
 import numpy as np
 
 from wmrjax import _math
@@ -27,7 +28,7 @@ from wmrjax._validate import concrete
 
 
 def taylor(fn: Callable, t, order: int):
-    """Derivatives ``fn(t), fn'(t), ..., fn^{(order)}(t)`` by nested forward mode.
+    """Derivatives ``fn(t), fn'(t), ..., fn^{(order)}(t)`` by Taylor mode (``jax.experimental.jet``).
 
     Args:
       fn: scalar-time function returning an array of any shape S.
@@ -37,6 +38,21 @@ def taylor(fn: Callable, t, order: int):
     Returns:
       Array of shape ``(order + 1, *S)``.
     """
+    if order == 0:
+        return fn(t)[None]
+    t = jnp.asarray(t, dtype=jnp.result_type(t, float))
+    one, zero = jnp.ones_like(t), jnp.zeros_like(t)
+    try:
+        y, terms = jet.jet(fn, (t,), ([one] + [zero] * (order - 1),))
+    except (KeyError, NotImplementedError):
+        # a user's path with a primitive that has no Taylor rule (e.g. a loop): nested forward
+        # mode gives the same derivatives with a larger program
+        return taylor_nested(fn, t, order)
+    return jnp.stack([y] + list(terms))
+
+
+def taylor_nested(fn: Callable, t, order: int):
+    """:func:`taylor` by nested ``jax.jvp`` (any differentiable ``fn``; program grows like 2^order)."""
     derivs = [fn]
     for _ in range(order):
         prev = derivs[-1]
@@ -73,7 +89,7 @@ class Reference:
         r"""Posture :math:`\xi_{ref}(t) = (x, y, \theta)` [m, m, rad], shape (3,)."""
         p = self.position(t)
         v = self.velocity(t)
-        theta = jnp.arctan2(-v[0], v[1]) + self.heading_offset
+        theta = _math.atan2(-v[0], v[1]) + self.heading_offset
         return jnp.concatenate([p, theta[None]])
 
     def speed(self, t):
@@ -220,7 +236,9 @@ SPLINE_DEGREE = 5     # quintic: C^4, enough for the torque-level dynamic laws (
 
 def _span(knots, s, n_coef: int, k: int):
     """Index ``l`` with ``knots[l] <= s < knots[l + 1]``, clamped to ``[k, n_coef - 1]`` (end pieces extend)."""
-    l = jnp.searchsorted(knots, s, side="right").astype(jnp.result_type(int)) - 1
+    # the span index is piecewise constant in s: no derivative flows through it (and Taylor
+    # mode then evaluates the search once, with no rule needed for its loop)
+    l = jnp.searchsorted(knots, jax.lax.stop_gradient(s), side="right").astype(jnp.result_type(int)) - 1
     return jnp.clip(l, k, n_coef - 1)
 
 
