@@ -190,9 +190,10 @@ def batch_value_and_grad(raw, scen, ctrl, spec, g, rcfg, w_arr):
     """Mean loss and gradient over the scenarios that stayed valid; NaN scenarios are excluded.
 
     Per-scenario gradients (vmapped) so a scenario whose value or gradient is not finite is
-    dropped from both, never averaged in.
+    dropped from both, never averaged in. :func:`wmrjax.value_and_grad` picks the mode: forward
+    sensitivities for a few gain parameters (the default families), reverse mode for many.
     """
-    vg = jax.vmap(jax.value_and_grad(_per_scenario, has_aux=True), in_axes=(None, 0, None, None, None, None, None))
+    vg = jax.vmap(w.value_and_grad(_per_scenario, has_aux=True), in_axes=(None, 0, None, None, None, None, None))
     (L, m), G = vg(raw, scen, ctrl, spec, g, rcfg, w_arr)
     ok = m.valid & jnp.isfinite(L) & jnp.all(jnp.isfinite(G.reshape(G.shape[0], -1)), axis=1)
     n = jnp.maximum(jnp.sum(ok), 1).astype(L.dtype)

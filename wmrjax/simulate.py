@@ -33,6 +33,10 @@ import numpy as np
 from wmrjax._validate import check_finite, check_int, concrete, memory_bytes
 
 
+# from this many steps on, reverse-mode differentiation checkpoints the saving chunks too
+TWO_LEVEL_CHECKPOINT_STEPS = 2000
+
+
 class Diagnostics(NamedTuple):
     """Per-run summary (scalars; batched under vmap).
 
@@ -285,6 +289,10 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         (state, rec), _ = jax.lax.scan(inner, (c, rec0), ids)
         return state, rec
 
+    if n_steps >= TWO_LEVEL_CHECKPOINT_STEPS and n_saves > 1 and save_every > 1:
+        # long horizons: reverse mode keeps one carry per saving chunk and recomputes a chunk's
+        # steps when it reaches it (one more forward pass; memory / save_every)
+        outer = jax.checkpoint(outer, prevent_cse=False)
     carry, recs = jax.lax.scan(outer, carry, (idx, within))
     rest = jnp.arange(n_saves * save_every, n_steps)
     if rest.shape[0]:  # steps beyond the last saving chunk run without saving

@@ -1,0 +1,120 @@
+"""Gradient modes: forward sensitivities and reverse mode agree, and match central differences,
+for every type at both levels, through the tuner's sampled-data loop and the hybrid switch."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import wmrjax as w
+from wmrjax import autodiff
+from wmrjax import references as R
+from wmrjax.controllers import hybrid as H
+
+GEOM = {"(3,0)": w.Geometry(), "(2,0)": w.Geometry(e=0.3, delta=0.5), "(2,1)": w.Geometry(e=0.3, L=0.8),
+        "(1,1)": w.Geometry(L=1.0, e=0.3), "(1,2)": w.Geometry(L=0.8, e=0.3, delta=0.4)}
+DYNAMIC = ("(2,0)", "(2,1)", "(1,1)", "(1,2)")
+CASES = ([("dynamic", k, lv) for k in DYNAMIC for lv in ("velocity", "torque")]
+         + [("static", k, lv) for k in GEOM for lv in ("velocity", "torque")])
+
+
+def _start(family, ctrl, params):
+    if family == "dynamic":
+        z = ctrl.reference_state(0.0, params)
+        return z.at[0].add(0.05).at[1].add(-0.04)
+    X = jnp.zeros(ctrl.robot.n_state).at[0].set(0.3).at[1].set(-0.2)
+    if ctrl.robot.delta_s:
+        X = X.at[3:].set(0.6)
+    return ctrl.initial_state_from_physical(X, jnp.full(ctrl.robot.n_input, 0.4), params)
+
+
+def _check(loss, theta, direction, h=1e-4):
+    """Forward vs reverse mode to 1e-10; central differences of the value (second order in h).
+    ``loss`` returns ``(value, ok)``: ``ok`` says the run went as intended (alive, switched)."""
+    forward = jax.jit(w.value_and_grad(loss, has_aux=True, mode="forward"))
+    ((v1, ok), g1), ((v2, _), g2) = forward(theta), jax.jit(w.value_and_grad(loss, has_aux=True, mode="reverse"))(theta)
+    assert bool(ok)
+    assert float(jnp.max(jnp.abs(g1))) > 1e-6 * abs(float(v1))       # the parameters matter
+    np.testing.assert_allclose(v1, v2, rtol=1e-13)
+    np.testing.assert_allclose(g1, g2, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(g2))))
+    value = lambda th: forward(th)[0][0]        # the same compiled program (values are mode-independent)
+    fd = (value(theta + h * direction) - value(theta - h * direction)) / (2 * h)
+    np.testing.assert_allclose(float(jnp.vdot(g1, direction)), float(fd), rtol=2e-6)
+    return g1
+
+
+@pytest.mark.parametrize("family,kind,level", CASES)
+def test_forward_and_reverse_modes_agree_and_match_differences(family, kind, level):
+    """The closed loop's gains (Hurwitz coefficients, m x r) through a short RK4 rollout."""
+    make = w.dynamic_linearization if family == "dynamic" else w.static_linearization
+    ctrl = make(kind, level)
+    offset = 0.3 if kind in ("(2,1)", "(1,2)") else 0.0           # a steering angle away from the singular one
+    params = ctrl.params(R.circle(radius=2.0, omega=0.4, heading_offset=offset), poles=1.5, geometry=GEOM[kind])
+    z0 = _start(family, ctrl, params)
+
+    def loss(coeffs):
+        p = params._replace(gains=w.Gains(coeffs))
+        tr = w.simulate(ctrl, z0, p, dt=0.02, n_steps=12, save_every=3, error_tol=None)
+        return jnp.sum(tr.state**2) + jnp.sum(tr.control**2), ~tr.diagnostics.failed
+
+    c = params.gains.coeffs
+    direction = jnp.asarray(np.random.default_rng(1).normal(size=c.shape))
+    _check(loss, c, direction)
+
+
+def test_through_the_tuners_sampled_data_loop():
+    """Zero-order hold, saturation, sensor noise and mismatch (tuning.scenarios.rollout)."""
+    from tuning import TuneConfig, build
+    from tuning.losses import LossWeights, scenario_loss
+    from tuning.scenarios import rollout
+
+    cfg = TuneConfig(n_train=3, n_heldout=2, steps=2, t_final=1.0, control_dt=0.1, substeps=2)
+    ctrl, spec, g, rcfg, train, _ = build(cfg)
+    wts = LossWeights(*cfg.weights)
+    # saturate the first scenario's wheels so the clip is active on part of the run
+    train = train._replace(input_limit=train.input_limit.at[0].set(1.2))
+
+    def loss(raw):
+        ms = jax.vmap(lambda sc: rollout(ctrl, spec.gains(raw), g, sc, rcfg))(train)
+        return jnp.sum(jax.vmap(lambda m: scenario_loss(m, wts))(ms)), jnp.all(ms.valid)
+
+    raw = spec.init(1.3) + jnp.array([0.1, -0.2])
+    _check(loss, raw, jnp.array([0.6, -0.8]), h=1e-5)
+
+
+def test_through_the_hybrid_switch():
+    """Section 6.2: tracking, the switch into the time-varying stabilizer, its gain lam."""
+    hy = H.hybrid_parking()
+    params = hy.params(R.paper_66())
+    z0 = hy.initial_state(jnp.array([[10 * math.sqrt(2) / 6, 2.54], [-0.5, -0.5]]), params)
+
+    def loss(theta):
+        p = params._replace(lam=params.lam * theta[0], tracking=params.tracking._replace(
+            gains=w.Gains.from_poles(jnp.ones((2, 2)) * theta[1])))
+        tr = w.simulate(hy, z0, p, dt=0.05, n_steps=120, save_every=120)
+        return jnp.sum(tr.final_state.tracking[:3] ** 2), tr.final_state.mode == 1     # it did switch
+
+    theta = jnp.array([1.1, 0.9])
+    _check(loss, theta, jnp.array([0.6, 0.8]), h=1e-6)
+
+
+def test_auto_mode_choice_and_aux():
+    assert autodiff.choose_mode(autodiff.FORWARD_MAX_PARAMETERS) == "forward"
+    assert autodiff.choose_mode(autodiff.FORWARD_MAX_PARAMETERS + 1) == "reverse"
+    assert autodiff.choose_mode(3, "reverse") == "reverse"
+    f = lambda a, b: (jnp.sum(jnp.sin(a) * b["x"]), a.shape[0])
+    a, b = jnp.arange(3.0), {"x": jnp.array([1.0, 2.0, 3.0])}
+    for mode in ("forward", "reverse", "auto"):
+        (v, aux), (ga, gb) = w.value_and_grad(f, argnums=(0, 1), has_aux=True, mode=mode)(a, b)
+        np.testing.assert_allclose(ga, jnp.cos(a) * b["x"], rtol=1e-15)
+        np.testing.assert_allclose(gb["x"], jnp.sin(a), rtol=1e-15)
+        assert aux == 3
+
+
+def test_bad_mode_is_refused_before_tracing():
+    with pytest.raises(ValueError, match="mode must be one of"):
+        w.value_and_grad(lambda x: x, mode="adjoint")
+    with pytest.raises(ValueError, match="scalar value"):
+        w.value_and_grad(lambda x: x * 2.0, mode="forward")(jnp.ones(2))
