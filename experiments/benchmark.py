@@ -15,6 +15,7 @@ Writes ``summary.json`` (trajectory-steps per second and ratios). No figure: num
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
 import platform
@@ -96,7 +97,69 @@ def c_ceiling(batches, source: Path):
         return res, " ".join(cmd)
 
 
-def run(out: Path, batches, reps: int, grad_batch: int, scipy_trajs: int, source: Path) -> dict:
+N_GROUPS = 16        # gradient_many: 16 groups x 4 pole parameters = 64 parameters
+
+
+def section_6_1_loss(ctrl, params, n_steps, groups=None):
+    """Mean squared position error of the section 6.1 loop over a batch of initial states.
+
+    ``loss(poles, z0s)``: ``poles`` (2, 2) shared by the batch, or (groups, 2, 2) with
+    trajectory i using group i mod groups. Gains broadcast per example: each trajectory
+    accumulates its own sensitivity and the batch is reduced once at the end.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    import wmrjax as w
+
+    def loss(poles, z0s):
+        b = z0s.shape[0]
+        pb = jnp.broadcast_to(poles, (b,) + poles.shape) if groups is None else poles[jnp.arange(b) % groups]
+
+        def one(z, pl):
+            p = params._replace(gains=w.Gains.from_poles(pl))
+            tr = w.simulate(ctrl, z, p, dt=DT, n_steps=n_steps, save_every=10)
+            e = jax.vmap(lambda t, s: ctrl.error(t, s, p)[0])(tr.t, tr.state)  # position errors
+            return jnp.mean(jnp.sum(e**2, axis=-1))
+
+        return jnp.mean(w.batch_map(one, z0s, pb, chunk=512))
+
+    return loss
+
+
+def gradient_ratios(loss, theta, z0s, reps, modes):
+    """Forward time and value-and-gradient time of ``loss(theta, z0s)`` per mode, same run.
+
+    ``ratio_grad_over_forward`` (and ``mode``) are for the first of ``modes``; the others are
+    reported as ``ratio_<mode>_mode``. Gradients of the modes are compared with each other.
+    """
+    import jax
+    import numpy as np
+
+    import wmrjax as w
+
+    fwd = jax.jit(loss)
+    fwd(theta, z0s).block_until_ready()
+    tf, val = _best_time(lambda: fwd(theta, z0s).block_until_ready(), reps)
+    out = {"n_parameters": int(np.size(theta)), "forward_s": tf, "loss_value": float(val)}
+    grads = {}
+    for i, mode in enumerate(modes):
+        vg = jax.jit(w.value_and_grad(loss, mode=mode))
+        jax.block_until_ready(vg(theta, z0s))
+        tg, (v, g) = _best_time(lambda: jax.block_until_ready(vg(theta, z0s)), reps)
+        grads[mode] = np.asarray(g)
+        if i == 0:
+            out.update(mode=w.autodiff.choose_mode(int(np.size(theta)), mode), value_and_grad_s=tg,
+                       ratio_grad_over_forward=tg / tf, grad_finite=bool(np.all(np.isfinite(grads[mode]))))
+        else:
+            out[f"value_and_grad_{mode}_mode_s"] = tg
+            out[f"ratio_{mode}_mode"] = tg / tf
+    if "forward" in grads and "reverse" in grads:
+        out["max_abs_diff_reverse_vs_forward_mode"] = float(np.max(np.abs(grads["forward"] - grads["reverse"])))
+    return out
+
+
+def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_trajs: int, source: Path) -> dict:
     common.enable_x64()
     import jax
     import jax.numpy as jnp
@@ -161,32 +224,28 @@ def run(out: Path, batches, reps: int, grad_batch: int, scipy_trajs: int, source
     ts = time.perf_counter() - t0
     scipy_rate = scipy_trajs * N_STEPS / ts
 
-    # Gradient: reverse mode of a batch tracking loss w.r.t. the gains vs the forward pass.
+    # Gradients: value and gradient of a batch tracking loss relative to its forward pass
     zg = jnp.asarray(initial_states_numpy(grad_batch))
-
-    def loss(poles, z0s):
-        # gains broadcast per example: each trajectory accumulates its own cotangent and
-        # the batch is reduced once at the end (instead of a cross-batch sum every step)
-        pb = jnp.broadcast_to(poles, (z0s.shape[0],) + poles.shape)
-
-        def one(z, pl):
-            p = params._replace(gains=w.Gains.from_poles(pl))
-            tr = w.simulate(ctrl, z, p, dt=DT, n_steps=N_STEPS, save_every=10)
-            e = jax.vmap(lambda t, s: ctrl.error(t, s, p)[0])(tr.t, tr.state)  # position errors
-            return jnp.mean(jnp.sum(e**2, axis=-1))
-
-        return jnp.mean(w.batch_map(one, z0s, pb, chunk=512))
-
+    loss = section_6_1_loss(ctrl, params, N_STEPS)
     poles = jnp.ones((2, 2))
-    fwd = jax.jit(loss)
-    grad = jax.jit(jax.value_and_grad(loss))
-    jac = jax.jit(jax.jacfwd(loss))
-    fwd(poles, zg).block_until_ready()
-    jax.block_until_ready(grad(poles, zg))
-    jax.block_until_ready(jac(poles, zg))
-    tf, _ = _best_time(lambda: fwd(poles, zg).block_until_ready(), reps)
-    tg, (val, g) = _best_time(lambda: jax.block_until_ready(grad(poles, zg)), reps)
-    tj, gj = _best_time(lambda: jax.block_until_ready(jac(poles, zg)), reps)
+    gradient = gradient_ratios(loss, poles, zg, reps, modes=("auto", "forward", "reverse"))
+    gradient.update(batch=grad_batch, loss="mean squared position error, saved every 10 steps",
+                    parameters="real closed-loop poles (2 outputs x 2), shared by the batch")
+    print(f"gradient (B = {grad_batch}, {gradient['n_parameters']} parameters): "
+          f"{gradient['ratio_grad_over_forward']:.2f}x forward ({gradient['mode']}); forward sensitivities "
+          f"{gradient['ratio_forward_mode']:.2f}x, reverse {gradient['ratio_reverse_mode']:.2f}x", flush=True)
+    many_poles = jnp.ones((N_GROUPS, 2, 2))
+    gradient_many = gradient_ratios(section_6_1_loss(ctrl, params, N_STEPS, groups=N_GROUPS), many_poles, zg, reps,
+                                    modes=("auto", "forward", "reverse"))
+    gradient_many.update(batch=grad_batch, parameters=f"per-group poles: {N_GROUPS} groups of trajectories x 2 x 2")
+    print(f"gradient_many ({gradient_many['n_parameters']} parameters): {gradient_many['ratio_grad_over_forward']:.2f}x "
+          f"({gradient_many['mode']}); forward sensitivities {gradient_many['ratio_forward_mode']:.2f}x", flush=True)
+    by_batch = {}
+    for b in grad_batches:
+        r = gradient_ratios(loss, poles, jnp.asarray(initial_states_numpy(b)), max(1, reps // 2 if b > 10000 else reps),
+                            modes=("auto",))
+        by_batch[str(b)] = {k: r[k] for k in ("mode", "forward_s", "value_and_grad_s", "ratio_grad_over_forward")}
+        print(f"gradient_by_batch B = {b}: {r['ratio_grad_over_forward']:.2f}x ({r['mode']})", flush=True)
 
     summary = {
         "experiment": "benchmark",
@@ -200,12 +259,9 @@ def run(out: Path, batches, reps: int, grad_batch: int, scipy_trajs: int, source
         "scipy_solve_ivp_one_at_a_time": {"method": "RK45", "rtol": 1e-8, "atol": 1e-10, "trajectories": scipy_trajs,
                                           "mean_rhs_evaluations": nfev / scipy_trajs,
                                           "equivalent_traj_steps_per_s": scipy_rate},
-        "gradient": {"batch": grad_batch, "loss": "mean squared position error, saved every 10 steps",
-                     "n_parameters": int(poles.size),
-                     "forward_s": tf, "value_and_grad_s": tg, "ratio_grad_over_forward": tg / tf,
-                     "forward_mode_jacfwd_s": tj, "ratio_jacfwd_over_forward": tj / tf,
-                     "max_abs_diff_reverse_vs_forward_mode": float(np.max(np.abs(np.asarray(g) - np.asarray(gj)))),
-                     "loss_value": float(val), "grad_finite": bool(np.all(np.isfinite(np.asarray(g))))},
+        "gradient": gradient,
+        "gradient_many": gradient_many,
+        "gradient_by_batch": by_batch,
     }
     for b, row in rows.items():
         row["ratio_wmrjax_over_scipy"] = row["wmrjax_batch_map"] / scipy_rate
@@ -229,7 +285,118 @@ def numpy_rollout_rhs(t, s):
     return hd1, hd2, (-cs * w1 - sn * w2) / c, -sn * w1 + cs * w2
 
 
+COMPILE_CASES = ([("dynamic", k, lv) for k in ("(2,0)", "(2,1)", "(1,1)", "(1,2)") for lv in ("velocity", "torque")]
+                 + [("static", k, lv) for k in ("(3,0)", "(2,0)", "(2,1)", "(1,1)", "(1,2)")
+                    for lv in ("velocity", "torque")])
+_GEOMETRY = {"(3,0)": dict(), "(2,0)": dict(e=0.3, delta=0.5), "(2,1)": dict(e=0.3, L=0.8),
+             "(1,1)": dict(L=1.0, e=0.3), "(1,2)": dict(L=0.8, e=0.3, delta=0.4)}
+
+
+def _first_call(fn, *args):
+    """Seconds of a first call beyond a second one (tracing and compilation)."""
+    import jax
+
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    t1 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    return max(0.0, 2 * t1 - t0 - time.perf_counter())
+
+
+def compile_worker(case: str, batch: int) -> dict:
+    """First-call compile times of a rollout loss and of its value and gradient (run in a fresh process).
+
+    ``case``: ``"section_6_1"`` (the gradient block's loss) or ``"family/type/level"``.
+    """
+    common.enable_x64()
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import wmrjax as w
+    from wmrjax import references
+
+    if case == "section_6_1":
+        ctrl, params, _, _ = common.section_6_1_setup()
+        loss, theta = section_6_1_loss(ctrl, params, N_STEPS), jnp.ones((2, 2))
+        z0s = jnp.asarray(initial_states_numpy(batch))
+    else:
+        family, kind, level = case.split("/")
+        ctrl = (w.dynamic_linearization if family == "dynamic" else w.static_linearization)(kind, level)
+        ref = references.circle(radius=2.0, omega=0.4, heading_offset=0.3 if kind in ("(2,1)", "(1,2)") else 0.0)
+        params = ctrl.params(ref, poles=1.5, geometry=w.Geometry(**_GEOMETRY[kind]))
+        if family == "dynamic":
+            z = ctrl.reference_state(0.0, params)
+        else:
+            X = jnp.zeros(ctrl.robot.n_state).at[0].set(0.3).at[1].set(-0.2).at[3:].set(0.6)
+            z = ctrl.initial_state_from_physical(X, jnp.full(ctrl.robot.n_input, 0.4), params)
+        z0s = z + 0.01 * jnp.asarray(np.random.default_rng(0).normal(size=(batch, z.size)))
+        theta = params.gains.coeffs
+
+        def loss(coeffs, z0s):
+            p = params._replace(gains=w.Gains(coeffs))
+            tr = jax.vmap(lambda z: w.simulate(ctrl, z, p, dt=0.01, n_steps=N_STEPS, save_every=10))(z0s)
+            e = jax.vmap(jax.vmap(lambda t, s: ctrl.error(t, s, p)[0]))(tr.t, tr.state)
+            return jnp.mean(e**2)
+
+    out = {"n_parameters": int(np.size(theta)), "mode": w.autodiff.choose_mode(int(np.size(theta)))}
+    out["forward_s"] = _first_call(jax.jit(loss), theta, z0s)
+    out["gradient_s"] = _first_call(jax.jit(w.value_and_grad(loss)), theta, z0s)
+    return out
+
+
+def memory_worker(n_steps: int, batch: int) -> dict:
+    """Peak resident memory of the section 6.1 loss's value and gradient (run in a fresh process)."""
+    import resource
+
+    common.enable_x64()
+    import jax
+    import jax.numpy as jnp
+
+    import wmrjax as w
+
+    ctrl, params, _, _ = common.section_6_1_setup()
+    loss = section_6_1_loss(ctrl, params, n_steps)
+    poles = jnp.ones((2, 2))
+    t0 = time.perf_counter()
+    v, g = jax.block_until_ready(jax.jit(w.value_and_grad(loss))(poles, jnp.asarray(initial_states_numpy(batch))))
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024          # Linux: kilobytes
+    return {"steps": n_steps, "batch": batch, "mode": w.autodiff.choose_mode(4), "peak_rss_bytes": int(peak),
+            "peak_rss_gb": peak / 1e9, "wall_s": time.perf_counter() - t0, "loss_value": float(v),
+            "grad_finite": bool(jnp.all(jnp.isfinite(g)))}
+
+
+def _worker(args: list, env: dict) -> dict:
+    import json
+
+    r = subprocess.run([sys.executable, "-m", "experiments.benchmark", *args], capture_output=True, text=True, env=env,
+                       cwd=Path(__file__).resolve().parent.parent)
+    if r.returncode:
+        raise RuntimeError(f"benchmark worker {args} failed: {r.stderr[-2000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def compile_table(cases, batch: int, devices: int, progress=print) -> dict:
+    """Compile times per case in fresh processes: first call with an empty persistent cache, then
+    a second process reading the cache the first one wrote."""
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+    out = {}
+    with tempfile.TemporaryDirectory() as cache:
+        for case in cases:
+            first = _worker(["--worker", "compile", "--case", case, "--worker-batch", str(batch), "--no-compile-cache"], env)
+            _worker(["--worker", "compile", "--case", case, "--worker-batch", str(batch), "--compile-cache", cache], env)
+            cached = _worker(["--worker", "compile", "--case", case, "--worker-batch", str(batch), "--compile-cache", cache],
+                             env)
+            out[case] = dict(first, forward_cached_s=cached["forward_s"], gradient_cached_s=cached["gradient_s"])
+            progress(f"compile {case}: rollout {first['forward_s']:.1f} s, gradient {first['gradient_s']:.1f} s "
+                     f"({first['mode']}); cached {cached['forward_s']:.2f} s / {cached['gradient_s']:.2f} s", flush=True)
+    return out
+
+
 def main(argv=None) -> int:
+    import json
+
     from wmrjax import cli
 
     p = common.parser(__doc__.splitlines()[0], "results/benchmark", compile_cache=False)   # it times compilation
@@ -237,22 +404,57 @@ def main(argv=None) -> int:
                    help="batch sizes of the rollout comparison [trajectories]")
     p.add_argument("--reps", type=cli.count, default=5, help="timed repetitions (best kept)")
     p.add_argument("--grad-batch", type=cli.count, default=1024, help="batch of the gradient timing [trajectories]")
+    p.add_argument("--grad-batches", type=cli.count, nargs="*", default=[1024, 8192, 65536],
+                   help="batches of gradient_by_batch [trajectories]")
+    p.add_argument("--compile-types", choices=("all", "none"), default="all",
+                   help="compile-time table for every type x level (fresh processes, several minutes), or none")
+    p.add_argument("--memory-steps", type=cli.count, default=20000, help="horizon of the gradient memory measurement")
+    p.add_argument("--memory-batch", type=int, default=4096,
+                   help="trajectories of the gradient memory measurement (0: skip it)")
     p.add_argument("--scipy-trajectories", type=cli.count, default=8, help="trajectories integrated one by one by SciPy")
     p.add_argument("--devices", type=cli.count, default=os.cpu_count() or 1,
                    help="JAX host devices (one per core; sets XLA_FLAGS for this process before JAX starts its backend)")
     here = Path(__file__).resolve().parent.parent
     p.add_argument("--c-source", type=Path, default=here.parent / "shared" / "bench" / "closed_loop_simd.c",
                    help="the hand-vectorised C loop (the ceiling; skipped if missing)")
+    p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
+    p.add_argument("--case", help=argparse.SUPPRESS)
+    p.add_argument("--worker-batch", type=cli.count, default=256, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    if a.worker:
+        cli.use_compilation_cache(a)
+        res = compile_worker(a.case, a.worker_batch) if a.worker == "compile" else memory_worker(a.memory_steps,
+                                                                                                  a.memory_batch)
+        print(json.dumps(res))
+        return 0
     cli.prepare_output(p, a.out)
     cli.use_compilation_cache(a)
     flag = f"--xla_force_host_platform_device_count={a.devices}"
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()   # read when the backend starts
-    s = run(a.out, a.batches, a.reps, a.grad_batch, a.scipy_trajectories, a.c_source)
+    s = run(a.out, a.batches, a.reps, a.grad_batch, a.grad_batches, a.scipy_trajectories, a.c_source)
+    # compile times and memory in fresh processes (nothing compiled or cached beforehand)
+    env = dict(os.environ)
+    sec = compile_table(["section_6_1"], a.grad_batch, a.devices)["section_6_1"]
+    s["compile"] = {"what": "first call (trace + compile) in a fresh process with an empty persistent cache; cached: "
+                            "a later process reading JAX's persistent compilation cache",
+                    "forward_s": sec["forward_s"], "gradient_s": sec["gradient_s"],
+                    "forward_cached_s": sec["forward_cached_s"], "gradient_cached_s": sec["gradient_cached_s"],
+                    "gradient_mode": sec["mode"],
+                    "by_type_loss": f"mean squared output error of a vmapped {N_STEPS}-step rollout (dt 0.01) on a "
+                                    "circle, gradient with respect to the Hurwitz coefficients (m x r)",
+                    "by_type": compile_table(COMPILE_CASES, 64, a.devices) if a.compile_types == "all" else {}}
+    if a.memory_batch > 0:
+        m = _worker(["--worker", "memory", "--memory-steps", str(a.memory_steps), "--memory-batch", str(a.memory_batch),
+                     "--no-compile-cache"], dict(env))
+        s["memory"] = m
+        print(f"memory: gradient of {a.memory_steps} steps x {a.memory_batch} trajectories: peak RSS "
+              f"{m['peak_rss_gb']:.2f} GB ({m['mode']}, {m['wall_s']:.1f} s)", flush=True)
+    common.write_json(a.out / "summary.json", s)
     g = s["gradient"]
     print(f"scipy solve_ivp: {s['scipy_solve_ivp_one_at_a_time']['equivalent_traj_steps_per_s'] / 1e6:.4f} M/s; "
-          f"gradient/forward = {g['ratio_grad_over_forward']:.1f} reverse mode, "
-          f"{g['ratio_jacfwd_over_forward']:.1f} forward mode (B = {g['batch']}, {g['n_parameters']} gains)")
+          f"gradient/forward = {g['ratio_grad_over_forward']:.2f} ({g['mode']}; B = {g['batch']}, "
+          f"{g['n_parameters']} parameters), {s['gradient_many']['ratio_grad_over_forward']:.2f} with "
+          f"{s['gradient_many']['n_parameters']} ({s['gradient_many']['mode']})")
     print(f"wrote {a.out}/summary.json")
     return 0
 

@@ -13,7 +13,8 @@ def test_benchmark_cli_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=ROOT)
     env.pop("XLA_FLAGS", None)
     r = subprocess.run([sys.executable, "-m", "experiments.benchmark", "--out", str(tmp_path), "--batches", "64",
-                        "--reps", "1", "--grad-batch", "8", "--scipy-trajectories", "1", "--devices", "2"],
+                        "--reps", "1", "--grad-batch", "8", "--grad-batches", "8", "--compile-types", "none",
+                        "--memory-batch", "0", "--scipy-trajectories", "1", "--devices", "2"],
                        cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     s = json.loads((tmp_path / "summary.json").read_text())
@@ -21,4 +22,8 @@ def test_benchmark_cli_smoke(tmp_path):
     assert row["max_abs_diff_wmrjax_vs_numpy"] < 1e-9  # same closed loop as the NumPy oracle
     assert row["wmrjax_batch_map"] > 0 and row["numpy_vectorised"] > 0
     assert s["machine"]["jax_devices"] == 2
-    assert s["gradient"]["grad_finite"] and s["gradient"]["max_abs_diff_reverse_vs_forward_mode"] < 1e-9
+    g, many = s["gradient"], s["gradient_many"]
+    assert g["grad_finite"] and g["max_abs_diff_reverse_vs_forward_mode"] < 1e-12
+    assert (g["mode"], g["n_parameters"], many["mode"], many["n_parameters"]) == ("forward", 4, "reverse", 64)
+    assert many["max_abs_diff_reverse_vs_forward_mode"] < 1e-12
+    assert set(s["gradient_by_batch"]) == {"8"} and s["compile"]["forward_s"] > 0 and s["compile"]["by_type"] == {}
