@@ -126,21 +126,24 @@ def _nested_output_jet(field, h, z, n_inputs, r):
     return jnp.stack([fn(z) for fn in fns]), top(zero), jax.jacfwd(top)(zero)
 
 
+@pytest.mark.parametrize("level", ["velocity", "torque"])
 @pytest.mark.parametrize("family,kind", [("dynamic", "(2,0)"), ("dynamic", "(2,1)"), ("dynamic", "(1,1)"),
                                          ("dynamic", "(1,2)"), ("static", "(3,0)"), ("static", "(1,1)")])
-def test_taylor_mode_engine_equals_nested_jvp(family, kind, rng):
-    """Taylor mode along the flow (the engine) = nested jvp Lie derivatives, at the torque level
-    (the highest relative degree: velocity-level jets are its leading rows)."""
+def test_taylor_mode_engine_equals_nested_jvp(family, kind, level, rng):
+    """Taylor mode along the flow = nested jvp Lie derivatives (the engine's two methods)."""
     import jax
 
     make = w.dynamic_linearization if family == "dynamic" else w.static_linearization
-    law = make(kind, "torque").law
+    law = make(kind, level).law
     g = w.Geometry(L=0.9, e=0.3)
     F = lambda x, U: law.field(x, U, g)
     h = lambda x: law.outputs(x, g)
     args = (law.m, law.relative_degree)
     zs = jnp.asarray(rng.uniform(-1.5, 1.5, size=(4, law.n_state)))
-    ours = jax.jit(jax.vmap(lambda z: linearize.output_jet(F, h, z, *args)))(zs)
+    ours = jax.jit(jax.vmap(lambda z: linearize.output_jet(F, h, z, *args, method="taylor")))(zs)
     ref = jax.jit(jax.vmap(lambda z: _nested_output_jet(F, h, z, *args)))(zs)
     for a, b in zip(ours, ref):
         np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-11 * float(jnp.max(jnp.abs(b))))
+    if level == "velocity":
+        with pytest.raises(ValueError, match="method must be one of"):
+            linearize.output_jet(F, h, zs[0], *args, method="lie")

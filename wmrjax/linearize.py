@@ -4,7 +4,7 @@ Given a control-affine system :math:`\dot z = f(z, U) = F(z) + G(z)U` and output
 :math:`Y = h(z)` with uniform relative degree r, the engine returns
 
 * the output jet :math:`\zeta = \Psi(z) = (Y, \dot Y, \dots, Y^{(r-1)})` (eq 35), shape (r, m),
-  each row a Lie derivative :math:`L_F^j h`, computed in Taylor mode along the flow;
+  each row a Lie derivative :math:`L_F^j h` (nested ``jax.jvp`` or Taylor mode along the flow);
 * the drift :math:`a(z) = L_F^r h` and the decoupling matrix
   :math:`K(z) = L_G L_F^{r-1} h` (eqs 21-23, 33), so that :math:`Y^{(r)} = a(z) + K(z)U`.
 
@@ -23,17 +23,30 @@ from jax.experimental import jet
 from wmrjax import _math
 
 
-def output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: int):
-    r"""Output derivatives and the decoupling pair of an affine system, by Taylor mode.
+# relative degree above which the Taylor-mode construction is used (see output_jet)
+NESTED_MAX_DEGREE = 2
+JET_METHODS = ("auto", "taylor", "nested")
+
+
+def output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: int, method: str = "auto"):
+    r"""Output derivatives and the decoupling pair of an affine system.
 
     With relative degree r, :math:`L_G L_F^j h \equiv 0` for j < r - 1, so along the flow of
     :math:`\dot z = F(z) + G(z)U` with U held constant the output's derivatives are
-    :math:`Y^{(j)} = L_F^j h` (j < r) and :math:`Y^{(r)} = a(z) + K(z)U`. One Taylor
-    expansion of that flow to order r (``jax.experimental.jet``: each order costs one jet of
-    the field) gives them all; it runs for U = 0 and the m unit inputs at once (``vmap``), so
-    ``a`` comes from U = 0 and the columns of K from the differences. The program grows
-    with r^2 jets of the field, where nested ``jvp`` grows like 2^r: the (1,1) torque-level
-    closed loop compiles about 4x faster and runs faster.
+    :math:`Y^{(j)} = L_F^j h` (j < r) and :math:`Y^{(r)} = a(z) + K(z)U`. Two constructions
+    give the same numbers (tested to 1e-11):
+
+    * ``"taylor"``: one Taylor expansion of that flow to order r (``jax.experimental.jet``:
+      each order costs one jet of the field), for U = 0 and the m unit inputs at once
+      (``vmap``): ``a`` from U = 0, the columns of K from the differences. The program grows
+      like r^2 jets of the field.
+    * ``"nested"``: Lie derivatives by nested ``jax.jvp`` and one more jvp per input; the
+      program grows like 2^r.
+    * ``"auto"`` (default): nested for r <= :data:`NESTED_MAX_DEGREE`, Taylor above.
+      Measured on XLA:CPU: at r = 2 nested runs 1.5x faster (jet multiplies by the zero
+      series of constants, which IEEE arithmetic cannot fold away) and compiles as fast; at
+      r = 4 ((1,1), torque level) Taylor mode compiles the closed loop in 7 s instead of 19 s
+      and its gradient in 37 s instead of 107 s.
 
     Args:
       field: ``(z, U) -> zdot``, affine in U.
@@ -41,11 +54,37 @@ def output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: 
       z: state (n,).
       n_inputs: dimension of U (static).
       relative_degree: r (static, >= 1), uniform over the outputs.
+      method: ``"auto"``, ``"taylor"`` or ``"nested"`` (static).
 
     Returns:
       ``(zeta, a, K)``: ``zeta`` (r, m) with ``zeta[j] = Y^{(j)}``; ``a`` (m,) and
       ``K`` (m, n_inputs) with ``Y^{(r)} = a + K U``.
     """
+    if method not in JET_METHODS:
+        raise ValueError(f"method must be one of {JET_METHODS}, got {method!r}")
+    if method == "nested" or (method == "auto" and relative_degree <= NESTED_MAX_DEGREE):
+        return _nested_output_jet(field, h, z, n_inputs, relative_degree)
+    return _taylor_output_jet(field, h, z, n_inputs, relative_degree)
+
+
+def _nested_output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: int):
+    """:func:`output_jet` by nested ``jvp`` (Lie derivatives) and one jvp per input for K."""
+    zero = jnp.zeros((n_inputs,), dtype=jnp.result_type(z))
+    drift = lambda x: field(x, zero)
+    fns = [h]
+    for _ in range(relative_degree - 1):
+        prev = fns[-1]
+        fns.append(lambda x, prev=prev: jax.jvp(prev, (x,), (drift(x),))[1])
+    zeta = jnp.stack([fn(z) for fn in fns])
+    top = fns[-1]
+    highest = lambda U: jax.jvp(top, (z,), (field(z, U),))[1]
+    a = highest(zero)
+    K = _math.jacfwd_small(highest, zero)
+    return zeta, a, K
+
+
+def _taylor_output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: int):
+    """:func:`output_jet` in Taylor mode along the flow, for U = 0 and the unit inputs at once."""
     r = relative_degree
     dtype = jnp.result_type(z)
     inputs = jnp.concatenate([jnp.zeros((1, n_inputs), dtype), jnp.eye(n_inputs, dtype=dtype)])
