@@ -285,8 +285,8 @@ def numpy_rollout_rhs(t, s):
     return hd1, hd2, (-cs * w1 - sn * w2) / c, -sn * w1 + cs * w2
 
 
-COMPILE_CASES = ([("dynamic", k, lv) for k in ("(2,0)", "(2,1)", "(1,1)", "(1,2)") for lv in ("velocity", "torque")]
-                 + [("static", k, lv) for k in ("(3,0)", "(2,0)", "(2,1)", "(1,1)", "(1,2)")
+COMPILE_CASES = ([f"dynamic/{k}/{lv}" for k in ("(2,0)", "(2,1)", "(1,1)", "(1,2)") for lv in ("velocity", "torque")]
+                 + [f"static/{k}/{lv}" for k in ("(3,0)", "(2,0)", "(2,1)", "(1,1)", "(1,2)")
                     for lv in ("velocity", "torque")])
 _GEOMETRY = {"(3,0)": dict(), "(2,0)": dict(e=0.3, delta=0.5), "(2,1)": dict(e=0.3, L=0.8),
              "(1,1)": dict(L=1.0, e=0.3), "(1,2)": dict(L=0.8, e=0.3, delta=0.4)}
