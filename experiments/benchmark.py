@@ -127,29 +127,32 @@ def section_6_1_loss(ctrl, params, n_steps, groups=None):
     return loss
 
 
-def gradient_ratios(loss, theta, z0s, reps, modes):
+def gradient_ratios(loss, theta, z0s, reps, modes, compiled: dict):
     """Forward time and value-and-gradient time of ``loss(theta, z0s)`` per mode, same run.
 
     ``ratio_grad_over_forward`` (and ``mode``) are for the first of ``modes``; the others are
     reported as ``ratio_<mode>_mode``. Gradients of the modes are compared with each other.
+    ``compiled`` keeps the jitted functions per (loss, resolved mode), so that "auto" and the
+    mode it resolves to, and later batch sizes, reuse one function (and its compilations).
     """
     import jax
     import numpy as np
 
     import wmrjax as w
 
-    fwd = jax.jit(loss)
+    fwd = compiled.setdefault((loss, "value"), jax.jit(loss))
     fwd(theta, z0s).block_until_ready()
     tf, val = _best_time(lambda: fwd(theta, z0s).block_until_ready(), reps)
     out = {"n_parameters": int(np.size(theta)), "forward_s": tf, "loss_value": float(val)}
     grads = {}
     for i, mode in enumerate(modes):
-        vg = jax.jit(w.value_and_grad(loss, mode=mode))
+        resolved = w.autodiff.choose_mode(int(np.size(theta)), mode)
+        vg = compiled.setdefault((loss, resolved), jax.jit(w.value_and_grad(loss, mode=resolved)))
         jax.block_until_ready(vg(theta, z0s))
         tg, (v, g) = _best_time(lambda: jax.block_until_ready(vg(theta, z0s)), reps)
         grads[mode] = np.asarray(g)
         if i == 0:
-            out.update(mode=w.autodiff.choose_mode(int(np.size(theta)), mode), value_and_grad_s=tg,
+            out.update(mode=resolved, value_and_grad_s=tg,
                        ratio_grad_over_forward=tg / tf, grad_finite=bool(np.all(np.isfinite(grads[mode]))))
         else:
             out[f"value_and_grad_{mode}_mode_s"] = tg
@@ -159,7 +162,8 @@ def gradient_ratios(loss, theta, z0s, reps, modes):
     return out
 
 
-def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_trajs: int, source: Path) -> dict:
+def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_trajs: int, source: Path,
+        many_forward: bool = True) -> dict:
     common.enable_x64()
     import jax
     import jax.numpy as jnp
@@ -228,7 +232,8 @@ def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_traj
     zg = jnp.asarray(initial_states_numpy(grad_batch))
     loss = section_6_1_loss(ctrl, params, N_STEPS)
     poles = jnp.ones((2, 2))
-    gradient = gradient_ratios(loss, poles, zg, reps, modes=("auto", "forward", "reverse"))
+    compiled = {}
+    gradient = gradient_ratios(loss, poles, zg, reps, ("auto", "forward", "reverse"), compiled)
     gradient.update(batch=grad_batch, loss="mean squared position error, saved every 10 steps",
                     parameters="real closed-loop poles (2 outputs x 2), shared by the batch")
     print(f"gradient (B = {grad_batch}, {gradient['n_parameters']} parameters): "
@@ -236,14 +241,15 @@ def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_traj
           f"{gradient['ratio_forward_mode']:.2f}x, reverse {gradient['ratio_reverse_mode']:.2f}x", flush=True)
     many_poles = jnp.ones((N_GROUPS, 2, 2))
     gradient_many = gradient_ratios(section_6_1_loss(ctrl, params, N_STEPS, groups=N_GROUPS), many_poles, zg, reps,
-                                    modes=("auto", "forward", "reverse"))
+                                    ("auto", "forward") if many_forward else ("auto",), compiled)
     gradient_many.update(batch=grad_batch, parameters=f"per-group poles: {N_GROUPS} groups of trajectories x 2 x 2")
     print(f"gradient_many ({gradient_many['n_parameters']} parameters): {gradient_many['ratio_grad_over_forward']:.2f}x "
-          f"({gradient_many['mode']}); forward sensitivities {gradient_many['ratio_forward_mode']:.2f}x", flush=True)
+          f"({gradient_many['mode']})" + (f"; forward sensitivities {gradient_many['ratio_forward_mode']:.2f}x"
+                                           if many_forward else ""), flush=True)
     by_batch = {}
     for b in grad_batches:
         r = gradient_ratios(loss, poles, jnp.asarray(initial_states_numpy(b)), max(1, reps // 2 if b > 10000 else reps),
-                            modes=("auto",))
+                            ("auto",), compiled)
         by_batch[str(b)] = {k: r[k] for k in ("mode", "forward_s", "value_and_grad_s", "ratio_grad_over_forward")}
         print(f"gradient_by_batch B = {b}: {r['ratio_grad_over_forward']:.2f}x ({r['mode']})", flush=True)
 
@@ -285,11 +291,12 @@ def numpy_rollout_rhs(t, s):
     return hd1, hd2, (-cs * w1 - sn * w2) / c, -sn * w1 + cs * w2
 
 
-COMPILE_CASES = ([f"dynamic/{k}/{lv}" for k in ("(2,0)", "(2,1)", "(1,1)", "(1,2)") for lv in ("velocity", "torque")]
-                 + [f"static/{k}/{lv}" for k in ("(3,0)", "(2,0)", "(2,1)", "(1,1)", "(1,2)")
-                    for lv in ("velocity", "torque")])
-_GEOMETRY = {"(3,0)": dict(), "(2,0)": dict(e=0.3, delta=0.5), "(2,1)": dict(e=0.3, L=0.8),
-             "(1,1)": dict(L=1.0, e=0.3), "(1,2)": dict(L=0.8, e=0.3, delta=0.4)}
+def _compile_cases():
+    """Every row of Tables 4 (dynamic) and 3 (static) at both levels, as 'family/type/level'."""
+    from wmrjax.controllers import TABLE3, TABLE4
+
+    return [f"{family}/{kind}/{level}" for family, table in (("dynamic", TABLE4), ("static", TABLE3))
+            for kind in table for level in ("velocity", "torque")]
 
 
 def _first_call(fn, *args):
@@ -323,8 +330,9 @@ def compile_worker(case: str, batch: int) -> dict:
     else:
         family, kind, level = case.split("/")
         ctrl = (w.dynamic_linearization if family == "dynamic" else w.static_linearization)(kind, level)
-        ref = references.circle(radius=2.0, omega=0.4, heading_offset=0.3 if kind in ("(2,1)", "(1,2)") else 0.0)
-        params = ctrl.params(ref, poles=1.5, geometry=w.Geometry(**_GEOMETRY[kind]))
+        offset = getattr(ctrl.row, "default_heading_offset", 0.0)       # the table row's example set-up
+        ref = references.circle(radius=2.0, omega=0.4, heading_offset=offset)
+        params = ctrl.params(ref, poles=1.5, geometry=ctrl.row.default_geometry)
         if family == "dynamic":
             z = ctrl.reference_state(0.0, params)
         else:
@@ -406,8 +414,9 @@ def main(argv=None) -> int:
     p.add_argument("--grad-batch", type=cli.count, default=1024, help="batch of the gradient timing [trajectories]")
     p.add_argument("--grad-batches", type=cli.count, nargs="*", default=[1024, 8192, 65536],
                    help="batches of gradient_by_batch [trajectories]")
-    p.add_argument("--compile-types", choices=("all", "none"), default="all",
-                   help="compile-time table for every type x level (fresh processes, several minutes), or none")
+    p.add_argument("--compile-types", choices=("all", "section_6_1", "none"), default="all",
+                   help="compile times in fresh processes: the section 6.1 loss and every type x level (several "
+                        "minutes), the section 6.1 loss only, or none")
     p.add_argument("--memory-steps", type=cli.count, default=20000, help="horizon of the gradient memory measurement")
     p.add_argument("--memory-batch", type=int, default=4096,
                    help="trajectories of the gradient memory measurement (0: skip it)")
@@ -431,18 +440,20 @@ def main(argv=None) -> int:
     cli.use_compilation_cache(a)
     flag = f"--xla_force_host_platform_device_count={a.devices}"
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()   # read when the backend starts
-    s = run(a.out, a.batches, a.reps, a.grad_batch, a.grad_batches, a.scipy_trajectories, a.c_source)
+    s = run(a.out, a.batches, a.reps, a.grad_batch, a.grad_batches, a.scipy_trajectories, a.c_source,
+            many_forward=a.compile_types != "none")
     # compile times and memory in fresh processes (nothing compiled or cached beforehand)
     env = dict(os.environ)
-    sec = compile_table(["section_6_1"], a.grad_batch, a.devices)["section_6_1"]
-    s["compile"] = {"what": "first call (trace + compile) in a fresh process with an empty persistent cache; cached: "
-                            "a later process reading JAX's persistent compilation cache",
-                    "forward_s": sec["forward_s"], "gradient_s": sec["gradient_s"],
-                    "forward_cached_s": sec["forward_cached_s"], "gradient_cached_s": sec["gradient_cached_s"],
-                    "gradient_mode": sec["mode"],
-                    "by_type_loss": f"mean squared output error of a vmapped {N_STEPS}-step rollout (dt 0.01) on a "
-                                    "circle, gradient with respect to the Hurwitz coefficients (m x r)",
-                    "by_type": compile_table(COMPILE_CASES, 64, a.devices) if a.compile_types == "all" else {}}
+    if a.compile_types != "none":
+        sec = compile_table(["section_6_1"], a.grad_batch, a.devices)["section_6_1"]
+        s["compile"] = {"what": "first call (trace + compile) in a fresh process with an empty persistent cache; "
+                                "cached: a later process reading JAX's persistent compilation cache",
+                        "forward_s": sec["forward_s"], "gradient_s": sec["gradient_s"],
+                        "forward_cached_s": sec["forward_cached_s"], "gradient_cached_s": sec["gradient_cached_s"],
+                        "gradient_mode": sec["mode"],
+                        "by_type_loss": f"mean squared output error of a vmapped {N_STEPS}-step rollout (dt 0.01) on "
+                                        "a circle, gradient with respect to the Hurwitz coefficients (m x r)",
+                        "by_type": compile_table(_compile_cases(), 64, a.devices) if a.compile_types == "all" else {}}
     if a.memory_batch > 0:
         m = _worker(["--worker", "memory", "--memory-steps", str(a.memory_steps), "--memory-batch", str(a.memory_batch),
                      "--no-compile-cache"], dict(env))

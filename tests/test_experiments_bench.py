@@ -25,5 +25,4 @@ def test_benchmark_cli_smoke(tmp_path):
     g, many = s["gradient"], s["gradient_many"]
     assert g["grad_finite"] and g["max_abs_diff_reverse_vs_forward_mode"] < 1e-12
     assert (g["mode"], g["n_parameters"], many["mode"], many["n_parameters"]) == ("forward", 4, "reverse", 64)
-    assert many["max_abs_diff_reverse_vs_forward_mode"] < 1e-12
-    assert set(s["gradient_by_batch"]) == {"8"} and s["compile"]["forward_s"] > 0 and s["compile"]["by_type"] == {}
+    assert many["grad_finite"] and set(s["gradient_by_batch"]) == {"8"} and "compile" not in s and "memory" not in s
