@@ -5,6 +5,7 @@ import pytest
 from jax.test_util import check_grads
 
 from wmrjax import _math
+from wmrjax.references import taylor_nested
 
 
 def test_sincos_matches_libm_to_an_ulp():
@@ -48,14 +49,6 @@ def test_safe_divisor_keeps_sign_and_floor():
     np.testing.assert_array_equal(_math.safe_divisor(d, 1e-12), [-1.0, -1e-12, 1e-12, 1e-12, 2.0])
 
 
-def _nested(fn, t, order):
-    ds = [fn]
-    for _ in range(order):
-        prev = ds[-1]
-        ds.append(lambda s, prev=prev: jax.jvp(prev, (s,), (jnp.ones_like(s),))[1])
-    return jnp.stack([d(t) for d in ds])
-
-
 @pytest.mark.parametrize("t", [0.0, 0.37, -1.2])
 def test_taylor_rules_of_sincos_and_atan2_match_nested_jvp(t):
     """The primitives' Taylor-mode rules (jax.experimental.jet) against nested jvp, to order 5,
@@ -65,6 +58,6 @@ def test_taylor_rules_of_sincos_and_atan2_match_nested_jvp(t):
     curve = lambda s: _math.atan2(2.0 + s + s**3, s - 0.5 * s**2) + _math.sincos(3 * s)[0] * _math.sincos(s)[1]
     t = jnp.asarray(t)
     y, terms = jet.jet(curve, (t,), ([jnp.ones_like(t)] + [jnp.zeros_like(t)] * 4,))
-    np.testing.assert_allclose(jnp.stack([y] + terms), _nested(curve, t, 5), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(jnp.stack([y] + terms), taylor_nested(curve, t, 5), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(_math.atan2(jnp.asarray([1.0, -2.0, 0.5]), jnp.asarray([0.0, -1.0, 3.0])),
                                np.arctan2([1.0, -2.0, 0.5], [0.0, -1.0, 3.0]), rtol=0, atol=0)
