@@ -22,7 +22,7 @@ from wmrjax.controllers import (  # noqa: F401
     static_linearization,
     with_plant,
 )
-from wmrjax.gains import Gains  # noqa: F401
+from wmrjax.gains import Gains, GainSchedule  # noqa: F401
 from wmrjax.references import Reference  # noqa: F401
 from wmrjax.robots import Geometry, RobotType, robot_type  # noqa: F401
 from wmrjax.simulate import Diagnostics, Trajectory, batch_map, batch_mesh, rk4_step, shard_batch, simulate  # noqa: F401

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -171,3 +172,131 @@ class Gains(NamedTuple):
         pos = disc > 0
         root = jnp.where(pos, jnp.sqrt(jnp.where(pos, disc, 1.0)), 0.0)   # double where: finite gradients at a double pole
         return jnp.where(disc >= 0, 0.5 * (k1 - root), jnp.nan)
+
+    def coeffs_at(self, t):
+        """The (m, r) coefficients at time t [s]: constant gains ignore t."""
+        del t
+        return self.coeffs
+
+    def coefficient_samples(self):
+        """(S, m, r) coefficients at the times that define them: the constant gains once (S = 1)."""
+        return self.coeffs[None]
+
+
+def _hermite_log(times, values, t):
+    r"""C^1 piecewise-cubic Hermite interpolation of ``log(values)`` at ``t``, exponentiated.
+
+    Knot slopes are the three-point (non-uniform) finite differences, one-sided at the ends;
+    outside ``[times[0], times[-1]]`` the value is held. Positive knot values give positive
+    values everywhere.
+
+    Args:
+      times: (K,) strictly increasing knot times [s], K >= 2.
+      values: (K, ...) positive knot values.
+      t: scalar time [s].
+    """
+    y = jnp.log(values)
+    h = times[1:] - times[:-1]                                       # (K-1,)
+    hb = h.reshape((-1,) + (1,) * (y.ndim - 1))
+    delta = (y[1:] - y[:-1]) / hb                                    # secant slopes
+    if y.shape[0] > 2:
+        interior = (hb[1:] * delta[:-1] + hb[:-1] * delta[1:]) / (hb[:-1] + hb[1:])
+        d = jnp.concatenate([delta[:1], interior, delta[-1:]])
+    else:
+        d = jnp.concatenate([delta, delta])
+    i = jnp.clip(jnp.searchsorted(times, jax.lax.stop_gradient(t), side="right") - 1, 0, times.shape[0] - 2)
+    s = jnp.clip((t - times[i]) / h[i], 0.0, 1.0)
+    s2, s3 = s * s, s * s * s
+    val = ((2 * s3 - 3 * s2 + 1) * y[i] + (s3 - 2 * s2 + s) * h[i] * d[i]
+           + (-2 * s3 + 3 * s2) * y[i + 1] + (s3 - s2) * h[i] * d[i + 1])
+    return jnp.exp(val)
+
+
+class GainSchedule(NamedTuple):
+    r"""Time-varying gains :math:`\Lambda(t)`: each output's (omega, zeta[, lam]) as a smooth
+    function of time (a pytree: vmap/grad it).
+
+    The error polynomial of output i at time t is
+    :math:`\prod_k (s^2 + 2\zeta_{ik}(t)\omega_{ik}(t) s + \omega_{ik}(t)^2)\,(s + \lambda_i(t))`
+    (the last factor for odd r), as in :meth:`Gains.from_damping`; each parameter is a C^1
+    piecewise-cubic Hermite interpolant of its logarithm through the knot values, held
+    constant outside ``[times[0], times[-1]]``. Positive knot values therefore give a Hurwitz
+    polynomial at every frozen time. Frozen-time Hurwitz is not stability of the time-varying
+    error dynamics :math:`\dot{\tilde\zeta} = A(t)\tilde\zeta`; the certificates use its
+    transition matrix :math:`\Phi(t, 0)` (:func:`wmrjax.linearize.transition_matrix`), which
+    is exact.
+
+    Attributes:
+      times: (K,) strictly increasing knot times [s], K >= 2.
+      omega, zeta: (K, m, q) natural frequencies [rad/s] and dampings at the knots, > 0.
+      lam: (K, m) real pole magnitudes [1/s] (odd r), or None (even r).
+    """
+
+    times: jnp.ndarray
+    omega: jnp.ndarray
+    zeta: jnp.ndarray
+    lam: jnp.ndarray | None = None
+
+    @property
+    def shape(self):
+        """(m, r): outputs and relative degree."""
+        m, q = jnp.shape(self.omega)[-2:]
+        return (m, 2 * q + (0 if self.lam is None else 1))
+
+    @classmethod
+    def from_damping(cls, times, omega, zeta, lam=None) -> "GainSchedule":
+        """A checked schedule from knot values (see the class attributes for the shapes).
+
+        Raises:
+          ValueError: fewer than 2 knots, knot times not strictly increasing or not finite,
+            a non-positive parameter, or shapes that disagree.
+        """
+        ts = np.asarray(times, float)
+        if ts.ndim != 1 or ts.size < 2:
+            raise ValueError(f"a gain schedule needs at least 2 knot times (a (K,) array, K >= 2), got shape {ts.shape}")
+        if not np.all(np.isfinite(ts)) or np.any(np.diff(ts) <= 0):
+            raise ValueError(f"knot times must be finite and strictly increasing [s], got {ts.tolist()}")
+        om, ze = jnp.asarray(omega, float), jnp.asarray(zeta, float)
+        if om.ndim != 3 or om.shape[0] != ts.size or ze.shape != om.shape:
+            raise ValueError(f"omega and zeta must both be (K, m, q) = ({ts.size}, m, q) (one value per knot, output "
+                             f"and second-order factor), got {om.shape} and {ze.shape}")
+        check_positive("omega (natural frequencies at the knots)", om)
+        check_positive("zeta (dampings at the knots)", ze)
+        if lam is not None:
+            lam = jnp.asarray(lam, float)
+            if lam.shape != om.shape[:2]:
+                raise ValueError(f"lam must be (K, m) = {om.shape[:2]}, got {lam.shape}")
+            check_positive("lam (real pole magnitudes at the knots)", lam)
+        return cls(jnp.asarray(ts), om, ze, lam)
+
+    def coeffs_at(self, t):
+        """The (m, r) Hurwitz coefficients at time t [s] (eq 49 with time-varying gains)."""
+        om = _hermite_log(self.times, self.omega, t)
+        ze = _hermite_log(self.times, self.zeta, t)
+        lam = None if self.lam is None else _hermite_log(self.times, self.lam, t)
+        return damping_coefficients(om, ze, lam)
+
+    def coefficient_samples(self):
+        """(K, m, r) coefficients at the knots."""
+        return damping_coefficients(self.omega, self.zeta, self.lam)
+
+    def check(self, m: int, r: int) -> "GainSchedule":
+        """ValueError unless the schedule is for m outputs of relative degree r, with K >= 2
+        strictly increasing knots and positive parameters (concrete values only)."""
+        if self.shape != (m, r):
+            raise ValueError(f"the gain schedule is for (m, r) = {self.shape}, the controller needs ({m}, {r}) "
+                             "(outputs, relative degree)")
+        leaves = [concrete(x) for x in (self.times, self.omega, self.zeta, self.lam) if x is not None]
+        if all(v is not None for v in leaves):
+            GainSchedule.from_damping(self.times, self.omega, self.zeta, self.lam)
+        return self
+
+    def poles(self) -> np.ndarray:
+        """(K, m, r) complex closed-loop poles at the knots (concrete values only)."""
+        c = np.asarray(self.coefficient_samples())
+        return np.stack([Gains(ck).poles() for ck in c])
+
+    def is_double_pole(self, value: float = 1.0, rtol: float = 1e-12) -> bool:
+        """Always False: eq (64) is for the constant double pole."""
+        del value, rtol
+        return False

@@ -140,3 +140,45 @@ def companion(coeffs):
     for j in range(r):
         A = A.at[(r - 1) * m + idx, j * m + idx].set(-coeffs[:, j])
     return A
+
+
+def transition_matrix(gains, t, *, n_steps: int | None = None):
+    r"""Transition matrix :math:`\Phi(t, 0)` of the error dynamics :math:`\dot{\tilde\zeta} = A(t)\tilde\zeta`.
+
+    Under the linearizing law :math:`\tilde\zeta(t) = \Phi(t, 0)\,\tilde\zeta(0)` exactly while
+    the run is regular; for constant gains :math:`\Phi(t, 0) = e^{At}`. Lemma 2's smallest
+    valid :math:`K_2(t)` is :math:`\|\Phi(t, 0)\|_2`.
+
+    Args:
+      gains: :class:`wmrjax.Gains` or :class:`wmrjax.GainSchedule` (A(t) = ``companion(gains.coeffs_at(t))``).
+      t: scalar time [s], >= 0 (vmap over t for a grid).
+      n_steps: RK4 steps of :math:`\dot\Phi = A(t)\Phi` over [0, t] (a static int). None: ``expm(A t)``,
+        valid for constant gains only (ValueError for a schedule).
+
+    Returns:
+      (r m, r m) matrix acting on ``zeta_err.reshape(-1)`` (:func:`companion`'s ordering).
+    """
+    if n_steps is None:
+        if gains.coefficient_samples().shape[0] != 1:
+            raise ValueError("transition_matrix of a gain schedule needs n_steps (RK4 steps over [0, t]); "
+                             "expm(A t) holds for constant gains only")
+        A = companion(gains.coeffs_at(0.0))
+        return jax.scipy.linalg.expm(A * t)
+    if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
+        raise ValueError(f"n_steps must be an integer >= 1 (RK4 steps over [0, t]), got {n_steps!r}")
+    t = jnp.asarray(t)
+    h = t / n_steps
+    field = lambda s, P: companion(gains.coeffs_at(s)) @ P
+
+    def step(P, k):
+        s = k * h
+        k1 = field(s, P)
+        k2 = field(s + 0.5 * h, P + 0.5 * h * k1)
+        k3 = field(s + 0.5 * h, P + 0.5 * h * k2)
+        k4 = field(s + h, P + h * k3)
+        return P + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
+
+    m, r = gains.shape[-2:]
+    P0 = jnp.eye(r * m, dtype=jnp.result_type(t, float))
+    P, _ = jax.lax.scan(step, P0, jnp.arange(n_steps, dtype=P0.dtype))
+    return P

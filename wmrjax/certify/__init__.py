@@ -49,6 +49,7 @@ from wmrjax.certify.lemma2 import (  # noqa: F401
     check_lemma2_args,
     k2_exact,
     k2_lyapunov,
+    k2_transition,
     k2_paper,
     lemma2,
     lyapunov_bound,

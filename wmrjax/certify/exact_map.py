@@ -22,8 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax import _math
-from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
+from wmrjax import _math, linearize
+from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args, transition_steps
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 
 
@@ -140,6 +140,11 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     check_dynamic(ctrl, params)
     check_lemma2_args(t_final=t_final, eps=eps)
     rows = singular_rows(ctrl)
+    scheduled = params.gains.coefficient_samples().shape[0] > 1
+    if rows is None and scheduled:
+        raise ValueError(f"the exact-map radius of type {ctrl.robot.name} (a curved singular set, branch and bound "
+                         "with bounds from ||A||) is implemented for constant gains only, not a GainSchedule; "
+                         "use lemma2 (K2 = ||Phi(t, 0)||) or the empirical radius")
     if rows is None:
         return curved_exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=basis)
     P = slice_basis(ctrl, basis)
@@ -148,19 +153,20 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     ts = jnp.linspace(0.0, t_final, n_t)
     m1 = jax.vmap(lambda t: jnp.linalg.norm(C @ ctrl.reference_jet(t, params)[:r].reshape(-1)))(ts)
     check_lemma2_args(t_final=t_final, eps=eps, m1=m1)
-    rho, rad, t_star, worst = _exact_map(ctrl, params, P, C, jnp.asarray(eps, ts.dtype), ts, refine)
+    n_phi = transition_steps(t_final) if scheduled else None
+    rho, rad, t_star, worst = _exact_map(ctrl, params, P, C, jnp.asarray(eps, ts.dtype), ts, refine, n_phi)
     return ExactMapRadius(ts, rho, rad, t_star, worst)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 6))
-def _exact_map(ctrl, params, P, C, eps, ts, refine):
-    """Grid minimum of rho(t), refined by golden section (one compiled program per type and slice shape)."""
-    A = ctrl.error_matrix(params.gains)
+@functools.partial(jax.jit, static_argnums=(0, 6, 7))
+def _exact_map(ctrl, params, P, C, eps, ts, refine, n_phi):
+    """Grid minimum of rho(t), refined by golden section (one compiled program per type and slice shape).
+    ``n_phi``: RK4 steps of Phi(t, 0) for a gain schedule, None for expm(A t)."""
     r = ctrl.relative_degree
 
     def rho_x(t):
         a = C @ ctrl.reference_jet(t, params)[:r].reshape(-1)
-        return min_norm_to_ball(C @ jax.scipy.linalg.expm(A * t) @ P, a, eps)
+        return min_norm_to_ball(C @ linearize.transition_matrix(params.gains, t, n_steps=n_phi) @ P, a, eps)
 
     rho = jax.vmap(lambda t: rho_x(t)[0])(ts)
     i = jnp.argmin(rho)

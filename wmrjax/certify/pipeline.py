@@ -22,7 +22,7 @@ from wmrjax._validate import check_int
 from wmrjax.certify.empirical import EmpiricalRadius, empirical_radius, n_steps_for, sample_sphere, verify_all
 from wmrjax.certify.exact_map import ExactMapRadius, exact_map_radius, slice_basis
 from wmrjax.certify.falsify import FalsifiedRadius, falsified_radius
-from wmrjax.certify.lemma2 import Lemma2Report, check_dynamic, k2_exact, k2_lyapunov, k2_paper, lemma2
+from wmrjax.certify.lemma2 import Lemma2Report, check_dynamic, k2_exact, k2_lyapunov, k2_paper, k2_transition, lemma2
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 
 
@@ -158,7 +158,10 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
         raise ValueError(f"dt = {dt} s gives Lemma 2 a grid of n_t = {n_steps + 1} times over [0, {t_final}] s, "
                          f"too coarse: use a smaller dt ({exc})") from None
     A = ctrl.error_matrix(params.gains)
-    k2s = {"lyapunov": lambda ts: k2_lyapunov(A, ts), "exact_norm": lambda ts: k2_exact(A, ts)}
+    if cert.lyapunov is None:        # a gain schedule: K2 = ||Phi(t, 0)|| only
+        k2s = {"exact_norm": lambda ts: k2_transition(params.gains, ts, t_final=t_final)}
+    else:
+        k2s = {"lyapunov": lambda ts: k2_lyapunov(A, ts), "exact_norm": lambda ts: k2_exact(A, ts)}
     if cert.paper is not None:
         k2s = {"paper": k2_paper, **k2s}
     radii = {n: float(c.radius) for n, c in cert.certificates().items()}

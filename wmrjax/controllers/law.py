@@ -35,7 +35,7 @@ import jax.numpy as jnp
 
 from wmrjax import _math, linearize, robots
 from wmrjax._validate import check_finite, check_real, check_shape, concrete, is_concrete
-from wmrjax.gains import Gains
+from wmrjax.gains import Gains, GainSchedule
 from wmrjax.references import Reference
 from wmrjax.robots import Geometry, RobotType
 
@@ -305,10 +305,12 @@ def validated_physical(robot: RobotType, X, u):
 
 
 def make_gains(gains, poles, m: int, r: int):
-    """The law's :class:`wmrjax.Gains`: ``gains`` if given (checked: (m, r), Hurwitz), else real ``poles``."""
+    """The law's gains: ``gains`` if given (a :class:`wmrjax.Gains` checked (m, r) and Hurwitz, or a
+    :class:`wmrjax.GainSchedule` checked (m, r)), else real ``poles``."""
     if gains is not None:
-        if not isinstance(gains, Gains):
-            raise ValueError(f"gains must be a wmrjax.Gains (Hurwitz coefficients), got {type(gains).__name__}")
+        if not isinstance(gains, (Gains, GainSchedule)):
+            raise ValueError(f"gains must be a wmrjax.Gains (Hurwitz coefficients) or a wmrjax.GainSchedule, "
+                             f"got {type(gains).__name__}")
         return gains.check(m, r)
     if jnp.iscomplexobj(jnp.asarray(poles)):
         raise ValueError("poles must be real pole magnitudes (poles at -poles); for complex pole pairs pass "
@@ -485,12 +487,12 @@ class LinearizingController:
     def control(self, t, z, params):
         """New input U of eq (49) (the plant input for a static law) and the margin; the division
         by ``det K`` is clamped at :data:`DET_FLOOR`."""
-        return self.law.control(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
+        return self.law.control(self.reference_jet(t, params), z, params.gains.coeffs_at(t), params.geometry)
 
     def control_and_regularity(self, t, z, params):
         """``(U, det K)``: the law's new input and its signed regularity (zero on the singular set;
         a sign change between two evaluations of a run is a crossing)."""
-        return self.law._control(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
+        return self.law._control(self.reference_jet(t, params), z, params.gains.coeffs_at(t), params.geometry)
 
     def margin(self, z, params):
         """Singularity margin at ``z``: |det K| (times the row's extra factor, the (1,1) lever of
@@ -499,15 +501,16 @@ class LinearizingController:
 
     def vector_field(self, t, z, params):
         """Closed-loop ``dz/dt`` and :class:`Aux` (plant input, margin)."""
-        return self.law.closed_loop(self.reference_jet(t, params), z, params.gains.coeffs, params.geometry)
+        return self.law.closed_loop(self.reference_jet(t, params), z, params.gains.coeffs_at(t), params.geometry)
 
     def error(self, t, z, params):
         r""":math:`\tilde\zeta = \Psi(z) - \zeta_{ref}(t)`, shape (r, m); angle outputs wrapped."""
         return self.law.error(self.reference_jet(t, params), z, params.geometry)
 
-    def error_matrix(self, gains: Gains):
-        r"""Matrix A with :math:`\dot{\tilde\zeta} = A \tilde\zeta` on ``error(...).reshape(-1)``."""
-        return linearize.companion(gains.coeffs)
+    def error_matrix(self, gains: Gains, t=0.0):
+        r"""Matrix A(t) with :math:`\dot{\tilde\zeta} = A(t) \tilde\zeta` on ``error(...).reshape(-1)``
+        (constant for :class:`wmrjax.Gains`; a :class:`wmrjax.GainSchedule` at time t [s])."""
+        return linearize.companion(gains.coeffs_at(t))
 
     def check_regular(self, z, params, name: str = "initial state") -> None:
         """Raise ValueError if a concrete ``z`` is on (or numerically at) the row's singular set."""
@@ -520,18 +523,19 @@ class LinearizingController:
         if not isinstance(params, want):
             raise ValueError(f"params must be the {want.__name__} of this {self._law_name} (type {self.robot.name}, "
                              f"{self.level} level; build them with its .params()), got {type(params).__name__}")
-        shape = tuple(np.shape(params.gains.coeffs))
+        shape = tuple(params.gains.shape)
         if shape[-2:] != (self.m, self.relative_degree):
-            raise ValueError(f"params.gains.coeffs must have shape ({self.m}, {self.relative_degree}) for this "
+            raise ValueError(f"params.gains must be for shape ({self.m}, {self.relative_degree}) for this "
                              f"{self._law_name} (type {self.robot.name}, {self.level} level: m = {self.m} outputs, "
                              f"relative degree {self.relative_degree}), got {shape}: parameters of another controller?")
         check_reference_type(params.reference)
 
     def error_poles(self, gains: Gains):
         """Eigenvalues of the error dynamics (the closed-loop poles), or None for traced gains."""
-        c = concrete(gains.coeffs)
-        if c is None or np.ndim(c) != 2:
+        c = concrete(gains.coefficient_samples())
+        if c is None or np.ndim(c) != 3:
             return None
+        c = np.asarray(c).reshape(-1, np.shape(c)[-1])   # every output (at every knot of a schedule)
         # the roots of each output's polynomial s^r + k_{r-1} s^{r-1} + ... + k_0 (NumPy: also
         # concrete inside a jit trace, where jnp would stage the computation)
         return np.concatenate([np.roots(np.concatenate([[1.0], row[::-1]])) for row in np.asarray(c, float)])
