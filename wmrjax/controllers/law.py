@@ -215,6 +215,29 @@ class LinearizingLaw:
         zdot = self.field(z, U, g)
         return jax.jvp(pi, (z[:n], z[n:nv], z[nv:]), (zdot[:n], zdot[n:nv], U))[1]
 
+    def lift_measured(self, z, u_measured, g):
+        r"""Torque level: the state with its compensator and new inputs corrected to measured
+        wheel velocities.
+
+        The plant input :math:`u = \pi(X, c, U)` is affine in :math:`w = (c, U)` for every row of
+        Table 4, so the smallest correction :math:`\delta w = J^T (J J^T)^{-1} (u_{meas} - \pi(X, w))`,
+        :math:`J = \partial\pi/\partial w`, makes :math:`\pi(X, w + \delta w) = u_{meas}` exactly and
+        leaves the entries that u does not determine (e.g. :math:`\dot\chi_1` of (2,0)) as they were.
+        With :math:`u_{meas} = \pi(X, c, U)` (nominal conditions) the state is unchanged.
+
+        Args:
+          z: torque-level state ``(X, c, U)``; u_measured: (n_input,) wheel velocities; g: geometry.
+        """
+        if self.level != "torque":
+            raise ValueError("lift_measured is for torque-level laws (their state carries the velocities)")
+        n, nv = self.robot.n_state, self.n_velocity_state
+        X, w = z[:n], z[n:]
+        nc = nv - n
+        pi = lambda w: self.extension.plant_input(X, w[:nc], w[nc:], g)
+        J = _math.jacfwd_small(pi, w)
+        dw = J.T @ jnp.linalg.solve(J @ J.T, u_measured - pi(w))
+        return jnp.concatenate([X, w + dw])
+
     def outputs(self, z, g):
         return self.extension.outputs(z[: self.robot.n_state], g)
 

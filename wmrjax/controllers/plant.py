@@ -14,8 +14,12 @@ loop is the controller's own (tested to RK4 accuracy).
 * Torque level, dynamic laws: the law's state ``(X, c, U)`` carries its compensator and its
   commanded velocities; the plant's wheel velocities are an extra state ``u_plant``
   (appended last), driven by the saturated torque v, and the plant moves with them. The
-  law measures X; its compensator integrates its own commands, as the dynamic extension of
-  the paper does.
+  law measures X and, by default (``velocity_feedback="measured"``), the wheel velocities:
+  before each evaluation it lifts ``u_plant`` into its state
+  (:meth:`wmrjax.controllers.law.LinearizingLaw.lift_measured`), so saturation and mismatch
+  act on it as on a real robot; the entries u does not determine keep integrating. With
+  ``"internal"`` its compensator integrates its own commands only, as the paper's dynamic
+  extension does. Both are the controller's own closed loop at nominal conditions (tested).
 """
 
 from __future__ import annotations
@@ -58,6 +62,7 @@ class PlantLoop:
     """
 
     ctrl: Any
+    velocity_feedback: str = "measured"
 
     @property
     def robot(self):
@@ -134,6 +139,8 @@ class PlantLoop:
         g = params.law.geometry
         n, nl = self.robot.n_state, ctrl.n_state
         zl = z[:nl]
+        if self._plant_velocity_state and self.velocity_feedback == "measured":
+            zl = law.lift_measured(zl, z[nl:], g)     # the law measures the wheel velocities
         U, reg = ctrl.control_and_regularity(t, zl, params.law)
         scale, limit = params.input_scale, params.input_limit
 
@@ -167,9 +174,16 @@ class PlantLoop:
         self.ctrl.check_run(params.law, t0=t0, dt=dt, n_steps=n_steps)
 
 
-def with_plant(ctrl) -> PlantLoop:
+VELOCITY_FEEDBACK = ("measured", "internal")
+
+
+def with_plant(ctrl, velocity_feedback: str = "measured") -> PlantLoop:
     """Close a static or dynamic linearizing controller around a plant with actuator limits,
     input-scale errors and its own geometry (:class:`PlantLoop`; the law does not know).
+
+    ``velocity_feedback`` (dynamic laws at torque level): "measured" lifts the plant's wheel
+    velocities into the law's state before every evaluation; "internal" lets the law integrate
+    its own commanded velocities (module docstring).
 
     Example::
 
@@ -179,4 +193,6 @@ def with_plant(ctrl) -> PlantLoop:
     """
     if not hasattr(ctrl, "law") or not hasattr(ctrl, "control_and_regularity"):
         raise ValueError(f"with_plant wraps a static or dynamic linearizing controller, got {type(ctrl).__name__}")
-    return PlantLoop(ctrl)
+    if velocity_feedback not in VELOCITY_FEEDBACK:
+        raise ValueError(f"velocity_feedback must be one of {VELOCITY_FEEDBACK}, got {velocity_feedback!r}")
+    return PlantLoop(ctrl, velocity_feedback)
