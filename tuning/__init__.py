@@ -11,5 +11,7 @@
 
 from tuning.gains import GainSpec  # noqa: F401
 from tuning.losses import LossWeights, Metrics  # noqa: F401
-from tuning.loop import TuneConfig, batch_value, batch_value_and_grad, build, random_search, tune  # noqa: F401
+from tuning.baselines import BaselineRun, cma_es, random_search  # noqa: F401
+from tuning.loop import TuneConfig, batch_value, batch_value_and_grad, build, objective, tune  # noqa: F401
+from tuning.problems import PROBLEMS, preset  # noqa: F401
 from tuning.scenarios import RolloutConfig, Scenario, rollout  # noqa: F401

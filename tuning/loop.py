@@ -19,12 +19,14 @@ import optax
 import wmrjax as w
 from wmrjax import references as R
 from wmrjax import io
-from tuning.gains import GainSpec, softplus_inverse
+from tuning.gains import GainSpec
 from tuning.losses import LossWeights, certificate_radius, scenario_loss
 from tuning.scenarios import RolloutConfig, Scenario, rollout
 
 
 REFERENCES = ("paper_62", "circle", "figure_eight", "line", "random")
+LEVELS = ("velocity", "torque")
+FAILURE_PENALTY = 1.0   # added to the objective per unit fraction of scenarios that failed (singular/non-finite)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,6 +60,27 @@ class TuneConfig:
     search_low: float = 0.2             # random search: omega / real poles log-uniform in [low, high],
     search_high: float = 5.0            # damping log-uniform in [0.3, 3]
     parameterization: str = "damping"   # or "poles" (real poles only)
+    problem: str = "section_6_1"        # the preset this configuration came from (tuning.problems)
+    level: str = "velocity"             # velocity (kinematic model 5) or torque (Lemma 1, measured velocities)
+    heading_offset: float = 0.0         # reference heading offset [rad] (a crab angle where the type needs one)
+    knots: int = 0                      # gain schedule: K >= 2 knots uniform on [0, t_final]; 0: constant gains
+    knot_times: tuple = ()              # explicit knot times [s] (overrides knots)
+    n_validation: int = 32              # scenarios for early stopping and selection (not the held-out ones)
+    baseline_seeds: int = 5             # seeds of each baseline (random search, CMA-ES)
+    baseline_budget: float = 1.0        # baseline rollouts as a multiple of the gradient's
+    cma_population: int = 0             # CMA-ES population (0: 4 + floor(3 ln n))
+    cma_sigma: float = 0.5              # CMA-ES initial step in the unconstrained parameters
+    min_damping: float = 0.0            # floor of every damping zeta (damping parameterization)
+    ref_speed: float = 1.0              # random references: mean speed [m/s]
+    ref_min_speed: float = 0.3          # random references: speed floor [m/s]
+
+    def schedule_times(self) -> tuple:
+        """The knot times [s] of the gain schedule, () for constant gains."""
+        if self.knot_times:
+            return tuple(float(t) for t in self.knot_times)
+        if self.knots:
+            return tuple(float(t) for t in np.linspace(0.0, self.t_final, self.knots))
+        return ()
 
     def check(self) -> "TuneConfig":
         if self.n_train < 1 or self.n_heldout < 1:
@@ -98,7 +121,49 @@ class TuneConfig:
                              "shorten control_dt")
         if not 0 <= self.seed < 2**32:
             raise ValueError(f"seed must be an integer in [0, 2**32), got {self.seed}")
+        from tuning.problems import PROBLEMS
+
+        if self.problem not in PROBLEMS:
+            raise ValueError(f"problem must be one of {sorted(PROBLEMS)}, got {self.problem!r}")
+        if self.level not in LEVELS:
+            raise ValueError(f"level must be one of {LEVELS}, got {self.level!r}")
+        if self.knots == 1 or self.knots < 0 or len(self.knot_times) == 1:
+            raise ValueError(f"a gain schedule needs at least 2 knots, got knots = {self.knots}, knot_times = "
+                             f"{list(self.knot_times)} (0 knots: constant gains)")
+        kt = np.asarray(self.schedule_times(), float)
+        if kt.size and (not np.all(np.isfinite(kt)) or np.any(np.diff(kt) <= 0) or kt[0] < 0 or kt[-1] > self.t_final):
+            raise ValueError(f"knot_times must be strictly increasing and inside the horizon [0, {self.t_final}] s, "
+                             f"got {kt.tolist()}")
+        if kt.size and self.parameterization != "damping":
+            raise ValueError("a gain schedule needs parameterization 'damping'")
+        if self.n_validation < 1:
+            raise ValueError(f"n_validation must be >= 1 (early stopping needs scenarios), got {self.n_validation}")
+        if self.baseline_seeds < 1:
+            raise ValueError(f"baseline_seeds must be >= 1, got {self.baseline_seeds}")
+        if not (np.isfinite(self.baseline_budget) and self.baseline_budget > 0):
+            raise ValueError(f"baseline_budget must be > 0 (a multiple of the gradient's rollouts), got "
+                             f"{self.baseline_budget}")
+        if self.cma_population != 0 and self.cma_population < 2:
+            raise ValueError(f"cma_population must be >= 2 (CMA-ES ranks its candidates; 0: its default), "
+                             f"got {self.cma_population}")
+        if not (np.isfinite(self.cma_sigma) and self.cma_sigma > 0):
+            raise ValueError(f"cma_sigma must be > 0, got {self.cma_sigma}")
+        if not (np.isfinite(self.min_damping) and 0 <= self.min_damping < 1):
+            raise ValueError(f"min_damping must be in [0, 1) (the paper's double pole has zeta = 1), got {self.min_damping}")
+        if not 0 < self.ref_min_speed < self.ref_speed:
+            raise ValueError(f"random references need 0 < ref_min_speed < ref_speed [m/s], got {self.ref_min_speed}, "
+                             f"{self.ref_speed}")
+        if not np.isfinite(self.heading_offset):
+            raise ValueError(f"heading_offset must be finite [rad], got {self.heading_offset}")
         return self
+
+    def baseline_rollouts(self) -> int:
+        """Rollout budget of one baseline run: baseline_budget times the gradient's (steps x n_train)."""
+        return int(round(self.baseline_budget * self.steps * self.n_train))
+
+    def population(self, n_parameters: int) -> int:
+        """CMA-ES population for n tuned parameters (the default of Hansen's CMA-ES)."""
+        return self.cma_population or 4 + int(np.floor(3 * np.log(n_parameters)))
 
     def fingerprint(self) -> str:
         return hashlib.sha256(json.dumps(dataclasses.asdict(self), sort_keys=True).encode()).hexdigest()[:16]
@@ -111,25 +176,38 @@ def validate(cfg: TuneConfig):
     controller. ValueError naming the setting otherwise (the robot type, the task, a geometry
     the law excludes, the number of actuator limits and noise levels)."""
     cfg.check()
-    ctrl = w.controller(cfg.robot, "velocity", cfg.task)
+    ctrl = w.controller(cfg.robot, cfg.level, cfg.task)
     nX, nu = ctrl.robot.n_state, ctrl.robot.n_input
     if cfg.input_limit and len(cfg.input_limit) != nu:
         raise ValueError(f"input_limit needs {nu} entries for type {ctrl.robot.name}, got {cfg.input_limit}")
     if len(cfg.noise_std) not in (0, 3, nX):
         raise ValueError(f"noise_std needs 3 or {nX} entries, got {cfg.noise_std}")
     ref = R.line() if cfg.reference == "random" else R.named(cfg.reference)
+    if cfg.heading_offset:
+        ref = ref.with_heading_offset(cfg.heading_offset)
     ctrl.params(ref, poles=cfg.poles_init, geometry=w.Geometry(*cfg.geometry))   # geometry and reference rules
     if LossWeights(*cfg.weights).certificate > 0 and (cfg.reference == "random"
                                                       or not isinstance(ctrl, w.DynamicLinearization)):
         raise ValueError("the certificate term needs a dynamic (posture) controller of type (2,0), (2,1) or (1,1) "
                          "and a named reference")
+    if cfg.level == "torque" and not isinstance(ctrl, w.DynamicLinearization):
+        raise ValueError("torque-level tuning needs a dynamic (posture) controller: its state carries the measured "
+                         "wheel velocities (task 'posture' on type (2,0), (2,1), (1,1) or (1,2))")
+    n = GainSpec(ctrl.m, ctrl.relative_degree, cfg.shared, tuple(cfg.frozen), cfg.parameterization,
+                 cfg.schedule_times(), cfg.min_damping).size
+    pop = cfg.population(n)
+    if cfg.baseline_rollouts() < pop * cfg.n_train:
+        raise ValueError(f"baseline_budget = {cfg.baseline_budget} gives {cfg.baseline_rollouts()} rollouts, less than "
+                         f"one CMA-ES generation ({pop} candidates x {cfg.n_train} scenarios = {pop * cfg.n_train}); "
+                         "raise baseline_budget or steps, or lower cma_population")
     return ctrl
 
 
 def build(cfg: TuneConfig):
     """(controller, gain spec, nominal geometry, rollout config, train and held-out scenarios)."""
     ctrl = validate(cfg)
-    spec = GainSpec(ctrl.m, ctrl.relative_degree, cfg.shared, tuple(cfg.frozen), cfg.parameterization)
+    spec = GainSpec(ctrl.m, ctrl.relative_degree, cfg.shared, tuple(cfg.frozen), cfg.parameterization,
+                    cfg.schedule_times(), cfg.min_damping)
     spec.init(cfg.poles_init)
     g = w.Geometry(*cfg.geometry)
     rcfg = RolloutConfig(cfg.t_final, cfg.control_dt, cfg.substeps)
@@ -137,13 +215,17 @@ def build(cfg: TuneConfig):
     k_tr, k_ho = jax.random.split(key)
     train = make_scenarios(ctrl, cfg, g, k_tr, cfg.n_train)
     heldout = make_scenarios(ctrl, cfg, g, k_ho, cfg.n_heldout)
-    return ctrl, spec, g, rcfg, train, heldout
+    validation = make_scenarios(ctrl, cfg, g, jax.random.fold_in(key, 2), cfg.n_validation)
+    return ctrl, spec, g, rcfg, train, validation, heldout
 
 
 def _reference(cfg, key):
     if cfg.reference == "random":
-        return R.random_smooth(key, n_modes=3, speed=1.0, min_speed=0.3, max_omega=0.6, start_scale=2.0)
-    return R.named(cfg.reference)
+        ref = R.random_smooth(key, n_modes=3, speed=cfg.ref_speed, min_speed=cfg.ref_min_speed, max_omega=0.6,
+                              start_scale=2.0)
+    else:
+        ref = R.named(cfg.reference)
+    return ref.with_heading_offset(cfg.heading_offset) if cfg.heading_offset else ref
 
 
 def make_scenarios(ctrl, cfg: TuneConfig, g, key, n) -> Scenario:
@@ -234,6 +316,13 @@ def save_checkpoint(path: Path, cfg: TuneConfig, step, raw, opt_state, state: di
 def load_checkpoint(path: Path, cfg: TuneConfig, raw_template, opt_state_template):
     """(step, raw, opt_state, state) from a JSON checkpoint; ValueError if it is another configuration's
     or does not match the shapes of this configuration's parameters."""
+    try:
+        stored = json.loads(Path(path).read_text()).get("config", {}).get("problem")
+    except (OSError, ValueError, AttributeError):
+        stored = None                   # io.read_checkpoint reports what is wrong with the file
+    if stored is not None and stored != cfg.problem:
+        raise ValueError(f"checkpoint {path} is from problem {stored!r}, this run is problem {cfg.problem!r}: "
+                         "use another --out or --fresh")
     ck = io.read_checkpoint(path, fingerprint=cfg.fingerprint(), config=dataclasses.asdict(cfg),
                             templates={"raw": raw_template, "opt_state": opt_state_template})
     missing = sorted(set(STATE_KEYS) - set(ck.state))
@@ -246,14 +335,24 @@ def load_checkpoint(path: Path, cfg: TuneConfig, raw_template, opt_state_templat
 
 # --- the loop -----------------------------------------------------------------------------
 
+def objective(loss, ok):
+    """The training objective every method is compared on: the mean loss over the scenarios that
+    stayed valid plus :data:`FAILURE_PENALTY` times the fraction that failed."""
+    return loss + FAILURE_PENALTY * (1.0 - jnp.mean(ok.astype(loss.dtype)))
+
+
 def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None) -> dict:
     """Run (or resume) a tuning job; returns a dict with gains, histories and counts.
+
+    The optimizer steps on the mean loss of the valid training scenarios; every
+    ``eval_every`` steps the validation scenarios decide early stopping and which parameters
+    are returned (``best_raw``). The held-out scenarios are not used here.
 
     Args:
       out_dir: where ``checkpoint.json`` lives (None: no checkpointing).
       stop_after: stop after this many steps of *this* call (to test resumption).
     """
-    ctrl, spec, g, rcfg, train, heldout = build(cfg)
+    ctrl, spec, g, rcfg, train, validation, heldout = build(cfg)
     w_arr = jnp.asarray(cfg.weights, float)
     wts = LossWeights(*cfg.weights)
     cert = certificate_setup(ctrl, cfg.reference, g, cfg.t_final) if wts.certificate > 0 else None
@@ -288,17 +387,17 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
         n_ok = int(jnp.sum(ok))
         if n_ok == 0:
             raise RuntimeError(f"step {step}: every training scenario failed (non-finite or singular)")
-        total = float(loss + c_val)
+        total = float(objective(loss, ok) + c_val)
         state["rollouts"] += cfg.n_train
         state["excluded"] += cfg.n_train - n_ok
         rec = {"step": step, "train_loss": total, "rollouts": state["rollouts"], "excluded": cfg.n_train - n_ok,
                "params": np.asarray(spec.positive(raw)).tolist()}
         if (step + 1) % cfg.eval_every == 0 or step == 0 or step + 1 == cfg.steps:
-            ho, _, _ = batch_value(raw, heldout, ctrl, spec, g, rcfg, w_arr)
-            ho = float(ho + c_val)
-            rec["heldout_loss"] = ho
-            if state["best"] is None or ho < state["best"]:
-                state["best"], state["best_raw"], state["since_best"] = ho, np.asarray(raw).tolist(), 0
+            va, va_ok, _ = batch_value(raw, validation, ctrl, spec, g, rcfg, w_arr)
+            va = float(objective(va, va_ok) + c_val)
+            rec["validation_loss"] = va
+            if state["best"] is None or va < state["best"]:
+                state["best"], state["best_raw"], state["since_best"] = va, np.asarray(raw).tolist(), 0
             else:
                 state["since_best"] += 1
                 if state["since_best"] >= cfg.patience:
@@ -310,8 +409,10 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
         step += 1
         done_here += 1
         state["wall_time_s"] = time.perf_counter() - t0
-        log(f"step {step:4d}/{cfg.steps}  train {total:.5g}" + (f"  held-out {rec['heldout_loss']:.5g}" if "heldout_loss" in rec else "")
-            + f"  {'/'.join(spec.names())} {np.round(np.asarray(spec.positive(raw)), 3).tolist()}"
+        shown = np.round(np.asarray(spec.positive(raw)), 3)
+        log(f"step {step:4d}/{cfg.steps}  train {total:.5g}"
+            + (f"  validation {rec['validation_loss']:.5g}" if "validation_loss" in rec else "")
+            + (f"  {'/'.join(spec.names())} {shown.tolist()}" if shown.size <= 12 else f"  {shown.size} parameters")
             + (f"  excluded {cfg.n_train - n_ok}" if n_ok < cfg.n_train else "") + f"  ({state['wall_time_s']:.1f} s)")
         if ckpt is not None:
             save_checkpoint(ckpt, cfg, step, raw, opt_state, state)
@@ -320,26 +421,4 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
     finished = step >= cfg.steps or state["stopped_early"]
     return {"finished": finished, "raw": np.asarray(raw), "best_raw": np.asarray(state["best_raw"]),
             "state": state, "spec": spec, "ctrl": ctrl, "geometry": g, "rcfg": rcfg, "train": train,
-            "heldout": heldout, "w_arr": w_arr, "cert_term": cert_term}
-
-
-def random_search(cfg: TuneConfig, ctrl, spec, g, rcfg, train, w_arr, cert_term, budget_rollouts, key):
-    """Baseline: poles log-uniform in [search_low, search_high], same rollout budget (B per candidate)."""
-    n_cand = max(1, budget_rollouts // cfg.n_train)
-    u = np.asarray(jax.random.uniform(key, (n_cand,) + spec.shape))
-    lo = np.full(spec.r, np.log(cfg.search_low))
-    hi = np.full(spec.r, np.log(cfg.search_high))
-    if spec.parameterization == "damping":
-        lo[1:2 * (spec.r // 2):2], hi[1:2 * (spec.r // 2):2] = np.log(0.3), np.log(3.0)
-    positive = np.exp(lo + (hi - lo) * u)
-    raws = softplus_inverse(jnp.asarray(positive))
-    # every candidate at once (vmapped), one compiled program
-    vals = jax.vmap(lambda r: batch_value(r, train, ctrl, spec, g, rcfg, w_arr)[0] + cert_term(r))(raws)
-    losses = np.asarray(vals)
-    best_so_far = np.minimum.accumulate(losses)
-    i = int(np.argmin(losses))
-    return {"name": f"random search over {'/'.join(spec.names())} (log-uniform: frequencies and real poles in "
-                    f"[{cfg.search_low}, {cfg.search_high}], damping in [0.3, 3])", "candidates": n_cand,
-            "best_loss": float(losses[i]), "rollouts_to_best": (i + 1) * cfg.n_train,
-            "best_params": np.asarray(positive[i]).tolist(), "best_poles": spec.closed_loop_poles(raws[i]),
-            "best_so_far": best_so_far.tolist(), "rollouts_per_candidate": cfg.n_train}
+            "validation": validation, "heldout": heldout, "w_arr": w_arr, "cert_term": cert_term}

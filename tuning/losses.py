@@ -54,9 +54,12 @@ def scenario_loss(m: Metrics, w: LossWeights):
 
 
 def certificate_radius(gains, m1, ts, eps):
-    """Lemma 2 radius with the automatic Lyapunov K2 for these gains (differentiable in them)."""
+    """Lemma 2 radius for these gains (differentiable in them): the automatic Lyapunov K2 for
+    constant gains, :math:`K_2(t) = \|\Phi(t, 0)\|` for a :class:`wmrjax.GainSchedule`."""
     from wmrjax import linearize
 
-    A = linearize.companion(gains.coeffs)
-    k2 = certify.k2_lyapunov(A, ts)
+    if gains.coefficient_samples().shape[0] > 1:
+        k2 = certify.k2_transition(gains, ts)
+    else:
+        k2 = certify.k2_lyapunov(linearize.companion(gains.coeffs), ts)
     return jnp.min((m1 - eps) / k2)

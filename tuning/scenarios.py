@@ -51,55 +51,76 @@ class RolloutConfig(NamedTuple):
 
 
 def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, trajectory: bool = False):
-    """Simulate one scenario under the (velocity-level) linearizing law; returns :class:`Metrics`
-    (and with ``trajectory`` the sampled plant states and commands)."""
-    ext = ctrl.row.extension
+    """Simulate one scenario under the linearizing law; returns :class:`Metrics` (and with
+    ``trajectory`` the sampled states ``(X, controller state)`` and commands).
+
+    Velocity level: the plant is the kinematic model (5), the command the wheel velocities u.
+    Torque level (Lemma 1): the plant's state is (X, u), the command :math:`v = \dot u`; at
+    every sample the controller measures X (with noise) and the wheel velocities u and lifts u
+    into its compensator state (:meth:`wmrjax.controllers.law.LinearizingLaw.lift_measured`), so
+    saturation and mismatch act as on a robot. ``gains``: :class:`wmrjax.Gains` or a
+    :class:`wmrjax.GainSchedule`. Limits, scale and noise act on the command of the level.
+    """
+    law = ctrl.law
+    torque = ctrl.level == "torque"
     nX = ctrl.robot.n_state
     params = ctrl.params_unchecked(sc.reference, 1.0, nominal_geometry)._replace(gains=gains)
     h = cfg.control_dt / cfg.substeps
 
-    def plant(X, u):
-        return robots.kinematic(ctrl.robot, X, u, sc.plant_geometry)
+    def plant(xp, a):
+        """Kinematic model (5) with the plant's geometry; at torque level its velocities integrate v."""
+        if torque:
+            return jnp.concatenate([robots.kinematic(ctrl.robot, xp[:nX], xp[nX:], sc.plant_geometry), a])
+        return robots.kinematic(ctrl.robot, xp, a, sc.plant_geometry)
 
     def period(carry, k):
-        z, alive, acc, sign_prev = carry
+        xp, c, alive, acc, sign_prev = carry      # plant state, controller state (compensator [, U])
         t = k.astype(sc.noise_std.dtype) * cfg.control_dt
-        X, c = z[:nX], z[nX:]
+        X = xp[:nX]
         noise = sc.noise_std * jax.random.normal(jax.random.fold_in(sc.key, k), (nX,))
         zm = jnp.concatenate([X + noise, c])
+        if torque:
+            zm = law.lift_measured(zm, xp[nX:], nominal_geometry)     # measured wheel velocities
         U, regularity = ctrl.control_and_regularity(t, zm, params)
         margin = jnp.abs(regularity)
         sign = jnp.sign(regularity)
         crossed = sign_prev * sign < 0          # det K changed sign since the last sample: a crossing
-        u_cmd = ext.plant_input(zm[:nX], c, U, nominal_geometry)
-        u_true = jnp.clip(sc.input_scale * u_cmd, -sc.input_limit, sc.input_limit)
-        c_next = c + cfg.control_dt * ext.compensator(zm[:nX], c, U, nominal_geometry)   # digital integrator
+        cmd = law.plant_control(zm, U, nominal_geometry)
+        a_true = jnp.clip(sc.input_scale * cmd, -sc.input_limit, sc.input_limit)
+        c_next = zm[nX:] + cfg.control_dt * law.field(zm, U, nominal_geometry)[nX:]   # digital integrator
 
-        def sub(X, _):
-            k1 = plant(X, u_true)
-            k2 = plant(X + 0.5 * h * k1, u_true)
-            k3 = plant(X + 0.5 * h * k2, u_true)
-            k4 = plant(X + h * k3, u_true)
-            return X + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4), None
+        def sub(x, _):
+            k1 = plant(x, a_true)
+            k2 = plant(x + 0.5 * h * k1, a_true)
+            k3 = plant(x + 0.5 * h * k2, a_true)
+            k4 = plant(x + h * k3, a_true)
+            return x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4), None
 
-        X_next, _ = jax.lax.scan(sub, X, None, length=cfg.substeps)
+        xp_next, _ = jax.lax.scan(sub, xp, None, length=cfg.substeps)
+        z = jnp.concatenate([X, c])
         err = ctrl.error(t, z, params)[0]
-        excess = jax.nn.relu(jnp.abs(sc.input_scale * u_cmd) - sc.input_limit)
-        terms = jnp.stack([jnp.sum(err**2), jnp.sum(u_cmd**2), jnp.sum(jnp.where(jnp.isfinite(excess), excess, 0.0) ** 2),
+        excess = jax.nn.relu(jnp.abs(sc.input_scale * cmd) - sc.input_limit)
+        terms = jnp.stack([jnp.sum(err**2), jnp.sum(cmd**2), jnp.sum(jnp.where(jnp.isfinite(excess), excess, 0.0) ** 2),
                            jax.nn.relu(1.0 - margin / cfg.margin_safe) ** 2])
-        z_next = jnp.concatenate([X_next, c_next])
         regular = (margin > cfg.margin_floor) & ~crossed
-        ok = alive & jnp.all(jnp.isfinite(z_next)) & jnp.all(jnp.isfinite(terms)) & regular
+        ok = (alive & jnp.all(jnp.isfinite(xp_next)) & jnp.all(jnp.isfinite(c_next)) & jnp.all(jnp.isfinite(terms))
+              & regular)
         singular = alive & ~regular
-        z_keep = jnp.where(ok, z_next, z)                       # freeze a failed run: no NaN downstream
+        xp_keep = jnp.where(ok, xp_next, xp)                    # freeze a failed run: no NaN downstream
+        c_keep = jnp.where(ok, c_next, c)
         terms = jnp.where(ok, terms, 0.0)
         acc = (acc[0] + terms, jnp.minimum(acc[1], jnp.where(alive, margin, jnp.inf)), acc[2] | singular)
-        out = (z, u_cmd) if trajectory else None
-        return (z_keep, ok, acc, jnp.where(sign != 0, sign, sign_prev)), out
+        out = (z, cmd) if trajectory else None
+        return (xp_keep, c_keep, ok, acc, jnp.where(sign != 0, sign, sign_prev)), out
 
+    z0 = sc.z0
+    xp0 = z0[:nX]
+    if torque:
+        nv = law.n_velocity_state
+        xp0 = jnp.concatenate([xp0, law.extension.plant_input(z0[:nX], z0[nX:nv], z0[nv:], nominal_geometry)])
     acc0 = (jnp.zeros(4), jnp.asarray(jnp.inf), jnp.asarray(False))
-    (zf, alive, (tot, mmin, sing), _), traj = jax.lax.scan(period, (sc.z0, jnp.asarray(True), acc0, jnp.zeros(())),
-                                                           jnp.arange(cfg.n_periods))
+    (_, _, alive, (tot, mmin, sing), _), traj = jax.lax.scan(
+        period, (xp0, z0[nX:], jnp.asarray(True), acc0, jnp.zeros(())), jnp.arange(cfg.n_periods))
     mean = tot / cfg.n_periods
     m = Metrics(mean[0], mean[1], mean[2], mean[3], alive, sing, mmin)
     return (m, traj) if trajectory else m

@@ -269,12 +269,21 @@ class GainSchedule(NamedTuple):
             check_positive("lam (real pole magnitudes at the knots)", lam)
         return cls(jnp.asarray(ts), om, ze, lam)
 
-    def coeffs_at(self, t):
-        """The (m, r) Hurwitz coefficients at time t [s] (eq 49 with time-varying gains)."""
+    def damping_at(self, t):
+        """``(omega, zeta, lam)`` at time t [s]: (m, q), (m, q) and (m,) or None."""
         om = _hermite_log(self.times, self.omega, t)
         ze = _hermite_log(self.times, self.zeta, t)
-        lam = None if self.lam is None else _hermite_log(self.times, self.lam, t)
-        return damping_coefficients(om, ze, lam)
+        return om, ze, None if self.lam is None else _hermite_log(self.times, self.lam, t)
+
+    def parameters_at(self, t):
+        """(m, r) positive parameters at time t [s], per output ordered omega1, zeta1, ..., lam."""
+        om, ze, lam = self.damping_at(t)
+        out = jnp.stack([om, ze], axis=-1).reshape(om.shape[0], -1)
+        return out if lam is None else jnp.concatenate([out, lam[:, None]], axis=-1)
+
+    def coeffs_at(self, t):
+        """The (m, r) Hurwitz coefficients at time t [s] (eq 49 with time-varying gains)."""
+        return damping_coefficients(*self.damping_at(t))
 
     def coefficient_samples(self):
         """(K, m, r) coefficients at the knots."""
