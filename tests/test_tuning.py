@@ -13,7 +13,8 @@ from tuning import GainSpec, LossWeights, TuneConfig, batch_value, batch_value_a
 from tuning.losses import scenario_loss
 
 # one small configuration shared by several tests, so its compiled functions are reused
-TINY = TuneConfig(n_train=3, n_heldout=2, steps=6, t_final=2.0, control_dt=0.1, substeps=2, eval_every=2)
+TINY = TuneConfig(n_train=3, n_heldout=2, n_validation=2, steps=6, t_final=2.0, control_dt=0.1, substeps=2, eval_every=2,
+                  baseline_seeds=2)
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +37,7 @@ def test_gain_spec_maps_paper_poles_and_is_hurwitz(rng):
 
 
 def test_loss_gradient_matches_finite_differences(tiny):
-    ctrl, spec, g, rcfg, train, _ = tiny
+    ctrl, spec, g, rcfg, train, _, _ = tiny
     w = jnp.asarray(TINY.weights, float)
     raw = spec.init(1.3) + jnp.array([0.1, -0.2])
     loss, grad, ok, _ = batch_value_and_grad(raw, train, ctrl, spec, g, rcfg, w)
@@ -49,8 +50,20 @@ def test_loss_gradient_matches_finite_differences(tiny):
     np.testing.assert_allclose(float(loss), float(batch_value(raw, train, ctrl, spec, g, rcfg, w)[0]), rtol=1e-12)
 
 
+def test_constant_schedule_is_the_constant_gains(tiny):
+    """The tuner's rollout with a schedule whose knots all hold the paper's gains equals the
+    rollout with constant gains (same metrics to rounding): the law reads coeffs_at(t)."""
+    ctrl, spec, g, rcfg, train, _, _ = tiny
+    sspec = dataclasses.replace(spec, knots=(0.0, 1.0, 2.0))
+    wts = jnp.asarray(TINY.weights, float)
+    a = batch_value(spec.init(1.0), train, ctrl, spec, g, rcfg, wts)
+    b = batch_value(sspec.init(1.0), train, ctrl, sspec, g, rcfg, wts)
+    np.testing.assert_allclose(float(b[0]), float(a[0]), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(b[2].tracking), np.asarray(a[2].tracking), rtol=1e-12)
+
+
 def test_nan_scenario_is_reported_and_excluded(tiny):
-    ctrl, spec, g, rcfg, train, _ = tiny
+    ctrl, spec, g, rcfg, train, _, _ = tiny
     w = jnp.asarray(TINY.weights, float)
     raw = spec.init(1.0)
     bad = train._replace(input_scale=train.input_scale.at[0].set(jnp.nan))
@@ -112,24 +125,35 @@ def test_bad_tuning_input(tmp_path):
 
 
 def test_cli_writes_summary(tmp_path):
-    args = ["--out", str(tmp_path), "--n-train", "3", "--n-heldout", "2", "--steps", "6", "--t-final", "2",
-            "--control-dt", "0.1"]
+    args = ["--out", str(tmp_path), "--n-train", "3", "--n-heldout", "2", "--n-validation", "2", "--steps", "6",
+            "--t-final", "2", "--control-dt", "0.1", "--baseline-seeds", "2"]
     # substeps and eval_every are not CLI options: set them as in TINY to reuse its compilations
     import tuning.__main__ as cli
 
     cfg = dataclasses.replace(cli.config_from_args(cli.parser().parse_args(args)), substeps=2, eval_every=2)
+    assert cfg == TINY
     s = cli.run(cfg, tmp_path, fresh=True, log=lambda *_: None)
     on_disk = json.loads((tmp_path / "summary.json").read_text())
     hist = json.loads((tmp_path / "history.json").read_text())
-    assert on_disk["rollouts"] == 6 * 3 and len(hist["gradient"]) == 6
-    rs = hist["random_search_best_so_far"]                   # same budget: 18 rollouts = 6 candidates of 3
-    assert len(rs) == 6 and on_disk["baseline"]["best_loss"] == min(rs)
-    assert on_disk["baseline"]["rollouts_to_best"] == 3 * (1 + int(np.argmin(rs)))
+    assert on_disk["rollouts"] == 6 * 3 and len(hist["gradient"]) == 6 and on_disk["n_parameters"] == 2
+    # same budget (18 rollouts): random search 6 candidates of 3 scenarios; CMA-ES one generation of 4 + floor(3 ln 2) = 6
+    for name in ("random_search", "cma_es"):
+        runs = hist[name]
+        b = on_disk["baselines"][name]
+        assert len(runs) == 2 and all(len(r["best_so_far"]) == 6 for r in runs)
+        for r, per in zip(runs, b["per_seed"]):
+            assert per["best_loss"] == r["best_so_far"][-1]
+            assert per["rollouts_to_best"] == 3 * (1 + int(np.argmin(r["best_so_far"])))
+            want = next((h["rollouts"] for h in hist["gradient"] if h["train_loss"] <= per["best_loss"]), None)
+            assert per["gradient_rollouts_to_match"] == want
+        assert b["best_loss"] == float(np.median([p["best_loss"] for p in b["per_seed"]]))
+    assert on_disk["baselines"]["cma_es"]["population"] == 6
     assert on_disk["train_loss"]["initial"] == hist["gradient"][0]["train_loss"]
     assert on_disk["train_loss"]["final"] == hist["gradient"][-1]["train_loss"]
     ho = on_disk["heldout_loss"]
     np.testing.assert_allclose(ho["ratio_paper_over_tuned"], ho["paper_gains"] / ho["tuned"], rtol=1e-15)
     np.testing.assert_allclose(on_disk["initial_gains"]["coefficients_k0_to_kr-1"], [[1.0, 2.0]] * 2, rtol=1e-12)
-    for f in ("loss.png", "trajectories.png"):
+    for f in ("loss.png", "trajectories.png", "schedule.png"):
         assert (tmp_path / f).read_bytes()[:4] == b"\x89PNG"
     assert s["heldout_loss"] == on_disk["heldout_loss"]
+    assert set(on_disk["singularity_events"]) == {"paper_gains", "tuned"} and on_disk["wall_time_s"] > 0

@@ -54,7 +54,7 @@ def scenario_loss(m: Metrics, w: LossWeights):
 
 
 def certificate_radius(gains, m1, ts, eps):
-    """Lemma 2 radius for these gains (differentiable in them): the automatic Lyapunov K2 for
+    r"""Lemma 2 radius for these gains (differentiable in them): the automatic Lyapunov K2 for
     constant gains, :math:`K_2(t) = \|\Phi(t, 0)\|` for a :class:`wmrjax.GainSchedule`."""
     from wmrjax import linearize
 

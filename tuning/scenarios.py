@@ -51,7 +51,7 @@ class RolloutConfig(NamedTuple):
 
 
 def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, trajectory: bool = False):
-    """Simulate one scenario under the linearizing law; returns :class:`Metrics` (and with
+    r"""Simulate one scenario under the linearizing law; returns :class:`Metrics` (and with
     ``trajectory`` the sampled states ``(X, controller state)`` and commands).
 
     Velocity level: the plant is the kinematic model (5), the command the wheel velocities u.

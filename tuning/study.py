@@ -165,7 +165,7 @@ def run(args, log=print) -> dict:
     wr = csv.DictWriter(buf, fieldnames=list(rows[0]))
     wr.writeheader()
     wr.writerows(rows)
-    io.write_text(out / "study.csv", buf.getvalue())
+    io.write_bytes(out / "study.csv", buf.getvalue().encode())
     _figure(out, rows)
     summary = {"experiment": "tuning study", "problems": list(args.problems), "seeds": args.seeds,
                "statistic": "median [min, max] over seeds", "aggregate": agg, "table_markdown": table,

@@ -14,6 +14,7 @@ Nothing here is specific to a robot type: the paper's closed forms (eqs 39, 43, 
 
 from __future__ import annotations
 
+import functools
 from typing import Callable
 
 import jax
@@ -182,3 +183,59 @@ def transition_matrix(gains, t, *, n_steps: int | None = None):
     P0 = jnp.eye(r * m, dtype=jnp.result_type(t, float))
     P, _ = jax.lax.scan(step, P0, jnp.arange(n_steps, dtype=P0.dtype))
     return P
+
+
+def transition_matrices(gains, ts, *, max_step: float):
+    r""":math:`\Phi(t, 0)` at every time of a grid, integrated once along it.
+
+    RK4 on :math:`\dot\Phi = A(t)\Phi` from 0 through the sorted times, with the same number
+    of equal substeps in every interval, chosen so that none is longer than ``max_step``:
+    cost O(T + t_max / max_step) instead of O(T t_max / max_step) for
+    :func:`transition_matrix` at each time.
+
+    Args:
+      gains: :class:`wmrjax.Gains` or :class:`wmrjax.GainSchedule`.
+      ts: (T,) concrete times >= 0 [s], in any order.
+      max_step: largest RK4 step [s].
+
+    Returns:
+      (T, r m, r m) array, in the order of ``ts``.
+    """
+    import numpy as np
+
+    tv = np.asarray(ts, dtype=float)
+    if tv.ndim != 1 or not np.all(np.isfinite(tv)) or np.any(tv < 0):
+        raise ValueError(f"ts must be a 1-D array of finite times >= 0, got shape {tv.shape}")
+    order = np.argsort(tv, kind="stable")
+    grid = np.concatenate([[0.0], tv[order]])
+    gaps = np.diff(grid)
+    n_sub = max(1, int(np.ceil(gaps.max() / max_step - 1e-9))) if gaps.size else 1
+    inverse = np.empty_like(order)
+    inverse[order] = np.arange(order.size)
+    return _transition_grid(gains, jnp.asarray(grid, jnp.result_type(float)), jnp.asarray(inverse), n_sub)
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _transition_grid(gains, grid, inverse, n_sub: int):
+    """Phi(t, 0) at ``grid[1:]`` (sorted, from grid[0] = 0) by n_sub RK4 steps per interval, reordered by ``inverse``."""
+    m, r = gains.shape[-2:]
+    P0 = jnp.eye(r * m, dtype=grid.dtype)
+    field = lambda s, P: companion(gains.coeffs_at(s)) @ P
+
+    def interval(P, ab):
+        a, b = ab
+        h = (b - a) / n_sub
+
+        def step(P, k):
+            s = a + k * h
+            k1 = field(s, P)
+            k2 = field(s + 0.5 * h, P + 0.5 * h * k1)
+            k3 = field(s + 0.5 * h, P + 0.5 * h * k2)
+            k4 = field(s + h, P + h * k3)
+            return P + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
+
+        P, _ = jax.lax.scan(step, P, jnp.arange(n_sub, dtype=P0.dtype))
+        return P, P
+
+    _, Ps = jax.lax.scan(interval, P0, (grid[:-1], grid[1:]))
+    return Ps[inverse]

@@ -50,6 +50,7 @@ from wmrjax.certify.lemma2 import (  # noqa: F401
     k2_exact,
     k2_lyapunov,
     k2_transition,
+    transition_steps,
     k2_paper,
     lemma2,
     lyapunov_bound,

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import _math, linearize
-from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args, transition_steps
+from wmrjax.certify.lemma2 import TRANSITION_STEP, check_dynamic, check_lemma2_args, transition_steps
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 
 
@@ -154,21 +154,28 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     m1 = jax.vmap(lambda t: jnp.linalg.norm(C @ ctrl.reference_jet(t, params)[:r].reshape(-1)))(ts)
     check_lemma2_args(t_final=t_final, eps=eps, m1=m1)
     n_phi = transition_steps(t_final) if scheduled else None
-    rho, rad, t_star, worst = _exact_map(ctrl, params, P, C, jnp.asarray(eps, ts.dtype), ts, refine, n_phi)
+    Phis = linearize.transition_matrices(params.gains, np.asarray(ts), max_step=TRANSITION_STEP) if scheduled else None
+    rho, rad, t_star, worst = _exact_map(ctrl, params, P, C, jnp.asarray(eps, ts.dtype), ts, Phis, refine, n_phi)
     return ExactMapRadius(ts, rho, rad, t_star, worst)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 6, 7))
-def _exact_map(ctrl, params, P, C, eps, ts, refine, n_phi):
+@functools.partial(jax.jit, static_argnums=(0, 7, 8))
+def _exact_map(ctrl, params, P, C, eps, ts, Phis, refine, n_phi):
     """Grid minimum of rho(t), refined by golden section (one compiled program per type and slice shape).
-    ``n_phi``: RK4 steps of Phi(t, 0) for a gain schedule, None for expm(A t)."""
+    For a gain schedule ``Phis`` holds Phi(t, 0) on the grid and ``n_phi`` the RK4 steps of one
+    Phi(t, 0) off it; for constant gains both are None (expm(A t))."""
     r = ctrl.relative_degree
 
-    def rho_x(t):
+    def rho_x(t, Phi=None):
         a = C @ ctrl.reference_jet(t, params)[:r].reshape(-1)
-        return min_norm_to_ball(C @ linearize.transition_matrix(params.gains, t, n_steps=n_phi) @ P, a, eps)
+        if Phi is None:
+            Phi = linearize.transition_matrix(params.gains, t, n_steps=n_phi)
+        return min_norm_to_ball(C @ Phi @ P, a, eps)
 
-    rho = jax.vmap(lambda t: rho_x(t)[0])(ts)
+    if Phis is None:
+        rho = jax.vmap(lambda t: rho_x(t)[0])(ts)
+    else:
+        rho = jax.vmap(lambda t, Phi: rho_x(t, Phi)[0])(ts, Phis)
     i = jnp.argmin(rho)
     lo, hi = ts[jnp.maximum(i - 1, 0)], ts[jnp.minimum(i + 1, ts.shape[0] - 1)]
     lo, hi = _math.golden_section(lambda t: rho_x(t)[0], lo, hi, refine)

@@ -159,7 +159,7 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
                          f"too coarse: use a smaller dt ({exc})") from None
     A = ctrl.error_matrix(params.gains)
     if cert.lyapunov is None:        # a gain schedule: K2 = ||Phi(t, 0)|| only
-        k2s = {"exact_norm": lambda ts: k2_transition(params.gains, ts, t_final=t_final)}
+        k2s = {"exact_norm": lambda ts: k2_transition(params.gains, ts)}
     else:
         k2s = {"lyapunov": lambda ts: k2_lyapunov(A, ts), "exact_norm": lambda ts: k2_exact(A, ts)}
     if cert.paper is not None:
