@@ -76,8 +76,9 @@ def test_through_the_tuners_sampled_data_loop():
     from tuning.losses import LossWeights, scenario_loss
     from tuning.scenarios import rollout
 
-    cfg = TuneConfig(n_train=3, n_heldout=2, steps=2, t_final=1.0, control_dt=0.1, substeps=2)
-    ctrl, spec, g, rcfg, train, _ = build(cfg)
+    cfg = TuneConfig(n_train=3, n_heldout=2, n_validation=2, steps=2, t_final=1.0, control_dt=0.1, substeps=2,
+                     cma_population=2)
+    ctrl, spec, g, rcfg, train, _, _ = build(cfg)
     wts = LossWeights(*cfg.weights)
     # saturate the first scenario's wheels so the clip is active on part of the run
     train = train._replace(input_limit=train.input_limit.at[0].set(1.2))

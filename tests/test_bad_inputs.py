@@ -205,7 +205,7 @@ def test_api_refuses_bad_input_before_any_work(loop61, no_loops, call, match):
 
 CLIS = {"section_6_1": "experiments.section_6_1", "section_6_2": "experiments.section_6_2",
         "posture_tracking": "experiments.posture_tracking", "static_tracking": "experiments.static_tracking",
-        "certify": "experiments.certify", "benchmark": "experiments.benchmark", "tuning": "tuning.__main__"}
+        "certify": "experiments.certify", "benchmark": "experiments.benchmark", "tuning": "tuning.cli"}
 
 # every numeric option of every command line and the kind of value it takes
 OPTIONS = {
@@ -330,7 +330,8 @@ def test_corrupt_tuning_checkpoint_names_file_and_fresh(tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
     (out / "checkpoint.json").write_text('{"fingerprint": ')
-    err = _run_cli("tuning", ["--out", str(out), "--steps", "1", "--n-train", "2", "--n-heldout", "2"], tmp_path, capsys)
+    err = _run_cli("tuning", ["--out", str(out), "--steps", "1", "--n-train", "2", "--n-heldout", "2", "--cma-population", "2",
+                                "--baseline-budget", "2"], tmp_path, capsys)
     assert str(out / "checkpoint.json") in err and "--fresh" in err
 
 

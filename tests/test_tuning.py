@@ -118,7 +118,7 @@ def test_bad_tuning_input(tmp_path):
         TuneConfig(weights=(0.0,) * 5).check()
     with pytest.raises(ValueError, match="finite and > 0"):
         GainSpec(2, 2).init(-1.0)
-    from tuning.__main__ import main
+    from tuning.cli import main
 
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path), "--n-train", "0"])
@@ -128,7 +128,7 @@ def test_cli_writes_summary(tmp_path):
     args = ["--out", str(tmp_path), "--n-train", "3", "--n-heldout", "2", "--n-validation", "2", "--steps", "6",
             "--t-final", "2", "--control-dt", "0.1", "--baseline-seeds", "2"]
     # substeps and eval_every are not CLI options: set them as in TINY to reuse its compilations
-    import tuning.__main__ as cli
+    from tuning import cli
 
     cfg = dataclasses.replace(cli.config_from_args(cli.parser().parse_args(args)), substeps=2, eval_every=2)
     assert cfg == TINY

@@ -105,7 +105,7 @@ def test_presets_and_bad_tuning_problems(tmp_path):
     ck.write_text(json.dumps({"fingerprint": "x", "config": dataclasses.asdict(preset("torque_2_1")), "step": 1}))
     with pytest.raises(ValueError, match="from problem 'torque_2_1', this run is problem 'section_6_1'"):
         load_checkpoint(ck, TuneConfig(), None, None)
-    from tuning.__main__ import main
+    from tuning.cli import main
 
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path / "o"), "--problem", "car_schedule", "--knots", "1"])

@@ -73,6 +73,7 @@ class TuneConfig:
     min_damping: float = 0.0            # floor of every damping zeta (damping parameterization)
     ref_speed: float = 1.0              # random references: mean speed [m/s]
     ref_min_speed: float = 0.3          # random references: speed floor [m/s]
+    resample: bool = False              # fresh training scenarios every gradient step (stochastic gradient)
 
     def schedule_times(self) -> tuple:
         """The knot times [s] of the gain schedule, () for constant gains."""
@@ -228,6 +229,12 @@ def _reference(cfg, key):
     return ref.with_heading_offset(cfg.heading_offset) if cfg.heading_offset else ref
 
 
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _draw(ctrl, cfg, g, key):
+    """A fresh training batch (``resample``): n_train scenarios from ``key``."""
+    return make_scenarios(ctrl, cfg, g, key, cfg.n_train)
+
+
 def make_scenarios(ctrl, cfg: TuneConfig, g, key, n) -> Scenario:
     """n scenarios: initial errors x references x geometry/input-scale mismatch x noise keys."""
     nX, nu = ctrl.robot.n_state, ctrl.robot.n_input
@@ -344,7 +351,9 @@ def objective(loss, ok):
 def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None) -> dict:
     """Run (or resume) a tuning job; returns a dict with gains, histories and counts.
 
-    The optimizer steps on the mean loss of the valid training scenarios; every
+    The optimizer steps on the mean loss of the valid training scenarios (with ``resample``, a
+    fresh batch of n_train scenarios every step, and the recorded training objective is that of
+    the fixed training set the baselines use); every
     ``eval_every`` steps the validation scenarios decide early stopping and which parameters
     are returned (``best_raw``). The held-out scenarios are not used here.
 
@@ -381,13 +390,19 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
     t0 = time.perf_counter() - state["wall_time_s"]
     done_here = 0
     step = start
+    stream = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), 3)
     while step < cfg.steps and not state["stopped_early"]:
-        loss, grad, ok, m = batch_value_and_grad(raw, train, ctrl, spec, g, rcfg, w_arr)
+        batch = _draw(ctrl, cfg, g, jax.random.fold_in(stream, step)) if cfg.resample else train
+        loss, grad, ok, m = batch_value_and_grad(raw, batch, ctrl, spec, g, rcfg, w_arr)
         c_val, c_grad = cert_vg(raw)
         n_ok = int(jnp.sum(ok))
         if n_ok == 0:
             raise RuntimeError(f"step {step}: every training scenario failed (non-finite or singular)")
-        total = float(objective(loss, ok) + c_val)
+        if cfg.resample:        # the objective on the fixed training set, as the baselines see it (not counted)
+            tr, tr_ok, _ = batch_value(raw, train, ctrl, spec, g, rcfg, w_arr)
+            total = float(objective(tr, tr_ok) + c_val)
+        else:
+            total = float(objective(loss, ok) + c_val)
         state["rollouts"] += cfg.n_train
         state["excluded"] += cfg.n_train - n_ok
         rec = {"step": step, "train_loss": total, "rollouts": state["rollouts"], "excluded": cfg.n_train - n_ok,

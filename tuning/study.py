@@ -135,7 +135,7 @@ def run(args, log=print) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from tuning import __main__ as tuning_cli
+    from tuning import cli as tuning_cli
     from tuning.problems import preset
 
     out = Path(args.out)

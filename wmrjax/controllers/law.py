@@ -530,10 +530,11 @@ class LinearizingController:
         r""":math:`\tilde\zeta = \Psi(z) - \zeta_{ref}(t)`, shape (r, m); angle outputs wrapped."""
         return self.law.error(self.reference_jet(t, params), z, params.geometry)
 
-    def error_matrix(self, gains: Gains, t=0.0):
-        r"""Matrix A(t) with :math:`\dot{\tilde\zeta} = A(t) \tilde\zeta` on ``error(...).reshape(-1)``
-        (constant for :class:`wmrjax.Gains`; a :class:`wmrjax.GainSchedule` at time t [s])."""
-        return linearize.companion(gains.coeffs_at(t))
+    def error_matrix(self, gains: Gains):
+        r"""Matrix A with :math:`\dot{\tilde\zeta} = A \tilde\zeta` on ``error(...).reshape(-1)``
+        (a :class:`wmrjax.GainSchedule` gives its A(0); its transition matrix is
+        :func:`wmrjax.linearize.transition_matrix`)."""
+        return linearize.companion(gains.coeffs_at(0.0))
 
     def check_regular(self, z, params, name: str = "initial state") -> None:
         """Raise ValueError if a concrete ``z`` is on (or numerically at) the row's singular set."""
@@ -548,7 +549,7 @@ class LinearizingController:
                              f"{self.level} level; build them with its .params()), got {type(params).__name__}")
         shape = tuple(params.gains.shape)
         if shape[-2:] != (self.m, self.relative_degree):
-            raise ValueError(f"params.gains must be for shape ({self.m}, {self.relative_degree}) for this "
+            raise ValueError(f"params.gains.coeffs must have shape ({self.m}, {self.relative_degree}) for this "
                              f"{self._law_name} (type {self.robot.name}, {self.level} level: m = {self.m} outputs, "
                              f"relative degree {self.relative_degree}), got {shape}: parameters of another controller?")
         check_reference_type(params.reference)
