@@ -32,6 +32,9 @@ def test_schedule_spec_gives_a_schedule_and_starts_at_the_paper_gains():
     c = np.asarray(spec.gains(bumped).coeffs_at(5.0))
     assert c[0, 0] > 1.0 and np.allclose(c[1], [1.0, 3.0, 3.0])
     np.testing.assert_allclose(spec.gains(bumped).coeffs_at(0.0), [[1.0, 3.0, 3.0]] * 2, rtol=1e-12)
+    shared = GainSpec(2, 2, knots=(0.0, 1.0))                         # one schedule for both outputs
+    np.testing.assert_allclose(shared.coefficients(shared.init(1.0)), [[[1.0, 2.0]] * 2] * 2, rtol=1e-12)
+    assert shared.gains(shared.init(1.0)).shape == (2, 2)
     floor = GainSpec(2, 2, min_damping=0.5)
     np.testing.assert_allclose(floor.positive(floor.init(1.0)), [1.0, 1.0], rtol=1e-12)
     assert float(floor.positive(jnp.array([0.0, -50.0]))[1]) >= 0.5

@@ -120,7 +120,7 @@ class GainSpec:
     def coefficients(self, raw):
         """(m, r) coefficients of the error polynomial of each output ((K, m, r) at the knots of a schedule)."""
         p = self.positive(raw)
-        one = self._coeffs_one if self.shared else jax.vmap(self._coeffs_one)
+        one = (lambda q: self._coeffs_one(q)[None]) if self.shared else jax.vmap(self._coeffs_one)   # (1 or m, r)
         c = jax.vmap(one)(p) if self.knots else one(p)
         return jnp.broadcast_to(c, ((len(self.knots),) if self.knots else ()) + (self.m, self.r))
 
