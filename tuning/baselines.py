@@ -38,16 +38,18 @@ class BaselineRun(NamedTuple):
 
 
 def candidate_evaluator(objective_fn: Callable, shape, chunk: int = 16):
-    """``raws (N, *shape) -> objectives (N,)`` in compiled chunks of ``chunk`` candidates (one
-    program whatever N; the last chunk is padded with copies of the first candidate)."""
-    batched = jax.jit(jax.vmap(objective_fn))
+    """``evaluate(raws, scenarios) -> objectives (N,)``: ``objective_fn(raw, scenarios)`` of N
+    candidates ``raws (N, *shape)``, in compiled chunks of ``chunk`` (one program for any N and
+    for every scenario set of one size; the last chunk is padded with copies of the first
+    candidate). Non-finite objectives come back as +inf."""
+    batched = jax.jit(jax.vmap(objective_fn, in_axes=(0, None)))
 
-    def evaluate(raws):
+    def evaluate(raws, scenarios):
         raws = np.asarray(raws, float).reshape((-1,) + tuple(shape))
         n = raws.shape[0]
         pad = (-n) % chunk
         full = np.concatenate([raws, np.repeat(raws[:1], pad, axis=0)]) if pad else raws
-        vals = [np.asarray(batched(jnp.asarray(full[i:i + chunk]))) for i in range(0, full.shape[0], chunk)]
+        vals = [np.asarray(batched(jnp.asarray(full[i:i + chunk]), scenarios)) for i in range(0, full.shape[0], chunk)]
         v = np.concatenate(vals)[:n]
         return np.where(np.isfinite(v), v, np.inf)
 

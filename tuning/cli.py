@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import sys
 import time
 from pathlib import Path
@@ -142,14 +143,13 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
     tuned_raw = jnp.asarray(res["best_raw"])
     cert_term = res["cert_term"]
 
-    def objective_on(scen):
-        def f(raw):
-            val, ok, _ = loop.batch_value(raw, scen, ctrl, spec, g, rcfg, w_arr)
-            return loop.objective(val, ok) + cert_term(raw)
-        return f
+    def objective(raw, scen):
+        val, ok, _ = loop.batch_value(raw, scen, ctrl, spec, g, rcfg, w_arr)
+        return loop.objective(val, ok) + cert_term(raw)
 
-    train_eval = baselines.candidate_evaluator(objective_on(train), spec.shape)
-    heldout_eval = baselines.candidate_evaluator(objective_on(heldout), spec.shape)
+    evaluate_on = baselines.candidate_evaluator(objective, spec.shape)     # one program for both sets
+    train_eval = functools.partial(evaluate_on, scenarios=train)
+    heldout_eval = functools.partial(evaluate_on, scenarios=heldout)
 
     def evaluate(raw, scen):
         val, ok, m = loop.batch_value(raw, scen, ctrl, spec, g, rcfg, w_arr)
