@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import _math, linearize
-from wmrjax.certify.lemma2 import TRANSITION_STEP, check_dynamic, check_lemma2_args, transition_steps
+from wmrjax.certify.lemma2 import TRANSITION_STEP, check_dynamic, check_lemma2_args, m1_closed_form, transition_steps
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 
 
@@ -149,9 +149,8 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
         return curved_exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=basis)
     P = slice_basis(ctrl, basis)
     C = jnp.eye(ctrl.relative_degree * ctrl.m)[jnp.asarray(rows)]
-    r = ctrl.relative_degree
     ts = jnp.linspace(0.0, t_final, n_t)
-    m1 = jax.vmap(lambda t: jnp.linalg.norm(C @ ctrl.reference_jet(t, params)[:r].reshape(-1)))(ts)
+    m1 = _linear_m1(ctrl, params, C, ts)
     check_lemma2_args(t_final=t_final, eps=eps, m1=m1)
     n_phi = transition_steps(t_final) if scheduled else None
     Phis = linearize.transition_matrices(params.gains, np.asarray(ts), max_step=TRANSITION_STEP) if scheduled else None
@@ -234,14 +233,14 @@ def curved_exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *
     dtype = jnp.result_type(float)
     eps_a = jnp.asarray(eps, dtype)
     tg = jnp.linspace(0.0, t_final, 4001)
-    m1 = jax.vmap(lambda t: ctrl.singular_distance(ctrl.reference_jet(t, params), params))(tg)
+    m1 = m1_closed_form(ctrl, params, tg)
     check_lemma2_args(t_final=t_final, eps=eps, m1=m1)
     G = 2.0 * float(jnp.max(_zeta_ref_accel(ctrl, params, tg)))
     # a first upper bound from box centres over a full turn of headings around theta_ref
     t_c = (np.arange(n_t) + 0.5) * (t_final / n_t)
     n_phi0 = 2 * int(np.ceil(np.pi / phi_width)) + 1      # odd: the reference's own heading is one of them
     psi_c = np.linspace(-np.pi, np.pi, n_phi0)
-    theta_c = np.asarray(jax.vmap(lambda t: ctrl.reference_jet(t, params)[0, 2])(jnp.asarray(t_c)))
+    theta_c = np.asarray(_reference_heading(ctrl, params, jnp.asarray(t_c)))
     T, Ps = np.meshgrid(t_c, psi_c, indexing="ij")
     tt, pp = jnp.asarray(T.ravel()), jnp.asarray((Ps + theta_c[:, None]).ravel())
     ub0, x0 = _curved_centres(ctrl, params, P, eps_a, tt, pp)
@@ -285,6 +284,19 @@ def curved_exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *
                           jnp.asarray(t_best), jnp.asarray(worst), lower, (rho_up - lower) / rho_up, evaluated)
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _reference_heading(ctrl, params, ts):
+    return jax.vmap(lambda t: ctrl.reference_jet(t, params)[0, 2])(ts)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _linear_m1(ctrl, params, C, ts):
+    """||C zeta_ref(t)|| on a grid: the distance to a linear singular set {C zeta = 0}."""
+    r = ctrl.relative_degree
+    return jax.vmap(lambda t: jnp.linalg.norm(C @ ctrl.reference_jet(t, params)[:r].reshape(-1)))(ts)
+
+
+@functools.partial(jax.jit, static_argnums=0)
 def _zeta_ref_accel(ctrl, params, ts):
     """||d^2 zeta_ref / dt^2|| on a grid (the reference's output jet differentiated twice)."""
     r = ctrl.relative_degree

@@ -20,6 +20,7 @@ keeps the closed loop regular. This module computes
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -62,7 +63,12 @@ def m1_closed_form(ctrl: DynamicLinearization, params: DynamicParams, ts):
       (T,) array.
     """
     check_dynamic(ctrl, params)
-    return jax.vmap(lambda t: ctrl.singular_distance(ctrl.reference_jet(t, params), params))(jnp.asarray(ts))
+    return _m1_closed(ctrl, params, jnp.asarray(ts))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _m1_closed(ctrl, params, ts):
+    return jax.vmap(lambda t: ctrl.singular_distance(ctrl.reference_jet(t, params), params))(ts)
 
 
 def m1_numerical(ctrl: DynamicLinearization, params: DynamicParams, ts, iters: int = 40, damping: float = 1e-6):
@@ -82,6 +88,11 @@ def m1_numerical(ctrl: DynamicLinearization, params: DynamicParams, ts, iters: i
       (T,) array.
     """
     check_dynamic(ctrl, params)
+    return _m1_numerical(ctrl, params, jnp.asarray(ts), iters, damping)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 3, 4))
+def _m1_numerical(ctrl, params, ts, iters, damping):
     r = ctrl.relative_degree
 
     def dist_family(t, idx, val, dtheta):
@@ -115,7 +126,7 @@ def m1_numerical(ctrl: DynamicLinearization, params: DynamicParams, ts, iters: i
         # multi-start over the heading: from theta_ref alone LM can sit on a saddle
         return jnp.min(jnp.stack([dist_family(t, i, v, d) for i, v in fams for d in starts]))
 
-    return jax.vmap(one)(jnp.asarray(ts))
+    return jax.vmap(one)(ts)
 
 
 # --- K2 -------------------------------------------------------------------------------
@@ -164,8 +175,12 @@ def k2_lyapunov(A, ts):
 
 def k2_exact(A, ts):
     r"""The smallest valid K2: :math:`\|e^{At}\|_2` (largest singular value), vmapped over t."""
-    A = jnp.asarray(A)
-    return jax.vmap(lambda t: jnp.linalg.norm(jax.scipy.linalg.expm(A * t), ord=2))(jnp.asarray(ts))
+    return _k2_exact(jnp.asarray(A), jnp.asarray(ts))
+
+
+@jax.jit
+def _k2_exact(A, ts):
+    return jax.vmap(lambda t: jnp.linalg.norm(jax.scipy.linalg.expm(A * t), ord=2))(ts)
 
 
 TRANSITION_STEP = 1e-2   # [s] largest RK4 step of Phi(t, 0) for scheduled gains (error ~1e-10 at poles ~ -5)
