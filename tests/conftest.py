@@ -34,16 +34,3 @@ def paper61():
     z0 = ctrl.initial_state(zeta0, params)
     return ctrl, params, z0
 
-
-# `make test` runs `-n auto --dist loadfile`: each file is one unit of work, handed to the two
-# workers in collection order. Handing out the longest files first (their measured wall time,
-# longest first) keeps both workers busy until the end instead of leaving one to finish a long
-# file alone; the order of the tests within a file is unchanged.
-LONGEST_FIRST = ("test_dynamic.py", "test_certify_tightness.py", "test_static.py", "test_experiments.py",
-                 "test_sweep.py", "test_simulate.py", "test_experiments_bench.py", "test_autodiff.py",
-                 "test_guards.py", "test_tuning.py", "test_certify.py", "test_experiments_tracking.py")
-
-
-def pytest_collection_modifyitems(session, config, items):
-    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))     # stable
