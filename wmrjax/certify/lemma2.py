@@ -12,7 +12,9 @@ keeps the closed loop regular. This module computes
 * :math:`K_2(t)` three ways: the paper's (64), an automatic Lyapunov bound
   :math:`K_1 e^{-r_1 t}` for any Hurwitz gains, and the exact :math:`\|e^{At}\|_2` (valid
   because under the linearizing law the error obeys :math:`\dot{\tilde\zeta} = A\tilde\zeta`
-  exactly while the run is regular);
+  exactly while the run is regular); for a :class:`wmrjax.GainSchedule` the error obeys
+  :math:`\dot{\tilde\zeta} = A(t)\tilde\zeta` and :math:`K_2(t) = \|\Phi(t, 0)\|_2`
+  (:func:`k2_transition`) is the only certificate;
 * :math:`F(t)`, the certified radius :math:`\min_t F(t)` and condition (52);
 * :func:`wmrjax.certify.verify`: batch rollouts from initial errors sampled in and around a radius,
   counting violations of (53) and singularity events.
