@@ -168,20 +168,25 @@ def transition_matrix(gains, t, *, n_steps: int | None = None):
     if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
         raise ValueError(f"n_steps must be an integer >= 1 (RK4 steps over [0, t]), got {n_steps!r}")
     t = jnp.asarray(t)
-    h = t / n_steps
+    m, r = gains.shape[-2:]
+    P0 = jnp.eye(r * m, dtype=jnp.result_type(t, float))
+    return _rk4_transition(gains, P0, jnp.zeros((), P0.dtype), t, n_steps)
+
+
+def _rk4_transition(gains, P, a, b, n_steps: int):
+    """P advanced from time a to b by n_steps equal RK4 steps of dP/dt = A(t) P."""
+    h = (b - a) / n_steps
     field = lambda s, P: companion(gains.coeffs_at(s)) @ P
 
     def step(P, k):
-        s = k * h
+        s = a + k * h
         k1 = field(s, P)
         k2 = field(s + 0.5 * h, P + 0.5 * h * k1)
         k3 = field(s + 0.5 * h, P + 0.5 * h * k2)
         k4 = field(s + h, P + h * k3)
         return P + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
 
-    m, r = gains.shape[-2:]
-    P0 = jnp.eye(r * m, dtype=jnp.result_type(t, float))
-    P, _ = jax.lax.scan(step, P0, jnp.arange(n_steps, dtype=P0.dtype))
+    P, _ = jax.lax.scan(step, P, jnp.arange(n_steps, dtype=P.dtype))
     return P
 
 
@@ -220,21 +225,9 @@ def _transition_grid(gains, grid, inverse, n_sub: int):
     """Phi(t, 0) at ``grid[1:]`` (sorted, from grid[0] = 0) by n_sub RK4 steps per interval, reordered by ``inverse``."""
     m, r = gains.shape[-2:]
     P0 = jnp.eye(r * m, dtype=grid.dtype)
-    field = lambda s, P: companion(gains.coeffs_at(s)) @ P
 
     def interval(P, ab):
-        a, b = ab
-        h = (b - a) / n_sub
-
-        def step(P, k):
-            s = a + k * h
-            k1 = field(s, P)
-            k2 = field(s + 0.5 * h, P + 0.5 * h * k1)
-            k3 = field(s + 0.5 * h, P + 0.5 * h * k2)
-            k4 = field(s + h, P + h * k3)
-            return P + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
-
-        P, _ = jax.lax.scan(step, P, jnp.arange(n_sub, dtype=P0.dtype))
+        P = _rk4_transition(gains, P, ab[0], ab[1], n_sub)
         return P, P
 
     _, Ps = jax.lax.scan(interval, P0, (grid[:-1], grid[1:]))
