@@ -335,12 +335,15 @@ def _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw):
     t = np.arange(rcfg.n_periods) * rcfg.control_dt
     ref = np.asarray(jax.vmap(sc.reference.position)(t))
     axs[0].plot(ref[:, 0], ref[:, 1], "k--", lw=1.2, label="reference")
-    traced = jax.jit(lambda gains: rollout(ctrl, gains, g, sc, rcfg, trajectory=True))
+    params = ctrl.params_unchecked(sc.reference, 1.0, g)
+
+    @jax.jit
+    def traced(gains):          # the sampled states and their output errors, one program for both gains
+        _, (zs, _) = rollout(ctrl, gains, g, sc, rcfg, trajectory=True)
+        return zs, jax.vmap(lambda tt, z: ctrl.error(tt, z, params)[0])(jnp.asarray(t), zs)
+
     for raw, lab, c in ((paper_raw, "paper gains (poles -1)", "C3"), (tuned_raw, "tuned", "C0")):
-        m, (zs, us) = traced(spec.gains(raw))
-        zs = np.asarray(zs)
-        params = ctrl.params_unchecked(sc.reference, 1.0, g)
-        err = np.asarray(jax.vmap(lambda tt, z: ctrl.error(tt, z, params)[0])(t, zs))
+        zs, err = (np.asarray(x) for x in traced(spec.gains(raw)))
         axs[0].plot(zs[:, 0], zs[:, 1], c, lw=1.2, label=lab)
         axs[1].semilogy(t, np.maximum(np.hypot(err[:, 0], err[:, 1]), 1e-8), c, label=lab)
     axs[0].set_xlabel("x [m]")

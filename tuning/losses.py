@@ -58,7 +58,7 @@ def certificate_radius(gains, m1, ts, eps):
     constant gains, :math:`K_2(t) = \|\Phi(t, 0)\|` for a :class:`wmrjax.GainSchedule`."""
     from wmrjax import linearize
 
-    if gains.coefficient_samples().shape[0] > 1:
+    if gains.time_varying:
         k2 = certify.k2_transition(gains, ts)
     else:
         k2 = certify.k2_lyapunov(linearize.companion(gains.coeffs), ts)

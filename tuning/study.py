@@ -18,6 +18,7 @@ resumes from its checkpoint). The study writes
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io as _stdio
 import json
 import sys
@@ -42,14 +43,14 @@ def parser():
     return p
 
 
-def rows_of(problem: str, seed: int, s: dict) -> list[dict]:
-    """Table rows of one run's summary (one per method)."""
+def rows_of(problem: str, seed: int, s: dict, history: list[dict]) -> list[dict]:
+    """Table rows of one run's summary and gradient history (one per method)."""
     rows = [{"problem": problem, "method": "paper_gains", "seed": seed, "heldout_loss": s["heldout_loss"]["paper_gains"],
              "best_train_loss": s["train_loss"]["paper_gains"], "rollouts_to_best": 0,
              "gradient_rollouts_to_match": None, "singularity_events": s["singularity_events"]["paper_gains"],
              "wall_time_s": 0.0},
             {"problem": problem, "method": "gradient", "seed": seed, "heldout_loss": s["heldout_loss"]["tuned"],
-             "best_train_loss": min(h["train_loss"] for h in _history(s)), "rollouts_to_best": s["rollouts"],
+             "best_train_loss": min(h["train_loss"] for h in history), "rollouts_to_best": s["rollouts"],
              "gradient_rollouts_to_match": None, "singularity_events": s["singularity_events"]["tuned"],
              "wall_time_s": s["gradient_wall_time_s"]}]
     for name in ("cma_es", "random_search"):
@@ -59,10 +60,6 @@ def rows_of(problem: str, seed: int, s: dict) -> list[dict]:
                      "gradient_rollouts_to_match": b["gradient_rollouts_to_match"], "singularity_events": None,
                      "wall_time_s": s["baselines"][name]["wall_time_s"]})
     return rows
-
-
-def _history(s):
-    return s["_history"]
 
 
 def aggregate(rows: list[dict]) -> dict:
@@ -152,13 +149,13 @@ def run(args, log=print) -> dict:
             d = out / problem / f"seed_{seed}"
             done = d / "summary.json"
             s = json.loads(done.read_text()) if done.exists() else None
-            if s is None or s.get("config") != json.loads(json.dumps(_asdict(cfg))):
+            if s is None or s.get("config") != json.loads(json.dumps(dataclasses.asdict(cfg))):
                 log(f"{problem}, seed {seed}: running ({time.perf_counter() - t0:.0f} s so far)")
                 s = tuning_cli.run(cfg, d, log=lambda msg: None)
             else:
                 log(f"{problem}, seed {seed}: done earlier, kept")
-            s["_history"] = json.loads((d / "history.json").read_text())["gradient"]
-            rows += rows_of(problem, seed, s)
+            history = json.loads((d / "history.json").read_text())["gradient"]
+            rows += rows_of(problem, seed, s, history)
     agg = aggregate(rows)
     table = markdown(agg)
     buf = _stdio.StringIO()
@@ -173,12 +170,6 @@ def run(args, log=print) -> dict:
     io.write_json(out / "summary.json", summary)
     log(table)
     return summary
-
-
-def _asdict(cfg):
-    import dataclasses
-
-    return dataclasses.asdict(cfg)
 
 
 def _figure(out: Path, rows: list[dict]) -> None:

@@ -173,6 +173,8 @@ class Gains(NamedTuple):
         root = jnp.where(pos, jnp.sqrt(jnp.where(pos, disc, 1.0)), 0.0)   # double where: finite gradients at a double pole
         return jnp.where(disc >= 0, 0.5 * (k1 - root), jnp.nan)
 
+    time_varying = False      # a class constant, not a pytree leaf
+
     def coeffs_at(self, t):
         """The (m, r) coefficients at time t [s]: constant gains ignore t."""
         del t
@@ -236,6 +238,8 @@ class GainSchedule(NamedTuple):
     omega: jnp.ndarray
     zeta: jnp.ndarray
     lam: jnp.ndarray | None = None
+
+    time_varying = True
 
     @property
     def shape(self):

@@ -160,7 +160,7 @@ def transition_matrix(gains, t, *, n_steps: int | None = None):
       (r m, r m) matrix acting on ``zeta_err.reshape(-1)`` (:func:`companion`'s ordering).
     """
     if n_steps is None:
-        if gains.coefficient_samples().shape[0] != 1:
+        if gains.time_varying:
             raise ValueError("transition_matrix of a gain schedule needs n_steps (RK4 steps over [0, t]); "
                              "expm(A t) holds for constant gains only")
         A = companion(gains.coeffs_at(0.0))

@@ -140,7 +140,7 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     check_dynamic(ctrl, params)
     check_lemma2_args(t_final=t_final, eps=eps)
     rows = singular_rows(ctrl)
-    scheduled = params.gains.coefficient_samples().shape[0] > 1
+    scheduled = params.gains.time_varying
     if rows is None and scheduled:
         raise ValueError(f"the exact-map radius of type {ctrl.robot.name} (a curved singular set, branch and bound "
                          "with bounds from ||A||) is implemented for constant gains only, not a GainSchedule; "

@@ -302,7 +302,7 @@ def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
     check_lemma2_args(t_final=t_final, eps=eps)
     A = ctrl.error_matrix(params.gains)
     paper_k2 = ctrl.relative_degree == 2 and params.gains.is_double_pole(1.0)
-    scheduled = params.gains.coefficient_samples().shape[0] > 1
+    scheduled = params.gains.time_varying
 
     def certificates(ts):
         m1v = m1_closed_form(ctrl, params, ts) if m1 == "closed" else m1_numerical(ctrl, params, ts)
