@@ -217,8 +217,8 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
     if cert is not None:
         from tuning.losses import certificate_radius
 
-        radius = {k: float(certificate_radius(spec.gains(r), cert[1], cert[0], cert[2]))
-                  for k, r in (("paper_gains", paper_raw), ("tuned", tuned_raw))}
+        radius_of = jax.jit(lambda r: certificate_radius(spec.gains(r), cert[1], cert[0], cert[2]))
+        radius = {k: float(radius_of(r)) for k, r in (("paper_gains", paper_raw), ("tuned", tuned_raw))}
     summary = {
         "experiment": "tuning", "problem": cfg.problem, "config": dataclasses.asdict(cfg),
         "controller": f"{type(ctrl).__name__} of type {ctrl.robot.name}, {ctrl.level} level",
@@ -333,7 +333,7 @@ def _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw):
     sc = jax.tree_util.tree_map(lambda x: x[0], res["heldout"])
     fig, axs = plt.subplots(1, 2, figsize=(11, 4.4))
     t = np.arange(rcfg.n_periods) * rcfg.control_dt
-    ref = np.asarray(jax.vmap(sc.reference.position)(t))
+    ref = np.asarray(jax.jit(jax.vmap(sc.reference.position))(t))
     axs[0].plot(ref[:, 0], ref[:, 1], "k--", lw=1.2, label="reference")
     params = ctrl.params_unchecked(sc.reference, 1.0, g)
 

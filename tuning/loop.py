@@ -214,9 +214,9 @@ def build(cfg: TuneConfig):
     rcfg = RolloutConfig(cfg.t_final, cfg.control_dt, cfg.substeps)
     key = jax.random.PRNGKey(cfg.seed)
     k_tr, k_ho = jax.random.split(key)
-    train = make_scenarios(ctrl, cfg, g, k_tr, cfg.n_train)
-    heldout = make_scenarios(ctrl, cfg, g, k_ho, cfg.n_heldout)
-    validation = make_scenarios(ctrl, cfg, g, jax.random.fold_in(key, 2), cfg.n_validation)
+    train = _scenarios(ctrl, cfg, g, k_tr, cfg.n_train)
+    heldout = _scenarios(ctrl, cfg, g, k_ho, cfg.n_heldout)
+    validation = _scenarios(ctrl, cfg, g, jax.random.fold_in(key, 2), cfg.n_validation)
     return ctrl, spec, g, rcfg, train, validation, heldout
 
 
@@ -229,10 +229,9 @@ def _reference(cfg, key):
     return ref.with_heading_offset(cfg.heading_offset) if cfg.heading_offset else ref
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1))
 def _draw(ctrl, cfg, g, key):
     """A fresh training batch (``resample``): n_train scenarios from ``key``."""
-    return make_scenarios(ctrl, cfg, g, key, cfg.n_train)
+    return _scenarios(ctrl, cfg, g, key, cfg.n_train)
 
 
 def make_scenarios(ctrl, cfg: TuneConfig, g, key, n) -> Scenario:
@@ -268,6 +267,10 @@ def make_scenarios(ctrl, cfg: TuneConfig, g, key, n) -> Scenario:
 
 
 # --- compiled pieces (module level: repeated runs with one configuration reuse them) ---------
+
+# one program per (controller, configuration, count); eager, the scenario construction
+# dispatched a few hundred small operations, each compiled on its first use
+_scenarios = jax.jit(make_scenarios, static_argnums=(0, 1, 4))
 
 def _per_scenario(raw, sc, ctrl, spec, g, rcfg, w_arr):
     m = rollout(ctrl, spec.gains(raw), g, sc, rcfg)
@@ -380,6 +383,13 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
                       optax.adam(optax.cosine_decay_schedule(cfg.learning_rate, cfg.steps, alpha=0.1)))
     raw = spec.init(cfg.poles_init)
     opt_state = opt.init(raw)
+
+    @jax.jit
+    def update(grad, opt_state, raw):       # one program (eager, optax's update is ~30 small ones)
+        with jax.numpy_dtype_promotion("standard"):   # optax mixes its int32 step count with floats
+            upd, opt_state = opt.update(grad, opt_state, raw)
+        return optax.apply_updates(raw, upd), opt_state
+
     state = {"history": [], "best": None, "best_raw": None, "since_best": 0, "rollouts": 0, "excluded": 0,
              "wall_time_s": 0.0, "stopped_early": False}
     ckpt = Path(out_dir) / "checkpoint.json" if out_dir is not None else None
@@ -418,9 +428,7 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
                 if state["since_best"] >= cfg.patience:
                     state["stopped_early"] = True
         state["history"].append(rec)
-        with jax.numpy_dtype_promotion("standard"):   # optax mixes its int32 step count with floats
-            upd, opt_state = opt.update(grad + c_grad, opt_state, raw)
-        raw = optax.apply_updates(raw, upd)
+        raw, opt_state = update(grad + c_grad, opt_state, raw)
         step += 1
         done_here += 1
         state["wall_time_s"] = time.perf_counter() - t0
