@@ -23,12 +23,16 @@ import jax.numpy as jnp
 from jax.experimental import jet
 import numpy as np
 
-from wmrjax import _math
+from wmrjax import _math, _simplify
 from wmrjax._validate import concrete
 
 
 def taylor(fn: Callable, t, order: int):
     """Derivatives ``fn(t), fn'(t), ..., fn^{(order)}(t)`` by Taylor mode (``jax.experimental.jet``).
+
+    The expansion is re-emitted simplified (:mod:`wmrjax._simplify`): the input series of t
+    is (1, 0, 0, ...), and jet would otherwise convolve with its zeros (a circle's (1,1)
+    torque-level jet: 807 -> 330 equations).
 
     Args:
       fn: scalar-time function returning an array of any shape S.
@@ -41,9 +45,12 @@ def taylor(fn: Callable, t, order: int):
     if order == 0:
         return fn(t)[None]
     t = jnp.asarray(t, dtype=jnp.result_type(t, float))
-    one, zero = jnp.ones_like(t), jnp.zeros_like(t)
+
+    def expand(t):      # the input series (1, 0, 0, ...) is built inside, so its zeros fold away
+        return jet.jet(fn, (t,), ([jnp.ones_like(t)] + [jnp.zeros_like(t)] * (order - 1),))
+
     try:
-        y, terms = jet.jet(fn, (t,), ([one] + [zero] * (order - 1),))
+        y, terms = _simplify.simplify(expand)(t)
     except (KeyError, NotImplementedError):
         # a user's path with a primitive that has no Taylor rule (e.g. a loop): nested forward
         # mode gives the same derivatives with a larger program

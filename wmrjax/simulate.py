@@ -225,6 +225,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         crossed = sign_prev * sign < 0                              # det K changed sign since the last step
         if estimate:
             est = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1), _continuous(z)))
+            est = jnp.where(i == 0, 0.0, est)       # no previous step to compare with
             if est_ok is not None:      # no estimate across a discrete jump
                 est = jnp.where(est_ok, est, 0.0)
         else:
@@ -265,13 +266,15 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     inf = jnp.where(bad0, jnp.inf, jnp.inf * jnp.ones_like(first))
     zero = 0.0 * jnp.where(bad0, 0.0, first)
     diag0 = _Running(bad0, bad0 & False, bad0, jnp.where(bad0, t0, inf), inf, t0 + zero, zero)
-    k0, aux0 = field(t0, z0)
-    # k4_prev := k1 at t0, so that the first step's estimate is zero without a flag in the carry
-    carry = (_to_scalars(z0), ~bad0, diag0, zero, _continuous(k0) if estimate else (),
+    # shapes only: evaluating the field at t0 would put one more copy of it in the program
+    control0 = jax.eval_shape(field, t0, z0)[1].control
+    # k4_prev starts at zero; the first step's estimate is set to zero (step index 0)
+    carry = (_to_scalars(z0), ~bad0, diag0, zero,
+             jax.tree_util.tree_map(lambda x: 0.0 * x, _continuous(z0)) if estimate else (),
              None if post_step is None or not estimate else bad0 & False)
 
     n_saves = n_steps // save_every
-    rec0 = (z0, jnp.zeros_like(jnp.asarray(aux0.control)), inf, ~bad0)
+    rec0 = (z0, jnp.zeros(control0.shape, control0.dtype) + zero.astype(control0.dtype), inf, ~bad0)
 
     def inner(c, ij):
         # one step; keep the record of the first step of each saving chunk (one copy of
