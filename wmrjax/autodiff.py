@@ -7,13 +7,15 @@ to rounding, tested); they differ in cost:
 * ``"forward"``: forward sensitivities. The P scalar parameters' tangents are pushed through
   the rollout alongside the state (``jax.jvp``, batched over the P unit directions), so the
   time loop stays one primal loop carrying ``(z, dz/dtheta)``: no residual stack, memory of
-  a forward pass, and a cost of roughly ``1 + 2 P`` forward passes on XLA:CPU (measured:
-  8-10x a forward pass for the 4 gains of the section 6.1 loop).
+  a forward pass, and a cost of roughly ``1 + 2.4 P`` forward passes on XLA:CPU (measured:
+  10-11x a forward pass for the 4 gains of the section 6.1 loop).
 * ``"reverse"``: ``jax.value_and_grad`` through the rollout's checkpointed scan (one
   recomputation of each step, then its transpose; two-level checkpointing for long
-  horizons, see :func:`wmrjax.simulate`). Its cost does not grow with P, but the transposed
-  step of a linearizing law runs 15-20x slower than the forward step on XLA:CPU (19-22x a
-  forward pass in all for the section 6.1 loop).
+  horizons, see :func:`wmrjax.simulate`). Its cost does not grow with P, but XLA:CPU runs the
+  transposed step of the cheap section 6.1 law ~15x slower than its forward step (17-18x a
+  forward pass in all); for the heavy dynamic torque-level laws the whole gradient costs about
+  5x a forward pass (B = 256), so pass ``mode="reverse"`` for their long runs even with few
+  parameters (it compiles slower).
 * ``"auto"`` (default): forward for at most :data:`FORWARD_MAX_PARAMETERS` scalar
   parameters, reverse above.
 """
@@ -28,8 +30,8 @@ from jax.flatten_util import ravel_pytree
 
 MODES = ("auto", "forward", "reverse")
 
-# break-even of the two modes on XLA:CPU: forward costs ~1 + 2 P forward passes, reverse
-# ~19-22 whatever P (experiments/benchmark.py, gradient and gradient_many)
+# break-even of the two modes on XLA:CPU for the cheap laws: forward costs ~1 + 2.4 P forward
+# passes, reverse ~17-18 whatever P (experiments/benchmark.py, gradient and gradient_many)
 FORWARD_MAX_PARAMETERS = 8
 
 
