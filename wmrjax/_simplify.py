@@ -203,8 +203,35 @@ def _emit(eqn, invals, memo):
         i, negate = act
         x = lax.neg(_materialize(invals[i])) if negate else invals[i]
         return _cast(x, eqn.outvars[0].aval)
+    if eqn.primitive is lax.slice_p:
+        piece = _unit_slice(invals[0], eqn.params, memo)
+        if piece is not None:
+            return piece
     params = eqn.primitive.get_bind_params(eqn.params)
     return eqn.primitive.bind(*[_materialize(x) for x in invals], **params)
+
+
+def _unit_slice(x, params, memo):
+    """A slice one element wide along each axis it cuts, as a piece of one ``split`` of the
+    operand per axis (shared by every such slice of it), or None for other slices.
+
+    The value is the same; the transpose is not: reverse mode turns n slices of a vector into
+    n zero-padded vectors summed (quadratic work, a ``pad`` and an ``add`` each), and one
+    split into one ``concatenate``."""
+    start, limit, strides = params["start_indices"], params["limit_indices"], params["strides"]
+    shape = np.shape(x)
+    if (strides is not None and any(s != 1 for s in strides)) or not shape:
+        return None
+    cut = [a for a, (lo, hi, n) in enumerate(zip(start, limit, shape)) if (lo, hi) != (0, n)]
+    if not cut or any(limit[a] - start[a] != 1 for a in cut):
+        return None
+    piece = x
+    for a in cut:
+        key = ("split", id(piece), a)
+        if key not in memo:
+            memo[key] = (piece, lax.split(piece, [1] * shape[a], axis=a))
+        piece = memo[key][1][start[a]]
+    return piece
 
 
 def _cast(x, aval):

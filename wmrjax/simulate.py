@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wmrjax import _simplify
 from wmrjax._validate import check_finite, check_int, concrete, memory_bytes
 
 
@@ -178,8 +179,11 @@ def _all_equal(a, b):
 
 
 def _to_scalars(z):
-    """A state pytree as a flat tuple of scalars (structure of arrays under vmap)."""
-    return tuple(x for leaf in jax.tree_util.tree_leaves(z) for x in jnp.reshape(leaf, (-1,)))
+    """A state pytree as a flat tuple of scalars (structure of arrays under vmap).
+
+    One ``unstack`` per leaf, not one slice per component: reverse mode transposes it to one
+    ``stack`` instead of a zero-padded vector per component, summed."""
+    return tuple(x for leaf in jax.tree_util.tree_leaves(z) for x in jnp.unstack(jnp.reshape(leaf, (-1,))))
 
 
 def _from_scalars(scalars, like):
@@ -207,7 +211,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     error_tol = jnp.asarray(jnp.inf if error_tol is None else error_tol, dtype)
     # traced once, reused by the four RK stages and the final evaluation (XLA inlines it):
     # cuts tracing and compile time of the rollout and of its gradient several-fold
-    field = jax.jit(lambda t, z: system.vector_field(t, z, params))
+    field = jax.jit(_simplify.simplify(lambda t, z: system.vector_field(t, z, params)))
     post_step = getattr(system, "post_step", None)
 
     def step(carry, i):
