@@ -14,10 +14,14 @@ with much redundancy, which the compiler must then remove (slowly) or cannot rem
 *structural* zeros -- literals and constants equal to zero, and whatever zero-preserving
 operations compute from them: a product with a zero is zero, an added zero is dropped, an
 operation on zeros is not emitted -- and (2) emitting an operation that repeats an earlier
-one on the same operands only once (common-subexpression elimination). (1) is the algebra
-of Taylor coefficients (a constant's higher coefficients are exactly zero); (2) changes no
-value. Section 6.1's output jet goes from 911 to 575 equations; its rollout compiles in
-4.2 s instead of 5.7 s and runs bit for bit the same.
+one on the same operands only once (common-subexpression elimination), and (3) turning the
+slices that pick single elements out of an operand into the pieces of one ``split`` of it
+(per operand and axis). (1) is the algebra of Taylor coefficients (a constant's higher
+coefficients are exactly zero); (2) and (3) change no value. Section 6.1's output jet goes
+from 911 to 575 equations; its rollout compiles in 4.2 s instead of 5.7 s and runs bit for
+bit the same. (3) is for reverse mode: the transpose of n element slices is n zero-padded
+vectors summed, that of one split a single ``concatenate``; with it, the reverse-mode
+gradient of the section 6.1 loss costs 10x a forward pass instead of 18x.
 """
 
 from __future__ import annotations

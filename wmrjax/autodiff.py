@@ -11,11 +11,11 @@ to rounding, tested); they differ in cost:
   10-11x a forward pass for the 4 gains of the section 6.1 loop).
 * ``"reverse"``: ``jax.value_and_grad`` through the rollout's checkpointed scan (one
   recomputation of each step, then its transpose; two-level checkpointing for long
-  horizons, see :func:`wmrjax.simulate`). Its cost does not grow with P, but XLA:CPU runs the
-  transposed step of the cheap section 6.1 law ~15x slower than its forward step (17-18x a
-  forward pass in all); for the heavy dynamic torque-level laws the whole gradient costs about
-  5x a forward pass (B = 256), so pass ``mode="reverse"`` for their long runs even with few
-  parameters (it compiles slower).
+  horizons, see :func:`wmrjax.simulate`). Its cost does not grow with P: about 10x a forward
+  pass for the section 6.1 loop (4 or 64 parameters), 3.7-6.2x for the other laws measured
+  at B = 256 (the rollout's field is simplified so that its transpose stays small, see
+  ``wmrjax._simplify``). It compiles about 1.5x slower than forward mode and stores one
+  checkpoint per chunk of steps.
 * ``"auto"`` (default): forward for at most :data:`FORWARD_MAX_PARAMETERS` scalar
   parameters, reverse above.
 """
@@ -30,8 +30,10 @@ from jax.flatten_util import ravel_pytree
 
 MODES = ("auto", "forward", "reverse")
 
-# break-even of the two modes on XLA:CPU for the cheap laws: forward costs ~1 + 2.4 P forward
-# passes, reverse ~17-18 whatever P (experiments/benchmark.py, gradient and gradient_many)
+# forward costs ~1 + 2.4 P forward passes, reverse ~10 for the section 6.1 loop whatever P
+# (experiments/benchmark.py, gradient and gradient_many) and less for heavier laws, but reverse
+# compiles ~1.5x slower and keeps checkpoints: "auto" favours compile time and memory up to 8
+# parameters (pass mode="reverse" for long runs, see the README's performance notes)
 FORWARD_MAX_PARAMETERS = 8
 
 
