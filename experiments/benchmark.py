@@ -100,65 +100,97 @@ def c_ceiling(batches, source: Path):
 N_GROUPS = 16        # gradient_many: 16 groups x 4 pole parameters = 64 parameters
 
 
-def section_6_1_loss(ctrl, params, n_steps, groups=None):
-    """Mean squared position error of the section 6.1 loop over a batch of initial states.
+def section_6_1_per_example(ctrl, params, n_steps, groups=None):
+    """Squared position error of one section 6.1 trajectory, ``f(poles, z0, i)``.
 
-    ``loss(poles, z0s)``: ``poles`` (2, 2) shared by the batch, or (groups, 2, 2) with
-    trajectory i using group i mod groups. Gains broadcast per example: each trajectory
-    accumulates its own sensitivity and the batch is reduced once at the end.
+    ``poles`` (2, 2), or (groups, 2, 2) with trajectory ``i`` using group ``i mod groups``.
     """
     import jax
     import jax.numpy as jnp
 
     import wmrjax as w
 
+    def one(poles, z, i):
+        pl = poles if groups is None else poles[i % groups]
+        p = params._replace(gains=w.Gains.from_poles(pl))
+        tr = w.simulate(ctrl, z, p, dt=DT, n_steps=n_steps, save_every=10)
+        e = jax.vmap(lambda t, s: ctrl.error(t, s, p)[0])(tr.t, tr.state)  # position errors
+        return jnp.mean(jnp.sum(e**2, axis=-1))
+
+    return one
+
+
+def section_6_1_loss(ctrl, params, n_steps, groups=None):
+    """Mean squared position error of the section 6.1 loop over a batch of initial states.
+
+    ``loss(poles, z0s)``: the mean over the batch of :func:`section_6_1_per_example` (shared
+    poles broadcast per example: each trajectory accumulates its own sensitivity and the batch
+    is reduced once at the end).
+    """
+    import jax.numpy as jnp
+
+    import wmrjax as w
+
+    one = section_6_1_per_example(ctrl, params, n_steps, groups)
+
     def loss(poles, z0s):
         b = z0s.shape[0]
-        pb = jnp.broadcast_to(poles, (b,) + poles.shape) if groups is None else poles[jnp.arange(b) % groups]
-
-        def one(z, pl):
-            p = params._replace(gains=w.Gains.from_poles(pl))
-            tr = w.simulate(ctrl, z, p, dt=DT, n_steps=n_steps, save_every=10)
-            e = jax.vmap(lambda t, s: ctrl.error(t, s, p)[0])(tr.t, tr.state)  # position errors
-            return jnp.mean(jnp.sum(e**2, axis=-1))
-
-        return jnp.mean(w.batch_map(one, z0s, pb, chunk=512))
+        pb = jnp.broadcast_to(poles, (b,) + poles.shape)
+        return jnp.mean(w.batch_map(one, pb, z0s, jnp.arange(b), chunk=512))
 
     return loss
 
 
-def gradient_ratios(loss, theta, z0s, reps, modes, compiled: dict):
-    """Forward time and value-and-gradient time of ``loss(theta, z0s)`` per mode, same run.
+def section_6_1_batch_value_and_grad(ctrl, params, n_steps, groups=None, mode="auto"):
+    """``vg(poles, z0s) -> (loss, grad)`` of :func:`section_6_1_loss` by
+    :func:`wmrjax.batch_value_and_grad` (per-example reverse mode above 3 parameters)."""
+    import jax.numpy as jnp
 
-    ``ratio_grad_over_forward`` (and ``mode``) are for the first of ``modes``; the others are
-    reported as ``ratio_<mode>_mode``. Gradients of the modes are compared with each other.
-    ``compiled`` keeps the jitted functions per (loss, resolved mode), so that "auto" and the
-    mode it resolves to, and later batch sizes, reuse one function (and its compilations).
+    import wmrjax as w
+
+    vg = w.batch_value_and_grad(section_6_1_per_example(ctrl, params, n_steps, groups), mode=mode)
+    return lambda poles, z0s: vg(poles, z0s, jnp.arange(z0s.shape[0]))
+
+
+def gradient_ratios(loss, batch_vg, theta, z0s, reps, modes, compiled: dict):
+    """Forward time and value-and-gradient times of ``loss(theta, z0s)``, same run.
+
+    The headline (``method``, ``mode``, ``value_and_grad_s``, ``ratio_grad_over_forward``) is
+    ``batch_vg`` (:func:`wmrjax.batch_value_and_grad`, mode "auto"); each of ``modes`` is also
+    timed with :func:`wmrjax.value_and_grad` on the batch mean (``ratio_<mode>_mode``, "auto"
+    reported with the mode it resolved to). Every gradient is compared with the headline's.
+    ``compiled`` keeps the jitted functions per key, so that later batch sizes reuse them.
     """
     import jax
     import numpy as np
 
     import wmrjax as w
 
+    n = int(np.size(theta))
     fwd = compiled.setdefault((loss, "value"), jax.jit(loss))
     fwd(theta, z0s).block_until_ready()
     tf, val = _best_time(lambda: fwd(theta, z0s).block_until_ready(), reps)
-    out = {"n_parameters": int(np.size(theta)), "forward_s": tf, "loss_value": float(val)}
-    grads = {}
-    for i, mode in enumerate(modes):
-        resolved = w.autodiff.choose_mode(int(np.size(theta)), mode)
+    out = {"n_parameters": n, "forward_s": tf, "loss_value": float(val)}
+    bvg = compiled.setdefault((loss, "batch"), jax.jit(batch_vg))
+    jax.block_until_ready(bvg(theta, z0s))
+    tg, (v, g_head) = _best_time(lambda: jax.block_until_ready(bvg(theta, z0s)), reps)
+    g_head = np.asarray(g_head)
+    out.update(method="wmrjax.batch_value_and_grad",
+               mode=w.autodiff.choose_mode(n, "auto", w.autodiff.BATCH_FORWARD_MAX_PARAMETERS),
+               value_and_grad_s=tg, ratio_grad_over_forward=tg / tf, grad_finite=bool(np.all(np.isfinite(g_head))),
+               abs_diff_value_vs_forward_pass=abs(float(v) - float(val)))
+    diffs = {}
+    for mode in modes:
+        resolved = w.autodiff.choose_mode(n, mode)
         vg = compiled.setdefault((loss, resolved), jax.jit(w.value_and_grad(loss, mode=resolved)))
         jax.block_until_ready(vg(theta, z0s))
-        tg, (v, g) = _best_time(lambda: jax.block_until_ready(vg(theta, z0s)), reps)
-        grads[mode] = np.asarray(g)
-        if i == 0:
-            out.update(mode=resolved, value_and_grad_s=tg,
-                       ratio_grad_over_forward=tg / tf, grad_finite=bool(np.all(np.isfinite(grads[mode]))))
-        else:
-            out[f"value_and_grad_{mode}_mode_s"] = tg
-            out[f"ratio_{mode}_mode"] = tg / tf
-    if "forward" in grads and "reverse" in grads:
-        out["max_abs_diff_reverse_vs_forward_mode"] = float(np.max(np.abs(grads["forward"] - grads["reverse"])))
+        tm, (_, g) = _best_time(lambda: jax.block_until_ready(vg(theta, z0s)), reps)
+        key = f"value_and_grad_{mode}" + (f"_{resolved}" if mode == "auto" else "")
+        out[f"{key}_mode_s"] = tm
+        out[f"ratio_{key}_mode"] = tm / tf
+        diffs[key] = float(np.max(np.abs(np.asarray(g) - g_head)))
+    if diffs:
+        out["max_abs_diff_vs_headline_gradient"] = diffs
     return out
 
 
@@ -231,27 +263,35 @@ def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_traj
     # Gradients: value and gradient of a batch tracking loss relative to its forward pass
     zg = jnp.asarray(initial_states_numpy(grad_batch))
     loss = section_6_1_loss(ctrl, params, N_STEPS)
+    loss_vg = section_6_1_batch_value_and_grad(ctrl, params, N_STEPS)
     poles = jnp.ones((2, 2))
     compiled = {}
-    gradient = gradient_ratios(loss, poles, zg, reps, ("auto", "forward", "reverse"), compiled)
+    gradient = gradient_ratios(loss, loss_vg, poles, zg, reps, ("forward", "reverse"), compiled)
     gradient.update(batch=grad_batch, loss="mean squared position error, saved every 10 steps",
                     parameters="real closed-loop poles (2 outputs x 2), shared by the batch")
     print(f"gradient (B = {grad_batch}, {gradient['n_parameters']} parameters): "
-          f"{gradient['ratio_grad_over_forward']:.2f}x forward ({gradient['mode']}); forward sensitivities "
-          f"{gradient['ratio_forward_mode']:.2f}x, reverse {gradient['ratio_reverse_mode']:.2f}x", flush=True)
+          f"{gradient['ratio_grad_over_forward']:.2f}x forward (batch_value_and_grad, {gradient['mode']}); "
+          f"value_and_grad forward {gradient['ratio_value_and_grad_forward_mode']:.2f}x, "
+          f"reverse {gradient['ratio_value_and_grad_reverse_mode']:.2f}x", flush=True)
     many_poles = jnp.ones((N_GROUPS, 2, 2))
-    gradient_many = gradient_ratios(section_6_1_loss(ctrl, params, N_STEPS, groups=N_GROUPS), many_poles, zg, reps,
-                                    ("auto", "forward") if many_forward else ("auto",), compiled)
+    gradient_many = gradient_ratios(section_6_1_loss(ctrl, params, N_STEPS, groups=N_GROUPS),
+                                    section_6_1_batch_value_and_grad(ctrl, params, N_STEPS, groups=N_GROUPS),
+                                    many_poles, zg, reps, ("auto", "forward") if many_forward else ("auto",), compiled)
     gradient_many.update(batch=grad_batch, parameters=f"per-group poles: {N_GROUPS} groups of trajectories x 2 x 2")
     print(f"gradient_many ({gradient_many['n_parameters']} parameters): {gradient_many['ratio_grad_over_forward']:.2f}x "
-          f"({gradient_many['mode']})" + (f"; forward sensitivities {gradient_many['ratio_forward_mode']:.2f}x"
-                                           if many_forward else ""), flush=True)
+          f"(batch_value_and_grad, {gradient_many['mode']}); value_and_grad "
+          f"{gradient_many['ratio_value_and_grad_auto_reverse_mode']:.2f}x (reverse)"
+          + (f", forward sensitivities {gradient_many['ratio_value_and_grad_forward_mode']:.2f}x" if many_forward else ""),
+          flush=True)
     by_batch = {}
     for b in grad_batches:
-        r = gradient_ratios(loss, poles, jnp.asarray(initial_states_numpy(b)), max(1, reps // 2 if b > 10000 else reps),
-                            ("auto",), compiled)
-        by_batch[str(b)] = {k: r[k] for k in ("mode", "forward_s", "value_and_grad_s", "ratio_grad_over_forward")}
-        print(f"gradient_by_batch B = {b}: {r['ratio_grad_over_forward']:.2f}x ({r['mode']})", flush=True)
+        r = gradient_ratios(loss, loss_vg, poles, jnp.asarray(initial_states_numpy(b)),
+                            max(1, reps // 2 if b > 10000 else reps), ("auto",), compiled)
+        by_batch[str(b)] = {k: r[k] for k in ("method", "mode", "forward_s", "value_and_grad_s", "ratio_grad_over_forward",
+                                              "value_and_grad_auto_forward_mode_s",
+                                              "ratio_value_and_grad_auto_forward_mode")}
+        print(f"gradient_by_batch B = {b}: {r['ratio_grad_over_forward']:.2f}x (batch_value_and_grad, {r['mode']}); "
+              f"value_and_grad {r['ratio_value_and_grad_auto_forward_mode']:.2f}x (forward)", flush=True)
 
     summary = {
         "experiment": "benchmark",
@@ -326,6 +366,8 @@ def compile_worker(case: str, batch: int) -> dict:
     if case == "section_6_1":
         ctrl, params, _, _ = common.section_6_1_setup()
         loss, theta = section_6_1_loss(ctrl, params, N_STEPS), jnp.ones((2, 2))
+        vg = section_6_1_batch_value_and_grad(ctrl, params, N_STEPS)         # the gradient block's path
+        mode = w.autodiff.choose_mode(4, "auto", w.autodiff.BATCH_FORWARD_MAX_PARAMETERS)
         z0s = jnp.asarray(initial_states_numpy(batch))
     else:
         family, kind, level = case.split("/")
@@ -347,9 +389,10 @@ def compile_worker(case: str, batch: int) -> dict:
             e = jax.vmap(jax.vmap(lambda t, s: ctrl.error(t, s, p)[0]))(tr.t, tr.state)
             return jnp.mean(e**2)
 
-    out = {"n_parameters": int(np.size(theta)), "mode": w.autodiff.choose_mode(int(np.size(theta)))}
+        vg, mode = w.value_and_grad(loss), w.autodiff.choose_mode(int(np.size(theta)))
+    out = {"n_parameters": int(np.size(theta)), "mode": mode}
     out["forward_s"] = _first_call(jax.jit(loss), theta, z0s)
-    out["gradient_s"] = _first_call(jax.jit(w.value_and_grad(loss)), theta, z0s)
+    out["gradient_s"] = _first_call(jax.jit(vg), theta, z0s)
     return out
 
 
@@ -364,12 +407,13 @@ def memory_worker(n_steps: int, batch: int) -> dict:
     import wmrjax as w
 
     ctrl, params, _, _ = common.section_6_1_setup()
-    loss = section_6_1_loss(ctrl, params, n_steps)
+    vg = section_6_1_batch_value_and_grad(ctrl, params, n_steps)            # the gradient block's path
     poles = jnp.ones((2, 2))
     t0 = time.perf_counter()
-    v, g = jax.block_until_ready(jax.jit(w.value_and_grad(loss))(poles, jnp.asarray(initial_states_numpy(batch))))
+    v, g = jax.block_until_ready(jax.jit(vg)(poles, jnp.asarray(initial_states_numpy(batch))))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024          # Linux: kilobytes
-    return {"steps": n_steps, "batch": batch, "mode": w.autodiff.choose_mode(4), "peak_rss_bytes": int(peak),
+    return {"steps": n_steps, "batch": batch, "method": "wmrjax.batch_value_and_grad",
+            "mode": w.autodiff.choose_mode(4, "auto", w.autodiff.BATCH_FORWARD_MAX_PARAMETERS), "peak_rss_bytes": int(peak),
             "peak_rss_gb": peak / 1e9, "wall_s": time.perf_counter() - t0, "loss_value": float(v),
             "grad_finite": bool(jnp.all(jnp.isfinite(g)))}
 
@@ -450,7 +494,8 @@ def main(argv=None) -> int:
                                 "cached: a later process reading JAX's persistent compilation cache",
                         "forward_s": sec["forward_s"], "gradient_s": sec["gradient_s"],
                         "forward_cached_s": sec["forward_cached_s"], "gradient_cached_s": sec["gradient_cached_s"],
-                        "gradient_mode": sec["mode"],
+                        "gradient_mode": sec["mode"], "gradient_method": "wmrjax.batch_value_and_grad (section 6.1); "
+                                                                       "wmrjax.value_and_grad (by_type)",
                         "by_type_loss": f"mean squared output error of a vmapped {N_STEPS}-step rollout (dt 0.01) on "
                                         "a circle, gradient with respect to the Hurwitz coefficients (m x r)",
                         "by_type": compile_table(_compile_cases(), 64, a.devices) if a.compile_types == "all" else {}}

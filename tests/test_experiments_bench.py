@@ -23,6 +23,11 @@ def test_benchmark_cli_smoke(tmp_path):
     assert row["wmrjax_batch_map"] > 0 and row["numpy_vectorised"] > 0
     assert s["machine"]["jax_devices"] == 2
     g, many = s["gradient"], s["gradient_many"]
-    assert g["grad_finite"] and g["max_abs_diff_reverse_vs_forward_mode"] < 1e-12
-    assert (g["mode"], g["n_parameters"], many["mode"], many["n_parameters"]) == ("forward", 4, "reverse", 64)
+    # the headline (batch_value_and_grad, per-example reverse) equals value_and_grad in both modes
+    assert g["grad_finite"] and g["method"] == "wmrjax.batch_value_and_grad"
+    assert set(g["max_abs_diff_vs_headline_gradient"]) == {"value_and_grad_forward", "value_and_grad_reverse"}
+    assert max(g["max_abs_diff_vs_headline_gradient"].values()) < 1e-12
+    assert max(many["max_abs_diff_vs_headline_gradient"].values()) < 1e-12
+    assert g["abs_diff_value_vs_forward_pass"] < 1e-15
+    assert (g["mode"], g["n_parameters"], many["mode"], many["n_parameters"]) == ("reverse", 4, "reverse", 64)
     assert many["grad_finite"] and set(s["gradient_by_batch"]) == {"8"} and "compile" not in s and "memory" not in s
