@@ -23,9 +23,10 @@ to rounding, tested); they differ in cost:
 of independent rollouts with shared parameters. Its reverse mode differentiates each
 example on its own and batches the result (``vmap`` of the per-example ``vjp``), which
 XLA:CPU runs faster than the transpose of the batched loop that ``jax.grad`` of the batch
-mean builds (section 6.1 loop, B = 1024: 7.9x a forward pass against 10.3x with 64
-parameters, 8.0x against 10.2x with 4); its forward mode is :func:`value_and_grad`'s,
-which is the cheaper one up to :data:`BATCH_FORWARD_MAX_PARAMETERS` parameters.
+mean builds (section 6.1 loop, B = 1024, ``experiments.benchmark``: 6.9-8.1x a forward pass
+against 9.8-9.9x with 64 parameters, 7.1-7.6x against 10.0-10.6x with 4, in two runs); its
+forward mode is :func:`value_and_grad`'s, which is the cheaper one up to
+:data:`BATCH_FORWARD_MAX_PARAMETERS` parameters.
 """
 
 from __future__ import annotations
