@@ -186,6 +186,9 @@ def test_batch_value_and_grad_refuses_bad_input():
     f = lambda th, x: jnp.sum(th * x)
     with pytest.raises(ValueError, match="mode must be one of"):
         w.batch_value_and_grad(f, mode="adjoint")
+    for chunk in (0, 2.5, True):
+        with pytest.raises(ValueError, match="chunk must be a positive integer"):
+            w.batch_value_and_grad(f, chunk=chunk)
     with pytest.raises(ValueError, match="at least one batched argument"):
         w.batch_value_and_grad(lambda th: jnp.sum(th))(jnp.ones(2))
     with pytest.raises(ValueError, match="same leading batch size"):

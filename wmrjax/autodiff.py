@@ -147,10 +147,13 @@ def batch_value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has
       like the differentiated argument(s).
 
     Raises:
-      ValueError: an unknown ``mode`` (at once); no batched argument, or batched arguments
-        of different leading sizes, or a non-scalar per-example loss (when called).
+      ValueError: an unknown ``mode`` or a ``chunk`` that is not a positive integer (at once);
+        no batched argument, batched arguments of different leading sizes, or a non-scalar
+        per-example loss (when called).
     """
     choose_mode(0, mode)            # validate now, before anything is traced
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"chunk must be a positive integer (examples per chunk) or None, got {chunk!r}")
     single = isinstance(argnums, int)
     nums = (argnums,) if single else tuple(argnums)
 
@@ -165,6 +168,7 @@ def batch_value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has
         if b is None or any(jnp.ndim(x) == 0 or jnp.shape(x)[0] != b for x in leaves):
             raise ValueError("batch_value_and_grad: every leaf of the batched arguments needs the same leading "
                              f"batch size, got shapes {[jnp.shape(x) for x in leaves]}")
+
         def spread(a):     # shared arguments enter batch_map broadcast along the batch
             return [jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + jnp.shape(x)), v) if i in nums else v
                     for i, v in enumerate(a)]
