@@ -367,7 +367,7 @@ def compile_worker(case: str, batch: int) -> dict:
         ctrl, params, _, _ = common.section_6_1_setup()
         loss, theta = section_6_1_loss(ctrl, params, N_STEPS), jnp.ones((2, 2))
         vg = section_6_1_batch_value_and_grad(ctrl, params, N_STEPS)         # the gradient block's path
-        mode = w.autodiff.choose_mode(4, "auto", w.autodiff.BATCH_FORWARD_MAX_PARAMETERS)
+        mode = w.autodiff.choose_mode(int(np.size(theta)), "auto", w.autodiff.BATCH_FORWARD_MAX_PARAMETERS)
         z0s = jnp.asarray(initial_states_numpy(batch))
     else:
         family, kind, level = case.split("/")

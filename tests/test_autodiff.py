@@ -181,6 +181,18 @@ def test_batch_value_and_grad_auto_threshold():
     assert autodiff.choose_mode(lim + 1, "auto", lim) == "reverse"
     assert autodiff.choose_mode(lim + 1) == "forward"
 
+    # the dispatch itself: a per-example loss that reverse mode can differentiate and forward
+    # mode cannot (a custom_vjp) fails with lim parameters and works with lim + 1
+    sq = jax.custom_vjp(lambda u: u * u)
+    sq.defvjp(lambda u: (u * u, u), lambda u, ct: (2.0 * u * ct,))
+    per_example = lambda th, x: jnp.sum(sq(th * x))
+    x = jnp.arange(1.0, 1.0 + 2 * (lim + 1)).reshape(2, lim + 1)
+    with pytest.raises(TypeError, match="forward-mode"):
+        w.batch_value_and_grad(per_example)(jnp.ones(lim), x[:, :lim])
+    v, g = w.batch_value_and_grad(per_example)(jnp.ones(lim + 1), x)
+    np.testing.assert_allclose(g, jnp.mean(2.0 * x**2, axis=0), rtol=1e-15)
+    np.testing.assert_allclose(v, jnp.mean(jnp.sum(x**2, axis=1)), rtol=1e-15)
+
 
 def test_batch_value_and_grad_refuses_bad_input():
     f = lambda th, x: jnp.sum(th * x)

@@ -48,8 +48,8 @@ MODES = ("auto", "forward", "reverse")
 FORWARD_MAX_PARAMETERS = 8
 
 # batch_value_and_grad: forward sensitivities carried through the batched loop cost
-# ~1 + 2.4 P forward passes, per-example reverse ~8 whatever P (section 6.1 loop, B = 1024:
-# P = 2 forward 5.8x / reverse 7.6x, P = 4 forward 10.2x / reverse 8.0x)
+# ~1 + 2.4 P forward passes, per-example reverse 7-8 whatever P (section 6.1 loop, B = 1024:
+# P = 2 forward 5.8x / reverse 7.6x; P = 4 forward 10.0-10.7x / reverse 7.1-8.0x)
 BATCH_FORWARD_MAX_PARAMETERS = 3
 # per-example reverse mode: examples per batch_map chunk (its forward pass, residuals and
 # backward pass run chunk by chunk); 256 ran 6 % faster than 512 and 25 % faster than 64
@@ -160,14 +160,13 @@ def batch_value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has
     def wrapped(*args):
         if any(not 0 <= i < len(args) for i in nums):
             raise ValueError(f"argnums {nums} out of range for {len(args)} positional arguments")
-        batched = [jax.tree_util.tree_leaves(a) for i, a in enumerate(args) if i not in nums]
-        leaves = [x for ls in batched for x in ls]
+        leaves = jax.tree_util.tree_leaves([a for i, a in enumerate(args) if i not in nums])
         if not leaves:
             raise ValueError("batch_value_and_grad needs at least one batched argument (outside argnums)")
-        b = jnp.shape(leaves[0])[0] if jnp.ndim(leaves[0]) else None
-        if b is None or any(jnp.ndim(x) == 0 or jnp.shape(x)[0] != b for x in leaves):
-            raise ValueError("batch_value_and_grad: every leaf of the batched arguments needs the same leading "
-                             f"batch size, got shapes {[jnp.shape(x) for x in leaves]}")
+        if jnp.ndim(leaves[0]) == 0:
+            raise ValueError("batch_value_and_grad: the batched arguments need a leading batch axis (the same "
+                             f"leading batch size on every leaf), got shapes {[jnp.shape(x) for x in leaves]}")
+        b = jnp.shape(leaves[0])[0]         # batch_map checks that every other leaf has it too
 
         def spread(a):     # shared arguments enter batch_map broadcast along the batch
             return [jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + jnp.shape(x)), v) if i in nums else v
