@@ -1,0 +1,159 @@
+"""Scalarization of small-array programs: same values and derivatives, no array assembly left."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax import lax
+
+import wmrjax as w
+from wmrjax import _math, _scalarize, _simplify
+
+STRUCTURAL = {"concatenate", "stack", "unstack", "split", "slice", "transpose", "reshape", "broadcast_in_dim",
+              "dot_general", "pad", "rev", "squeeze", "reduce_sum", "reduce_max", "scatter", "iota"}
+
+
+def _prims(fun, *args):
+    return [e.primitive.name for e in jax.make_jaxpr(fun)(*args).jaxpr.eqns]
+
+
+def _mixed(x, m, v):
+    """Every structural rule: x (3,), m (2, 3), v (2,)."""
+    b = jnp.broadcast_to(x, (2, 3)) * m                          # broadcast_in_dim
+    t = b.T.reshape(6)[::2]                                      # transpose, reshape, strided slice
+    c = jnp.concatenate([t, v, jnp.stack([x[0], m[1, 2]])])      # concatenate, stack, squeeze
+    p = lax.pad(c, 0.5, [(-1, 2, 1)])                            # negative low, high, interior padding
+    r = jnp.flip(p)[1:4] + jnp.arange(3.0)                       # rev, iota
+    a, rest = jnp.split(m, [1], axis=0)                          # split
+    rows = jnp.unstack(m, axis=1)                                # unstack
+    d = m @ x + jnp.einsum("ij,ij->i", m, m) + a[0, :2] @ rest[0, :2]   # dot_general, batch dims
+    s = jnp.sum(b, axis=(0, 1)) - jnp.max(m, axis=0).sum() * jnp.prod(v) + jnp.min(m)
+    k = jnp.zeros(3).at[1].set(x[2])                             # scatter at static indices
+    sc, cc = _math.sincos(x)
+    e = jnp.where(x > 0.1, jnp.clip(x, -0.2, 0.3) ** 3, _math.atan2(x, 1.0 + x**2))
+    return r, d, s + rows[2][1], k + sc * cc, e, jnp.expand_dims(v, 0)
+
+
+@pytest.fixture(scope="module")
+def args():
+    rng = np.random.default_rng(3)
+    return jnp.asarray(rng.normal(size=3)), jnp.asarray(rng.normal(size=(2, 3))), jnp.asarray(rng.normal(size=2))
+
+
+def test_values_equal_the_array_program(args):
+    want = _mixed(*args)
+    got = jax.jit(_scalarize.scalarize(_mixed))(*args)
+    for a, b in zip(jax.tree_util.tree_leaves(want), jax.tree_util.tree_leaves(got)):
+        assert a.shape == b.shape and a.dtype == b.dtype
+        np.testing.assert_allclose(b, a, rtol=1e-14, atol=1e-15)
+
+
+def test_no_array_operation_is_left(args):
+    """Only the inputs' unstack and the outputs' stacks remain: everything else is scalar."""
+    prims = _prims(_scalarize.scalarize(_mixed), *args)
+    assert set(prims) & STRUCTURAL <= {"unstack", "stack", "reshape"}
+    assert prims.count("unstack") == 3                          # x, m and v, each taken apart once
+    assert "dot_general" not in prims and "concatenate" not in prims and "scatter" not in prims
+
+
+def test_derivatives_equal_those_of_the_array_program(args):
+    def total(f):
+        return lambda *a: sum(jnp.sum(jnp.sin(o)) for o in jax.tree_util.tree_leaves(f(*a)))
+
+    want = jax.grad(total(_mixed), argnums=(0, 1, 2))(*args)
+    got = jax.jit(jax.grad(total(_scalarize.scalarize(_mixed)), argnums=(0, 1, 2)))(*args)
+    for a, b in zip(want, got):
+        np.testing.assert_allclose(b, a, rtol=1e-13, atol=1e-14)
+    tangents = tuple(jnp.ones_like(a) for a in args)
+    _, jw = jax.jvp(_mixed, args, tangents)
+    _, jg = jax.jvp(_scalarize.scalarize(_mixed), args, tangents)
+    for a, b in zip(jax.tree_util.tree_leaves(jw), jax.tree_util.tree_leaves(jg)):
+        np.testing.assert_allclose(b, a, rtol=1e-13, atol=1e-14)
+
+
+def test_vmap_batches_elements_as_vectors(args):
+    xs = jnp.stack([args[0], 2.0 * args[0], -args[0]])
+    want = jax.vmap(lambda x: _mixed(x, args[1], args[2]))(xs)
+    got = jax.jit(jax.vmap(_scalarize.scalarize(lambda x: _mixed(x, args[1], args[2]))))(xs)
+    for a, b in zip(jax.tree_util.tree_leaves(want), jax.tree_util.tree_leaves(got)):
+        np.testing.assert_allclose(b, a, rtol=1e-14, atol=1e-15)
+
+
+def test_constants_are_folded_at_trace_time():
+    def f(x):
+        c = jnp.exp(lax.lgamma(jnp.asarray([3.0, 4.0])))      # (2, 6)
+        return x * c[0] + c[1]
+
+    prims = _prims(_scalarize.scalarize(f), 1.5)
+    assert "lgamma" not in prims and "exp" not in prims
+    np.testing.assert_allclose(_scalarize.scalarize(f)(1.5), 9.0, rtol=1e-14)
+
+
+def test_large_arrays_and_primitives_without_rules_stay_whole():
+    n = 9                                          # 81 elements > MAX_ELEMENTS
+    assert n * n > _scalarize.MAX_ELEMENTS
+
+    @jax.custom_jvp
+    def halved_slope(x):
+        return jnp.tanh(x)
+
+    halved_slope.defjvp(lambda p, t: (halved_slope(p[0]), 0.5 * t[0]))
+
+    def f(a, x):
+        y = jnp.cumsum(x)                                          # no rule
+        z = lax.cond(x[0] > 0, lambda u: u * 2.0, lambda u: -u, y)  # control flow
+        return a @ jnp.tile(z, 3) + halved_slope(x).sum()
+
+    a = jnp.asarray(np.random.default_rng(0).normal(size=(n, n)))
+    x = jnp.asarray([0.3, -0.2, 0.1])
+    prims = _prims(_scalarize.scalarize(f), a, x)
+    assert {"dot_general", "cumsum", "cond", "custom_jvp_call"} <= set(prims)
+    np.testing.assert_allclose(_scalarize.scalarize(f)(a, x), f(a, x), rtol=1e-14)
+    gx = jax.grad(lambda x: _scalarize.scalarize(f)(a, x).sum())(x)   # the custom rule is kept
+    np.testing.assert_allclose(gx, jax.grad(lambda x: f(a, x).sum())(x), rtol=1e-13)
+
+
+def test_closed_loop_field_of_every_law_is_unchanged(paper61):
+    """The section 6.1 field, scalarized and simplified: same values, a smaller program."""
+    ctrl, params, z0 = paper61[:3]
+    field = lambda t, z: ctrl.vector_field(t, z, params)
+    fast = _simplify.simplify(_scalarize.scalarize(_simplify.simplify(field)))
+    z = z0 + 0.01
+    for a, b in zip(jax.tree_util.tree_leaves(field(0.7, z)), jax.tree_util.tree_leaves(jax.jit(fast)(0.7, z))):
+        np.testing.assert_allclose(b, a, rtol=1e-13, atol=1e-15)
+    assert len(_prims(fast, 0.7, z)) < len(_prims(_simplify.simplify(field), 0.7, z)) / 2
+
+
+def test_simulate_loop_body_assembles_no_arrays(paper61):
+    """The scan bodies of a rollout's gradient (forward and transposed) assemble no arrays."""
+    ctrl, params, z0 = paper61[:3]
+
+    def loss(gains):
+        p = params._replace(gains=w.Gains(gains))
+        return jnp.sum(w.simulate(ctrl, z0, p, dt=0.01, n_steps=20, save_every=5).state[:, :2] ** 2)
+
+    jaxpr = jax.make_jaxpr(jax.grad(loss))(params.gains.coeffs).jaxpr
+
+    def scans(j):
+        for e in j.eqns:
+            if e.primitive.name == "scan":
+                yield e.params["jaxpr"].jaxpr
+            for sub in jax.extend.core.jaxprs_in_params(e.params):
+                yield from scans(sub)
+
+    def prims(j):
+        out = []
+        for e in j.eqns:
+            out.append(e.primitive.name)
+            for sub in jax.extend.core.jaxprs_in_params(e.params):
+                out += prims(sub)
+        return out
+
+    bodies = list(scans(jaxpr))
+    assert len(bodies) == 4                         # outer and inner loops, forward and backward
+    for body in bodies:
+        p = prims(body)
+        # the forward body assembles the saved sample (state and control), the backward one
+        # takes the sample's cotangent apart: nothing else, in particular nothing per RK stage
+        assert p.count("stack") <= 2 and p.count("unstack") <= 1, (p.count("stack"), p.count("unstack"))
+        assert not {"concatenate", "slice", "split", "transpose", "dot_general"} & set(p)
