@@ -19,6 +19,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+import wmrjax as w
 from wmrjax import robots
 from wmrjax.robots import Geometry
 from tuning.losses import Metrics
@@ -50,6 +51,11 @@ class RolloutConfig(NamedTuple):
         return int(round(self.t_final / self.control_dt))
 
 
+def _stack(parts, like):
+    """The vector of a tuple of scalars (empty: a (0,) vector of ``like``'s dtype)."""
+    return jnp.stack(parts) if parts else jnp.zeros((0,), jnp.result_type(like))
+
+
 def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, trajectory: bool = False):
     r"""Simulate one scenario under the linearizing law; returns :class:`Metrics` (and with
     ``trajectory`` the sampled states ``(X, controller state)`` and commands).
@@ -66,37 +72,47 @@ def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, tra
     nX = ctrl.robot.n_state
     params = ctrl.params_unchecked(sc.reference, 1.0, nominal_geometry)._replace(gains=gains)
     h = cfg.control_dt / cfg.substeps
+    # the loop bodies run on scalars (wmrjax.scalarized): states are carried as tuples of
+    # scalars, and the parameters and the scenario are taken apart once, here
+    parts, rebuild = w.scalar_parts((params, sc, nominal_geometry))
 
-    def plant(xp, a):
+    def plant(xp, a, sc):
         """Kinematic model (5) with the plant's geometry; at torque level its velocities integrate v."""
         if torque:
             return jnp.concatenate([robots.kinematic(ctrl.robot, xp[:nX], xp[nX:], sc.plant_geometry), a])
         return robots.kinematic(ctrl.robot, xp, a, sc.plant_geometry)
 
+    def substep(xs, a_sc):
+        a, sc = a_sc
+        x, a = jnp.stack(xs), jnp.stack(a)
+        k1 = plant(x, a, sc)
+        k2 = plant(x + 0.5 * h * k1, a, sc)
+        k3 = plant(x + 0.5 * h * k2, a, sc)
+        k4 = plant(x + h * k3, a, sc)
+        return tuple(jnp.unstack(x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)))
+
+    substep = w.scalarized(substep)
+
     def period(carry, k):
-        xp, c, alive, acc, sign_prev = carry      # plant state, controller state (compensator [, U])
+        xps, cs, alive, acc, sign_prev = carry      # plant state, controller state (compensator [, U])
+        params, sc, g = rebuild(parts)
+        xp, c = jnp.stack(xps), _stack(cs, xps[0])
         t = k.astype(sc.noise_std.dtype) * cfg.control_dt
         X = xp[:nX]
         noise = sc.noise_std * jax.random.normal(jax.random.fold_in(sc.key, k), (nX,))
         zm = jnp.concatenate([X + noise, c])
         if torque:
-            zm = law.lift_measured(zm, xp[nX:], nominal_geometry)     # measured wheel velocities
+            zm = law.lift_measured(zm, xp[nX:], g)     # measured wheel velocities
         U, regularity = ctrl.control_and_regularity(t, zm, params)
         margin = jnp.abs(regularity)
         sign = jnp.sign(regularity)
         crossed = sign_prev * sign < 0          # det K changed sign since the last sample: a crossing
-        cmd = law.plant_control(zm, U, nominal_geometry)
+        cmd = law.plant_control(zm, U, g)
         a_true = jnp.clip(sc.input_scale * cmd, -sc.input_limit, sc.input_limit)
-        c_next = zm[nX:] + cfg.control_dt * law.field(zm, U, nominal_geometry)[nX:]   # digital integrator
-
-        def sub(x, _):
-            k1 = plant(x, a_true)
-            k2 = plant(x + 0.5 * h * k1, a_true)
-            k3 = plant(x + 0.5 * h * k2, a_true)
-            k4 = plant(x + h * k3, a_true)
-            return x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4), None
-
-        xp_next, _ = jax.lax.scan(sub, xp, None, length=cfg.substeps)
+        c_next = zm[nX:] + cfg.control_dt * law.field(zm, U, g)[nX:]   # digital integrator
+        a_parts = (tuple(jnp.unstack(a_true)), sc)
+        xs_next, _ = jax.lax.scan(lambda x, _: (substep(x, a_parts), None), xps, None, length=cfg.substeps)
+        xp_next = jnp.stack(xs_next)
         z = jnp.concatenate([X, c])
         err = ctrl.error(t, z, params)[0]
         excess = jax.nn.relu(jnp.abs(sc.input_scale * cmd) - sc.input_limit)
@@ -111,7 +127,8 @@ def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, tra
         terms = jnp.where(ok, terms, 0.0)
         acc = (acc[0] + terms, jnp.minimum(acc[1], jnp.where(alive, margin, jnp.inf)), acc[2] | singular)
         out = (z, cmd) if trajectory else None
-        return (xp_keep, c_keep, ok, acc, jnp.where(sign != 0, sign, sign_prev)), out
+        return (tuple(jnp.unstack(xp_keep)), tuple(jnp.unstack(c_keep)), ok, acc,
+                jnp.where(sign != 0, sign, sign_prev)), out
 
     z0 = sc.z0
     xp0 = z0[:nX]
@@ -120,7 +137,8 @@ def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, tra
         xp0 = jnp.concatenate([xp0, law.extension.plant_input(z0[:nX], z0[nX:nv], z0[nv:], nominal_geometry)])
     acc0 = (jnp.zeros(4), jnp.asarray(jnp.inf), jnp.asarray(False))
     (_, _, alive, (tot, mmin, sing), _), traj = jax.lax.scan(
-        period, (xp0, z0[nX:], jnp.asarray(True), acc0, jnp.zeros(())), jnp.arange(cfg.n_periods))
+        w.scalarized(period), (tuple(jnp.unstack(xp0)), tuple(jnp.unstack(z0[nX:])), jnp.asarray(True), acc0,
+                               jnp.zeros(())), jnp.arange(cfg.n_periods))
     mean = tot / cfg.n_periods
     m = Metrics(mean[0], mean[1], mean[2], mean[3], alive, sing, mmin)
     return (m, traj) if trajectory else m

@@ -25,6 +25,16 @@ from wmrjax.controllers import (  # noqa: F401
 from wmrjax.gains import Gains, GainSchedule  # noqa: F401
 from wmrjax.references import Reference  # noqa: F401
 from wmrjax.robots import Geometry, RobotType, robot_type  # noqa: F401
-from wmrjax.simulate import Diagnostics, Trajectory, batch_map, batch_mesh, rk4_step, shard_batch, simulate  # noqa: F401
+from wmrjax.simulate import (  # noqa: F401
+    Diagnostics,
+    Trajectory,
+    batch_map,
+    batch_mesh,
+    rk4_step,
+    scalar_parts,
+    scalarized,
+    shard_batch,
+    simulate,
+)
 
 __version__ = "0.2.0"

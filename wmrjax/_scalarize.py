@@ -115,8 +115,21 @@ def _elementwise(eqn, ins):
 
 
 def _fold(op, items):
-    items = list(items)
-    return functools.reduce(lambda a, b: _bind_fn(op, a, b), items)
+    return functools.reduce(lambda a, b: _bind_fn(op, a, b), list(items))
+
+
+def _identity(name, dtype):
+    """The value of a reduction over no elements."""
+    dtype = np.dtype(dtype)
+    if name not in ("reduce_max", "reduce_min"):
+        value = {"reduce_sum": 0, "reduce_prod": 1, "reduce_and": True, "reduce_or": False}[name]
+    elif dtype.kind == "b":
+        value = name == "reduce_min"
+    elif dtype.kind == "f":
+        value = -np.inf if name == "reduce_max" else np.inf
+    else:
+        value = np.iinfo(dtype).min if name == "reduce_max" else np.iinfo(dtype).max
+    return np.asarray(value, dtype)[()]
 
 
 def _bind_fn(op, a, b):
@@ -126,15 +139,15 @@ def _bind_fn(op, a, b):
     return op(a, b)
 
 
-def _reduce(x, axes, op, aval):
+def _reduce(x, axes, name, aval):
     axes = tuple(sorted(axes))
     keep = [a for a in range(x.ndim) if a not in axes]
     xt = np.transpose(x, keep + list(axes))
     out_shape = xt.shape[:len(keep)]
-    xt = xt.reshape(out_shape + (-1,))
+    xt = xt.reshape(out_shape + (int(np.prod(xt.shape[len(keep):], dtype=int)),))
     out = np.empty(out_shape, dtype=object)
     for idx in np.ndindex(out_shape):
-        out[idx] = _fold(op, xt[idx])
+        out[idx] = _fold(_REDUCERS[name], xt[idx]) if xt.shape[-1] else _identity(name, aval.dtype)
     return out
 
 
@@ -248,7 +261,7 @@ def _structural(eqn, ins):
         arange = np.arange(aval.shape[p["dimension"]], dtype=aval.dtype).reshape(shape)
         return [_elements(np.broadcast_to(arange, aval.shape))]
     if name in _REDUCERS:
-        return [_reduce(x, p["axes"], _REDUCERS[name], eqn.outvars[0].aval)]
+        return [_reduce(x, p["axes"], name, eqn.outvars[0].aval)]
     if name == "dot_general":
         return [_dot_general(ins[0], ins[1], p, eqn.outvars[0].aval)]
     if name == "scatter":

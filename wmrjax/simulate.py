@@ -201,10 +201,44 @@ def _from_scalars(scalars, like):
     return jax.tree_util.tree_unflatten(treedef, out)
 
 
-def _take_apart(tree):
-    """``(parts, rebuild)``: the small floating leaves of ``tree`` as tuples of scalars (the
-    others as they are), and the inverse. A loop body that closes over scalars accumulates
-    their cotangents as scalars, instead of assembling an array per step."""
+def scalarized(fun):
+    """``fun`` re-emitted as operations on scalars, simplified: for the body of a loop over
+    a small state, batched with ``vmap``.
+
+    Every array of at most 64 elements in ``fun``'s traced program is held as its elements
+    (:mod:`wmrjax._scalarize`), then structural zeros and repeated operations are removed
+    (:mod:`wmrjax._simplify`). Under ``vmap`` each element is one contiguous batch vector, and
+    XLA:CPU compiles the body, and its transpose under reverse mode, into elementwise loops
+    with no array assembled or taken apart. :func:`simulate` runs its RK4 step this way; use
+    it for hand-written loops (the tuner's sampled-data rollout does). Pass the state as
+    scalars (a tuple) and close over parameters taken apart into scalars, or the body takes
+    them apart (and its transpose assembles them) at every call.
+
+    Args:
+      fun: a function of arrays (pytrees in and out), traceable by JAX.
+
+    Returns:
+      A function with ``fun``'s signature and values, up to the order of summation in dot
+      products and reductions (rounding).
+    """
+    return _simplify.simplify(_scalarize.scalarize(fun))
+
+
+def scalar_parts(tree):
+    """``(parts, rebuild)``: the small floating leaves of ``tree`` taken apart into tuples of
+    scalars (the other leaves as they are), and the function that puts them back together.
+
+    For the parameters of a loop body made with :func:`scalarized`: take them apart once,
+    outside the loop, and rebuild them inside the body (free there: scalarization turns the
+    rebuilding into a relabelling). The body then closes over scalars, and reverse mode
+    accumulates their cotangents as scalars instead of assembling an array at every step.
+
+    Args:
+      tree: a pytree of arrays (e.g. a controller's parameters).
+
+    Returns:
+      ``parts`` (a list, one entry per leaf) and ``rebuild(parts) -> tree``.
+    """
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     split = [_is_continuous(x) and np.ndim(x) > 0 and 0 < np.size(x) <= _scalarize.MAX_ELEMENTS for x in leaves]
     parts = [tuple(jnp.unstack(jnp.reshape(x, (-1,)))) if s else x for x, s in zip(leaves, split)]
@@ -233,10 +267,9 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     field = jax.jit(_simplify.simplify(lambda t, z: system.vector_field(t, z, params)))
     # the loop body's version: on scalars (see wmrjax._scalarize), with the parameters as an
     # argument that the body takes apart once, outside the loop
-    field_s = jax.jit(_simplify.simplify(_scalarize.scalarize(
-        _simplify.simplify(lambda t, z, p: system.vector_field(t, z, p)))))
+    field_s = jax.jit(scalarized(_simplify.simplify(lambda t, z, p: system.vector_field(t, z, p))))
     post_step = getattr(system, "post_step", None)
-    params_parts, rebuild_params = _take_apart(params)
+    params_parts, rebuild_params = scalar_parts(params)
 
     def step_on_scalars(carry, i, parts):
         zt, alive, diag, sign_prev, k4_prev, est_ok = carry   # est_ok is None without post_step
@@ -287,7 +320,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
 
     # One step as operations on scalars: under vmap, elementwise on batch vectors, with no
     # array assembled or taken apart inside the loop, forward or transposed.
-    step_on_scalars = _simplify.simplify(_scalarize.scalarize(step_on_scalars))
+    step_on_scalars = scalarized(step_on_scalars)
     # Reverse mode: rematerialise each step instead of storing its intermediates (the
     # jet of the linearizing law has hundreds); the backward pass then stays in cache.
     step = jax.checkpoint(lambda carry, i: step_on_scalars(carry, i, params_parts), prevent_cse=False)
