@@ -194,3 +194,39 @@ def test_scalarized_loop_body_with_scalar_parts_matches_the_array_loop():
     bodies = [e.params["jaxpr"].jaxpr for e in jaxpr.eqns if e.primitive.name == "scan"]
     assert len(bodies) == 2 and all({"stack", "unstack", "dot_general"}.isdisjoint(
         q.primitive.name for q in b.eqns) for b in bodies)
+
+
+def test_array_program_for_large_laws_equals_the_scalar_loop(paper61, monkeypatch):
+    """Laws above SCALAR_FIELD_MAX_EQUATIONS keep the array step: same rollout, same gradient."""
+    import importlib
+
+    simulate_module = importlib.import_module("wmrjax.simulate")   # the module (wmrjax.simulate is also the function)
+
+    ctrl, params, z0 = paper61[:3]
+
+    def run(gains):
+        p = params._replace(gains=w.Gains(gains))
+        tr = w.simulate(ctrl, z0, p, dt=0.01, n_steps=30, save_every=5)
+        return jnp.sum(tr.state[:, :2] ** 2), tr
+
+    def all_prims(j):
+        out = []
+        for e in j.eqns:
+            out.append(e.primitive.name)
+            for sub in jax.extend.core.jaxprs_in_params(e.params):
+                out += all_prims(sub)
+        return out
+
+    def array_ops():
+        prims = all_prims(jax.make_jaxpr(lambda g: run(g)[0])(params.gains.coeffs).jaxpr)
+        return sum(prims.count(p) for p in ("split", "slice", "concatenate", "stack", "unstack", "dot_general"))
+
+    (l1, tr1), g1 = jax.value_and_grad(run, has_aux=True)(params.gains.coeffs)
+    n_scalar = array_ops()
+    jax.clear_caches()
+    monkeypatch.setattr(simulate_module, "SCALAR_FIELD_MAX_EQUATIONS", 0)
+    (l2, tr2), g2 = jax.value_and_grad(run, has_aux=True)(params.gains.coeffs)
+    assert array_ops() > 4 * n_scalar        # the array step assembles and takes apart arrays in its field
+    np.testing.assert_allclose(tr2.state, tr1.state, rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(g2, g1, rtol=1e-11)
+    jax.clear_caches()

@@ -41,16 +41,16 @@ from wmrjax.simulate import batch_map
 
 MODES = ("auto", "forward", "reverse")
 
-# forward costs ~1 + 2.4 P forward passes, reverse ~10 for the section 6.1 loop whatever P
-# (experiments/benchmark.py, gradient and gradient_many) and less for heavier laws, but reverse
-# compiles ~1.5x slower and keeps checkpoints: "auto" favours compile time and memory up to 8
-# parameters (pass mode="reverse" for long runs, see the README's performance notes)
+# forward costs ~1 + 2.2 P forward passes, reverse through the batched loop ~8 for the section
+# 6.1 loop whatever P (B = 1024: P = 2 forward 5.6x / reverse 8.3x, P = 4 9.3x / 8.1x, P = 8
+# 17.3x / 7.9x), but reverse compiles ~1.5x slower and keeps checkpoints: "auto" favours compile
+# time and memory up to 8 parameters (pass mode="reverse" for long runs, see the README)
 FORWARD_MAX_PARAMETERS = 8
 
 # batch_value_and_grad: forward sensitivities carried through the batched loop cost
-# ~1 + 2.4 P forward passes, per-example reverse 7-8 whatever P (section 6.1 loop, B = 1024:
-# P = 2 forward 5.8x / reverse 7.6x; P = 4 forward 10.0-10.7x / reverse 7.1-8.0x)
-BATCH_FORWARD_MAX_PARAMETERS = 3
+# ~1 + 2.2 P forward passes, per-example reverse ~5 whatever P (section 6.1 loop, B = 1024,
+# scalarized step: P = 2 forward 5.5x / reverse 5.6x; P = 4 9.3x / 5.3x; P = 8 17.5x / 4.8x)
+BATCH_FORWARD_MAX_PARAMETERS = 2
 # per-example reverse mode: examples per batch_map chunk (its forward pass, residuals and
 # backward pass run chunk by chunk); 256 ran 6 % faster than 512 and 25 % faster than 64
 BATCH_REVERSE_CHUNK = 256

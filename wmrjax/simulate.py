@@ -40,6 +40,12 @@ from wmrjax._validate import check_finite, check_int, concrete, memory_bytes
 
 # from this many steps on, reverse-mode differentiation checkpoints the saving chunks too
 TWO_LEVEL_CHECKPOINT_STEPS = 2000
+# the loop body runs on scalars when the scalarized vector field has at most this many
+# equations. Beyond it, XLA:CPU's loop-fusion emitter (JAX 0.10.2) compiled the fused scalar
+# program of the two largest laws, dynamic (1,1) and (1,2) at torque level (1009 and 888
+# equations; the next largest has 485), into code 40-1000x slower than the array program,
+# after 40+ s of compilation: those keep the array program.
+SCALAR_FIELD_MAX_EQUATIONS = 600
 
 
 class Diagnostics(NamedTuple):
@@ -266,17 +272,25 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # cuts tracing and compile time of the rollout and of its gradient several-fold
     field = jax.jit(_simplify.simplify(lambda t, z: system.vector_field(t, z, params)))
     # the loop body's version: on scalars (see wmrjax._scalarize), with the parameters as an
-    # argument that the body takes apart once, outside the loop
-    field_s = jax.jit(scalarized(_simplify.simplify(lambda t, z, p: system.vector_field(t, z, p))))
+    # argument that the body takes apart once, outside the loop; laws whose scalar program is
+    # too large for XLA:CPU's loop emitter keep the array program (see SCALAR_FIELD_MAX_EQUATIONS)
+    field_scalar = scalarized(_simplify.simplify(lambda t, z, p: system.vector_field(t, z, p)))
+    on_scalars = len(jax.make_jaxpr(field_scalar)(t0, z0, params).eqns) <= SCALAR_FIELD_MAX_EQUATIONS
     post_step = getattr(system, "post_step", None)
-    params_parts, rebuild_params = scalar_parts(params)
+    if on_scalars:
+        field_s = jax.jit(field_scalar)
+        params_parts, rebuild_params = scalar_parts(params)
+        field_of = lambda p: (lambda t, z: field_s(t, z, p))
+    else:
+        params_parts, rebuild_params = (), lambda parts: params
+        field_of = lambda p: field
 
     def step_on_scalars(carry, i, parts):
         zt, alive, diag, sign_prev, k4_prev, est_ok = carry   # est_ok is None without post_step
         p = rebuild_params(parts)
         z = _from_scalars(zt, z0)
         t = t0 + i.astype(dtype) * dt
-        z_next, aux, k1, k4 = _rk4(lambda t, z: field_s(t, z, p), t, z, dt)
+        z_next, aux, k1, k4 = _rk4(field_of(p), t, z, dt)
         jumped = None
         if post_step is not None:   # hybrid systems: discrete transition at the end of the step
             z_post = post_step(t + dt, z_next, p)
@@ -320,7 +334,8 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
 
     # One step as operations on scalars: under vmap, elementwise on batch vectors, with no
     # array assembled or taken apart inside the loop, forward or transposed.
-    step_on_scalars = scalarized(step_on_scalars)
+    if on_scalars:
+        step_on_scalars = scalarized(step_on_scalars)
     # Reverse mode: rematerialise each step instead of storing its intermediates (the
     # jet of the linearizing law has hundreds); the backward pass then stays in cache.
     step = jax.checkpoint(lambda carry, i: step_on_scalars(carry, i, params_parts), prevent_cse=False)
