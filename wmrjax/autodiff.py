@@ -7,15 +7,14 @@ to rounding, tested); they differ in cost:
 * ``"forward"``: forward sensitivities. The P scalar parameters' tangents are pushed through
   the rollout alongside the state (``jax.jvp``, batched over the P unit directions), so the
   time loop stays one primal loop carrying ``(z, dz/dtheta)``: no residual stack, memory of
-  a forward pass, and a cost of roughly ``1 + 2.4 P`` forward passes on XLA:CPU (measured:
-  10-11x a forward pass for the 4 gains of the section 6.1 loop).
+  a forward pass, and a cost of roughly ``1 + 2.2 P`` forward passes on XLA:CPU (measured:
+  9.3x a forward pass for the 4 gains of the section 6.1 loop).
 * ``"reverse"``: ``jax.value_and_grad`` through the rollout's checkpointed scan (one
   recomputation of each step, then its transpose; two-level checkpointing for long
-  horizons, see :func:`wmrjax.simulate`). Its cost does not grow with P: about 10x a forward
-  pass for the section 6.1 loop (4 or 64 parameters), 3.7-6.2x for the other laws measured
-  at B = 256 (the rollout's field is simplified so that its transpose stays small, see
-  ``wmrjax._simplify``). It compiles about 1.5x slower than forward mode and stores one
-  checkpoint per chunk of steps.
+  horizons, see :func:`wmrjax.simulate`). Its cost does not grow with P: about 8x a forward
+  pass through the batch mean of the section 6.1 loop (4, 8 or 64 parameters; the step runs
+  on scalars, see :func:`wmrjax.scalarized`, so that its transpose assembles no arrays). It
+  compiles about 1.5x slower than forward mode and stores one checkpoint per chunk of steps.
 * ``"auto"`` (default): forward for at most :data:`FORWARD_MAX_PARAMETERS` scalar
   parameters, reverse above.
 
@@ -23,9 +22,8 @@ to rounding, tested); they differ in cost:
 of independent rollouts with shared parameters. Its reverse mode differentiates each
 example on its own and batches the result (``vmap`` of the per-example ``vjp``), which
 XLA:CPU runs faster than the transpose of the batched loop that ``jax.grad`` of the batch
-mean builds (section 6.1 loop, B = 1024, ``experiments.benchmark``: 6.9-8.1x a forward pass
-against 9.8-9.9x with 64 parameters, 7.1-7.6x against 10.0-10.6x with 4, in two runs); its
-forward mode is :func:`value_and_grad`'s, which is the cheaper one up to
+mean builds (section 6.1 loop, B = 1024: 5.3x a forward pass with 4 parameters, 4.8x with 8,
+against 8.1x and 7.9x); its forward mode is :func:`value_and_grad`'s, the cheaper one up to
 :data:`BATCH_FORWARD_MAX_PARAMETERS` parameters.
 """
 
