@@ -230,3 +230,17 @@ def test_array_program_for_large_laws_equals_the_scalar_loop(paper61, monkeypatc
     np.testing.assert_allclose(tr2.state, tr1.state, rtol=1e-13, atol=1e-14)
     np.testing.assert_allclose(g2, g1, rtol=1e-11)
     jax.clear_caches()
+
+
+def test_scalarizes_picks_the_scalar_step_for_all_but_the_two_largest_laws():
+    """The size rule of simulate (and of the tuner's loop): the (2,0) velocity law runs on
+    scalars, the dynamic (1,2) torque law (888 scalar equations) keeps the array step."""
+    from wmrjax import references
+
+    out = {}
+    for kind, level in (("(2,0)", "velocity"), ("(1,2)", "torque")):
+        ctrl = w.dynamic_linearization(kind, level)
+        ref = references.circle(radius=2.0, omega=0.4, heading_offset=getattr(ctrl.row, "default_heading_offset", 0.0))
+        params = ctrl.params(ref, poles=1.5, geometry=ctrl.row.default_geometry)
+        out[kind] = w.scalarizes(ctrl, ctrl.reference_state(0.0, params), params)
+    assert out == {"(2,0)": True, "(1,2)": False}

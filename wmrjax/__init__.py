@@ -33,6 +33,7 @@ from wmrjax.simulate import (  # noqa: F401
     rk4_step,
     scalar_parts,
     scalarized,
+    scalarizes,
     shard_batch,
     simulate,
 )

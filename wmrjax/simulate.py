@@ -256,6 +256,22 @@ def scalar_parts(tree):
     return parts, rebuild
 
 
+def scalarizes(system, z, params, t=0.0) -> bool:
+    """Whether :func:`simulate` runs ``system``'s step on scalars (:func:`scalarized`).
+
+    True when the scalarized vector field has at most :data:`SCALAR_FIELD_MAX_EQUATIONS`
+    equations; larger laws keep the array step (XLA:CPU's loop emitter turns their fused
+    scalar program into far slower code). Hand-written loops over the same law (the tuner's)
+    use it to make the same choice. Traces the field once; nothing is compiled.
+
+    Args:
+      system: a closed loop (``vector_field(t, z, params) -> (dz, aux)``).
+      z: a state (unbatched), params: its parameters, t: a time [s].
+    """
+    scalar = scalarized(_simplify.simplify(lambda t, z, p: system.vector_field(t, z, p)))
+    return len(jax.make_jaxpr(scalar)(t, z, params).eqns) <= SCALAR_FIELD_MAX_EQUATIONS
+
+
 def _first_float(z):
     leaves = [x for x in jax.tree_util.tree_leaves(z) if _is_continuous(x)]
     return jnp.reshape(leaves[0], (-1,))[0]
@@ -274,11 +290,10 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # the loop body's version: on scalars (see wmrjax._scalarize), with the parameters as an
     # argument that the body takes apart once, outside the loop; laws whose scalar program is
     # too large for XLA:CPU's loop emitter keep the array program (see SCALAR_FIELD_MAX_EQUATIONS)
-    field_scalar = scalarized(_simplify.simplify(lambda t, z, p: system.vector_field(t, z, p)))
-    on_scalars = len(jax.make_jaxpr(field_scalar)(t0, z0, params).eqns) <= SCALAR_FIELD_MAX_EQUATIONS
+    on_scalars = scalarizes(system, z0, params, t0)
     post_step = getattr(system, "post_step", None)
     if on_scalars:
-        field_s = jax.jit(field_scalar)
+        field_s = jax.jit(scalarized(_simplify.simplify(lambda t, z, p: system.vector_field(t, z, p))))
         params_parts, rebuild_params = scalar_parts(params)
         field_of = lambda p: (lambda t, z: field_s(t, z, p))
     else:
