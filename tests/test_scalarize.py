@@ -17,6 +17,16 @@ def _prims(fun, *args):
     return [e.primitive.name for e in jax.make_jaxpr(fun)(*args).jaxpr.eqns]
 
 
+def _all_prims(jaxpr):
+    """Primitive names of a jaxpr and of every jaxpr nested in it (loop bodies, calls)."""
+    out = []
+    for e in jaxpr.eqns:
+        out.append(e.primitive.name)
+        for sub in jax.extend.core.jaxprs_in_params(e.params):
+            out += _all_prims(sub)
+    return out
+
+
 def _mixed(x, m, v):
     """Every structural rule: x (3,), m (2, 3), v (2,)."""
     b = jnp.broadcast_to(x, (2, 3)) * m                          # broadcast_in_dim
@@ -113,7 +123,7 @@ def test_large_arrays_and_primitives_without_rules_stay_whole():
     np.testing.assert_allclose(gx, jax.grad(lambda x: f(a, x).sum())(x), rtol=1e-13)
 
 
-def test_closed_loop_field_of_every_law_is_unchanged(paper61):
+def test_section_6_1_field_is_unchanged_and_smaller(paper61):
     """The section 6.1 field, scalarized and simplified: same values, a smaller program."""
     ctrl, params, z0 = paper61[:3]
     field = lambda t, z: ctrl.vector_field(t, z, params)
@@ -141,18 +151,10 @@ def test_simulate_loop_body_assembles_no_arrays(paper61):
             for sub in jax.extend.core.jaxprs_in_params(e.params):
                 yield from scans(sub)
 
-    def prims(j):
-        out = []
-        for e in j.eqns:
-            out.append(e.primitive.name)
-            for sub in jax.extend.core.jaxprs_in_params(e.params):
-                out += prims(sub)
-        return out
-
     bodies = list(scans(jaxpr))
     assert len(bodies) == 4                         # outer and inner loops, forward and backward
     for body in bodies:
-        p = prims(body)
+        p = _all_prims(body)
         # the forward body assembles the saved sample (state and control), the backward one
         # takes the sample's cotangent apart: nothing else, in particular nothing per RK stage
         assert p.count("stack") <= 2 and p.count("unstack") <= 1, (p.count("stack"), p.count("unstack"))
@@ -209,16 +211,8 @@ def test_array_program_for_large_laws_equals_the_scalar_loop(paper61, monkeypatc
         tr = w.simulate(ctrl, z0, p, dt=0.01, n_steps=30, save_every=5)
         return jnp.sum(tr.state[:, :2] ** 2), tr
 
-    def all_prims(j):
-        out = []
-        for e in j.eqns:
-            out.append(e.primitive.name)
-            for sub in jax.extend.core.jaxprs_in_params(e.params):
-                out += all_prims(sub)
-        return out
-
     def array_ops():
-        prims = all_prims(jax.make_jaxpr(lambda g: run(g)[0])(params.gains.coeffs).jaxpr)
+        prims = _all_prims(jax.make_jaxpr(lambda g: run(g)[0])(params.gains.coeffs).jaxpr)
         return sum(prims.count(p) for p in ("split", "slice", "concatenate", "stack", "unstack", "dot_general"))
 
     (l1, tr1), g1 = jax.value_and_grad(run, has_aux=True)(params.gains.coeffs)
