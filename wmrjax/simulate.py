@@ -32,6 +32,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.extend import core as jex_core
 import numpy as np
 
 from wmrjax import _scalarize, _simplify
@@ -268,8 +269,21 @@ def scalarizes(system, z, params, t=0.0) -> bool:
       system: a closed loop (``vector_field(t, z, params) -> (dz, aux)``).
       z: a state (unbatched), params: its parameters, t: a time [s].
     """
+    return _scalar_field(system, t, z, params)[1] <= SCALAR_FIELD_MAX_EQUATIONS
+
+
+def _scalar_field(system, t, z, params):
+    """``(field(t, z, p), n)``: ``system``'s vector field on scalars, traced once at the avals of
+    ``(t, z, params)`` (calls with the same avals replay that program), and its equation count."""
     scalar = scalarized(_simplify.simplify(lambda t, z, p: system.vector_field(t, z, p)))
-    return len(jax.make_jaxpr(scalar)(t, z, params).eqns) <= SCALAR_FIELD_MAX_EQUATIONS
+    closed, shapes = jax.make_jaxpr(scalar, return_shape=True)(t, z, params)
+    out_tree = jax.tree_util.tree_structure(shapes)
+    replay = jex_core.jaxpr_as_fun(closed)
+
+    def field(t, z, p):
+        return jax.tree_util.tree_unflatten(out_tree, replay(*jax.tree_util.tree_leaves((t, z, p))))
+
+    return field, len(closed.jaxpr.eqns)
 
 
 def _first_float(z):
@@ -290,10 +304,10 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # the loop body's version: on scalars (see wmrjax._scalarize), with the parameters as an
     # argument that the body takes apart once, outside the loop; laws whose scalar program is
     # too large for XLA:CPU's loop emitter keep the array program (see SCALAR_FIELD_MAX_EQUATIONS)
-    on_scalars = scalarizes(system, z0, params, t0)
+    field_s, n_scalar = _scalar_field(system, t0, z0, params)
+    on_scalars = n_scalar <= SCALAR_FIELD_MAX_EQUATIONS          # the rule of scalarizes()
     post_step = getattr(system, "post_step", None)
     if on_scalars:
-        field_s = jax.jit(scalarized(_simplify.simplify(lambda t, z, p: system.vector_field(t, z, p))))
         params_parts, rebuild_params = scalar_parts(params)
         field_of = lambda p: (lambda t, z: field_s(t, z, p))
     else:
