@@ -198,8 +198,23 @@ def test_scalarized_loop_body_with_scalar_parts_matches_the_array_loop():
         q.primitive.name for q in b.eqns) for b in bodies)
 
 
-def test_array_program_for_large_laws_equals_the_scalar_loop(paper61, monkeypatch):
-    """Laws above SCALAR_FIELD_MAX_EQUATIONS keep the array step: same rollout, same gradient."""
+def _stage_loops(fun, *args):
+    """How many loops of length 4 (RK stage loops) the program of ``fun`` holds."""
+    return _all_prims_with_length(jax.make_jaxpr(fun)(*args).jaxpr).count(("scan", 4))
+
+
+def _all_prims_with_length(jaxpr):
+    out = []
+    for e in jaxpr.eqns:
+        out.append((e.primitive.name, e.params.get("length")))
+        for sub in jax.extend.core.jaxprs_in_params(e.params):
+            out += _all_prims_with_length(sub)
+    return out
+
+
+def test_stage_loop_equals_the_unrolled_step(paper61, monkeypatch):
+    """The RK stages run in a loop (the large laws' step) give the unrolled step's rollout,
+    diagnostics and gradient to rounding."""
     import importlib
 
     simulate_module = importlib.import_module("wmrjax.simulate")   # the module (wmrjax.simulate is also the function)
@@ -208,27 +223,28 @@ def test_array_program_for_large_laws_equals_the_scalar_loop(paper61, monkeypatc
 
     def run(gains):
         p = params._replace(gains=w.Gains(gains))
-        tr = w.simulate(ctrl, z0, p, dt=0.01, n_steps=30, save_every=5)
+        tr = w.simulate(ctrl, z0, p, dt=0.01, n_steps=60, save_every=5)
         return jnp.sum(tr.state[:, :2] ** 2), tr
 
-    def array_ops():
-        prims = _all_prims(jax.make_jaxpr(lambda g: run(g)[0])(params.gains.coeffs).jaxpr)
-        return sum(prims.count(p) for p in ("split", "slice", "concatenate", "stack", "unstack", "dot_general"))
-
     (l1, tr1), g1 = jax.value_and_grad(run, has_aux=True)(params.gains.coeffs)
-    n_scalar = array_ops()
+    assert _stage_loops(lambda g: run(g)[0], params.gains.coeffs) == 0      # 153 equations: unrolled
     jax.clear_caches()
-    monkeypatch.setattr(simulate_module, "SCALAR_FIELD_MAX_EQUATIONS", 0)
+    monkeypatch.setattr(simulate_module, "STAGE_LOOP_MIN_EQUATIONS", 0)
     (l2, tr2), g2 = jax.value_and_grad(run, has_aux=True)(params.gains.coeffs)
-    assert array_ops() > 4 * n_scalar        # the array step assembles and takes apart arrays in its field
-    np.testing.assert_allclose(tr2.state, tr1.state, rtol=1e-13, atol=1e-14)
+    assert _stage_loops(lambda g: run(g)[0], params.gains.coeffs) == 1
+    for a, b in ((tr2.state, tr1.state), (tr2.control, tr1.control), (tr2.margin, tr1.margin)):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-14)
+    np.testing.assert_array_equal(tr2.valid, tr1.valid)
+    for f in ("min_margin", "t_min_margin", "error_estimate"):
+        np.testing.assert_allclose(getattr(tr2.diagnostics, f), getattr(tr1.diagnostics, f), rtol=1e-9)
+    assert tr1.diagnostics.error_estimate > 1e-12          # the estimate (k1, k4 of the loop) is compared, not zeros
     np.testing.assert_allclose(g2, g1, rtol=1e-11)
     jax.clear_caches()
 
 
-def test_scalarizes_picks_the_scalar_step_for_all_but_the_two_largest_laws():
-    """The size rule of simulate (and of the tuner's loop): the (2,0) velocity law runs on
-    scalars, the dynamic (1,2) torque law (888 scalar equations) keeps the array step."""
+def test_stage_loop_rule_picks_the_large_laws():
+    """The (2,0) velocity law (153 scalar equations) runs the unrolled step, the dynamic
+    (1,2) torque law (821) the stage loop."""
     from wmrjax import references
 
     out = {}
@@ -236,5 +252,6 @@ def test_scalarizes_picks_the_scalar_step_for_all_but_the_two_largest_laws():
         ctrl = w.dynamic_linearization(kind, level)
         ref = references.circle(radius=2.0, omega=0.4, heading_offset=getattr(ctrl.row, "default_heading_offset", 0.0))
         params = ctrl.params(ref, poles=1.5, geometry=ctrl.row.default_geometry)
-        out[kind] = w.scalarizes(ctrl, ctrl.reference_state(0.0, params), params)
-    assert out == {"(2,0)": True, "(1,2)": False}
+        z = ctrl.reference_state(0.0, params)
+        out[kind] = _stage_loops(lambda z: w.simulate(ctrl, z, params, dt=0.01, n_steps=3).final_state, z)
+    assert out == {"(2,0)": 0, "(1,2)": 1}

@@ -14,7 +14,6 @@ with ``jax.vmap``.
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -52,19 +51,6 @@ class RolloutConfig(NamedTuple):
         return int(round(self.t_final / self.control_dt))
 
 
-def _scalarizes(ctrl, z, params) -> bool:
-    """:func:`wmrjax.scalarizes`, decided once per controller and argument shapes (every
-    program of a tuning run traces the rollout, and the decision traces the law)."""
-    leaves, treedef = jax.tree_util.tree_flatten((z, params))
-    return _scalarizes_for(ctrl, treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
-
-
-@functools.lru_cache(maxsize=None)
-def _scalarizes_for(ctrl, treedef, shapes) -> bool:
-    z, params = jax.tree_util.tree_unflatten(treedef, [jax.ShapeDtypeStruct(s, d) for s, d in shapes])
-    return w.scalarizes(ctrl, z, params)
-
-
 def _stack(parts, like):
     """The vector of a tuple of scalars (empty: a (0,) vector of ``like``'s dtype)."""
     return jnp.stack(parts) if parts else jnp.zeros((0,), jnp.result_type(like))
@@ -86,11 +72,8 @@ def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, tra
     nX = ctrl.robot.n_state
     params = ctrl.params_unchecked(sc.reference, 1.0, nominal_geometry)._replace(gains=gains)
     h = cfg.control_dt / cfg.substeps
-    # the loop bodies run on scalars (wmrjax.scalarized) where simulate would run the law's
-    # step on scalars: states are carried as tuples of scalars, and the parameters and the
-    # scenario are taken apart once, here
-    on_scalars = _scalarizes(ctrl, sc.z0, params)
-    body = w.scalarized if on_scalars else (lambda f: f)
+    # the loop bodies run on scalars (wmrjax.scalarized), as simulate's step does: states are
+    # carried as tuples of scalars, and the parameters and the scenario are taken apart once, here
     parts, rebuild = w.scalar_parts((params, sc, nominal_geometry))
 
     def plant(xp, a, sc):
@@ -108,7 +91,7 @@ def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, tra
         k4 = plant(x + h * k3, a, sc)
         return tuple(jnp.unstack(x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)))
 
-    substep = body(substep)
+    substep = w.scalarized(substep)
 
     def period(carry, k):
         xps, cs, alive, acc, sign_prev = carry      # plant state, controller state (compensator [, U])
@@ -154,8 +137,8 @@ def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, tra
         xp0 = jnp.concatenate([xp0, law.extension.plant_input(z0[:nX], z0[nX:nv], z0[nv:], nominal_geometry)])
     acc0 = (jnp.zeros(4), jnp.asarray(jnp.inf), jnp.asarray(False))
     (_, _, alive, (tot, mmin, sing), _), traj = jax.lax.scan(
-        body(period), (tuple(jnp.unstack(xp0)), tuple(jnp.unstack(z0[nX:])), jnp.asarray(True), acc0,
-                               jnp.zeros(())), jnp.arange(cfg.n_periods))
+        w.scalarized(period), (tuple(jnp.unstack(xp0)), tuple(jnp.unstack(z0[nX:])), jnp.asarray(True), acc0,
+                                jnp.zeros(())), jnp.arange(cfg.n_periods))
     mean = tot / cfg.n_periods
     m = Metrics(mean[0], mean[1], mean[2], mean[3], alive, sing, mmin)
     return (m, traj) if trajectory else m

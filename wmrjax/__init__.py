@@ -33,7 +33,6 @@ from wmrjax.simulate import (  # noqa: F401
     rk4_step,
     scalar_parts,
     scalarized,
-    scalarizes,
     shard_batch,
     simulate,
 )

@@ -5,7 +5,7 @@ initial states, references, gains or geometry, and differentiate it with ``jax.g
 It is jitted once at this entry point (the closed-loop object, the step count and the
 saving stride are static).
 
-Two implementation choices matter for speed on CPUs (measured in
+Four implementation choices matter for speed on CPUs (measured in
 ``experiments/benchmark.py``):
 
 * the scan carry is a tuple of scalars, one per state component, so that under
@@ -15,6 +15,8 @@ Two implementation choices matter for speed on CPUs (measured in
   matrices and jets as their elements) and the parameters enter it as scalars, so that
   neither the step nor its transpose assembles or takes apart an array: on the section
   6.1 loop this made the rollout 1.7x and its reverse-mode gradient 2.2x faster;
+* the large laws (:data:`STAGE_LOOP_MIN_EQUATIONS`) run the four RK stages in a loop over
+  one copy of the field, checkpointed stage by stage: their programs compile 2-3x faster;
 * the vector fields use :func:`wmrjax._math.sincos`, which XLA vectorises.
 
 A run *fails* when its state becomes non-finite, its singularity margin drops to
@@ -41,12 +43,16 @@ from wmrjax._validate import check_finite, check_int, concrete, memory_bytes
 
 # from this many steps on, reverse-mode differentiation checkpoints the saving chunks too
 TWO_LEVEL_CHECKPOINT_STEPS = 2000
-# the loop body runs on scalars when the scalarized vector field has at most this many
-# equations. Beyond it, XLA:CPU's loop-fusion emitter (JAX 0.10.2) compiled the fused scalar
-# program of the two largest laws, dynamic (1,1) and (1,2) at torque level (1009 and 888
-# equations; the next largest has 485), into code 40-1000x slower than the array program,
-# after 40+ s of compilation: those keep the array program.
-SCALAR_FIELD_MAX_EQUATIONS = 600
+# the loop body runs on scalars; laws whose scalarized vector field has at least this many
+# equations run the four RK stages in a loop over one copy of it, checkpointed stage by stage
+# (the six dynamic laws from (1,2) velocity, 303 equations, to (1,1) torque, 949; the largest
+# of the others has 205). Measured (1000 steps, B = 1024 or 256, 2 cores): their programs
+# compile 2-3x faster (a (1,2) velocity gradient 8.1 -> 2.3 s) and run as fast or faster (its
+# gradient 2.0 -> 1.3 s, (1,2) torque 2.5x faster forward); the unrolled step of the two
+# largest was a fused scalar program that XLA:CPU's loop emitter (JAX 0.10.2) compiled in
+# 40+ s into code 40-1000x slower. Small laws keep the unrolled step: the stage loop made the
+# section 6.1 law (153 equations) 30 % slower.
+STAGE_LOOP_MIN_EQUATIONS = 250
 
 
 class Diagnostics(NamedTuple):
@@ -145,9 +151,64 @@ def _rk4(field, t, z, dt):
     return jax.tree_util.tree_map(combine, z, k1, k2, k3, k4), aux, k1, k4
 
 
+def _rk4_stage_loop(field, t, z, dt):
+    """:func:`_rk4` with its four stages run by a loop over one copy of ``field``, on scalars.
+
+    For the largest laws: the loop body holds one copy of the field instead of four, so XLA
+    compiles the step several times faster (and its fused scalar program stays small enough
+    for XLA:CPU's loop emitter, see :data:`STAGE_LOOP_MIN_EQUATIONS`). Each stage is
+    checkpointed: reverse mode stores a stage's input (a few scalars), not the residuals of
+    the field's linearization, and recomputes them stage by stage. The operations are
+    :func:`_rk4`'s in the same order (the first stage adds ``0 * dt * 0`` to the state and
+    starts the weighted sum from its own k); XLA fuses the two programs differently, so the
+    numbers agree to rounding (4e-16 on 300 steps of the section 6.1 loop).
+    """
+    dtype = jnp.result_type(dt)
+    nodes = jnp.asarray([0.0, 0.5, 0.5, 1.0], dtype)      # stage times, in units of dt
+    weights = jnp.asarray([1.0, 2.0, 2.0, 1.0], dtype)    # weights x 6
+    k_like, aux_like = jax.eval_shape(field, t, z)
+
+    def stage(carry, i, zs):
+        k_prev, acc, k1, aux = carry           # tuples of scalars: the continuous leaves of k; aux
+        z_i = _axpy(_from_scalars(zs, z), nodes[i] * dt, _from_continuous(k_prev, k_like))
+        k, aux_i = field(t + nodes[i] * dt, z_i)
+        k, aux_i = _continuous(k), _to_scalars(aux_i)
+        first = i == 0
+        acc = tuple(jnp.where(first, ki, s + weights[i] * ki) for s, ki in zip(acc, k))
+        keep = lambda new, old: tuple(jnp.where(first, n, o) for n, o in zip(new, old))
+        return (k, acc, keep(k, k1), keep(aux_i, aux)), None
+
+    body = jax.checkpoint(scalarized(stage), prevent_cse=False)
+    zs = _to_scalars(z)
+    zeros = lambda tree: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), tree)
+    zero_k, zero_aux = _continuous(zeros(k_like)), _to_scalars(zeros(aux_like))
+    (k4, acc, k1, aux), _ = jax.lax.scan(lambda c, i: body(c, i, zs), (zero_k, zero_k, zero_k, zero_aux),
+                                         jnp.arange(4))
+    acc = _from_continuous(acc, k_like)
+    combine = lambda zi, s: zi + (dt / 6.0) * s if _is_continuous(zi) else zi
+    return (jax.tree_util.tree_map(combine, z, acc), _from_scalars(aux, aux_like),
+            _from_continuous(k1, k_like), _from_continuous(k4, k_like))
+
+
 def _continuous(tree):
     """The floating leaves of a pytree, flattened to one tuple of scalars."""
     return tuple(x for leaf in jax.tree_util.tree_leaves(tree) if _is_continuous(leaf) for x in jnp.reshape(leaf, (-1,)))
+
+
+def _from_continuous(scalars, like):
+    """Inverse of :func:`_continuous` for the structure of ``like`` (shapes or arrays); its
+    discrete leaves come back as zeros."""
+    leaves, treedef = jax.tree_util.tree_flatten(like)
+    out, i = [], 0
+    for leaf in leaves:
+        shape = np.shape(leaf)
+        if not _is_continuous(leaf):
+            out.append(jnp.zeros(shape, leaf.dtype))
+            continue
+        n = int(np.prod(shape))
+        out.append(jnp.stack(scalars[i:i + n]).reshape(shape) if len(shape) else scalars[i])
+        i += n
+    return jax.tree_util.tree_unflatten(treedef, out)
 
 
 def _error_estimate(dt, k4_prev, k1, z):
@@ -257,21 +318,6 @@ def scalar_parts(tree):
     return parts, rebuild
 
 
-def scalarizes(system, z, params, t=0.0) -> bool:
-    """Whether :func:`simulate` runs ``system``'s step on scalars (:func:`scalarized`).
-
-    True when the scalarized vector field has at most :data:`SCALAR_FIELD_MAX_EQUATIONS`
-    equations; larger laws keep the array step (XLA:CPU's loop emitter turns their fused
-    scalar program into far slower code). Hand-written loops over the same law (the tuner's)
-    use it to make the same choice. Traces the field once; nothing is compiled.
-
-    Args:
-      system: a closed loop (``vector_field(t, z, params) -> (dz, aux)``).
-      z: a state (unbatched), params: its parameters, t: a time [s].
-    """
-    return _scalar_field(system, t, z, params)[1] <= SCALAR_FIELD_MAX_EQUATIONS
-
-
 def _scalar_field(system, t, z, params):
     """``(field(t, z, p), n)``: ``system``'s vector field on scalars, traced once at the avals of
     ``(t, z, params)`` (calls with the same avals replay that program), and its equation count."""
@@ -302,24 +348,20 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # cuts tracing and compile time of the rollout and of its gradient several-fold
     field = jax.jit(_simplify.simplify(lambda t, z: system.vector_field(t, z, params)))
     # the loop body's version: on scalars (see wmrjax._scalarize), with the parameters as an
-    # argument that the body takes apart once, outside the loop; laws whose scalar program is
-    # too large for XLA:CPU's loop emitter keep the array program (see SCALAR_FIELD_MAX_EQUATIONS)
+    # argument that the body takes apart once, outside the loop; the largest laws run their
+    # RK stages in a loop over one copy of it (see STAGE_LOOP_MIN_EQUATIONS)
     field_s, n_scalar = _scalar_field(system, t0, z0, params)
-    on_scalars = n_scalar <= SCALAR_FIELD_MAX_EQUATIONS          # the rule of scalarizes()
+    rk4 = _rk4_stage_loop if n_scalar >= STAGE_LOOP_MIN_EQUATIONS else _rk4
     post_step = getattr(system, "post_step", None)
-    if on_scalars:
-        params_parts, rebuild_params = scalar_parts(params)
-        field_of = lambda p: (lambda t, z: field_s(t, z, p))
-    else:
-        params_parts, rebuild_params = (), lambda parts: params
-        field_of = lambda p: field
+    params_parts, rebuild_params = scalar_parts(params)
+    field_of = lambda p: (lambda t, z: field_s(t, z, p))
 
     def step_on_scalars(carry, i, parts):
         zt, alive, diag, sign_prev, k4_prev, est_ok = carry   # est_ok is None without post_step
         p = rebuild_params(parts)
         z = _from_scalars(zt, z0)
         t = t0 + i.astype(dtype) * dt
-        z_next, aux, k1, k4 = _rk4(field_of(p), t, z, dt)
+        z_next, aux, k1, k4 = rk4(field_of(p), t, z, dt)
         jumped = None
         if post_step is not None:   # hybrid systems: discrete transition at the end of the step
             z_post = post_step(t + dt, z_next, p)
@@ -363,8 +405,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
 
     # One step as operations on scalars: under vmap, elementwise on batch vectors, with no
     # array assembled or taken apart inside the loop, forward or transposed.
-    if on_scalars:
-        step_on_scalars = scalarized(step_on_scalars)
+    step_on_scalars = scalarized(step_on_scalars)
     # Reverse mode: rematerialise each step instead of storing its intermediates (the
     # jet of the linearizing law has hundreds); the backward pass then stays in cache.
     step = jax.checkpoint(lambda carry, i: step_on_scalars(carry, i, params_parts), prevent_cse=False)
