@@ -20,7 +20,7 @@ def _run(*argv):
 
 def test_compilation_cache_on_by_default_off_on_request(tmp_path):
     d = tmp_path / "cache"
-    assert _run("--compile-cache", str(d)) == [str(d), str(d), "0.5"]
+    assert _run("--compile-cache", str(d)) == [str(d), str(d), "0.0"]
     assert d.is_dir()
     assert _run("--compile-cache", str(d), "--no-compile-cache")[:2] == ["None", "None"]
 

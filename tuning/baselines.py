@@ -41,17 +41,28 @@ def candidate_evaluator(objective_fn: Callable, shape, chunk: int = 16):
     """``evaluate(raws, scenarios) -> objectives (N,)``: ``objective_fn(raw, scenarios)`` of N
     candidates ``raws (N, *shape)``, in compiled chunks of ``chunk`` (one program for any N and
     for every scenario set of one size; the last chunk is padded with copies of the first
-    candidate). Non-finite objectives come back as +inf."""
+    candidate). Non-finite objectives come back as +inf.
+
+    ``objective_fn`` may also return ``(objective, aux)``: ``evaluate(raws, scenarios,
+    with_aux=True)`` then returns ``(objectives, aux)`` with aux's leaves stacked along a
+    leading axis N (numpy), from the same program.
+    """
     batched = jax.jit(jax.vmap(objective_fn, in_axes=(0, None)))
 
-    def evaluate(raws, scenarios):
+    def evaluate(raws, scenarios, with_aux: bool = False):
         raws = np.asarray(raws, float).reshape((-1,) + tuple(shape))
         n = raws.shape[0]
         pad = (-n) % chunk
         full = np.concatenate([raws, np.repeat(raws[:1], pad, axis=0)]) if pad else raws
-        vals = [np.asarray(batched(jnp.asarray(full[i:i + chunk]), scenarios)) for i in range(0, full.shape[0], chunk)]
-        v = np.concatenate(vals)[:n]
-        return np.where(np.isfinite(v), v, np.inf)
+        outs = [batched(jnp.asarray(full[i:i + chunk]), scenarios) for i in range(0, full.shape[0], chunk)]
+        vals, aux = zip(*outs) if isinstance(outs[0], tuple) else (outs, None)
+        v = np.concatenate([np.asarray(x) for x in vals])[:n]
+        v = np.where(np.isfinite(v), v, np.inf)
+        if not with_aux:
+            return v
+        if aux is None:
+            raise ValueError("with_aux=True needs an objective_fn that returns (objective, aux)")
+        return v, jax.tree_util.tree_map(lambda *xs: np.concatenate([np.asarray(x) for x in xs])[:n], *aux)
 
     return evaluate
 

@@ -144,23 +144,22 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
     cert_term = res["cert_term"]
 
     def objective(raw, scen):
-        val, ok, _ = loop.batch_value(raw, scen, ctrl, spec, g, rcfg, w_arr)
-        return loop.objective(val, ok) + cert_term(raw)
+        val, ok, m = loop.batch_value(raw, scen, ctrl, spec, g, rcfg, w_arr)
+        return loop.objective(val, ok) + cert_term(raw), (ok, m)
 
-    evaluate_on = baselines.candidate_evaluator(objective, spec.shape)     # one program for both sets
+    # one program for every evaluation after the gradient's (the training and held-out sets
+    # have the same size in the default problems; a set of another size compiles its own)
+    evaluate_on = baselines.candidate_evaluator(objective, spec.shape)
     train_eval = functools.partial(evaluate_on, scenarios=train)
     heldout_eval = functools.partial(evaluate_on, scenarios=heldout)
 
-    def evaluate(raw, scen):
-        val, ok, m = loop.batch_value(raw, scen, ctrl, spec, g, rcfg, w_arr)
-        return (float(loop.objective(val, ok) + cert_term(raw)), int(np.sum(np.asarray(m.singular))),
-                int(np.sum(~np.asarray(ok))), m)
-
     say("evaluating the paper's and the tuned gains on the held-out scenarios")
-    tr_paper = float(train_eval(np.asarray(paper_raw)[None])[0])
-    tr_tuned = float(train_eval(np.asarray(tuned_raw)[None])[0])
-    ho_paper, sing_paper, fail_paper, m_paper = evaluate(paper_raw, heldout)
-    ho_tuned, sing_tuned, fail_tuned, m_tuned = evaluate(tuned_raw, heldout)
+    tr_paper, tr_tuned = (float(v) for v in train_eval(np.stack([np.asarray(paper_raw), np.asarray(tuned_raw)])))
+    ho, (ho_ok, ho_m) = heldout_eval(np.stack([np.asarray(paper_raw), np.asarray(tuned_raw)]), with_aux=True)
+    ho_paper, ho_tuned = (float(v) for v in ho)
+    m_paper, m_tuned = (jax.tree_util.tree_map(lambda x: x[i], ho_m) for i in (0, 1))
+    sing_paper, sing_tuned = (int(np.sum(ho_m.singular[i])) for i in (0, 1))
+    fail_paper, fail_tuned = (int(np.sum(~ho_ok[i])) for i in (0, 1))
     log(f"held-out loss: paper gains {ho_paper:.5g}, tuned {ho_tuned:.5g} (ratio {ho_paper / ho_tuned:.2f}); "
         f"singular events {sing_paper} -> {sing_tuned}")
 
@@ -330,7 +329,7 @@ def _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw):
     io.write_png(fig, out / "schedule.png")
     plt.close(fig)
 
-    sc = jax.tree_util.tree_map(lambda x: x[0], res["heldout"])
+    sc = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], res["heldout"])     # on the host: no per-leaf program
     fig, axs = plt.subplots(1, 2, figsize=(11, 4.4))
     t = np.arange(rcfg.n_periods) * rcfg.control_dt
     ref = np.asarray(jax.jit(jax.vmap(sc.reference.position))(t))

@@ -212,12 +212,21 @@ def build(cfg: TuneConfig):
     spec.init(cfg.poles_init)
     g = w.Geometry(*cfg.geometry)
     rcfg = RolloutConfig(cfg.t_final, cfg.control_dt, cfg.substeps)
-    key = jax.random.PRNGKey(cfg.seed)
-    k_tr, k_ho = jax.random.split(key)
-    train = _scenarios(ctrl, cfg, g, k_tr, cfg.n_train)
-    heldout = _scenarios(ctrl, cfg, g, k_ho, cfg.n_heldout)
-    validation = _scenarios(ctrl, cfg, g, jax.random.fold_in(key, 2), cfg.n_validation)
+    train, validation, heldout = _scenario_sets(ctrl, cfg, g, jax.random.PRNGKey(cfg.seed))
     return ctrl, spec, g, rcfg, train, validation, heldout
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _scenario_sets(ctrl, cfg: TuneConfig, g, key):
+    """The training, validation and held-out scenarios of ``cfg``, drawn by one vmapped program
+    (the same draws as :func:`make_scenarios` of each set's key and size)."""
+    k_tr, k_ho = jax.random.split(key)
+    sizes = (cfg.n_train, cfg.n_validation, cfg.n_heldout)
+    keys = jnp.concatenate([jax.random.split(k, n) for k, n in
+                            zip((k_tr, jax.random.fold_in(key, 2), k_ho), sizes)])
+    every = scenarios_from_keys(ctrl, cfg, g, keys)
+    ends = np.cumsum(sizes)
+    return tuple(jax.tree_util.tree_map(lambda x: x[e - n:e], every) for n, e in zip(sizes, ends))
 
 
 def _reference(cfg, key):
@@ -236,6 +245,11 @@ def _draw(ctrl, cfg, g, key):
 
 def make_scenarios(ctrl, cfg: TuneConfig, g, key, n) -> Scenario:
     """n scenarios: initial errors x references x geometry/input-scale mismatch x noise keys."""
+    return scenarios_from_keys(ctrl, cfg, g, jax.random.split(key, n))
+
+
+def scenarios_from_keys(ctrl, cfg: TuneConfig, g, keys) -> Scenario:
+    """One scenario per key of ``keys`` (N keys -> N scenarios, batched along axis 0)."""
     nX, nu = ctrl.robot.n_state, ctrl.robot.n_input
     limit = jnp.full(nu, jnp.inf)
     if cfg.input_limit:                 # lengths checked by validate()
@@ -263,7 +277,7 @@ def make_scenarios(ctrl, cfg: TuneConfig, g, key, n) -> Scenario:
         pg = w.Geometry(L=g.L * (1 + rho[nu]), e=g.e * (1 + rho[nu + 1]), delta=g.delta)
         return Scenario(z0, ref, pg, 1.0 + rho[:nu], limit, noise, kn)
 
-    return jax.vmap(one)(jax.random.split(key, n))
+    return jax.vmap(one)(keys)
 
 
 # --- compiled pieces (module level: repeated runs with one configuration reuse them) ---------

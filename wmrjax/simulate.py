@@ -29,6 +29,7 @@ it explicitly instead of averaging NaN or a runaway value.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Any, NamedTuple
 
@@ -305,17 +306,27 @@ def scalar_parts(tree):
       tree: a pytree of arrays (e.g. a controller's parameters).
 
     Returns:
-      ``parts`` (a list, one entry per leaf) and ``rebuild(parts) -> tree``.
+      ``parts`` (a list, one entry per leaf) and ``rebuild(parts) -> tree``. ``rebuild`` is
+      hashable and equal for trees of one structure and leaf shapes, so a jitted loop body
+      can take it as a static argument (and be traced once for all such trees).
     """
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     split = [_is_continuous(x) and np.ndim(x) > 0 and 0 < np.size(x) <= _scalarize.MAX_ELEMENTS for x in leaves]
     parts = [tuple(jnp.unstack(jnp.reshape(x, (-1,)))) if s else x for x, s in zip(leaves, split)]
+    return parts, _Rebuild(treedef, tuple(np.shape(x) for x in leaves), tuple(split))
 
-    def rebuild(parts):
-        return jax.tree_util.tree_unflatten(treedef, [
-            jnp.reshape(jnp.stack(p), np.shape(x)) if s else p for p, x, s in zip(parts, leaves, split)])
 
-    return parts, rebuild
+@dataclasses.dataclass(frozen=True)
+class _Rebuild:
+    """The inverse of :func:`scalar_parts` for one tree structure and leaf shapes (hashable)."""
+
+    treedef: Any
+    shapes: tuple
+    split: tuple
+
+    def __call__(self, parts):
+        return jax.tree_util.tree_unflatten(self.treedef, [
+            jnp.reshape(jnp.stack(p), shape) if s else p for p, shape, s in zip(parts, self.shapes, self.split)])
 
 
 def _scalar_field(system, t, z, params):
