@@ -86,6 +86,29 @@ def test_cma_es_and_random_search_on_a_known_quadratic():
         baselines.cma_es(spec, evaluate, np.zeros(2), budget_rollouts=10, n_train=4, seed=0, population=8, sigma=0.5)
 
 
+def test_candidate_evaluator_chunks_pads_and_returns_aux():
+    """N candidates in padded chunks give each candidate's own objective; with_aux returns the
+    objective function's auxiliary data for the N candidates, stacked; non-finite -> +inf."""
+    scen = jnp.arange(3.0)
+
+    def objective(raw, s):
+        value = jnp.sum((raw[0] - s) ** 2) + raw[1] ** 2
+        return jnp.where(raw[0] > 9.0, jnp.nan, value), (raw[0] * s, raw[1] > 0)
+
+    evaluate = baselines.candidate_evaluator(objective, (2,), chunk=4)
+    raws = np.array([[0.0, 1.0], [1.0, -1.0], [2.0, 0.5], [3.0, 2.0], [4.0, -2.0], [10.0, 1.0]])
+    expected = np.array([np.sum((r[0] - np.arange(3.0)) ** 2) + r[1] ** 2 for r in raws[:5]] + [np.inf])
+    np.testing.assert_allclose(evaluate(raws, scen), expected, rtol=1e-15)
+    values, (scaled, positive) = evaluate(raws, scen, with_aux=True)
+    np.testing.assert_allclose(values, expected, rtol=1e-15)
+    assert scaled.shape == (6, 3) and positive.shape == (6,)
+    np.testing.assert_allclose(scaled, raws[:, :1] * np.arange(3.0), rtol=1e-15)
+    np.testing.assert_array_equal(positive, raws[:, 1] > 0)
+    plain = baselines.candidate_evaluator(lambda raw, s: jnp.sum(raw * s[:2]), (2,))
+    with pytest.raises(ValueError, match="with_aux=True needs"):
+        plain(raws, scen, with_aux=True)
+
+
 def test_presets_and_bad_tuning_problems(tmp_path):
     car = preset("car_schedule")
     assert validate(car).robot.name == "(1,1)"

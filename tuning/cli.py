@@ -25,6 +25,7 @@ import dataclasses
 import functools
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from wmrjax import io
@@ -134,22 +135,26 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
         (out / "checkpoint.json").unlink()
     t0 = time.perf_counter()
     say(f"problem {cfg.problem}: building scenarios; compiling the batched rollout and its gradient (first step)")
-    res = loop.tune(cfg, out, log=log)
+    programs = {}
+    with ThreadPoolExecutor(max_workers=1) as second:
+        def prepare(built):
+            # the programs of the validation, the evaluations and the figure, compiled on a
+            # second thread while this one compiles the gradient (XLA compiles without the GIL);
+            # tracing the validation program here first traces the controller period that
+            # every program shares, once, instead of on both threads at the same time
+            loop.batch_value.trace(built["spec"].init(cfg.poles_init), built["validation"], built["ctrl"],
+                                   built["spec"], built["geometry"], built["rcfg"], built["w_arr"])
+            programs.update(_programs(built))
+            programs["ready"] = second.submit(_warm_up, programs, built, cfg.poles_init)
+
+        res = loop.tune(cfg, out, log=log, on_built=prepare)
+        programs["ready"].result()          # its errors are raised here
     grad_wall = time.perf_counter() - t0
-    ctrl, spec, g, rcfg, train, heldout, w_arr = (res[k] for k in ("ctrl", "spec", "geometry", "rcfg", "train",
-                                                                    "heldout", "w_arr"))
+    ctrl, spec, g, rcfg, train, heldout = (res[k] for k in ("ctrl", "spec", "geometry", "rcfg", "train", "heldout"))
     st = res["state"]
     paper_raw = spec.init(cfg.poles_init)
     tuned_raw = jnp.asarray(res["best_raw"])
-    cert_term = res["cert_term"]
-
-    def objective(raw, scen):
-        val, ok, m = loop.batch_value(raw, scen, ctrl, spec, g, rcfg, w_arr)
-        return loop.objective(val, ok) + cert_term(raw), (ok, m)
-
-    # one program for every evaluation after the gradient's (the training and held-out sets
-    # have the same size in the default problems; a set of another size compiles its own)
-    evaluate_on = baselines.candidate_evaluator(objective, spec.shape)
+    evaluate_on = programs["evaluate_on"]
     train_eval = functools.partial(evaluate_on, scenarios=train)
     heldout_eval = functools.partial(evaluate_on, scenarios=heldout)
 
@@ -249,10 +254,56 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
     io.write_json(out / "history.json", {"gradient": hist, **{
         name: [{"seed": r.seed, "best_so_far": r.best_so_far, "rollouts_per_candidate": r.rollouts_per_candidate}
                for r in rs] for name, rs in runs.items()}})
-    _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw)
+    _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw, programs)
     summary["wall_time_s"] = time.perf_counter() - t0
     io.write_json(out / "summary.json", summary)
     return summary
+
+
+def _programs(built) -> dict:
+    """The jitted functions of a run after its gradient loop: ``evaluate_on`` (the objective and
+    per-scenario metrics of candidate gains on a scenario set: training-set evaluations, the
+    held-out report, the baselines) and ``trajectories`` (the samples of held-out scenario 0)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from tuning import baselines, loop
+    from tuning.scenarios import rollout
+
+    ctrl, spec, g, rcfg, w_arr, cert_term = (built[k] for k in ("ctrl", "spec", "geometry", "rcfg", "w_arr",
+                                                                 "cert_term"))
+
+    def objective(raw, scen):
+        val, ok, m = loop.batch_value(raw, scen, ctrl, spec, g, rcfg, w_arr)
+        return loop.objective(val, ok) + cert_term(raw), (ok, m)
+
+    sc = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], built["heldout"])     # on the host: no per-leaf program
+    t = np.arange(rcfg.n_periods) * rcfg.control_dt
+    params = ctrl.params_unchecked(sc.reference, 1.0, g)
+
+    @jax.jit
+    def trajectories(gains):      # the sampled states and their output errors
+        _, (zs, _) = rollout(ctrl, gains, g, sc, rcfg, trajectory=True)
+        return zs, jax.vmap(lambda tt, z: ctrl.error(tt, z, params)[0])(jnp.asarray(t), zs)
+
+    # one program for every evaluation after the gradient's (the training and held-out sets
+    # have the same size in the default problems; a set of another size compiles its own)
+    return {"evaluate_on": baselines.candidate_evaluator(objective, spec.shape), "trajectories": trajectories,
+            "scenario": sc, "t": t}
+
+
+def _warm_up(programs, built, poles_init) -> None:
+    """Compile (by calling them once) the validation program and ``programs``."""
+    import numpy as np
+
+    from tuning import loop
+
+    spec = built["spec"]
+    raw = spec.init(poles_init)
+    loop.batch_value(raw, built["validation"], built["ctrl"], spec, built["geometry"], built["rcfg"], built["w_arr"])
+    programs["evaluate_on"](np.asarray(raw)[None], built["train"])
+    programs["trajectories"](spec.gains(raw))
 
 
 def _gains_report(spec, raw):
@@ -276,12 +327,10 @@ def _band(runs):
     return x, np.median(curves, axis=0), curves.min(axis=0), curves.max(axis=0)
 
 
-def _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw):
+def _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw, programs):
     import jax
     import jax.numpy as jnp
     import numpy as np
-
-    from tuning.scenarios import rollout
 
     plt = io.headless_pyplot()
     fig, ax = plt.subplots(figsize=(6.8, 4.3))
@@ -301,7 +350,7 @@ def _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw):
     io.write_png(fig, out / "loss.png")
     plt.close(fig)
 
-    ctrl, spec, g, rcfg = res["ctrl"], res["spec"], res["geometry"], res["rcfg"]
+    spec = res["spec"]
     ts = np.linspace(0.0, cfg.t_final, 201)
     fig, axs = plt.subplots(1, spec.r, figsize=(3.6 * spec.r, 3.4), squeeze=False)
     names = spec.names()
@@ -329,20 +378,12 @@ def _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw):
     io.write_png(fig, out / "schedule.png")
     plt.close(fig)
 
-    sc = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], res["heldout"])     # on the host: no per-leaf program
+    sc, t = programs["scenario"], programs["t"]
     fig, axs = plt.subplots(1, 2, figsize=(11, 4.4))
-    t = np.arange(rcfg.n_periods) * rcfg.control_dt
     ref = np.asarray(jax.jit(jax.vmap(sc.reference.position))(t))
     axs[0].plot(ref[:, 0], ref[:, 1], "k--", lw=1.2, label="reference")
-    params = ctrl.params_unchecked(sc.reference, 1.0, g)
-
-    @jax.jit
-    def traced(gains):          # the sampled states and their output errors, one program for both gains
-        _, (zs, _) = rollout(ctrl, gains, g, sc, rcfg, trajectory=True)
-        return zs, jax.vmap(lambda tt, z: ctrl.error(tt, z, params)[0])(jnp.asarray(t), zs)
-
     for raw, lab, c in ((paper_raw, "paper gains (poles -1)", "C3"), (tuned_raw, "tuned", "C0")):
-        zs, err = (np.asarray(x) for x in traced(spec.gains(raw)))
+        zs, err = (np.asarray(x) for x in programs["trajectories"](spec.gains(raw)))
         axs[0].plot(zs[:, 0], zs[:, 1], c, lw=1.2, label=lab)
         axs[1].semilogy(t, np.maximum(np.hypot(err[:, 0], err[:, 1]), 1e-8), c, label=lab)
     axs[0].set_xlabel("x [m]")

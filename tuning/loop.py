@@ -365,7 +365,7 @@ def objective(loss, ok):
     return loss + FAILURE_PENALTY * (1.0 - jnp.mean(ok.astype(loss.dtype)))
 
 
-def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None) -> dict:
+def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None, on_built=None) -> dict:
     """Run (or resume) a tuning job; returns a dict with gains, histories and counts.
 
     The optimizer steps on the mean loss of the valid training scenarios (with ``resample``, a
@@ -377,6 +377,9 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
     Args:
       out_dir: where ``checkpoint.json`` lives (None: no checkpointing).
       stop_after: stop after this many steps of *this* call (to test resumption).
+      on_built: called with the dict that is returned (without ``finished``, ``raw``,
+        ``best_raw`` and ``state``) once the scenarios are drawn, before the first gradient:
+        the command line starts compiling its later programs there, on a second thread.
     """
     ctrl, spec, g, rcfg, train, validation, heldout = build(cfg)
     w_arr = jnp.asarray(cfg.weights, float)
@@ -392,6 +395,10 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
         ts, m1, eps = cert
         return -wts.certificate * certificate_radius(spec.gains(raw), m1, ts, eps)
 
+    built = {"spec": spec, "ctrl": ctrl, "geometry": g, "rcfg": rcfg, "train": train, "validation": validation,
+             "heldout": heldout, "w_arr": w_arr, "cert_term": cert_term}
+    if on_built is not None:
+        on_built(built)
     cert_vg = jax.jit(jax.value_and_grad(cert_term))
     opt = optax.chain(optax.clip_by_global_norm(cfg.clip),
                       optax.adam(optax.cosine_decay_schedule(cfg.learning_rate, cfg.steps, alpha=0.1)))
@@ -457,5 +464,4 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
             break
     finished = step >= cfg.steps or state["stopped_early"]
     return {"finished": finished, "raw": np.asarray(raw), "best_raw": np.asarray(state["best_raw"]),
-            "state": state, "spec": spec, "ctrl": ctrl, "geometry": g, "rcfg": rcfg, "train": train,
-            "validation": validation, "heldout": heldout, "w_arr": w_arr, "cert_term": cert_term}
+            "state": state, **built}
