@@ -365,6 +365,11 @@ def objective(loss, ok):
     return loss + FAILURE_PENALTY * (1.0 - jnp.mean(ok.astype(loss.dtype)))
 
 
+# the loop's bookkeeping as programs (eager, each of their operations compiled on first use)
+_objective_plus = jax.jit(lambda loss, ok, extra: objective(loss, ok) + extra)
+_positive = jax.jit(lambda spec, raw: spec.positive(raw), static_argnums=0)
+
+
 def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None, on_built=None) -> dict:
     """Run (or resume) a tuning job; returns a dict with gains, histories and counts.
 
@@ -426,21 +431,21 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
         batch = _draw(ctrl, cfg, g, jax.random.fold_in(stream, step)) if cfg.resample else train
         loss, grad, ok, m = batch_value_and_grad(raw, batch, ctrl, spec, g, rcfg, w_arr)
         c_val, c_grad = cert_vg(raw)
-        n_ok = int(jnp.sum(ok))
+        n_ok = int(np.sum(np.asarray(ok)))
         if n_ok == 0:
             raise RuntimeError(f"step {step}: every training scenario failed (non-finite or singular)")
         if cfg.resample:        # the objective on the fixed training set, as the baselines see it (not counted)
             tr, tr_ok, _ = batch_value(raw, train, ctrl, spec, g, rcfg, w_arr)
-            total = float(objective(tr, tr_ok) + c_val)
+            total = float(_objective_plus(tr, tr_ok, c_val))
         else:
-            total = float(objective(loss, ok) + c_val)
+            total = float(_objective_plus(loss, ok, c_val))
         state["rollouts"] += cfg.n_train
         state["excluded"] += cfg.n_train - n_ok
         rec = {"step": step, "train_loss": total, "rollouts": state["rollouts"], "excluded": cfg.n_train - n_ok,
-               "params": np.asarray(spec.positive(raw)).tolist()}
+               "params": np.asarray(_positive(spec, raw)).tolist()}
         if (step + 1) % cfg.eval_every == 0 or step == 0 or step + 1 == cfg.steps:
             va, va_ok, _ = batch_value(raw, validation, ctrl, spec, g, rcfg, w_arr)
-            va = float(objective(va, va_ok) + c_val)
+            va = float(_objective_plus(va, va_ok, c_val))
             rec["validation_loss"] = va
             if state["best"] is None or va < state["best"]:
                 state["best"], state["best_raw"], state["since_best"] = va, np.asarray(raw).tolist(), 0
@@ -453,7 +458,7 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
         step += 1
         done_here += 1
         state["wall_time_s"] = time.perf_counter() - t0
-        shown = np.round(np.asarray(spec.positive(raw)), 3)
+        shown = np.round(np.asarray(_positive(spec, raw)), 3)
         log(f"step {step:4d}/{cfg.steps}  train {total:.5g}"
             + (f"  validation {rec['validation_loss']:.5g}" if "validation_loss" in rec else "")
             + (f"  {'/'.join(spec.names())} {shown.tolist()}" if shown.size <= 12 else f"  {shown.size} parameters")
