@@ -199,22 +199,21 @@ def test_scalarized_loop_body_with_scalar_parts_matches_the_array_loop():
 
 
 def _stage_loops(fun, *args):
-    """How many loops of length 4 (RK stage loops) the program of ``fun`` holds."""
-    return _all_prims_with_length(jax.make_jaxpr(fun)(*args).jaxpr).count(("scan", 4))
+    """How many RK stage loops (scans of length 4 over a checkpointed body) the program of ``fun`` holds."""
+    def count(jaxpr):
+        n = 0
+        for e in jaxpr.eqns:
+            if e.primitive.name == "scan" and e.params["length"] == 4:
+                n += "remat2" in [q.primitive.name for q in e.params["jaxpr"].jaxpr.eqns]
+            n += sum(count(sub) for sub in jax.extend.core.jaxprs_in_params(e.params))
+        return n
 
-
-def _all_prims_with_length(jaxpr):
-    out = []
-    for e in jaxpr.eqns:
-        out.append((e.primitive.name, e.params.get("length")))
-        for sub in jax.extend.core.jaxprs_in_params(e.params):
-            out += _all_prims_with_length(sub)
-    return out
+    return count(jax.make_jaxpr(fun)(*args).jaxpr)
 
 
 def test_stage_loop_equals_the_unrolled_step(paper61, monkeypatch):
     """The RK stages run in a loop (the large laws' step) give the unrolled step's rollout,
-    diagnostics and gradient to rounding."""
+    diagnostics and gradient (reverse and forward mode) to rounding."""
     import importlib
 
     simulate_module = importlib.import_module("wmrjax.simulate")   # the module (wmrjax.simulate is also the function)
@@ -226,11 +225,15 @@ def test_stage_loop_equals_the_unrolled_step(paper61, monkeypatch):
         tr = w.simulate(ctrl, z0, p, dt=0.01, n_steps=60, save_every=5)
         return jnp.sum(tr.state[:, :2] ** 2), tr
 
-    (l1, tr1), g1 = jax.value_and_grad(run, has_aux=True)(params.gains.coeffs)
+    def derivatives():
+        (value, tr), g = jax.value_and_grad(run, has_aux=True)(params.gains.coeffs)
+        return tr, g, jax.jacfwd(lambda c: run(c)[0])(params.gains.coeffs)
+
+    tr1, g1, f1 = derivatives()
     assert _stage_loops(lambda g: run(g)[0], params.gains.coeffs) == 0      # 153 equations: unrolled
     jax.clear_caches()
     monkeypatch.setattr(simulate_module, "STAGE_LOOP_MIN_EQUATIONS", 0)
-    (l2, tr2), g2 = jax.value_and_grad(run, has_aux=True)(params.gains.coeffs)
+    tr2, g2, f2 = derivatives()
     assert _stage_loops(lambda g: run(g)[0], params.gains.coeffs) == 1
     for a, b in ((tr2.state, tr1.state), (tr2.control, tr1.control), (tr2.margin, tr1.margin)):
         np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-14)
@@ -239,6 +242,40 @@ def test_stage_loop_equals_the_unrolled_step(paper61, monkeypatch):
         np.testing.assert_allclose(getattr(tr2.diagnostics, f), getattr(tr1.diagnostics, f), rtol=1e-9)
     assert tr1.diagnostics.error_estimate > 1e-12          # the estimate (k1, k4 of the loop) is compared, not zeros
     np.testing.assert_allclose(g2, g1, rtol=1e-11)
+    np.testing.assert_allclose(f2, f1, rtol=1e-11)
+    np.testing.assert_allclose(f1, g1, rtol=1e-11)
+    jax.clear_caches()
+
+
+def test_stage_loop_with_a_discrete_state_and_a_switch(monkeypatch):
+    """Hybrid parking (an integer mode, a post-step switch, no regularity for the stabilizer)
+    through the stage loop: the unrolled step's trajectory and switch, and its gradient."""
+    import importlib
+    import math
+
+    from wmrjax import references as R
+    from wmrjax.controllers import hybrid as H
+
+    simulate_module = importlib.import_module("wmrjax.simulate")
+    hy = H.hybrid_parking()
+    params = hy.params(R.paper_66())
+    z0 = hy.initial_state(jnp.array([[10 * math.sqrt(2) / 6, 2.54], [-0.5, -0.5]]), params)
+
+    def final_distance(lam):
+        tr = w.simulate(hy, z0, params._replace(lam=lam), dt=0.02, n_steps=300)
+        return jnp.hypot(tr.final_state.tracking[0], tr.final_state.tracking[1]), tr
+
+    (d1, tr1), g1 = jax.value_and_grad(final_distance, has_aux=True)(params.lam)
+    jax.clear_caches()
+    monkeypatch.setattr(simulate_module, "STAGE_LOOP_MIN_EQUATIONS", 0)
+    (d2, tr2), g2 = jax.value_and_grad(final_distance, has_aux=True)(params.lam)
+    assert _stage_loops(lambda lam: final_distance(lam)[0], params.lam) == 1
+    assert np.any(np.asarray(tr1.state.mode) == H.PARKING)          # the run switches
+    np.testing.assert_array_equal(tr2.state.mode, tr1.state.mode)
+    np.testing.assert_allclose(tr2.state.tracking, tr1.state.tracking, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(tr2.control, tr1.control, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(g2, g1, rtol=1e-10)
+    assert abs(float(g1)) > 0
     jax.clear_caches()
 
 

@@ -16,7 +16,7 @@ Four implementation choices matter for speed on CPUs (measured in
   neither the step nor its transpose assembles or takes apart an array: on the section
   6.1 loop this made the rollout 1.7x and its reverse-mode gradient 2.2x faster;
 * the large laws (:data:`STAGE_LOOP_MIN_EQUATIONS`) run the four RK stages in a loop over
-  one copy of the field, checkpointed stage by stage: their programs compile 2-3x faster;
+  one copy of the field, checkpointed stage by stage: their programs compile 1.8-3.5x faster;
 * the vector fields use :func:`wmrjax._math.sincos`, which XLA vectorises.
 
 A run *fails* when its state becomes non-finite, its singularity margin drops to
@@ -48,7 +48,7 @@ TWO_LEVEL_CHECKPOINT_STEPS = 2000
 # equations run the four RK stages in a loop over one copy of it, checkpointed stage by stage
 # (the six dynamic laws from (1,2) velocity, 303 equations, to (1,1) torque, 949; the largest
 # of the others has 205). Measured (1000 steps, B = 1024 or 256, 2 cores): their programs
-# compile 2-3x faster (a (1,2) velocity gradient 8.1 -> 2.3 s) and run as fast or faster (its
+# compile 1.8-3.5x faster (a (1,2) velocity gradient 8.1 -> 2.3 s) and run as fast or faster (its
 # gradient 2.0 -> 1.3 s, (1,2) torque 2.5x faster forward); the unrolled step of the two
 # largest was a fused scalar program that XLA:CPU's loop emitter (JAX 0.10.2) compiled in
 # 40+ s into code 40-1000x slower. Small laws keep the unrolled step: the stage loop made the
@@ -152,30 +152,34 @@ def _rk4(field, t, z, dt):
     return jax.tree_util.tree_map(combine, z, k1, k2, k3, k4), aux, k1, k4
 
 
-def _rk4_stage_loop(field, t, z, dt):
-    """:func:`_rk4` with its four stages run by a loop over one copy of ``field``, on scalars.
+def _rk4_stage_loop(field, t, z, dt, parts, rebuild):
+    """:func:`_rk4` of ``field(t, z, p)``, ``p = rebuild(parts)``, with its four stages run by a
+    loop over one copy of the field, on scalars.
 
     For the largest laws: the loop body holds one copy of the field instead of four, so XLA
-    compiles the step several times faster (and its fused scalar program stays small enough
-    for XLA:CPU's loop emitter, see :data:`STAGE_LOOP_MIN_EQUATIONS`). Each stage is
-    checkpointed: reverse mode stores a stage's input (a few scalars), not the residuals of
-    the field's linearization, and recomputes them stage by stage. The operations are
-    :func:`_rk4`'s in the same order (the first stage adds ``0 * dt * 0`` to the state and
-    starts the weighted sum from its own k); XLA fuses the two programs differently, so the
-    numbers agree to rounding (4e-16 on 300 steps of the section 6.1 loop).
+    compiles the step 1.8-3.5x faster (and its fused scalar program stays small enough for
+    XLA:CPU's loop emitter, see :data:`STAGE_LOOP_MIN_EQUATIONS`). The state, the stages and
+    the parameters (``parts``, from :func:`scalar_parts`) enter the body as scalars. Each stage
+    is checkpointed: reverse mode stores a stage's input (a few scalars), not the residuals of
+    the field's linearization, and recomputes them stage by stage. The arithmetic is
+    :func:`_rk4`'s in the same order, except that the first stage adds ``0 * dt * 0`` to the
+    state (a ``-0.0`` component becomes ``+0.0``) and every stage computes the field's aux (the
+    first one's is kept); XLA fuses the two programs differently, so the numbers agree to
+    rounding (4e-16 on 300 steps of the section 6.1 loop).
     """
     dtype = jnp.result_type(dt)
     nodes = jnp.asarray([0.0, 0.5, 0.5, 1.0], dtype)      # stage times, in units of dt
     weights = jnp.asarray([1.0, 2.0, 2.0, 1.0], dtype)    # weights x 6
-    k_like, aux_like = jax.eval_shape(field, t, z)
+    k_like, aux_like = jax.eval_shape(field, t, z, rebuild(parts))
 
-    def stage(carry, i, zs):
+    def stage(carry, stage_xs, zs, parts):
         k_prev, acc, k1, aux = carry           # tuples of scalars: the continuous leaves of k; aux
-        z_i = _axpy(_from_scalars(zs, z), nodes[i] * dt, _from_continuous(k_prev, k_like))
-        k, aux_i = field(t + nodes[i] * dt, z_i)
+        i, node, weight = stage_xs
+        z_i = _axpy(_from_scalars(zs, z), node * dt, _from_continuous(k_prev, k_like))
+        k, aux_i = field(t + node * dt, z_i, rebuild(parts))
         k, aux_i = _continuous(k), _to_scalars(aux_i)
         first = i == 0
-        acc = tuple(jnp.where(first, ki, s + weights[i] * ki) for s, ki in zip(acc, k))
+        acc = tuple(jnp.where(first, ki, s + weight * ki) for s, ki in zip(acc, k))
         keep = lambda new, old: tuple(jnp.where(first, n, o) for n, o in zip(new, old))
         return (k, acc, keep(k, k1), keep(aux_i, aux)), None
 
@@ -183,8 +187,8 @@ def _rk4_stage_loop(field, t, z, dt):
     zs = _to_scalars(z)
     zeros = lambda tree: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), tree)
     zero_k, zero_aux = _continuous(zeros(k_like)), _to_scalars(zeros(aux_like))
-    (k4, acc, k1, aux), _ = jax.lax.scan(lambda c, i: body(c, i, zs), (zero_k, zero_k, zero_k, zero_aux),
-                                         jnp.arange(4))
+    (k4, acc, k1, aux), _ = jax.lax.scan(lambda c, xs: body(c, xs, zs, parts), (zero_k, zero_k, zero_k, zero_aux),
+                                         (jnp.arange(4), nodes, weights))
     acc = _from_continuous(acc, k_like)
     combine = lambda zi, s: zi + (dt / 6.0) * s if _is_continuous(zi) else zi
     return (jax.tree_util.tree_map(combine, z, acc), _from_scalars(aux, aux_like),
@@ -307,8 +311,9 @@ def scalar_parts(tree):
 
     Returns:
       ``parts`` (a list, one entry per leaf) and ``rebuild(parts) -> tree``. ``rebuild`` is
-      hashable and equal for trees of one structure and leaf shapes, so a jitted loop body
-      can take it as a static argument (and be traced once for all such trees).
+      hashable, and equal for trees of one structure whose leaves have the same shapes and
+      the same split (small floating leaves taken apart, the others kept), so a jitted loop
+      body can take it as a static argument (and be traced once for all such trees).
     """
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     split = [_is_continuous(x) and np.ndim(x) > 0 and 0 < np.size(x) <= _scalarize.MAX_ELEMENTS for x in leaves]
@@ -318,7 +323,13 @@ def scalar_parts(tree):
 
 @dataclasses.dataclass(frozen=True)
 class _Rebuild:
-    """The inverse of :func:`scalar_parts` for one tree structure and leaf shapes (hashable)."""
+    """The inverse of :func:`scalar_parts` for one tree structure and leaf shapes (hashable).
+
+    Attributes:
+      treedef: the tree's structure.
+      shapes: each leaf's shape.
+      split: whether each leaf was taken apart into a tuple of scalars.
+    """
 
     treedef: Any
     shapes: tuple
@@ -362,7 +373,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # argument that the body takes apart once, outside the loop; the largest laws run their
     # RK stages in a loop over one copy of it (see STAGE_LOOP_MIN_EQUATIONS)
     field_s, n_scalar = _scalar_field(system, t0, z0, params)
-    rk4 = _rk4_stage_loop if n_scalar >= STAGE_LOOP_MIN_EQUATIONS else _rk4
+    stage_loop = n_scalar >= STAGE_LOOP_MIN_EQUATIONS
     post_step = getattr(system, "post_step", None)
     params_parts, rebuild_params = scalar_parts(params)
     field_of = lambda p: (lambda t, z: field_s(t, z, p))
@@ -372,7 +383,10 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         p = rebuild_params(parts)
         z = _from_scalars(zt, z0)
         t = t0 + i.astype(dtype) * dt
-        z_next, aux, k1, k4 = rk4(field_of(p), t, z, dt)
+        if stage_loop:
+            z_next, aux, k1, k4 = _rk4_stage_loop(field_s, t, z, dt, parts, rebuild_params)
+        else:
+            z_next, aux, k1, k4 = _rk4(field_of(p), t, z, dt)
         jumped = None
         if post_step is not None:   # hybrid systems: discrete transition at the end of the step
             z_post = post_step(t + dt, z_next, p)
