@@ -136,20 +136,26 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
     t0 = time.perf_counter()
     say(f"problem {cfg.problem}: building scenarios; compiling the batched rollout and its gradient (first step)")
     programs = {}
-    with ThreadPoolExecutor(max_workers=1) as second:
-        def prepare(built):
-            # the programs of the validation, the evaluations and the figure, compiled on a
-            # second thread while this one compiles the gradient (XLA compiles without the GIL);
-            # tracing the validation program here first traces the controller period that
-            # every program shares, once, instead of on both threads at the same time
-            loop.batch_value.trace(built["spec"].init(cfg.poles_init), built["validation"], built["ctrl"],
-                                   built["spec"], built["geometry"], built["rcfg"], built["w_arr"])
-            programs.update(_programs(built))
-            programs["ready"] = second.submit(_warm_up, programs, built, cfg.poles_init)
-            second.submit(_preload)
+    second = ThreadPoolExecutor(max_workers=1)
 
+    def prepare(built):
+        # the programs of the validation, the evaluations and the figure, compiled on a second
+        # thread while this one compiles the gradient (XLA compiles without the GIL); tracing
+        # the validation program here first traces the controller period that every program
+        # shares, once, instead of on both threads at the same time
+        loop.batch_value.trace(built["spec"].init(cfg.poles_init), built["validation"], built["ctrl"],
+                               built["spec"], built["geometry"], built["rcfg"], built["w_arr"])
+        programs.update(_programs(built))
+        programs["ready"] = [second.submit(_warm_up, programs, built, cfg.poles_init), second.submit(_preload)]
+
+    try:
         res = loop.tune(cfg, out, log=log, on_built=prepare)
-        programs["ready"].result()          # its errors are raised here
+        for done in programs["ready"]:
+            done.result()                   # their errors are raised here
+    except BaseException:
+        second.shutdown(wait=False, cancel_futures=True)    # a failed run does not wait for them
+        raise
+    second.shutdown()
     grad_wall = time.perf_counter() - t0
     ctrl, spec, g, rcfg, train, heldout = (res[k] for k in ("ctrl", "spec", "geometry", "rcfg", "train", "heldout"))
     st = res["state"]
@@ -162,7 +168,7 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
     say("evaluating the paper's and the tuned gains on the held-out scenarios")
     tr_paper, tr_tuned = (float(v) for v in train_eval(np.stack([np.asarray(paper_raw), np.asarray(tuned_raw)])))
     ho, (ho_ok, ho_m) = heldout_eval(np.stack([np.asarray(paper_raw), np.asarray(tuned_raw)]), with_aux=True)
-    ho_paper, ho_tuned = (float(v) for v in ho)
+    ho_paper, ho_tuned = (float(v) for v in ho)        # +inf where a set's objective is not finite
     m_paper, m_tuned = (jax.tree_util.tree_map(lambda x: x[i], ho_m) for i in (0, 1))
     sing_paper, sing_tuned = (int(np.sum(ho_m.singular[i])) for i in (0, 1))
     fail_paper, fail_tuned = (int(np.sum(~ho_ok[i])) for i in (0, 1))
@@ -234,7 +240,9 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
         "tuned_gains": {**_gains_report(spec, tuned_raw), "selected_by": "best validation loss among evaluations"},
         "train_loss": {"initial": hist[0]["train_loss"], "final": hist[-1]["train_loss"],
                        "paper_gains": tr_paper, "tuned": tr_tuned},
-        "heldout_loss": {"paper_gains": ho_paper, "tuned": ho_tuned, "ratio_paper_over_tuned": ho_paper / ho_tuned},
+        "heldout_loss": {"paper_gains": ho_paper, "tuned": ho_tuned,        # null ratio where one is not finite
+                         "ratio_paper_over_tuned": ho_paper / ho_tuned if np.isfinite([ho_paper, ho_tuned]).all()
+                         else None},
         "heldout_terms": {k: {f: float(np.mean(np.asarray(getattr(m, f))[np.asarray(m.valid)]))
                               for f in ("tracking", "effort", "saturation", "barrier")}
                           for k, m in (("paper_gains", m_paper), ("tuned", m_tuned))},
@@ -262,9 +270,15 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
 
 
 def _programs(built) -> dict:
-    """The jitted functions of a run after its gradient loop: ``evaluate_on`` (the objective and
-    per-scenario metrics of candidate gains on a scenario set: training-set evaluations, the
-    held-out report, the baselines) and ``trajectories`` (the samples of held-out scenario 0)."""
+    """The functions of a run after its gradient loop.
+
+    Returns:
+      A dict: ``evaluate_on`` (:func:`tuning.baselines.candidate_evaluator` of the training
+      objective, with per-scenario validity and metrics as aux: the training-set evaluations,
+      the held-out report and the baselines; +inf where an objective is not finite),
+      ``trajectories(gains) -> (states (n_periods, n), output errors (n_periods, 2))`` of
+      held-out scenario 0, that ``scenario`` (on the host) and its sample times ``t`` [s].
+    """
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -295,7 +309,9 @@ def _programs(built) -> dict:
 
 
 def _warm_up(programs, built, poles_init) -> None:
-    """Compile (by calling them once) the validation program and ``programs``."""
+    """Compile the validation program and ``programs`` by calling each once (an evaluation
+    runs one chunk of 16 candidates)."""
+    import jax
     import numpy as np
 
     from tuning import loop
@@ -304,6 +320,8 @@ def _warm_up(programs, built, poles_init) -> None:
     raw = spec.init(poles_init)
     loop.batch_value(raw, built["validation"], built["ctrl"], spec, built["geometry"], built["rcfg"], built["w_arr"])
     programs["evaluate_on"](np.asarray(raw)[None], built["train"])
+    if jax.tree_util.tree_leaves(built["heldout"])[0].shape[0] != jax.tree_util.tree_leaves(built["train"])[0].shape[0]:
+        programs["evaluate_on"](np.asarray(raw)[None], built["heldout"])      # a set of another size: its own program
     programs["trajectories"](spec.gains(raw))
 
 

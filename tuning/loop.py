@@ -383,8 +383,9 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
       out_dir: where ``checkpoint.json`` lives (None: no checkpointing).
       stop_after: stop after this many steps of *this* call (to test resumption).
       on_built: called with the dict that is returned (without ``finished``, ``raw``,
-        ``best_raw`` and ``state``) once the scenarios are drawn, before the first gradient:
-        the command line starts compiling its later programs there, on a second thread.
+        ``best_raw`` and ``state``) once the scenarios are drawn and a checkpoint is read, before
+        the first gradient: the command line starts compiling its later programs there, on a
+        second thread.
     """
     ctrl, spec, g, rcfg, train, validation, heldout = build(cfg)
     w_arr = jnp.asarray(cfg.weights, float)
@@ -402,8 +403,6 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
 
     built = {"spec": spec, "ctrl": ctrl, "geometry": g, "rcfg": rcfg, "train": train, "validation": validation,
              "heldout": heldout, "w_arr": w_arr, "cert_term": cert_term}
-    if on_built is not None:
-        on_built(built)
     cert_vg = jax.jit(jax.value_and_grad(cert_term))
     opt = optax.chain(optax.clip_by_global_norm(cfg.clip),
                       optax.adam(optax.cosine_decay_schedule(cfg.learning_rate, cfg.steps, alpha=0.1)))
@@ -423,6 +422,8 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
     if ckpt is not None and ckpt.exists():
         start, raw, opt_state, state = load_checkpoint(ckpt, cfg, raw, opt_state)
         log(f"resumed from {ckpt} at step {start}")
+    if on_built is not None:
+        on_built(built)
     t0 = time.perf_counter() - state["wall_time_s"]
     done_here = 0
     step = start

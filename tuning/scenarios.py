@@ -80,28 +80,34 @@ def rollout(ctrl, gains, nominal_geometry, sc: Scenario, cfg: RolloutConfig, tra
         nv = law.n_velocity_state
         xp0 = jnp.concatenate([xp0, law.extension.plant_input(z0[:nX], z0[nX:nv], z0[nv:], nominal_geometry)])
     acc0 = (jnp.zeros(4), jnp.asarray(jnp.inf), jnp.asarray(False))
+    # the standard normal draws of every sample at once, outside the loop (the same numbers as
+    # drawing them period by period; the loop body keeps only the arithmetic of the period)
+    periods = jnp.arange(cfg.n_periods)
+    draws = jax.vmap(lambda k: jax.random.normal(jax.random.fold_in(sc.key, k), (nX,)))(periods)
     (_, _, alive, (tot, mmin, sing), _), traj = jax.lax.scan(
-        lambda carry, k: _period(ctrl, cfg, rebuild, carry, k, parts),
+        lambda carry, kd: _period(ctrl, cfg, rebuild, carry, kd, parts),
         (tuple(jnp.unstack(xp0)), tuple(jnp.unstack(z0[nX:])), jnp.asarray(True), acc0, jnp.zeros(())),
-        jnp.arange(cfg.n_periods))
+        (periods, draws))
     mean = tot / cfg.n_periods
     m = Metrics(mean[0], mean[1], mean[2], mean[3], alive, sing, mmin)
     return (m, traj) if trajectory else m
 
 
-# one controller period, jitted: traced (the law's jets derived, scalarized and simplified)
-# once per controller, configuration and argument shapes, then reused by every program of a
-# run (gradient, validation, baselines' evaluator, figures) and by their transformations:
-# each later program traces in 0.04 s instead of 0.4 s (section 6.1)
 @functools.partial(jax.jit, static_argnums=(0, 1, 2))
-def _period(ctrl, cfg, rebuild, carry, k, parts):
-    return w.scalarized(functools.partial(_period_on_arrays, ctrl, cfg, rebuild))(carry, k, parts)
+def _period(ctrl, cfg, rebuild, carry, k_draw, parts):
+    """:func:`_period_on_arrays` on scalars (:func:`wmrjax.scalarized`), jitted: traced (the
+    law's jets derived, scalarized and simplified) once per controller, configuration and
+    argument shapes, then reused by every program of a run (gradient, validation, the
+    baselines' evaluator, figures) and by their transformations: each later program traces in
+    0.04 s instead of 0.4 s (section 6.1)."""
+    return w.scalarized(functools.partial(_period_on_arrays, ctrl, cfg, rebuild))(carry, k_draw, parts)
 
 
-def _period_on_arrays(ctrl, cfg, rebuild, carry, k, parts):
-    """One controller period of :func:`rollout`: sample (with noise), control, hold the command
-    for ``cfg.substeps`` RK4 steps of the plant (states as tuples of scalars). Returns the next
-    carry and the sample ``(z, command)`` (XLA drops it where the rollout does not keep it)."""
+def _period_on_arrays(ctrl, cfg, rebuild, carry, k_draw, parts):
+    """One controller period of :func:`rollout`: sample (with noise: ``sc.noise_std`` times the
+    period's standard normal draws), control, hold the command for ``cfg.substeps`` RK4 steps of
+    the plant (states as tuples of scalars). Returns the next carry and the sample
+    ``(z, command)`` (XLA drops it where the rollout does not keep it)."""
     law = ctrl.law
     torque = ctrl.level == "torque"
     nX = ctrl.robot.n_state
@@ -124,11 +130,12 @@ def _period_on_arrays(ctrl, cfg, rebuild, carry, k, parts):
 
     substep = w.scalarized(substep)             # the body of its own loop
     xps, cs, alive, acc, sign_prev = carry      # plant state, controller state (compensator [, U])
+    k, draw = k_draw                            # period index, standard normal draws (nX,)
     params, sc, g = rebuild(parts)
     xp, c = jnp.stack(xps), _stack(cs, xps[0])
     t = k.astype(sc.noise_std.dtype) * cfg.control_dt
     X = xp[:nX]
-    noise = sc.noise_std * jax.random.normal(jax.random.fold_in(sc.key, k), (nX,))
+    noise = sc.noise_std * draw
     zm = jnp.concatenate([X + noise, c])
     if torque:
         zm = law.lift_measured(zm, xp[nX:], g)     # measured wheel velocities
