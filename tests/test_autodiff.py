@@ -107,6 +107,71 @@ def test_through_the_hybrid_switch():
     _check(loss, theta, jnp.array([0.6, 0.8]), h=1e-6)
 
 
+def _count(jaxpr, name):
+    """Equations of primitive ``name`` in ``jaxpr`` and its sub-jaxprs (loop bodies, calls)."""
+    n = 0
+    for eqn in jaxpr.eqns:
+        n += eqn.primitive.name == name
+        for p in eqn.params.values():
+            for q in p if isinstance(p, (list, tuple)) else (p,):
+                sub = getattr(q, "jaxpr", q)
+                if hasattr(sub, "eqns"):
+                    n += _count(sub, name)
+    return n
+
+
+@pytest.fixture(scope="module")
+def failing_run():
+    """Section 6.1 type, 12 steps, with a margin floor that the run crosses at step 7 of 12."""
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    params = ctrl.params(R.circle(radius=2.0, omega=0.4), poles=1.5, geometry=GEOM["(2,0)"])
+    z0 = _start("dynamic", ctrl, params).at[3].add(0.4)
+
+    def run(coeffs, floor):
+        p = params._replace(gains=w.Gains(coeffs))
+        return w.simulate(ctrl, z0, p, dt=0.02, n_steps=12, save_every=1, margin_floor=floor)
+
+    margins = np.asarray(run(params.gains.coeffs, 0.0).margin)
+    assert np.all(np.diff(margins) < 0)          # the margin falls along this run
+    return run, params.gains.coeffs, 0.5 * (margins[6] + margins[7])
+
+
+def test_reverse_mode_recomputes_the_stages_only(failing_run):
+    """Reverse mode stores each step's two selection flags: its recomputation of the step has
+    no finiteness check, sign test or error estimate of its own (the gradient's program has
+    exactly the forward pass's)."""
+    run, coeffs, _ = failing_run
+    loss = lambda c: jnp.sum(run(c, 1e-9).state ** 2)
+    forward, gradient = jax.make_jaxpr(loss)(coeffs).jaxpr, jax.make_jaxpr(jax.grad(loss))(coeffs).jaxpr
+    for name in ("is_finite", "sign"):
+        assert _count(forward, name) > 0
+        assert _count(gradient, name) == _count(forward, name), name
+
+
+def test_gradient_through_a_run_that_fails(failing_run):
+    """A run frozen at its failure (margin floor crossed at step 7): the reverse pass selects
+    with the stored flags, forward sensitivities with the recomputed ones; they agree."""
+    run, coeffs, floor = failing_run
+    tr = run(coeffs, floor)
+    assert bool(tr.diagnostics.failed) and float(tr.diagnostics.t_failure) == pytest.approx(7 * 0.02, abs=1e-12)
+
+    def loss(c):
+        tr = run(c, floor)
+        return jnp.sum(tr.state ** 2), tr.diagnostics.t_failure
+
+    direction = jnp.asarray(np.random.default_rng(2).normal(size=coeffs.shape))
+    fwd = jax.jit(w.value_and_grad(loss, has_aux=True, mode="forward"))
+    ((v1, t1), g1), ((v2, t2), g2) = fwd(coeffs), jax.jit(w.value_and_grad(loss, has_aux=True, mode="reverse"))(coeffs)
+    assert float(t1) == float(t2) == float(tr.diagnostics.t_failure)
+    np.testing.assert_allclose(v1, v2, rtol=1e-13)
+    np.testing.assert_allclose(g1, g2, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(g2))))
+    h = 1e-5                                      # small enough that the failure stays at step 7
+    fd = (fwd(coeffs + h * direction)[0][0] - fwd(coeffs - h * direction)[0][0]) / (2 * h)
+    np.testing.assert_allclose(float(jnp.vdot(g2, direction)), float(fd), rtol=1e-6)
+    # from the failure on, the state stays at its last good value
+    np.testing.assert_array_equal(np.asarray(tr.state[8:]), np.broadcast_to(np.asarray(tr.state[7]), tr.state[8:].shape))
+
+
 def test_auto_mode_choice_and_aux():
     assert autodiff.choose_mode(autodiff.FORWARD_MAX_PARAMETERS) == "forward"
     assert autodiff.choose_mode(autodiff.FORWARD_MAX_PARAMETERS + 1) == "reverse"

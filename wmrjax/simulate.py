@@ -35,6 +35,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 from jax.extend import core as jex_core
 import numpy as np
 
@@ -54,6 +55,8 @@ TWO_LEVEL_CHECKPOINT_STEPS = 2000
 # 40+ s into code 40-1000x slower. Small laws keep the unrolled step: the stage loop made the
 # section 6.1 law (153 equations) 30 % slower.
 STAGE_LOOP_MIN_EQUATIONS = 250
+# reverse mode stores these flags of every step (see _simulate)
+_SAVED_FLAGS = ("wmrjax_step_ok", "wmrjax_step_finite")
 
 
 class Diagnostics(NamedTuple):
@@ -408,6 +411,9 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         sample_ok = alive & finite_here & regular & accurate   # the state z at time t
         finite_next = _all_finite(z_next)
         ok = sample_ok & finite_next                                # may we go on from z?
+        # reverse mode stores these two flags (the step's checkpoint policy, below), so that
+        # its recomputation of the step needs neither the diagnostics nor the error estimate
+        ok, finite_next = checkpoint_name(ok, _SAVED_FLAGS[0]), checkpoint_name(finite_next, _SAVED_FLAGS[1])
         newly_failed = alive & ~ok
         better = sample_ok & (margin < diag.min_margin)
         diag = _Running(
@@ -432,8 +438,11 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # array assembled or taken apart inside the loop, forward or transposed.
     step_on_scalars = scalarized(step_on_scalars)
     # Reverse mode: rematerialise each step instead of storing its intermediates (the
-    # jet of the linearizing law has hundreds); the backward pass then stays in cache.
-    step = jax.checkpoint(lambda carry, i: step_on_scalars(carry, i, params_parts), prevent_cse=False)
+    # jet of the linearizing law has hundreds); the backward pass then stays in cache. It
+    # stores the step's two flags that select the next state: the recomputation is then the
+    # RK4 stages alone (section 6.1 loop, B = 1024: the gradient 1.4x faster).
+    step = jax.checkpoint(lambda carry, i: step_on_scalars(carry, i, params_parts), prevent_cse=False,
+                          policy=jax.checkpoint_policies.save_only_these_names(*_SAVED_FLAGS))
 
     # initial flags derived from z0 so they carry its sharding/varying type (shard_map)
     first = _first_float(z0)
