@@ -241,7 +241,7 @@ def test_batch_value_and_grad_auto_threshold():
     """Forward up to BATCH_FORWARD_MAX_PARAMETERS (the batched forward loop is the cheaper one
     there), per-example reverse above; the per-rollout rule of value_and_grad is unchanged."""
     lim = autodiff.BATCH_FORWARD_MAX_PARAMETERS
-    assert lim == 2
+    assert lim == 1
     assert autodiff.choose_mode(lim, "auto", lim) == "forward"
     assert autodiff.choose_mode(lim + 1, "auto", lim) == "reverse"
     assert autodiff.choose_mode(lim + 1) == "forward"
