@@ -62,6 +62,30 @@ def test_constant_schedule_is_the_constant_gains(tiny):
     np.testing.assert_allclose(np.asarray(b[2].tracking), np.asarray(a[2].tracking), rtol=1e-12)
 
 
+def test_quickly_compiled_programs_match_the_default_ones(tiny):
+    """The validation program and the scenario draws compiled at optimization level 0
+    (loop.QUICK_COMPILE) give the default programs' numbers to rounding."""
+    from tuning import loop
+
+    ctrl, spec, g, rcfg, train, validation, heldout = tiny
+    wts = jnp.asarray(TINY.weights, float)
+    raw = spec.init(1.3)
+    v, ok, m = loop.batch_value(raw, validation, ctrl, spec, g, rcfg, wts)
+    vq, okq, mq = loop.validation_value(raw, validation, ctrl, spec, g, rcfg, wts)
+    np.testing.assert_allclose(float(vq), float(v), rtol=1e-13)
+    np.testing.assert_array_equal(np.asarray(okq), np.asarray(ok))
+    np.testing.assert_allclose(np.asarray(mq.tracking), np.asarray(m.tracking), rtol=1e-12)
+    # build's scenario sets (one quickly compiled program) against make_scenarios, set by set
+    key = jax.random.PRNGKey(TINY.seed)
+    k_train, k_heldout = jax.random.split(key)
+    draw = jax.jit(loop.make_scenarios, static_argnums=(0, 1, 4))
+    for got, k, n in ((train, k_train, TINY.n_train), (validation, jax.random.fold_in(key, 2), TINY.n_validation),
+                      (heldout, k_heldout, TINY.n_heldout)):
+        want = draw(ctrl, TINY, g, k, n)
+        for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-14)
+
+
 def test_nan_scenario_is_reported_and_excluded(tiny):
     ctrl, spec, g, rcfg, train, _, _ = tiny
     w = jnp.asarray(TINY.weights, float)

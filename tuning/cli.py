@@ -143,8 +143,8 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
         # thread while this one compiles the gradient (XLA compiles without the GIL); tracing
         # the validation program here first traces the controller period that every program
         # shares, once, instead of on both threads at the same time
-        loop.batch_value.trace(built["spec"].init(cfg.poles_init), built["validation"], built["ctrl"],
-                               built["spec"], built["geometry"], built["rcfg"], built["w_arr"])
+        loop.validation_value.trace(built["spec"].init(cfg.poles_init), built["validation"], built["ctrl"],
+                                    built["spec"], built["geometry"], built["rcfg"], built["w_arr"])
         programs.update(_programs(built))
         programs["ready"] = [second.submit(_warm_up, programs, built, cfg.poles_init), second.submit(_preload)]
 
@@ -228,7 +228,8 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
     if cert is not None:
         from tuning.losses import certificate_radius
 
-        radius_of = jax.jit(lambda r: certificate_radius(spec.gains(r), cert[1], cert[0], cert[2]))
+        radius_of = jax.jit(lambda r: certificate_radius(spec.gains(r), cert[1], cert[0], cert[2]),
+                            compiler_options=loop.QUICK_COMPILE)
         radius = {k: float(radius_of(r)) for k, r in (("paper_gains", paper_raw), ("tuned", tuned_raw))}
     summary = {
         "experiment": "tuning", "problem": cfg.problem, "config": dataclasses.asdict(cfg),
@@ -297,7 +298,7 @@ def _programs(built) -> dict:
     t = np.arange(rcfg.n_periods) * rcfg.control_dt
     params = ctrl.params_unchecked(sc.reference, 1.0, g)
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=loop.QUICK_COMPILE)
     def trajectories(gains):      # the sampled states and their output errors
         _, (zs, _) = rollout(ctrl, gains, g, sc, rcfg, trajectory=True)
         return zs, jax.vmap(lambda tt, z: ctrl.error(tt, z, params)[0])(jnp.asarray(t), zs)
@@ -318,7 +319,8 @@ def _warm_up(programs, built, poles_init) -> None:
 
     spec = built["spec"]
     raw = spec.init(poles_init)
-    loop.batch_value(raw, built["validation"], built["ctrl"], spec, built["geometry"], built["rcfg"], built["w_arr"])
+    loop.validation_value(raw, built["validation"], built["ctrl"], spec, built["geometry"], built["rcfg"],
+                          built["w_arr"])
     programs["evaluate_on"](np.asarray(raw)[None], built["train"])
     if jax.tree_util.tree_leaves(built["heldout"])[0].shape[0] != jax.tree_util.tree_leaves(built["train"])[0].shape[0]:
         programs["evaluate_on"](np.asarray(raw)[None], built["heldout"])      # a set of another size: its own program
