@@ -37,7 +37,7 @@ class BaselineRun(NamedTuple):
     rollouts_per_candidate: int
 
 
-def candidate_evaluator(objective_fn: Callable, shape, chunk: int = 16):
+def candidate_evaluator(objective_fn: Callable, shape, chunk: int = 16, compiler_options: dict | None = None):
     """``evaluate(raws, scenarios) -> objectives (N,)``: ``objective_fn(raw, scenarios)`` of N
     candidates ``raws (N, *shape)``, in compiled chunks of ``chunk`` (one program for any N and
     for every scenario set of one size; the last chunk is padded with copies of the first
@@ -45,9 +45,10 @@ def candidate_evaluator(objective_fn: Callable, shape, chunk: int = 16):
 
     ``objective_fn`` may also return ``(objective, aux)``: ``evaluate(raws, scenarios,
     with_aux=True)`` then returns ``(objectives, aux)`` with aux's leaves stacked along a
-    leading axis N (numpy), from the same program.
+    leading axis N (numpy), from the same program. ``compiler_options`` go to ``jax.jit``
+    (the command line passes :data:`tuning.loop.LOOP_COMPILE`).
     """
-    batched = jax.jit(jax.vmap(objective_fn, in_axes=(0, None)))
+    batched = jax.jit(jax.vmap(objective_fn, in_axes=(0, None)), compiler_options=compiler_options)
 
     def evaluate(raws, scenarios, with_aux: bool = False):
         raws = np.asarray(raws, float).reshape((-1,) + tuple(shape))

@@ -305,7 +305,8 @@ def _programs(built) -> dict:
 
     # one program for every evaluation after the gradient's (the training and held-out sets
     # have the same size in the default problems; a set of another size compiles its own)
-    return {"evaluate_on": baselines.candidate_evaluator(objective, spec.shape), "trajectories": trajectories,
+    return {"evaluate_on": baselines.candidate_evaluator(objective, spec.shape, compiler_options=loop.LOOP_COMPILE),
+            "trajectories": trajectories,
             "scenario": sc, "t": t}
 
 
