@@ -53,8 +53,8 @@ FORWARD_MAX_PARAMETERS = 2
 # 17.9x / 3.6x); forward for one parameter (as fast, a forward pass's memory and compile time)
 BATCH_FORWARD_MAX_PARAMETERS = 1
 # per-example reverse mode: examples per batch_map chunk (its forward pass, residuals and
-# backward pass run chunk by chunk); with the scalarized step 256 runs as fast as 128 and 1.45x
-# faster than 512 (section 6.1 loop, B = 1024, one device: 197 / 197 / 285 ms)
+# backward pass run chunk by chunk); section 6.1 loop, B = 1024, 2 devices, one process:
+# 79-80 ms with 256, 82-84 with 128, 89-92 with 512, 90-93 with 1024
 BATCH_REVERSE_CHUNK = 256
 
 
