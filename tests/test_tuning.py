@@ -64,7 +64,8 @@ def test_constant_schedule_is_the_constant_gains(tiny):
 
 def test_quickly_compiled_programs_match_the_default_ones(tiny):
     """The validation program and the scenario draws compiled at optimization level 0
-    (loop.QUICK_COMPILE) give the default programs' numbers to rounding."""
+    (loop.QUICK_COMPILE) give the default programs' numbers to rounding, and the public
+    gradient and value functions nest in a user's jit."""
     from tuning import loop
 
     ctrl, spec, g, rcfg, train, validation, heldout = tiny
@@ -75,6 +76,13 @@ def test_quickly_compiled_programs_match_the_default_ones(tiny):
     np.testing.assert_allclose(float(vq), float(v), rtol=1e-13)
     np.testing.assert_array_equal(np.asarray(okq), np.asarray(ok))
     np.testing.assert_allclose(np.asarray(mq.tracking), np.asarray(m.tracking), rtol=1e-12)
+    # the public functions nest in a user's jit (JAX takes compiler options on the outermost
+    # jit only: the loop's own programs are separate top-level ones)
+    nested = jax.jit(lambda r: batch_value_and_grad(r, train, ctrl, spec, g, rcfg, wts))(raw)
+    top = batch_value_and_grad(raw, train, ctrl, spec, g, rcfg, wts)
+    np.testing.assert_allclose(np.asarray(nested[1]), np.asarray(top[1]), rtol=1e-13)
+    np.testing.assert_allclose(float(jax.jit(lambda r: batch_value(r, validation, ctrl, spec, g, rcfg, wts)[0])(raw)),
+                               float(v), rtol=1e-13)
     # build's scenario sets (one quickly compiled program) against make_scenarios, set by set
     key = jax.random.PRNGKey(TINY.seed)
     k_train, k_heldout = jax.random.split(key)

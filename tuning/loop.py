@@ -28,7 +28,7 @@ from tuning.scenarios import RolloutConfig, Scenario, rollout
 # sets 1.21 -> 0.51 s, the validation 1.00 -> 0.65 s), with no measurable change in the
 # scenario draws' run time (1 ms) and 2 -> 5 ms for a validation; their numbers differ from
 # level 2's by rounding (the scenario sets by at most 1.3e-15). The gradient and the baselines'
-# evaluator, which run thousands of rollouts, keep the default.
+# evaluator, which run thousands of rollouts, compile at LOOP_COMPILE.
 QUICK_COMPILE = {"xla_backend_optimization_level": 0}
 # the gradient's and the baselines' evaluator's programs compile at level 1: 5-25 % faster than
 # at the default 2, and they run as fast or faster (gradient programs, compile / step: section
@@ -304,8 +304,7 @@ def _per_scenario(raw, sc, ctrl, spec, g, rcfg, w_arr):
     return scenario_loss(m, LossWeights(*w_arr)), m
 
 
-@functools.partial(jax.jit, static_argnums=(2, 3, 5), compiler_options=LOOP_COMPILE)
-def batch_value_and_grad(raw, scen, ctrl, spec, g, rcfg, w_arr):
+def _batch_value_and_grad(raw, scen, ctrl, spec, g, rcfg, w_arr):
     """Mean loss and gradient over the scenarios that stayed valid; NaN scenarios are excluded.
 
     Per-scenario gradients (vmapped) so a scenario whose value or gradient is not finite is
@@ -319,6 +318,12 @@ def batch_value_and_grad(raw, scen, ctrl, spec, g, rcfg, w_arr):
     loss = jnp.sum(jnp.where(ok, L, 0.0)) / n
     grad = jnp.sum(jnp.where(ok.reshape((-1,) + (1,) * (G.ndim - 1)), G, 0.0), axis=0) / n
     return loss, grad, ok, m
+
+
+batch_value_and_grad = jax.jit(_batch_value_and_grad, static_argnums=(2, 3, 5))
+# the tuning loop's program: the same function at LOOP_COMPILE (a top-level program: JAX takes
+# compiler options on the outermost jit only, so the public functions keep the default)
+_gradient_step = jax.jit(_batch_value_and_grad, static_argnums=(2, 3, 5), compiler_options=LOOP_COMPILE)
 
 
 def _batch_value(raw, scen, ctrl, spec, g, rcfg, w_arr):
@@ -448,7 +453,7 @@ def tune(cfg: TuneConfig, out_dir=None, log=print, stop_after: int | None = None
     stream = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), 3)
     while step < cfg.steps and not state["stopped_early"]:
         batch = _draw(ctrl, cfg, g, jax.random.fold_in(stream, step)) if cfg.resample else train
-        loss, grad, ok, m = batch_value_and_grad(raw, batch, ctrl, spec, g, rcfg, w_arr)
+        loss, grad, ok, m = _gradient_step(raw, batch, ctrl, spec, g, rcfg, w_arr)
         c_val, c_grad = cert_vg(raw) if cert_vg is not None else (0.0, None)
         n_ok = int(np.sum(np.asarray(ok)))
         if n_ok == 0:
