@@ -143,7 +143,8 @@ def section_6_1_loss(ctrl, params, n_steps, groups=None):
 
 def section_6_1_batch_value_and_grad(ctrl, params, n_steps, groups=None, mode="auto"):
     """``vg(poles, z0s) -> (loss, grad)`` of :func:`section_6_1_loss` by
-    :func:`wmrjax.batch_value_and_grad` (per-example reverse mode above 3 parameters)."""
+    :func:`wmrjax.batch_value_and_grad` (per-example reverse mode above
+    ``wmrjax.autodiff.BATCH_FORWARD_MAX_PARAMETERS`` = 1 parameter)."""
     import jax.numpy as jnp
 
     import wmrjax as w
@@ -321,7 +322,8 @@ def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_traj
                     "jax_version": jax.__version__, "backend": jax.default_backend()},
         "units": "trajectory-steps per second (batch size x 1000 steps / wall time, best of reps, compile excluded)",
         "gradient_timing": "seconds, best of reps x rounds: the forward pass and the gradients timed alternately, "
-                           "reps calls each per round (3 rounds; 2 at batches above 10000)",
+                           "reps calls each per round (3 rounds; gradient_by_batch above 10000 trajectories: "
+                           "2 rounds of reps // 2 calls)",
         "rollout": rows,
         "c_ceiling_note": c_note,
         "scipy_solve_ivp_one_at_a_time": {"method": "RK45", "rtol": 1e-8, "atol": 1e-10, "trajectories": scipy_trajs,

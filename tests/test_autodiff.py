@@ -172,6 +172,36 @@ def test_gradient_through_a_run_that_fails(failing_run):
     np.testing.assert_array_equal(np.asarray(tr.state[8:]), np.broadcast_to(np.asarray(tr.state[7]), tr.state[8:].shape))
 
 
+def test_stored_flags_under_two_level_checkpointing(failing_run, monkeypatch):
+    """Long horizons checkpoint the saving chunks too (TWO_LEVEL_CHECKPOINT_STEPS, lowered here
+    to 10 steps): the flags are stored again when a chunk is recomputed. Reverse mode through a
+    24-step run frozen at step 7 equals forward sensitivities (1e-10)."""
+    import importlib
+
+    simulate_module = importlib.import_module("wmrjax.simulate")
+    _, coeffs, floor = failing_run
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    params = ctrl.params(R.circle(radius=2.0, omega=0.4), poles=1.5, geometry=GEOM["(2,0)"])
+    z0 = _start("dynamic", ctrl, params).at[3].add(0.4)
+
+    def loss(c):
+        tr = w.simulate(ctrl, z0, params._replace(gains=w.Gains(c)), dt=0.02, n_steps=24, save_every=3,
+                        margin_floor=floor)
+        return jnp.sum(tr.state ** 2), tr.diagnostics.t_failure
+
+    (v1, t1), g1 = jax.jit(w.value_and_grad(loss, has_aux=True, mode="forward"))(coeffs)
+    assert float(t1) == pytest.approx(7 * 0.02, abs=1e-12)
+    one_level = _count(jax.make_jaxpr(loss)(coeffs).jaxpr, "remat2")       # the step's
+    jax.clear_caches()
+    monkeypatch.setattr(simulate_module, "TWO_LEVEL_CHECKPOINT_STEPS", 10)
+    assert _count(jax.make_jaxpr(loss)(coeffs).jaxpr, "remat2") == one_level + 1    # and the chunks'
+
+    (v2, _), g2 = jax.jit(w.value_and_grad(loss, has_aux=True, mode="reverse"))(coeffs)
+    np.testing.assert_allclose(v2, v1, rtol=1e-13)
+    np.testing.assert_allclose(g2, g1, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(g1))))
+    jax.clear_caches()
+
+
 def test_auto_mode_choice_and_aux():
     assert autodiff.choose_mode(autodiff.FORWARD_MAX_PARAMETERS) == "forward"
     assert autodiff.choose_mode(autodiff.FORWARD_MAX_PARAMETERS + 1) == "reverse"
@@ -238,10 +268,10 @@ def test_batch_value_and_grad_modes_equal_the_gradient_of_the_batch_mean(batch_p
 
 
 def test_batch_value_and_grad_auto_threshold():
-    """Forward up to BATCH_FORWARD_MAX_PARAMETERS (the batched forward loop is the cheaper one
-    there), per-example reverse above; the per-rollout rule of value_and_grad is unchanged."""
+    """Forward up to BATCH_FORWARD_MAX_PARAMETERS (1), per-example reverse above; the
+    per-rollout rule of value_and_grad differs (forward up to FORWARD_MAX_PARAMETERS, 2)."""
     lim = autodiff.BATCH_FORWARD_MAX_PARAMETERS
-    assert lim == 1
+    assert lim == 1 and autodiff.FORWARD_MAX_PARAMETERS == 2
     assert autodiff.choose_mode(lim, "auto", lim) == "forward"
     assert autodiff.choose_mode(lim + 1, "auto", lim) == "reverse"
     assert autodiff.choose_mode(lim + 1) == "forward"

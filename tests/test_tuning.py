@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
-from tuning import GainSpec, LossWeights, TuneConfig, batch_value, batch_value_and_grad, build, tune
+from tuning import GainSpec, LossWeights, TuneConfig, batch_value, batch_value_and_grad, build, objective, tune
 from tuning.losses import scenario_loss
 
 # one small configuration shared by several tests, so its compiled functions are reused
@@ -107,8 +107,14 @@ def test_nan_scenario_is_reported_and_excluded(tiny):
     np.testing.assert_allclose(float(loss), per[1:].mean(), rtol=1e-12)   # the mean over the others, exactly
 
 
-def test_resume_gives_the_same_gains(tmp_path):
+def test_resume_gives_the_same_gains(tmp_path, tiny):
     full = tune(TINY, None, log=lambda *_: None)
+    # the loop's gradient program (its own top-level copy, at LOOP_COMPILE) gives the public
+    # function's numbers: the first step's training objective
+    ctrl, spec, g, rcfg, train, _, _ = tiny
+    loss, _, ok, _ = batch_value_and_grad(spec.init(TINY.poles_init), train, ctrl, spec, g, rcfg,
+                                          jnp.asarray(TINY.weights, float))
+    np.testing.assert_allclose(full["state"]["history"][0]["train_loss"], float(objective(loss, ok)), rtol=1e-13)
     part = tune(TINY, tmp_path, log=lambda *_: None, stop_after=3)
     assert not part["finished"] and json.loads((tmp_path / "checkpoint.json").read_text())["step"] == 3
     resumed = tune(TINY, tmp_path, log=lambda *_: None)
