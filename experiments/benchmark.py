@@ -205,7 +205,7 @@ def gradient_ratios(loss, batch_vg, theta, z0s, reps, modes, compiled: dict, rou
                value_and_grad_s=tg, ratio_grad_over_forward=tg / tf, grad_finite=bool(np.all(np.isfinite(g_head))),
                abs_diff_value_vs_forward_pass=abs(float(v) - float(val)))
     diffs = {}
-    for mode, key in keys.items():
+    for key in keys.values():
         out[f"{key}_mode_s"] = best[key]
         out[f"ratio_{key}_mode"] = best[key] / tf
         diffs[key] = float(np.max(np.abs(np.asarray(outs[key][1]) - g_head)))
