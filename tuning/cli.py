@@ -384,10 +384,12 @@ def _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw, programs):
     ts = np.linspace(0.0, cfg.t_final, 201)
     fig, axs = plt.subplots(1, spec.r, figsize=(3.6 * spec.r, 3.4), squeeze=False)
     names = spec.names()
+    # one program for both schedules (a jit per schedule compiled twice)
+    schedule_at = jax.jit(lambda gains, ts: jax.vmap(gains.parameters_at)(ts))
     for raw, lab, ls in ((paper_raw, "paper", "--"), (tuned_raw, "tuned", "-")):
         gains = spec.gains(raw)
         if spec.knots:
-            pos = np.asarray(jax.jit(jax.vmap(gains.parameters_at))(jnp.asarray(ts)))      # (T, m, r)
+            pos = np.asarray(schedule_at(gains, jnp.asarray(ts)))                            # (T, m, r)
         else:                                                                             # (T, 1 or m, r)
             one = np.asarray(spec.positive(raw)).reshape(-1, spec.r)
             pos = np.broadcast_to(one, (len(ts),) + one.shape)
