@@ -133,9 +133,14 @@ def _is_continuous(x) -> bool:
     return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
 
 
+def _held(k) -> bool:
+    """A derivative known to be zero when the step is traced (a held value: it needs no arithmetic)."""
+    return not isinstance(k, jax.core.Tracer) and not np.any(np.asarray(k))
+
+
 def _axpy(z, a, k):
-    """``z + a k`` on the continuous (floating) leaves of a state pytree; discrete leaves kept."""
-    return jax.tree_util.tree_map(lambda zi, ki: zi + a * ki if _is_continuous(zi) else zi, z, k)
+    """``z + a k`` on the continuous (floating) leaves of a state pytree; discrete and held leaves kept."""
+    return jax.tree_util.tree_map(lambda zi, ki: zi + a * ki if _is_continuous(zi) and not _held(ki) else zi, z, k)
 
 
 def rk4_step(field, t, z, dt):
@@ -154,7 +159,8 @@ def _rk4(field, t, z, dt):
     k2, _ = field(t + 0.5 * dt, _axpy(z, 0.5 * dt, k1))
     k3, _ = field(t + 0.5 * dt, _axpy(z, 0.5 * dt, k2))
     k4, _ = field(t + dt, _axpy(z, dt, k3))
-    combine = lambda zi, a, b, c, d: zi + (dt / 6.0) * (a + 2.0 * b + 2.0 * c + d) if _is_continuous(zi) else zi
+    combine = lambda zi, a, b, c, d: (zi + (dt / 6.0) * (a + 2.0 * b + 2.0 * c + d)
+                                      if _is_continuous(zi) and not all(map(_held, (a, b, c, d))) else zi)
     return jax.tree_util.tree_map(combine, z, k1, k2, k3, k4), aux, k1, k4
 
 
@@ -360,6 +366,39 @@ def _scalar_field(system, t, z, params):
     return field, len(closed.jaxpr.eqns)
 
 
+def _sampler(system):
+    """``(sample, sample_every)`` of a sampled-data system (``(None, None)`` otherwise): its
+    ``sample(k, t, z, params)``, re-emitted on scalars, and its steps per sample."""
+    every = getattr(system, "sample_every", None)
+    if every is None:
+        return None, None
+    return scalarized(_simplify.simplify(system.sample)), int(every)
+
+
+def _period_advance(field_s, t, z, dt, every: int, estimate: bool, parts, rebuild):
+    """A sampled-data system's period from ``z`` at ``t`` (just sampled): ``every`` RK4 steps
+    under the held values; ``(z_next, aux at (t, z), error estimate, (), False)``. The estimate
+    is the largest of the steps after the first (the first follows the sample's jump). The
+    steps' loop body runs on scalars, like the main loop's (``field_s(t, z, p)``, ``p =
+    rebuild(parts)``)."""
+    _, aux = field_s(t, z, rebuild(parts))
+
+    def sub(c, j, parts):
+        zt, k4_prev, est = c
+        zj = _from_scalars(zt, z)
+        z_next, _, k1, k4 = _rk4(lambda tt, zz: field_s(tt, zz, rebuild(parts)), t + j.astype(dt.dtype) * dt, zj, dt)
+        if estimate:
+            e = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1), _continuous(zj)))
+            est = jnp.maximum(est, jnp.where(j == 0, 0.0, e))
+        return (_to_scalars(z_next), _continuous(k4) if estimate else (), est), None
+
+    body = scalarized(sub)
+    k0 = tuple(jnp.zeros_like(x) for x in _continuous(z)) if estimate else ()
+    (zt, _, est), _ = jax.lax.scan(lambda c, j: body(c, j, parts), (_to_scalars(z), k0, jnp.zeros((), dt.dtype)),
+                                   jnp.arange(every))
+    return _from_scalars(zt, z), aux, est, (), jnp.array(False)
+
+
 def _first_float(z):
     leaves = [x for x in jax.tree_util.tree_leaves(z) if _is_continuous(x)]
     return jnp.reshape(leaves[0], (-1,))[0]
@@ -381,33 +420,44 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     field_s, n_scalar = _scalar_field(system, t0, z0, params)
     stage_loop = n_scalar >= STAGE_LOOP_MIN_EQUATIONS
     post_step = getattr(system, "post_step", None)
+    sample, sample_every = _sampler(system)
     params_parts, rebuild_params = scalar_parts(params)
     field_of = lambda p: (lambda t, z: field_s(t, z, p))
 
-    def step_on_scalars(carry, i, parts):
-        zt, alive, diag, sign_prev, k4_prev, est_ok = carry   # est_ok is None without post_step
-        p = rebuild_params(parts)
-        z = _from_scalars(zt, z0)
-        t = t0 + i.astype(dtype) * dt
+    def advance(t, z, i, p, parts, k4_prev, est_ok):
+        """One unit of the time loop from ``z`` at ``t``: ``(z_next, aux at (t, z), error estimate,
+        last stage k4, jumped)``. A unit is one RK4 step (then the system's ``post_step``), or a
+        sampled-data system's whole period: its ``sample_every`` steps under the held sample."""
+        if sample is not None:
+            return _period_advance(field_s, t, z, dt, sample_every, estimate, parts, rebuild_params)
         if stage_loop:
             z_next, aux, k1, k4 = _rk4_stage_loop(field_s, t, z, dt, parts, rebuild_params)
         else:
             z_next, aux, k1, k4 = _rk4(field_of(p), t, z, dt)
-        jumped = None
+        jumped = jnp.array(False)
         if post_step is not None:   # hybrid systems: discrete transition at the end of the step
             z_post = post_step(t + dt, z_next, p)
-            jumped = ~_all_equal(z_post, z_next) if estimate else None
+            jumped = ~_all_equal(z_post, z_next) if estimate else jumped
             z_next = z_post
-        margin = jnp.asarray(aux.margin, dtype)
-        sign = _sign(getattr(aux, "regularity", None), margin)
-        crossed = sign_prev * sign < 0                              # det K changed sign since the last step
+        est = jnp.zeros((), dtype)
         if estimate:
             est = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1), _continuous(z)))
             est = jnp.where(i == 0, 0.0, est)       # no previous step to compare with
             if est_ok is not None:      # no estimate across a discrete jump
                 est = jnp.where(est_ok, est, 0.0)
-        else:
-            est = jnp.zeros_like(margin)
+        return z_next, aux, est, k4, jumped
+
+    def step_on_scalars(carry, i, parts):
+        zt, alive, diag, sign_prev, k4_prev, est_ok = carry   # est_ok is None without discrete transitions
+        p = rebuild_params(parts)
+        z = _from_scalars(zt, z0)
+        t = t0 + i.astype(dtype) * dt
+        if sample is not None:      # a digital controller samples at its period's start (a live run only)
+            z = jax.tree_util.tree_map(lambda a, b: jnp.where(alive, a, b), sample(i // sample_every, t, z, p), z)
+        z_next, aux, est, k4, jumped = advance(t, z, i, p, parts, k4_prev, est_ok)
+        margin = jnp.asarray(aux.margin, dtype)
+        sign = _sign(getattr(aux, "regularity", None), margin)
+        crossed = sign_prev * sign < 0                              # det K changed sign since the last step
         finite_here = _all_finite((aux.control, margin))
         regular = (margin > margin_floor) & ~crossed
         accurate = ~(est > error_tol)
@@ -433,7 +483,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         z_keep = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, jnp.where(finite_next, a, b), b), z_next, z)
         zt_next = _to_scalars(z_keep)
         sign_next = jnp.where(sign != 0, sign, sign_prev)
-        carry = (zt_next, ok, diag, sign_next, _continuous(k4) if estimate else (),
+        carry = (zt_next, ok, diag, sign_next, _continuous(k4) if estimate and sample is None else (),
                  None if est_ok is None else ~jumped)
         return carry, (z, aux.control, margin, sample_ok)
 
@@ -446,6 +496,10 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # RK4 stages alone (section 6.1 loop, B = 1024: the gradient 1.4x faster).
     step = jax.checkpoint(lambda carry, i: step_on_scalars(carry, i, params_parts), prevent_cse=False,
                           policy=jax.checkpoint_policies.save_only_these_names(*_SAVED_FLAGS))
+    if sample is not None:
+        # a sampled-data period holds one evaluation of the law among plant steps: reverse mode
+        # stores its residuals instead of recomputing the period
+        step = lambda carry, i: step_on_scalars(carry, i, params_parts)
 
     # initial flags derived from z0 so they carry its sharding/varying type (shard_map)
     first = _first_float(z0)
@@ -457,25 +511,29 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     control0 = jax.eval_shape(field, t0, z0)[1].control
     # k4_prev starts at zero; the first step's estimate is set to zero (step index 0)
     carry = (_to_scalars(z0), ~bad0, diag0, zero,
-             jax.tree_util.tree_map(lambda x: 0.0 * x, _continuous(z0)) if estimate else (),
+             jax.tree_util.tree_map(lambda x: 0.0 * x, _continuous(z0)) if estimate and sample is None else (),
              None if post_step is None or not estimate else bad0 & False)
 
-    n_saves = n_steps // save_every
     rec0 = (z0, jnp.zeros(control0.shape, control0.dtype) + zero.astype(control0.dtype), inf, ~bad0)
+    unit = 1 if sample is None else sample_every      # a sampled-data system runs by whole periods
+    n_saves = n_steps // save_every
+    save_units, n_units = save_every // unit, n_steps // unit
 
     def inner(c, ij):
-        # one step; keep the record of the first step of each saving chunk (one copy of
-        # the step body in the compiled program, whatever save_every is)
+        # one step (or period); keep the record of the first step of each saving chunk (one copy
+        # of the step body in the compiled program, whatever save_every is)
         i, j = ij
         state, rec = c
         state, new_rec = step(state, i)
         rec = jax.tree_util.tree_map(lambda a, b: jnp.where(j == 0, a, b), new_rec, rec)
         return (state, rec), None
 
-    idx = jnp.arange(n_saves * save_every).reshape(n_saves, save_every)
-    within = jnp.broadcast_to(jnp.arange(save_every), idx.shape)
+    idx = unit * jnp.arange(n_saves * save_units).reshape(n_saves, save_units)     # first step of each unit
+    within = jnp.broadcast_to(jnp.arange(save_units), idx.shape)
 
     def outer(c, ids):
+        if save_units == 1:         # one step (or period) per saved sample: no inner loop
+            return step(c, ids[0][0])
         (state, rec), _ = jax.lax.scan(inner, (c, rec0), ids)
         return state, rec
 
@@ -484,7 +542,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         # steps when it reaches it (one more forward pass; memory / save_every)
         outer = jax.checkpoint(outer, prevent_cse=False)
     carry, recs = jax.lax.scan(outer, carry, (idx, within))
-    rest = jnp.arange(n_saves * save_every, n_steps)
+    rest = unit * jnp.arange(n_saves * save_units, n_units)
     if rest.shape[0]:  # steps beyond the last saving chunk run without saving
         (carry, _), _ = jax.lax.scan(inner, (carry, rec0), (rest, jnp.ones_like(rest)))
     zt, alive, diag, sign_prev, k4_prev, est_ok = carry
@@ -653,6 +711,13 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
     save_every = check_int("save_every", save_every, 1)
     if save_every > n_steps:
         raise ValueError(f"save_every must be <= n_steps ({n_steps}), got {save_every}")
+    every = getattr(system, "sample_every", None)
+    if every is not None and getattr(system, "post_step", None) is not None:
+        raise ValueError(f"{type(system).__name__} has both post_step and sample_every: a system is hybrid or "
+                         "sampled, not both")
+    if every is not None and (n_steps % every or save_every % every):
+        raise ValueError(f"a sampled-data loop runs whole controller periods of {every} steps: n_steps ({n_steps}) "
+                         f"and save_every ({save_every}) must be multiples of {every}")
     dtv = concrete(dt)
     if dtv is not None and not (np.ndim(dtv) == 0 and np.isrealobj(dtv) and np.isfinite(dtv) and dtv > 0):
         raise ValueError(f"dt must be a finite real scalar > 0 [s], got {dt!r}")

@@ -4,7 +4,8 @@
 * :mod:`~wmrjax.controllers.dynamic` -- Table 4 (dynamic linearization, posture tracking);
 * :mod:`~wmrjax.controllers.static` -- Prop 3 and Table 3 (static linearization);
 * :mod:`~wmrjax.controllers.hybrid` -- §6.2 (tracking, then a time-varying stabilizer);
-* :mod:`~wmrjax.controllers.plant` -- a law closed around a saturating, mismatched plant.
+* :mod:`~wmrjax.controllers.plant` -- a law closed around a saturating, mismatched plant;
+* :mod:`~wmrjax.controllers.sampled` -- the same, run by a digital controller (sample, hold, noise).
 """
 
 from wmrjax.controllers.dynamic import (  # noqa: F401
@@ -32,6 +33,13 @@ from wmrjax.controllers.law import (  # noqa: F401
     LinearizingLaw,
 )
 from wmrjax.controllers.plant import PlantLoop, PlantParams, with_plant  # noqa: F401
+from wmrjax.controllers.sampled import (  # noqa: F401
+    SampledLoop,
+    SampledParams,
+    SampledState,
+    measurement_noise,
+    sampled,
+)
 from wmrjax.controllers.static import (  # noqa: F401
     TABLE3,
     InternalDynamics,

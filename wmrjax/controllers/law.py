@@ -517,6 +517,14 @@ class LinearizingController:
         a sign change between two evaluations of a run is a crossing)."""
         return self.law._control(self.reference_jet(t, params), z, params.gains.coeffs_at(t), params.geometry)
 
+    def control_and_error(self, t, z_measured, z_true, params):
+        """``(U, det K, error)`` at one time from one evaluation of the reference's jet: the law at
+        the measured state (:meth:`control_and_regularity`) and the output error of the true one
+        (:meth:`error`), as a digital controller's sample needs them."""
+        jet = self.reference_jet(t, params)
+        U, reg = self.law._control(jet, z_measured, params.gains.coeffs_at(t), params.geometry)
+        return U, reg, self.law.error(jet, z_true, params.geometry)
+
     def margin(self, z, params):
         """Singularity margin at ``z``: |det K| (times the row's extra factor, the (1,1) lever of
         Table 4); 0 on the singular set."""
