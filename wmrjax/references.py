@@ -226,14 +226,12 @@ def from_function(path: Callable, params: Any = (), heading_offset=0.0, name: st
     return Reference(params=params, heading_offset=_as_array(heading_offset), path=path, name=name)
 
 
-REFERENCES = {"paper_62": paper_62, "paper_66": paper_66, "line": line, "circle": circle, "figure_eight": figure_eight}
-
-
 def named(name: str) -> Reference:
-    """A reference by name with default parameters (used by the CLIs)."""
-    if name not in REFERENCES:
+    """A reference of a named (deterministic) family with its default parameters."""
+    fam = FAMILIES.get(name)
+    if fam is None or fam.kind != "named":
         raise ValueError(f"unknown reference {name!r}; expected one of {sorted(REFERENCES)}")
-    return REFERENCES[name]()
+    return fam.make()
 
 
 # --- references from the user's own samples ---------------------------------------------
@@ -446,3 +444,55 @@ def load_samples(path, *, min_speed: float | None = None, heading_offset=0.0) ->
     col = {h: rows[:, i] for i, h in enumerate(header)}
     return from_samples(col["t"], np.stack([col["x"], col["y"]], axis=1), min_speed=min_speed,
                         heading_offset=heading_offset, name=path.stem)
+
+
+# --- the one registry of reference families ------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class Family:
+    """A family of references, as problem files and command lines name it.
+
+    Attributes:
+      name: the family's name (``[reference] family`` of a problem file).
+      make: its constructor: ``make(**options)`` for ``"named"`` families, ``make(key, **options)``
+        for ``"random"`` ones, :func:`from_samples` / :func:`from_waypoints` for the data families.
+      kind: ``"named"`` (deterministic, options from the constructor's keywords), ``"random"``
+        (one reference per PRNG key), ``"samples"`` (times and positions, from a CSV file or
+        arrays) or ``"waypoints"`` (positions only, timed at a chord speed).
+      defaults: the option values a problem file starts from (random families: the keywords
+        of ``make`` after the key).
+    """
+
+    name: str
+    make: Callable
+    kind: str
+    defaults: tuple = ()
+
+    def options(self) -> dict:
+        """Option name -> default value (named families: the constructor's keyword defaults)."""
+        if self.kind == "named":
+            import inspect
+
+            sig = inspect.signature(self.make)
+            return {k: v.default for k, v in sig.parameters.items() if k != "heading_offset"}
+        return dict(self.defaults)
+
+
+# random_smooth's defaults as problem files use them (a sweep file's options override them)
+RANDOM_SMOOTH_DEFAULTS = (("n_modes", 3), ("speed", 1.0), ("min_speed", 0.3), ("max_omega", 1.0), ("start_scale", 0.0))
+
+FAMILIES: dict[str, Family] = {f.name: f for f in (
+    Family("paper_62", paper_62, "named"),
+    Family("paper_66", paper_66, "named"),
+    Family("line", line, "named"),
+    Family("circle", circle, "named"),
+    Family("figure_eight", figure_eight, "named"),
+    Family("random_smooth", random_smooth, "random", RANDOM_SMOOTH_DEFAULTS),
+    Family("samples", from_samples, "samples"),
+    Family("waypoints", from_waypoints, "waypoints"),
+)}
+"""Every reference family, by name: the one registry the problem files, the sweep, the tuner and
+the certification read."""
+
+REFERENCES = {name: f.make for name, f in FAMILIES.items() if f.kind == "named"}
+"""The named (deterministic) families: name -> constructor with default parameters."""

@@ -146,9 +146,11 @@ def _run(p, a, pid: int, n_proc: int) -> int:
     procs = [json.loads((a.out / "blocks" / f"process_{i}.json").read_text()) for i in range(n_proc)]
     computed = sum(s["runs_computed"] for s in procs)
     compute_wall = max(s["wall_s"] for s in procs)
-    summary = {"sweep": str(a.spec), "title": plan.spec.get("title", a.spec.stem), "law": plan.law,
-               "task": plan.task, "initial_space": plan.space, "swept": plan.swept, "fingerprint": plan.fingerprint,
-               "t_final": plan.t_final, "dt": plan.dt, "n_steps": plan.n_steps} | summary
+    summary = {"sweep": str(a.spec), "title": plan.spec.get("title", a.spec.stem), "law": str(plan.law),
+               "task": str(plan.task), "initial_space": str(plan.space), "swept": plan.swept,
+               "fingerprint": plan.fingerprint, "t_final": plan.t_final, "dt": plan.dt, "n_steps": plan.n_steps,
+               "cases": [c for c, _ in plan.problem.cases() if c is not None],
+               "problem": plan.problem.resolved()} | summary
     summary["execution"] = {
         "processes": n_proc, "devices_per_process": len(jax.local_devices()), "block": plan.block,
         "blocks": len(plan.blocks()), "runs_computed": computed, "runs_resumed": plan.n_runs - computed,

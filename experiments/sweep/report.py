@@ -40,7 +40,9 @@ def read_table(path: Path, columns=None) -> dict:
 
 def columns_needed(plan: S.Plan) -> list:
     """The columns the summary and the figures read back (not the whole table)."""
-    return ["run", "robot", "level", *[c for c in plan.swept if c not in ("robot", "level")], "outcome", "failed",
+    cases = ["case"] if any(g.case is not None for g in plan.groups) else []
+    return ["run", *cases, "robot", "level", *[c for c in plan.swept if c not in ("case", "robot", "level")],
+            "outcome", "failed",
             "inaccurate", "final_position_error", "final_heading_error", "min_margin", "min_distance"]
 
 
@@ -71,47 +73,53 @@ def summarize(plan: S.Plan, table: dict, certified: dict) -> dict:
         out["quantiles_regular_runs"]["min_distance"] = quantiles(table["min_distance"][ok])
     groups = {}
     for g in plan.groups:
-        sel = (table["robot"] == g.robot) & (table["level"] == g.level)
-        groups[f"{g.robot} {g.level}"] = {"runs": int(sel.sum()),
-                                          **{o: int(np.sum(sel & (table["outcome"] == o))) for o in OUTCOMES}}
+        sel = select(table, g)
+        groups[group_name(g)] = {"runs": int(sel.sum()), **{o: int(np.sum(sel & (table["outcome"] == o)))
+                                                           for o in OUTCOMES}}
     out["by_group"] = groups
-    if certified:
-        out["certified_radii"] = certified
+    if certified:       # one group: its radii; several: by group
+        out["certified_radii"] = next(iter(certified.values())) if len(plan.groups) == 1 else certified
     return out
 
 
+def group_name(g) -> str:
+    """``"(2,0) velocity"``, prefixed by the case's name (``"tuned: (2,0) velocity"``)."""
+    name = f"{g.ctrl.robot.name} {g.ctrl.level}"
+    return name if g.case is None else f"{g.case}: {name}"
+
+
+def select(table: dict, g):
+    """The rows of group ``g``."""
+    sel = (table["robot"] == g.ctrl.robot.name) & (table["level"] == str(g.ctrl.level))
+    return sel & (table["case"] == g.case) if g.case is not None else sel
+
+
 def certified_radii(plan: S.Plan) -> dict:
-    """Certified radii of the position slice, when the sweep is one dynamic closed loop (one
-    geometry, reference, gain; no plant mismatch) swept over initial output errors."""
-    if not (plan.law == "dynamic" and plan.space == "output" and len(plan.groups) == 1 and not plan.plant):
-        return {}
-    g = plan.groups[0]
-    geo, _, ref, gains, _ = g.axes
-    if geo.size != 1 or ref.size != 1 or gains.size != 1:
-        return {}
-    import jax
-    import jax.numpy as jnp
-
-    import wmrjax as w
+    """Certified radii of the position slice (group name -> radii) for every group that is one
+    dynamic closed loop (one geometry, reference and gains; no plant) swept over initial output
+    errors."""
     from wmrjax import certify
-    from wmrjax import references as R
 
-    ctrl = S.controller(plan.law, g.robot, g.level, plan.task)
-    reference = R.Reference(jax.tree_util.tree_map(lambda x: jnp.asarray(x[0]), ref.payload["reference"]),
-                            jnp.asarray(ref.payload["heading_offset"][0]), g.reference_path, g.reference_name)
-    params = ctrl.params(reference, geometry=w.Geometry(**{k: float(geo.payload[k][0]) for k in S.GEOMETRY_KEYS}),
-                         gains=w.Gains(jnp.asarray(gains.payload["coeffs"][0])))
-    eps = 0.01
-    out = {"eps": eps}
-    rep = certify.lemma2(ctrl, params, t_final=plan.t_final, eps=eps)
-    for name, c in rep.certificates().items():
-        if c is not None:
-            out[f"lemma2_{name}"] = float(c.radius)
-    try:
-        out["exact_map_position_slice"] = float(certify.exact_map_radius(ctrl, params, t_final=plan.t_final, eps=eps,
-                                                                         basis="position").radius)
-    except ValueError as err:         # (1,2): curved singular set
-        out["exact_map_note"] = str(err)
+    if not (plan.law == "dynamic" and plan.space == "output"):
+        return {}
+    out = {}
+    for g in plan.groups:
+        geo, _, ref, gains, _ = g.axes
+        if g.plant or geo.size != 1 or ref.size != 1 or gains.size != 1:
+            continue
+        ctrl, params = g.ctrl, g.params()
+        eps = 0.01
+        radii = {"eps": eps}
+        rep = certify.lemma2(ctrl, params, t_final=plan.t_final, eps=eps)
+        for name, c in rep.certificates().items():
+            if c is not None:
+                radii[f"lemma2_{name}"] = float(c.radius)
+        try:
+            radii["exact_map_position_slice"] = float(certify.exact_map_radius(
+                ctrl, params, t_final=plan.t_final, eps=eps, basis="position").radius)
+        except ValueError as err:         # (1,2): curved singular set
+            radii["exact_map_note"] = str(err)
+        out[group_name(g)] = radii
     return out
 
 
@@ -134,7 +142,7 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
     written = []
     for old in out.glob("map_*.png"):       # an earlier run's maps (other quantities) must not linger
         old.unlink()
-    numeric = [c for c in plan.swept if c not in ("robot", "level")]
+    numeric = [c for c in plan.swept if c not in ("case", "robot", "level")]
     # one map axis per quantity: drop a column in one-to-one correspondence with an earlier one
     # (random draws of several columns are one-to-one by construction: they are kept, and mapped as scatter plots)
     random_cols = {c for g in plan.groups for a in g.axes[-1:] if a.random for c in a.columns}   # the initial axis
@@ -145,10 +153,12 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
     # initial errors first (x against y above all), then the rest in the file's order
     pairs.sort(key=lambda ab: -sum(c.startswith("initial_error_") for c in ab) - 2 * (ab == ("initial_error_x", "initial_error_y")))
     pairs = pairs[:MAX_MAPS if len(plan.groups) == 1 else MAX_MAPS_PER_GROUP]
-    groups = [(g.robot, g.level) for g in plan.groups]
-    for robot, level in groups:
-        gsel = (table["robot"] == robot) & (table["level"] == level)
-        tag = f"_{robot.strip('()').replace(',', '')}_{level}" if len(groups) > 1 else ""
+    for g in plan.groups:
+        robot, level = g.ctrl.robot.name, str(g.ctrl.level)
+        gsel = select(table, g)
+        tag = ((f"_{g.case}" if g.case is not None else "") + f"_{robot.strip('()').replace(',', '')}_{level}"
+               if len(plan.groups) > 1 else "")
+        radii = certified.get(group_name(g), {})
         for a, b in pairs:
             sel = gsel.copy()
             fixed = []
@@ -182,18 +192,18 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
                     if m.any():
                         ax.scatter(xa[m], yb[m], s=12, c=COLORS[o], linewidths=0,
                                    label=f"{LABELS[o]} ({int(m.sum())})")
-            if certified and {a, b} == {"initial_error_x", "initial_error_y"}:
+            if radii and {a, b} == {"initial_error_x", "initial_error_y"}:
                 th = np.linspace(0, 2 * np.pi, 400)
                 styles = {"lemma2_paper": ("k", ":"), "lemma2_lyapunov": ("k", "-."), "lemma2_exact_norm": ("k", "--"),
                           "exact_map_position_slice": ("b", "-")}
                 for name, (col, ls) in styles.items():
-                    rad = certified.get(name)
+                    rad = radii.get(name)
                     if rad:
                         ax.plot(rad * np.cos(th), rad * np.sin(th), color=col, ls=ls, lw=1.2,
                                 label=f"{name.replace('_', ' ')}: {rad:.3g} m")
             ax.set_xlabel(label(a))
             ax.set_ylabel(label(b))
-            title = f"{robot}, {plan.law} law, {level} level"
+            title = (f"{g.case}: " if g.case is not None else "") + f"{robot}, {plan.law} law, {level} level"
             ax.set_title(title + ("\n" + ", ".join(fixed) if fixed else ""), fontsize=9)
             ax.legend(fontsize=7, loc="upper right", framealpha=0.85)
             ax.grid(alpha=0.3)
@@ -206,9 +216,9 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
             written.append(path.name)
     fig, axs = plt.subplots(1, 3 if plan.law == "dynamic" else 2, figsize=(14 if plan.law == "dynamic" else 10, 4))
     ok = ~table["failed"]
-    for (robot, level), c in zip(groups, itertools.cycle([f"C{i}" for i in range(10)])):
-        sel = ok & (table["robot"] == robot) & (table["level"] == level)
-        lab = f"{robot} {level}"
+    for g, c in zip(plan.groups, itertools.cycle([f"C{i}" for i in range(10)])):
+        sel = ok & select(table, g)
+        lab = group_name(g)
         axs[0].hist(np.log10(np.maximum(table["final_position_error"][sel], 1e-16)), bins=50, alpha=0.6, color=c, label=lab)
         axs[1].hist(np.log10(np.maximum(table["min_margin"][sel], 1e-16)), bins=50, alpha=0.6, color=c, label=lab)
         if plan.law == "dynamic":

@@ -34,103 +34,50 @@ def rollout_fn(plan: S.Plan, group: S.Group):
     import jax
     import jax.numpy as jnp
 
-    import wmrjax as w
     from wmrjax import _math
-    from wmrjax import references as R
+    from wmrjax.problem import law_state
 
-    ctrl = S.controller(plan.law, group.robot, group.level, plan.task)
-    loop = w.with_plant(ctrl) if plan.plant else ctrl
-    nX, r = ctrl.robot.n_state, ctrl.relative_degree
-    velocity_ctrl = S.controller(plan.law, group.robot, "velocity", plan.task) if plan.law == "static" else None
-    dynamic = plan.law == "dynamic"
-
+    ctrl = group.ctrl
+    system = group.system()
+    dynamic = plan.law == S.Law.DYNAMIC
+    point = plan.task == S.Task.POINT and not dynamic
     treedef, constant, values = split(group)
 
     def one(varying):
         it = iter(varying)
         p = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(v) if c else next(it) for c, v in zip(constant, values)])
-        g = w.Geometry(L=p["L"], e=p["e"], delta=p["delta"])
-        ref = R.Reference(p["reference"], p["heading_offset"], group.reference_path, group.reference_name)
-        params = ctrl.params_unchecked(ref, 1.0, g)._replace(gains=w.Gains(p["coeffs"]))
-        t0 = jnp.zeros((), p["L"].dtype)
-        d = p["initial"]
-        if dynamic:
-            zeta = ctrl.reference_jet(t0, params)[:r]
-            if plan.space == "output":
-                zeta = zeta.at[0, 0].add(d[0]).at[0, 1].add(d[1])
-                if r >= 2:
-                    zeta = zeta.at[1, 0].add(d[2]).at[1, 1].add(d[3])
-                z0 = ctrl.inverse_psi(zeta, params, p["branch"])
-            else:
-                z0 = ctrl.inverse_psi(zeta, params, p["branch"]).at[:nX].add(d)
-        else:
-            post = ref.posture(t0)
-            steer = [] if ctrl.robot.delta_s == 0 else _steering(ctrl, params, t0)
-            X = jnp.concatenate([jnp.zeros(2, t0.dtype), post[2:3], jnp.asarray(steer, t0.dtype).reshape(-1)])
-            X = X.at[2:].add(d[2:])
-            offset = ctrl.law.outputs(X, g)[:2]              # the tracked point relative to (x, y)
-            target = ref.position(t0) if plan.task == "point" else post[:2]
-            X = X.at[:2].set(target + d[:2] - (offset if plan.task == "point" else 0.0))
-            if ctrl.level == "torque":
-                vl = velocity_ctrl
-                u = vl.law.solve_top(X, vl.reference_jet(t0, params)[1], g)   # output velocity = the reference's
-                z0 = ctrl.physical_state(X, u, params)
-            else:
-                z0 = X
-        if plan.plant:
-            pg = w.Geometry(L=p["geometry_scale"] * g.L, e=p["geometry_scale"] * g.e, delta=g.delta)
-            lp = w.PlantParams(params, pg, jnp.broadcast_to(p["input_scale"], (ctrl.robot.n_input,)), p["limit"])
-            z0s, sp = loop.initial_state(z0, lp), lp
-        else:
-            z0s, sp = z0, params
-        tr = w.simulate(loop, z0s, sp, dt=plan.dt, n_steps=plan.n_steps, save_every=plan.save_every,
-                        error_tol=plan.error_tol)
-        zf = tr.final_state[: ctrl.n_state]
+        key = jax.random.fold_in(jax.random.PRNGKey(group.noise_seed), p["run"].astype(int)) if "run" in p else None
+        tr, params = group.run(p, save_every=plan.save_every, error_tol=plan.error_tol, noise_key=key)
+        ref, g = params.reference, params.geometry
+        zf = law_state(system, tr.final_state)
         tf = tr.t[-1]
         post_f = ref.posture(tf)
-        if plan.task == "point" and not dynamic:
-            pos = ctrl.law.outputs(zf, g)[:2] - ref.position(tf)
-        else:
-            pos = zf[:2] - post_f[:2]
+        pos = (ctrl.law.outputs(zf, g)[:2] - ref.position(tf)) if point else zf[:2] - post_f[:2]
         head = jnp.abs(_math.wrap_angle(zf[2] - post_f[2]))
         dg = tr.diagnostics
         out = dict(failed=dg.failed, singular=dg.singular, nonfinite=dg.nonfinite, inaccurate=dg.inaccurate,
                    t_failure=dg.t_failure, min_margin=dg.min_margin, error_estimate=dg.error_estimate,
                    final_position_error=jnp.linalg.norm(pos), final_heading_error=head)
         if dynamic:
-            states = tr.state[:, : ctrl.n_state]
+            states = law_state(system, tr.state)
             dist = jax.vmap(lambda z: ctrl.singular_distance(ctrl.psi(z, params), params))(states)
             out["min_distance"] = jnp.min(jnp.where(tr.valid, dist, jnp.inf))
         else:
-            out["min_distance"] = jnp.full((), jnp.nan, p["L"].dtype)
+            out["min_distance"] = jnp.full((), jnp.nan, tf.dtype)
         return out
 
     return one
 
 
-def _steering(ctrl, params, t0):
-    import jax.numpy as jnp
-
-    if params.steering is not None:
-        b = jnp.reshape(params.steering(t0), (-1,))
-    else:
-        b = jnp.zeros((0,), t0.dtype)
-    n = ctrl.robot.delta_s
-    # (1,2): beta1 free (0), beta2 the steering reference; (2,1): beta the steering reference
-    return jnp.concatenate([jnp.zeros(n - b.shape[0], t0.dtype), b]) if b.shape[0] < n else b[:n]
-
-
-_AXIS_OF = {"L": 0, "e": 0, "delta": 0, "limit": 1, "input_scale": 1, "geometry_scale": 1,
-            "reference": 2, "heading_offset": 2, "branch": 2, "coeffs": 3, "initial": 4}
+def _noisy(group: S.Group) -> bool:
+    return group.control_period is not None and any(group.noise_std)
 
 
 def _sources(group: S.Group) -> dict:
-    """Every rollout input at the level of its axis: key -> (axis size, ...) arrays (or a pytree)."""
-    geo, plant, ref, gains, init = (a.payload for a in group.axes)
-    return {"L": geo["L"], "e": geo["e"], "delta": geo["delta"], "limit": plant["limit"],
-            "input_scale": plant["input_scale"], "geometry_scale": plant["geometry_scale"],
-            "reference": ref["reference"], "heading_offset": ref["heading_offset"], "branch": group.branch.astype(float),
-            "coeffs": gains["coeffs"], "initial": init["initial"]}
+    """Every rollout input at the level of its axis (:meth:`wmrjax.problem.Setting.inputs`), and
+    the run's index in its group where it draws measurement noise."""
+    src = group.inputs()
+    return src | ({"run": np.arange(group.size, dtype=float)} if _noisy(group) else {})
 
 
 def split(group: S.Group):
@@ -142,8 +89,9 @@ def split(group: S.Group):
 
     src = _sources(group)
     leaves, treedef = jax.tree_util.tree_flatten(src)
-    # the initial conditions are always batched: they carry the batch axis, even for one run
-    flags = {k: jax.tree_util.tree_map(lambda x, k=k: k != "initial" and bool(np.all(np.asarray(x) == np.asarray(x)[:1])), v)
+    # the initial conditions (and run indices) are always batched: they carry the batch axis
+    flags = {k: jax.tree_util.tree_map(lambda x, k=k: k not in ("initial", "run")
+                                       and bool(np.all(np.asarray(x) == np.asarray(x)[:1])), v)
              for k, v in src.items()}
     constant = jax.tree_util.tree_leaves(flags)
     return treedef, constant, [np.asarray(x)[0] for x in leaves]
@@ -154,11 +102,11 @@ def payload(group: S.Group, start: int, n: int, pad_to: int, constant: list) -> 
     runs ``start .. start + n - 1`` of ``group``, padded (with copies of the last run) to ``pad_to``."""
     import jax
 
-    idx = S.unravel(group, start, n)
+    runs = np.arange(start, start + n)
     if pad_to > n:
-        idx = [np.concatenate([i, np.full(pad_to - n, i[-1])]) for i in idx]
-    src = _sources(group)
-    per_key = {k: jax.tree_util.tree_map(lambda x, k=k: np.asarray(x)[idx[_AXIS_OF[k]]], v) for k, v in src.items()}
+        runs = np.concatenate([runs, np.full(pad_to - n, runs[-1])])
+    idx = list(np.unravel_index(runs, group.shape))
+    per_key = group.inputs(idx) | ({"run": runs.astype(float)} if _noisy(group) else {})
     return [x for x, c in zip(jax.tree_util.tree_leaves(per_key), constant) if not c]
 
 
@@ -301,7 +249,8 @@ def assemble(plan: S.Plan, out: Path):
             with np.load(block_path(out, b), allow_pickle=False) as f:
                 res = {c: f[c] for c in RESULT_COLUMNS}
             data = {"run": np.arange(start, start + n) + sum(g.size for g in plan.groups[:gi]),
-                    "robot": np.full(n, group.robot), "level": np.full(n, group.level)}
+                    **({"case": np.full(n, group.case)} if group.case is not None else {}),
+                    "robot": np.full(n, group.ctrl.robot.name), "level": np.full(n, str(group.ctrl.level))}
             for k in names:
                 data[k] = cols[k] if k in cols else np.full(n, np.nan)
             data |= res
