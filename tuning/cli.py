@@ -1,27 +1,23 @@
 r"""Tune the linearizing controller's gains by gradient descent through the simulator, against
 random search and CMA-ES on the same terms.
 
-    python -m tuning --out results/tuning                               # problem section_6_1
+    python -m tuning PROBLEM.toml --out results/my_problem         # any problem file with [tune]
     python -m tuning --problem car_schedule --out results/car_schedule
-    python -m tuning --problem torque_2_1 --out results/torque_2_1
 
-Problems (:mod:`tuning.problems`): ``section_6_1`` (default) -- the §6.1 robot ((2,0), e = 0,
-reference (62), dynamic law at velocity level) from initial conditions around (63), 20 Hz
-zero-order hold, saturation |eta1| <= 5.5 m/s, |eta2| <= 1 rad/s, +-10 % mismatch, sensor noise,
-(omega, zeta) shared by both outputs; ``car_schedule`` -- the (1,1) car with a 24-parameter
-gain schedule on random references; ``torque_2_1`` -- type (2,1) at torque level with outer
-and inner (Lemma 1) gains, feeding back measured wheel velocities. Any option below overrides
-the problem's setting.
+A problem file (:mod:`wmrjax.problem`) says the robot, the path, the plant and the initial
+errors; its ``[tune]`` section (:mod:`tuning.config`) the gain family, the loss, the scenario
+counts, the optimizer, early stopping and the baselines. The shipped problems
+(``tuning/problems/*.toml``): ``section_6_1`` (default), ``car_schedule``, ``torque_2_1``.
+Every option below overrides the file's value.
 
-Writes ``summary.json``, ``history.json``, ``checkpoint.json`` (a killed run resumes from it),
-``loss.png`` (loss vs rollouts, all three methods), ``schedule.png`` (the gains over time) and
-``trajectories.png`` (tracking before/after).
+Writes ``gains.json`` (the tuned gains: ``[gains] file`` of any problem reads it),
+``summary.json`` (with the whole resolved problem), ``history.json``, ``checkpoint.json`` (a
+killed run resumes from it), ``loss.png``, ``schedule.png`` and ``trajectories.png``.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import sys
 import time
@@ -33,22 +29,28 @@ from wmrjax import io
 
 def parser():
     from tuning.losses import LossWeights
-    from tuning.loop import LEVELS, REFERENCES
     from tuning.problems import PROBLEMS
     from wmrjax import cli
 
     p = cli.parser(__doc__.splitlines()[0], "results/tuning")
-    p.add_argument("--problem", default="section_6_1", choices=sorted(PROBLEMS),
-                   help="named problem (tuning.problems); the options below override its settings")
-    S = "(default: the problem's)"
+    p.add_argument("file", type=Path, nargs="?", default=None, help="a problem file (TOML) with a [tune] section")
+    p.add_argument("--problem", default=None, choices=sorted(PROBLEMS),
+                   help="a shipped problem instead of a file (default: section_6_1)")
+    S = "(default: the file's)"
     p.add_argument("--robot", default=None, help=f"robot type: (3,0), (2,0), (2,1), (1,1) or (1,2) {S}")
     p.add_argument("--task", default=None, choices=["posture", "point"],
                    help=f"posture: dynamic law (restricted types) or Prop 3 (3,0); point: static Table 3 law {S}")
-    p.add_argument("--level", default=None, choices=LEVELS, help=f"velocity (model 5) or torque (Lemma 1) {S}")
-    p.add_argument("--reference", default=None, choices=REFERENCES, help=f"reference family {S}")
+    p.add_argument("--level", default=None, choices=["velocity", "torque"], help=f"velocity (model 5) or torque (Lemma 1) {S}")
+    p.add_argument("--reference", default=None,
+                   help=f"a reference family (paper_62, circle, figure_eight, line, random_smooth, ...) or a CSV file of "
+                        f"samples t, x, y {S}")
     p.add_argument("--heading-offset", type=cli.finite, default=None, help=f"reference heading offset [rad] {S}")
     p.add_argument("--geometry", type=cli.finite, nargs=3, default=None, metavar=("L", "E", "DELTA"),
                    help=f"nominal geometry the controller uses [m, m, rad] {S}")
+    p.add_argument("--ic-position", type=cli.nonnegative, default=None,
+                   help="initial position errors x, y uniform in +-A [m] (sets the [initial] box)")
+    p.add_argument("--ic-velocity", type=cli.nonnegative, default=None,
+                   help="initial velocity errors vx, vy uniform in +-B [m/s] (output space)")
     p.add_argument("--n-train", type=cli.count, default=None, help=f"training scenarios per step {S}")
     p.add_argument("--n-validation", type=cli.count, default=None,
                    help=f"validation scenarios (early stopping, selection) {S}")
@@ -57,7 +59,7 @@ def parser():
     p.add_argument("--learning-rate", type=cli.positive, default=None,
                    help=f"Adam learning rate (on the softplus-unconstrained parameters) {S}")
     p.add_argument("--poles-init", type=cli.positive, default=None,
-                   help=f"initial pole magnitude [1/s] (the paper's: 1) {S}")
+                   help=f"initial pole magnitude [1/s] (the paper's: 1; sets [gains] poles) {S}")
     p.add_argument("--per-axis", action="store_true", default=None, help="one set of gains per output")
     p.add_argument("--resample", action=argparse.BooleanOptionalAction, default=None,
                    help=f"fresh training scenarios every gradient step (stochastic gradient) {S}")
@@ -70,7 +72,7 @@ def parser():
     p.add_argument("--parameterization", default=None, choices=["damping", "poles"],
                    help=f"damping: (omega, zeta) factors (real or complex poles); poles: real poles only {S}")
     p.add_argument("--mismatch", type=cli.fraction, default=None,
-                   help=f"+- relative input-scale/geometry error of the plant (in [0, 1)) {S}")
+                   help=f"+- relative input-scale/geometry error of the plant per scenario (in [0, 1)) {S}")
     p.add_argument("--input-limit", type=cli.limit, nargs="*", default=None,
                    help="plant actuator limits per input [m/s, rad/s; per s^2 at torque level] (inf: none; no "
                         f"values: no saturation) {S}")
@@ -90,66 +92,102 @@ def parser():
     return p
 
 
-_FIELDS = {"robot": "robot", "task": "task", "level": "level", "reference": "reference",
-           "heading_offset": "heading_offset", "n_train": "n_train", "n_validation": "n_validation",
-           "n_heldout": "n_heldout", "steps": "steps", "learning_rate": "learning_rate", "poles_init": "poles_init",
-           "knots": "knots", "parameterization": "parameterization", "mismatch": "mismatch",
-           "control_dt": "control_dt", "t_final": "t_final", "baseline_seeds": "baseline_seeds",
-           "baseline_budget": "baseline_budget", "cma_population": "cma_population", "seed": "seed",
-           "min_damping": "min_damping"}
+# option -> dotted key of the problem file it sets
+_KEYS = {"robot": "controller.robot", "task": "controller.task", "level": "controller.level",
+         "heading_offset": "reference.heading_offset", "n_train": "tune.scenarios.train",
+         "n_validation": "tune.scenarios.validation", "n_heldout": "tune.scenarios.heldout", "steps": "tune.steps",
+         "learning_rate": "tune.optimizer.learning_rate", "poles_init": "gains.poles", "knots": "tune.family.knots",
+         "parameterization": "tune.family.parameterization", "mismatch": "tune.scenarios.mismatch",
+         "control_dt": "plant.control_period", "t_final": "simulation.t_final", "baseline_seeds": "tune.baselines.seeds",
+         "baseline_budget": "tune.baselines.budget", "cma_population": "tune.baselines.cma_population",
+         "seed": "tune.seed", "min_damping": "tune.family.min_damping", "resample": "tune.scenarios.resample"}
 
 
-def config_from_args(a):
-    """The problem's :class:`tuning.TuneConfig` with every option given on the command line applied."""
+def problem_from_args(a):
+    """The problem file (or shipped problem) with every option given on the command line applied."""
     from tuning.losses import LossWeights
-    from tuning.problems import PROBLEMS, preset
+    from tuning.problems import problem_file
+    from wmrjax.problem import Problem
 
-    over = {f: getattr(a, k) for k, f in _FIELDS.items() if getattr(a, k) is not None}
-    for k in ("geometry", "input_limit", "noise_std", "knot_times"):
-        if getattr(a, k) is not None:
-            over[k] = tuple(getattr(a, k))
+    if a.file is not None and a.problem is not None:
+        raise ValueError("give a problem file or --problem NAME, not both")
+    path = a.file if a.file is not None else problem_file(a.problem or "section_6_1")
+    problem = Problem.load(path)
+    values = {key: getattr(a, k) for k, key in _KEYS.items() if getattr(a, k) is not None}
+    if a.geometry is not None:
+        values.update({f"geometry.{k}": v for k, v in zip(("L", "e", "delta"), a.geometry)})
+    if a.input_limit is not None:
+        values["plant.input_limit"] = list(a.input_limit) if a.input_limit else None
+    if a.noise_std is not None:
+        values["plant.noise_std"] = list(a.noise_std)
+    if a.knot_times is not None:
+        values["tune.family.knot_times"] = list(a.knot_times)
+        values["tune.family.knots"] = None
     if a.per_axis:
-        over["shared"] = False
-    if a.resample is not None:
-        over["resample"] = a.resample
-    given = {f: getattr(a, f"w_{f}") for f in LossWeights._fields if getattr(a, f"w_{f}") is not None}
-    if given:
-        base = LossWeights(*PROBLEMS[a.problem].get("weights", tuple(LossWeights())))
-        over["weights"] = tuple(base._replace(**given))
-    return preset(a.problem, **over)
+        values["tune.family.shared"] = False
+    if a.reference is not None:
+        values.update(_reference_values(a.reference))
+    box = {k: a.ic_position for k in ("x", "y")} if a.ic_position is not None else {}
+    box |= {k: a.ic_velocity for k in ("vx", "vy")} if a.ic_velocity is not None else {}
+    for k, v in box.items():
+        values[f"initial.{k}"] = {"low": -v, "high": v}
+    if box and "random" not in problem.data["initial"]:
+        values["initial.random"] = {"count": 64, "seed": 0}
+    for f in LossWeights._fields:
+        if getattr(a, f"w_{f}") is not None:
+            values[f"tune.loss.{f}"] = getattr(a, f"w_{f}")
+    return problem.with_values(values) if values else problem
 
 
-def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
-    """Tune, evaluate, run the baselines, write the figures and ``summary.json``; returns the summary."""
+def _reference_values(text: str) -> dict:
+    """``--reference``: a family name, or a CSV file of samples (t, x, y)."""
+    from wmrjax import references as R
+
+    if text in R.FAMILIES:
+        return {"reference": {"family": text}}
+    path = Path(text)
+    if path.suffix.lower() == ".csv" or path.is_file():
+        return {"reference": {"family": "samples", "file": str(path.resolve())}}
+    raise ValueError(f"--reference: expected a family ({', '.join(R.FAMILIES)}) or a CSV file of samples, got {text!r}")
+
+
+def run(problem, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
+    """Tune, evaluate, run the baselines, write ``gains.json``, the figures and ``summary.json``;
+    returns the summary."""
     import jax
 
     jax.config.update("jax_enable_x64", True)   # this entry point runs in float64
     import jax.numpy as jnp
     import numpy as np
 
-    from tuning import baselines, loop
+    from tuning import config, loop
+    from wmrjax.problem import gains_file_dict
 
     say = progress or log
+    setting = problem.setting("tuning")
+    settings = config.read(problem.section("tune"))
+    family = settings.gain_spec(setting)
     out.mkdir(parents=True, exist_ok=True)
     if fresh and (out / "checkpoint.json").exists():
         (out / "checkpoint.json").unlink()
     t0 = time.perf_counter()
-    say(f"problem {cfg.problem}: building scenarios; compiling the batched rollout and its gradient (first step)")
+    say(f"problem {problem.title}: drawing scenarios; compiling the batched rollout and its gradient (first step)")
     programs = {}
     second = ThreadPoolExecutor(max_workers=1)
 
-    def prepare(built):
+    def prepare(ctx):
         # the programs of the validation, the evaluations and the figure, compiled on a second
-        # thread while this one compiles the gradient (XLA compiles without the GIL); tracing
-        # the validation program here first traces the controller period that every program
-        # shares, once, instead of on both threads at the same time
-        loop.validation_value.trace(built["spec"].init(cfg.poles_init), built["validation"], built["ctrl"],
-                                    built["spec"], built["geometry"], built["rcfg"], built["w_arr"])
-        programs.update(_programs(built))
-        programs["ready"] = [second.submit(_warm_up, programs, built, cfg.poles_init), second.submit(_preload)]
+        # thread while this one compiles the gradient (XLA compiles without the GIL)
+        raw0 = loop.initial_raw(setting, family)
+        loop.validation_loss.trace(raw0, ctx.sets.validation, setting, family, ctx.weights)
+        programs.update(_programs(ctx))
+        programs["ready"] = [second.submit(_warm_up, programs, ctx, raw0), second.submit(_preload)]
 
+    run_id = problem.fingerprint() + repr(tuple(settings.optimizer))
     try:
-        res = loop.tune(cfg, out, log=log, on_built=prepare)
+        res = loop.tune(setting, family, settings.optimizer.build(settings.steps), steps=settings.steps,
+                        scenarios=settings.scenarios, loss=settings.loss, stopping=settings.stopping,
+                        seed=settings.seed, out_dir=out, run_id=run_id, log=log, on_built=prepare)
         for done in programs["ready"]:
             done.result()                   # their errors are raised here
     except BaseException:
@@ -157,43 +195,64 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
         raise
     second.shutdown()
     grad_wall = time.perf_counter() - t0
-    ctrl, spec, g, rcfg, train, heldout = (res[k] for k in ("ctrl", "spec", "geometry", "rcfg", "train", "heldout"))
-    st = res["state"]
-    paper_raw = spec.init(cfg.poles_init)
-    tuned_raw = jnp.asarray(res["best_raw"])
+    ctx = res.context
+    paper_raw = loop.initial_raw(setting, family)
+    tuned_raw = jnp.asarray(res.best_raw)
     evaluate_on = programs["evaluate_on"]
-    train_eval = functools.partial(evaluate_on, scenarios=train)
-    heldout_eval = functools.partial(evaluate_on, scenarios=heldout)
+    train_eval = functools.partial(evaluate_on, scenarios=ctx.sets.train)
+    heldout_eval = functools.partial(evaluate_on, scenarios=ctx.sets.heldout)
 
-    say("evaluating the paper's and the tuned gains on the held-out scenarios")
-    tr_paper, tr_tuned = (float(v) for v in train_eval(np.stack([np.asarray(paper_raw), np.asarray(tuned_raw)])))
-    ho, (ho_ok, ho_m) = heldout_eval(np.stack([np.asarray(paper_raw), np.asarray(tuned_raw)]), with_aux=True)
+    say("evaluating the initial and the tuned gains on the held-out scenarios")
+    both = np.stack([np.asarray(paper_raw), np.asarray(tuned_raw)])
+    tr_paper, tr_tuned = (float(v) for v in train_eval(both))
+    ho, (ho_ok, ho_m) = heldout_eval(both, with_aux=True)
     ho_paper, ho_tuned = (float(v) for v in ho)        # +inf where a set's objective is not finite
-    m_paper, m_tuned = (jax.tree_util.tree_map(lambda x: x[i], ho_m) for i in (0, 1))
-    sing_paper, sing_tuned = (int(np.sum(ho_m.singular[i])) for i in (0, 1))
-    fail_paper, fail_tuned = (int(np.sum(~ho_ok[i])) for i in (0, 1))
-    log(f"held-out loss: paper gains {ho_paper:.5g}, tuned {ho_tuned:.5g} (ratio {ho_paper / ho_tuned:.2f}); "
-        f"singular events {sing_paper} -> {sing_tuned}")
+    log(f"held-out loss: initial gains {ho_paper:.5g}, tuned {ho_tuned:.5g} (ratio {ho_paper / ho_tuned:.2f}); "
+        f"singular events {int(np.sum(ho_m.singular[0]))} -> {int(np.sum(ho_m.singular[1]))}")
+    base, runs, match = _baselines(settings, family, train_eval, heldout_eval, paper_raw, res.history, say, log)
+    radius = _certified_radius(setting, family, paper_raw, tuned_raw)
+    summary = _summary(problem, setting, settings, family, res, paper_raw, tuned_raw, (tr_paper, tr_tuned),
+                       (ho_paper, ho_tuned), ho_ok, ho_m, base, match, radius, grad_wall)
+    say("writing gains, history, figures and summary")
+    io.write_json(out / "gains.json", gains_file_dict(family.gains(tuned_raw), setting.ctrl))
+    io.write_json(out / "history.json", {"gradient": res.history, **{
+        name: [{"seed": r.seed, "best_so_far": r.best_so_far, "rollouts_per_candidate": r.rollouts_per_candidate}
+               for r in rs] for name, rs in runs.items()}})
+    _figures(out, problem.title, setting, family, res.history, runs, paper_raw, tuned_raw, programs)
+    summary["wall_time_s"] = time.perf_counter() - t0
+    io.write_json(out / "summary.json", summary)
+    return summary
 
-    hist = st["history"]
-    budget = cfg.baseline_rollouts()
-    pop = cfg.population(spec.size)
+
+def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say, log):
+    """Random search and CMA-ES, every seed: ``(report, runs, gradient rollouts to match)``."""
+    import numpy as np
+
+    from tuning import baselines
+
+    b = settings.baselines
+    budget = int(round(b.budget * settings.steps * settings.scenarios.train))
+    pop = b.population(family.size)
+    if budget < pop * settings.scenarios.train:
+        raise ValueError(f"[tune.baselines] budget = {b.budget} gives {budget} rollouts, less than one CMA-ES "
+                         f"generation ({pop} candidates x {settings.scenarios.train} scenarios); raise budget or steps, "
+                         "or lower cma_population")
     runs = {"random_search": [], "cma_es": []}
     t_base = {"random_search": 0.0, "cma_es": 0.0}
-    for k in range(cfg.baseline_seeds):
-        seed = cfg.seed * 1000 + k
-        say(f"baselines, seed {k + 1}/{cfg.baseline_seeds}: random search and CMA-ES, {budget} rollouts each")
+    n_train = settings.scenarios.train
+    for k in range(b.seeds):
+        seed = settings.seed * 1000 + k
+        say(f"baselines, seed {k + 1}/{b.seeds}: random search and CMA-ES, {budget} rollouts each")
         t1 = time.perf_counter()
         runs["random_search"].append(baselines.random_search(
-            spec, train_eval, paper_raw, budget_rollouts=budget, n_train=cfg.n_train, seed=seed,
-            low=cfg.search_low, high=cfg.search_high))
+            family, train_eval, paper_raw, budget_rollouts=budget, n_train=n_train, seed=seed,
+            low=b.search_low, high=b.search_high))
         t2 = time.perf_counter()
-        runs["cma_es"].append(baselines.cma_es(spec, train_eval, paper_raw, budget_rollouts=budget,
-                                               n_train=cfg.n_train, seed=seed, population=pop, sigma=cfg.cma_sigma))
+        runs["cma_es"].append(baselines.cma_es(family, train_eval, paper_raw, budget_rollouts=budget, n_train=n_train,
+                                               seed=seed, population=pop, sigma=b.cma_sigma))
         t_base["random_search"] += t2 - t1
         t_base["cma_es"] += time.perf_counter() - t2
-    base = {}
-    match = {}
+    base, match = {}, {}
     for name, rs in runs.items():
         held = heldout_eval(np.stack([np.asarray(r.best_raw) for r in rs]))
         reach = [baselines.rollouts_to_reach(hist, r.best_loss) for r in rs]
@@ -208,77 +267,94 @@ def run(cfg, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
                          for r, h, m in zip(rs, held, reach)],
             "rollouts_budget": budget, "wall_time_s": t_base[name],
         }
-        met = [m for m in reach if m is not None]
         med = float(np.median([np.inf if m is None else m for m in reach]))    # a seed never matched counts as inf
         match[name] = med if np.isfinite(med) else None
         ratio = float(np.median([r.rollouts_to_best / m if m is not None else 0.0 for r, m in zip(rs, reach)]))
         base[name]["rollout_ratio_baseline_over_gradient"] = ratio if match[name] is not None else None
-        base[name]["seeds_matched_by_gradient"] = len(met)
+        base[name]["seeds_matched_by_gradient"] = sum(m is not None for m in reach)
         log(f"{name}: median best train loss {base[name]['best_loss']:.5g} after {base[name]['rollouts_to_best']:.0f} "
             f"rollouts, held-out {base[name]['best_heldout_loss']:.5g}; gradient reached it after {match[name]} "
-            f"rollouts ({len(met)}/{len(reach)} seeds)")
-    base["cma_es"]["population"] = pop
-    base["cma_es"]["sigma0"] = cfg.cma_sigma
-    base["cma_es"]["implementation"] = "cmaes (CyberAgent) CMA, ask/tell; candidates simulated in batched jit calls"
-    base["random_search"]["box"] = (f"log-uniform: rates in [{cfg.search_low}, {cfg.search_high}] 1/s, "
-                                    f"dampings in [{max(0.3, 1.01 * cfg.min_damping):g}, 3], every knot independently")
+            f"rollouts ({base[name]['seeds_matched_by_gradient']}/{len(reach)} seeds)")
+    base["cma_es"].update(population=pop, sigma0=b.cma_sigma,
+                          implementation="cmaes (CyberAgent) CMA, ask/tell; candidates simulated in batched jit calls")
+    base["random_search"]["box"] = (f"log-uniform: rates in [{b.search_low}, {b.search_high}] 1/s, dampings in "
+                                    f"[{max(0.3, 1.01 * family.min_damping):g}, 3], every knot independently")
+    return base, runs, match
 
-    radius = None
-    cert = loop.certificate_setup(ctrl, cfg.reference, g, cfg.t_final)
-    if cert is not None:
-        from tuning.losses import certificate_radius
 
-        radius_of = jax.jit(lambda r: certificate_radius(spec.gains(r), cert[1], cert[0], cert[2]),
-                            compiler_options=loop.QUICK_COMPILE)
-        radius = {k: float(radius_of(r)) for k, r in (("paper_gains", paper_raw), ("tuned", tuned_raw))}
-    summary = {
-        "experiment": "tuning", "problem": cfg.problem, "config": dataclasses.asdict(cfg),
+def _certified_radius(setting, family, paper_raw, tuned_raw):
+    """Lemma 2's radius of the initial and the tuned gains (the certificate term's: the automatic
+    Lyapunov K2, the transition matrix's norm for a schedule), where the problem allows one."""
+    import jax
+
+    from tuning import loop
+    from tuning.losses import certificate_radius
+
+    try:
+        loop.check(setting, family, loop.Scenarios(), loop.LossWeights(certificate=1.0))
+    except ValueError:
+        return None
+    cert = loop.certificate(setting, 1.0)
+    radius_of = jax.jit(lambda r: certificate_radius(family.gains(r), cert.m1, cert.ts, cert.eps),
+                        compiler_options=loop.QUICK_COMPILE)
+    return {"method": "Lemma 2, K2 = ||Phi(t, 0)|| (gain schedule)" if family.knots else
+            "Lemma 2, automatic Lyapunov K2", "eps": cert.eps,
+            "paper_gains": float(radius_of(paper_raw)), "tuned": float(radius_of(tuned_raw))}
+
+
+def _summary(problem, setting, settings, family, res, paper_raw, tuned_raw, train, heldout, ho_ok, ho_m, base, match,
+             radius, grad_wall) -> dict:
+    import jax
+    import numpy as np
+
+    from tuning import loop
+
+    hist = res.history
+    m_paper, m_tuned = (jax.tree_util.tree_map(lambda x: x[i], ho_m) for i in (0, 1))
+    ho_paper, ho_tuned = heldout
+    ctrl = setting.ctrl
+    return {
+        "experiment": "tuning", "problem_name": problem.title, "problem": problem.resolved(),
+        "tune": settings.as_dict(),
         "controller": f"{type(ctrl).__name__} of type {ctrl.robot.name}, {ctrl.level} level",
-        "n_parameters": spec.size,
-        "gain_family": ("gain schedule, knots at " + ", ".join(f"{t:g}" for t in spec.knots) + " s"
-                        if spec.knots else "constant") + (", shared by the outputs" if spec.shared else ", per output"),
-        "initial_gains": _gains_report(spec, paper_raw),
-        "tuned_gains": {**_gains_report(spec, tuned_raw), "selected_by": "best validation loss among evaluations"},
+        "n_parameters": family.size,
+        "gain_family": ("gain schedule, knots at " + ", ".join(f"{t:g}" for t in family.knots) + " s"
+                        if family.knots else "constant") + (", shared by the outputs" if family.shared else ", per output"),
+        "initial_gains": _gains_report(family, paper_raw),
+        "tuned_gains": {**_gains_report(family, tuned_raw), "selected_by": "best validation loss among evaluations",
+                        "file": "gains.json"},
         "train_loss": {"initial": hist[0]["train_loss"], "final": hist[-1]["train_loss"],
-                       "paper_gains": tr_paper, "tuned": tr_tuned},
+                       "paper_gains": train[0], "tuned": train[1]},
         "heldout_loss": {"paper_gains": ho_paper, "tuned": ho_tuned,        # null ratio where one is not finite
                          "ratio_paper_over_tuned": ho_paper / ho_tuned if np.isfinite([ho_paper, ho_tuned]).all()
                          else None},
         "heldout_terms": {k: {f: float(np.mean(np.asarray(getattr(m, f))[np.asarray(m.valid)]))
                               for f in ("tracking", "effort", "saturation", "barrier")}
                           for k, m in (("paper_gains", m_paper), ("tuned", m_tuned))},
-        "singularity_events": {"paper_gains": sing_paper, "tuned": sing_tuned},
-        "failed_heldout_scenarios": {"paper_gains": fail_paper, "tuned": fail_tuned},
-        "excluded_training_scenarios": st["excluded"],
-        "rollouts": st["rollouts"],
+        "singularity_events": {"paper_gains": int(np.sum(m_paper.singular)), "tuned": int(np.sum(m_tuned.singular))},
+        "failed_heldout_scenarios": {"paper_gains": int(np.sum(~ho_ok[0])), "tuned": int(np.sum(~ho_ok[1]))},
+        "excluded_training_scenarios": res.excluded,
+        "rollouts": res.rollouts,
         "rollout_counting": "one rollout = one scenario simulated once; a gradient step over B scenarios counts B "
                             "(its extra cost is in gradient_wall_time_s); held-out and validation runs are not counted",
         "objective": f"mean loss of the valid scenarios + {loop.FAILURE_PENALTY} x fraction failed (+ certificate term)",
         "baselines": base,
         "rollouts_to_match": match,
-        "steps": len(hist), "stopped_early": st["stopped_early"],
-        "gradient_wall_time_s": grad_wall, "tuning_wall_time_s_including_compile": st["wall_time_s"],
+        "steps": len(hist), "stopped_early": res.stopped_early,
+        "gradient_wall_time_s": grad_wall, "tuning_wall_time_s_including_compile": res.wall_time_s,
         "certified_radius": radius,
     }
-    say("writing history, figures and summary")
-    io.write_json(out / "history.json", {"gradient": hist, **{
-        name: [{"seed": r.seed, "best_so_far": r.best_so_far, "rollouts_per_candidate": r.rollouts_per_candidate}
-               for r in rs] for name, rs in runs.items()}})
-    _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw, programs)
-    summary["wall_time_s"] = time.perf_counter() - t0
-    io.write_json(out / "summary.json", summary)
-    return summary
 
 
-def _programs(built) -> dict:
+def _programs(ctx) -> dict:
     """The functions of a run after its gradient loop.
 
     Returns:
       A dict: ``evaluate_on`` (:func:`tuning.baselines.candidate_evaluator` of the training
       objective, with per-scenario validity and metrics as aux: the training-set evaluations,
       the held-out report and the baselines; +inf where an objective is not finite),
-      ``trajectories(gains) -> (states (n_periods, n), output errors (n_periods, 2))`` of
-      held-out scenario 0, that ``scenario`` (on the host) and its sample times ``t`` [s].
+      ``trajectories(gains) -> (output positions (n, 2), position errors (n, 2))`` of held-out
+      scenario 0 at the controller's samples, that ``scenario`` and its sample times ``t`` [s].
     """
     import jax
     import jax.numpy as jnp
@@ -287,30 +363,32 @@ def _programs(built) -> dict:
     from tuning import baselines, loop
     from tuning.scenarios import rollout
 
-    ctrl, spec, g, rcfg, w_arr, cert_term = (built[k] for k in ("ctrl", "spec", "geometry", "rcfg", "w_arr",
-                                                                 "cert_term"))
+    setting, family, weights, cert = ctx.setting, ctx.family, ctx.weights, ctx.certificate
 
     def objective(raw, scen):
-        val, ok, m = loop.batch_value(raw, scen, ctrl, spec, g, rcfg, w_arr)
-        return loop.objective(val, ok) + cert_term(raw), (ok, m)
+        val, ok, m = loop.mean_loss(raw, scen, setting, family, weights)
+        return loop.objective(val, ok) + loop.certificate_term(family, raw, cert), (ok, m)
 
-    sc = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], built["heldout"])     # on the host: no per-leaf program
-    t = np.arange(rcfg.n_periods) * rcfg.control_dt
-    params = ctrl.params_unchecked(sc.reference, 1.0, g)
+    sc = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], ctx.sets.heldout)     # on the host: no per-leaf program
+    every = setting.steps_per_sample or 1
+    t = np.arange(setting.n_steps // every) * every * setting.dt
 
     @functools.partial(jax.jit, compiler_options=loop.QUICK_COMPILE)
-    def trajectories(gains):      # the sampled states and their output errors
-        _, (zs, _) = rollout(ctrl, gains, g, sc, rcfg, trajectory=True)
-        return zs, jax.vmap(lambda tt, z: ctrl.error(tt, z, params)[0])(jnp.asarray(t), zs)
+    def trajectories(gains):      # the tracked point and its position error at the samples
+        _, tr, params = rollout(setting, gains, sc, trajectory=True)
+        from wmrjax.problem import law_state
+
+        zs = law_state(setting.system(), jax.tree_util.tree_map(lambda x: x[:-1], tr.state))
+        err = jax.vmap(lambda tt, z: setting.ctrl.error(tt, z, params)[0])(jnp.asarray(t), zs)
+        return zs[:, :2], err
 
     # one program for every evaluation after the gradient's (the training and held-out sets
     # have the same size in the default problems; a set of another size compiles its own)
-    return {"evaluate_on": baselines.candidate_evaluator(objective, spec.shape, compiler_options=loop.LOOP_COMPILE),
-            "trajectories": trajectories,
-            "scenario": sc, "t": t}
+    return {"evaluate_on": baselines.candidate_evaluator(objective, family.shape, compiler_options=loop.LOOP_COMPILE),
+            "trajectories": trajectories, "scenario": sc, "t": t}
 
 
-def _warm_up(programs, built, poles_init) -> None:
+def _warm_up(programs, ctx, raw) -> None:
     """Compile the validation program and ``programs`` by calling each once (an evaluation
     runs one chunk of 16 candidates)."""
     import jax
@@ -318,14 +396,12 @@ def _warm_up(programs, built, poles_init) -> None:
 
     from tuning import loop
 
-    spec = built["spec"]
-    raw = spec.init(poles_init)
-    loop.validation_value(raw, built["validation"], built["ctrl"], spec, built["geometry"], built["rcfg"],
-                          built["w_arr"])
-    programs["evaluate_on"](np.asarray(raw)[None], built["train"])
-    if jax.tree_util.tree_leaves(built["heldout"])[0].shape[0] != jax.tree_util.tree_leaves(built["train"])[0].shape[0]:
-        programs["evaluate_on"](np.asarray(raw)[None], built["heldout"])      # a set of another size: its own program
-    programs["trajectories"](spec.gains(raw))
+    loop.validation_loss(raw, ctx.sets.validation, ctx.setting, ctx.family, ctx.weights)
+    programs["evaluate_on"](np.asarray(raw)[None], ctx.sets.train)
+    size = lambda sc: jax.tree_util.tree_leaves(sc)[0].shape[0]
+    if size(ctx.sets.heldout) != size(ctx.sets.train):
+        programs["evaluate_on"](np.asarray(raw)[None], ctx.sets.heldout)      # a set of another size: its own program
+    programs["trajectories"](ctx.family.gains(raw))
 
 
 def _preload() -> None:
@@ -357,7 +433,7 @@ def _band(runs):
     return x, np.median(curves, axis=0), curves.min(axis=0), curves.max(axis=0)
 
 
-def _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw, programs):
+def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, programs):
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -374,19 +450,18 @@ def _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw, programs):
     ax.set_xscale("log")
     ax.set_xlabel("rollouts (scenario simulations)")
     ax.set_ylabel("training objective")
-    ax.set_title(f"{cfg.problem}: loss vs rollouts (band: min-max over seeds)")
+    ax.set_title(f"{title}: loss vs rollouts (band: min-max over seeds)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
     io.write_png(fig, out / "loss.png")
     plt.close(fig)
 
-    spec = res["spec"]
-    ts = np.linspace(0.0, cfg.t_final, 201)
+    ts = np.linspace(0.0, setting.t_final, 201)
     fig, axs = plt.subplots(1, spec.r, figsize=(3.6 * spec.r, 3.4), squeeze=False)
     names = spec.names()
     # one program for both schedules (a jit per schedule compiled twice)
     schedule_at = jax.jit(lambda gains, ts: jax.vmap(gains.parameters_at)(ts))
-    for raw, lab, ls in ((paper_raw, "paper", "--"), (tuned_raw, "tuned", "-")):
+    for raw, lab, ls in ((paper_raw, "initial", "--"), (tuned_raw, "tuned", "-")):
         gains = spec.gains(raw)
         if spec.knots:
             pos = np.asarray(schedule_at(gains, jnp.asarray(ts)))                            # (T, m, r)
@@ -405,23 +480,26 @@ def _figures(out, cfg, res, hist, runs, paper_raw, tuned_raw, programs):
             for tk in spec.knots:
                 axs[0, j].axvline(tk, color="0.7", lw=0.6)
     axs[0, 0].legend(fontsize=6)
-    fig.suptitle(f"{cfg.problem}: gains over time (grey: knots)" if spec.knots else f"{cfg.problem}: gains")
+    fig.suptitle(f"{title}: gains over time (grey: knots)" if spec.knots else f"{title}: gains")
     fig.tight_layout()
     io.write_png(fig, out / "schedule.png")
     plt.close(fig)
 
     sc, t = programs["scenario"], programs["t"]
     fig, axs = plt.subplots(1, 2, figsize=(11, 4.4))
-    ref = np.asarray(jax.jit(jax.vmap(sc.reference.position))(t))
-    axs[0].plot(ref[:, 0], ref[:, 1], "k--", lw=1.2, label="reference")
-    for raw, lab, c in ((paper_raw, "paper gains (poles -1)", "C3"), (tuned_raw, "tuned", "C0")):
-        zs, err = (np.asarray(x) for x in programs["trajectories"](spec.gains(raw)))
-        axs[0].plot(zs[:, 0], zs[:, 1], c, lw=1.2, label=lab)
+    from wmrjax import references as R
+
+    ref = R.Reference(sc.inputs["reference"], sc.inputs["heading_offset"], setting.reference.path, setting.reference.name)
+    pos_ref = np.asarray(jax.jit(jax.vmap(ref.position))(t))
+    axs[0].plot(pos_ref[:, 0], pos_ref[:, 1], "k--", lw=1.2, label="reference")
+    for raw, lab, c in ((paper_raw, "initial gains", "C3"), (tuned_raw, "tuned", "C0")):
+        xy, err = (np.asarray(x) for x in programs["trajectories"](spec.gains(raw)))
+        axs[0].plot(xy[:, 0], xy[:, 1], c, lw=1.2, label=lab)
         axs[1].semilogy(t, np.maximum(np.hypot(err[:, 0], err[:, 1]), 1e-8), c, label=lab)
     axs[0].set_xlabel("x [m]")
     axs[0].set_ylabel("y [m]")
     axs[0].axis("equal")
-    axs[0].set_title(f"{cfg.problem}: one held-out scenario (saturation, mismatch, noise)")
+    axs[0].set_title(f"{title}: one held-out scenario (saturation, mismatch, noise)")
     axs[1].set_xlabel("t [s]")
     axs[1].set_ylabel("output position error [m]")
     for a in axs:
@@ -441,21 +519,24 @@ def main(argv=None) -> int:
 
     jax.config.update("jax_enable_x64", True)   # float64 from the first check on (run() sets it too)
     try:
-        cfg = config_from_args(a)
-        from tuning.loop import validate
+        problem = problem_from_args(a)
+        from tuning import config, loop
 
-        validate(cfg)
+        setting = problem.setting("tuning")
+        settings = config.read(problem.section("tune"))
+        loop.check(setting, settings.gain_spec(setting), settings.scenarios, settings.loss)
     except ValueError as e:
         p.error(str(e))
-    s = cli.work(p, a, lambda progress: run(cfg, a.out, a.fresh, log=progress),
+    s = cli.work(p, a, lambda progress: run(problem, a.out, a.fresh, log=progress),
                  hint=lambda msg: msg + "; or rerun with --fresh to start over" if "checkpoint" in msg else msg)
     b = s["baselines"]
-    print(f"{cfg.problem}: {s['n_parameters']} parameters; held-out loss paper {s['heldout_loss']['paper_gains']:.4g} "
+    print(f"{problem.title}: {s['n_parameters']} parameters; held-out loss initial {s['heldout_loss']['paper_gains']:.4g} "
           f"-> tuned {s['heldout_loss']['tuned']:.4g} (CMA-ES {b['cma_es']['best_heldout_loss']:.4g}, random search "
           f"{b['random_search']['best_heldout_loss']:.4g}); singular events {s['singularity_events']}; "
           f"gradient rollouts {s['rollouts']}, to match CMA-ES {s['rollouts_to_match']['cma_es']} (CMA-ES best after "
           f"{b['cma_es']['rollouts_to_best']:.0f}); {s['wall_time_s']:.1f} s")
-    print(f"wrote {a.out}/summary.json, history.json, checkpoint.json, loss.png, schedule.png, trajectories.png")
+    print(f"wrote {a.out}/gains.json, summary.json, history.json, checkpoint.json, loss.png, schedule.png, "
+          "trajectories.png")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Composable loss terms for gain tuning, from per-scenario rollout metrics."""
+"""Loss terms for gain tuning: the metrics of a :class:`wmrjax.Trajectory` and their weights."""
 
 from __future__ import annotations
 
@@ -8,6 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import certify
+from wmrjax.problem import law_state
+
+# the barrier term starts below this |det K| (a margin of the law's regularity)
+MARGIN_SAFE = 0.2
+# a run whose |det K| at a sample is at or below this is singular (fails)
+MARGIN_FLOOR = 1e-6
 
 
 class LossWeights(NamedTuple):
@@ -46,6 +52,38 @@ class Metrics(NamedTuple):
     valid: jnp.ndarray          # no non-finite value, margin never at the floor
     singular: jnp.ndarray       # the margin reached the floor
     min_margin: jnp.ndarray
+
+
+def metrics(setting, tr, params, inputs: dict, margin_safe: float = MARGIN_SAFE) -> Metrics:
+    """The loss terms of one run: time averages over its samples (every saved state but the
+    final one; a digital controller's samples when it has one), failed samples counting zero.
+
+    Args:
+      setting: the problem's :class:`wmrjax.problem.Setting`.
+      tr: the run's :class:`wmrjax.Trajectory` (saved at the controller's samples).
+      params: the law's parameters of the run (reference, gains, nominal geometry).
+      inputs: the run's inputs (``input_scale``, ``limit`` of the plant).
+      margin_safe: the barrier term is ``relu(1 - |det K| / margin_safe)^2``.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    ctrl = setting.ctrl
+    n = tr.t.shape[0] - 1
+    zs = jax.tree_util.tree_map(lambda x: x[:n], tr.state)
+    if setting.control_period is not None:      # the digital controller's samples record their error
+        err, cmd = jnp.sum(zs.error[..., : ctrl.m] ** 2, axis=-1), zs.command     # the position row
+    else:
+        err = jax.vmap(lambda t, z: jnp.sum(ctrl.error(t, z, params)[0] ** 2))(tr.t[:n], law_state(setting.system(), zs))
+        cmd = tr.control[:n]
+    excess = jax.nn.relu(jnp.abs(inputs["input_scale"] * cmd) - inputs["limit"])
+    terms = (err, jnp.sum(cmd ** 2, axis=-1), jnp.sum(jnp.where(jnp.isfinite(excess), excess, 0.0) ** 2, axis=-1),
+             jax.nn.relu(1.0 - tr.margin[:n] / margin_safe) ** 2)
+    valid = tr.valid[:n]
+    means = [jnp.sum(jnp.where(valid, x, 0.0)) / n for x in terms]
+    dg = tr.diagnostics
+    ok = ~dg.failed & jnp.all(jnp.isfinite(jnp.stack(means)))
+    return Metrics(*means, ok, dg.singular, dg.min_margin)
 
 
 def scenario_loss(m: Metrics, w: LossWeights):
