@@ -1,19 +1,25 @@
-r"""Lemma 2 certification of any restricted type along any named reference.
+r"""Lemma 2 certification of a problem's closed loop: every radius, checked by rollouts.
 
-    python -m experiments.certify --robot "(2,0)" --reference paper_62 --out results/certify_20
+    python -m experiments.certify                                    # the paper's section 6.1
+    python -m experiments.certify PROBLEM.toml --out results/mine    # any problem file
+    python -m experiments.certify --robot "(2,1)" --reference figure_eight --out results/certify_21
 
-For the dynamic linearizing law (velocity level by default) this computes, over the horizon:
-the certified radii of Lemma 2 with K2 three ways (the paper's eq 64 when the gains are the
-paper's, the automatic Lyapunov bound, the exact ||e^{At}||); the exact-map radius (the
+For the problem's dynamic linearizing law (its geometry, reference, gains -- poles, damping
+factors, a tuned-gains file, a schedule -- and horizon) this computes: the certified radii of
+Lemma 2 with K2 three ways (the paper's eq 64 when the gains are the paper's, the automatic
+Lyapunov bound, the exact ||e^{At}||; ||Phi(t, 0)|| for a schedule); the exact-map radius (the
 largest ball of initial errors that keeps zeta(t) eps away from the singular set, from
 zeta_err(t) = e^{At} zeta_err(0)) for the full error and for the position slice; an
 empirical check by batch simulation (violations of (53) and singular runs inside every
 ball, and the empirical safe radius per direction of the position slice); and the
-gradient falsifier's smallest failing radius, full and position slice.
+gradient falsifier's smallest failing radius, full and position slice. The certificates are
+those of the nominal continuous loop: a ``[plant]`` section is not used (the summary says so).
 
-Writes ``summary.json`` and ``slice_map.png``: min_t dist(zeta(t), S) over a grid of
-initial position errors (velocities equal to the reference's), with the eps contour and
-every certified circle.
+The problem's ``[certify]`` section sets eps, the sample counts and the map (see
+``experiments/problems/section_6_1.toml``, the default); every option below overrides it.
+Writes ``summary.json`` (with the whole resolved problem) and ``slice_map.png``: min_t
+dist(zeta(t), S) over a grid of initial position errors (velocities equal to the
+reference's), with the eps contour and every certified circle.
 
 For (1,2) the singular set is curved (sigma(zeta) = 0, see wmrjax.certify.m1_closed_form): M1
 is a one-dimensional minimisation, and the exact-map radius comes from a branch and bound
@@ -27,30 +33,39 @@ from __future__ import annotations
 import os
 import sys
 import time
+from pathlib import Path
 
 from experiments import common
 
+DEFAULT_PROBLEM = Path(__file__).resolve().parent / "problems" / "section_6_1.toml"
+CERTIFY_KEYS = {"eps": 1e-2, "n_empirical": 4096, "n_directions": 128, "n_starts": 16, "map_grid": 81, "seed": 0}
 
-def setup(robot, reference, level="velocity", poles=1.0, heading_offset=None, geometry=None):
-    """The closed loop to certify: ``geometry`` (L, e, delta) if given, else the paper's geometry
-    along the paper's references (62) and (66) where the paper has one (§6: (2,0), e = 0), else
-    the type's default geometry (its Table 4 row); the row's default heading offset unless
-    ``heading_offset`` is given."""
-    import wmrjax as w
-    from wmrjax import references as R
 
-    ctrl = w.dynamic_linearization(robot, level)
-    ref = R.named(reference)
-    off = ctrl.row.default_heading_offset if heading_offset is None else heading_offset
-    if off:
-        ref = ref.with_heading_offset(off)
-    if geometry is not None:
-        g = w.Geometry(*geometry)
-    elif reference in ("paper_62", "paper_66") and ctrl.row.paper_geometry is not None:
-        g = ctrl.row.paper_geometry
-    else:
-        g = ctrl.row.default_geometry
-    return ctrl, ctrl.params(ref, poles=poles, geometry=g)
+def settings(problem) -> dict:
+    """The ``[certify]`` section over its defaults, checked key by key."""
+    from wmrjax.problem import check_keys, integer, positive
+
+    c = problem.section("certify")
+    check_keys("certify", c, tuple(CERTIFY_KEYS))
+    out = dict(CERTIFY_KEYS)
+    for k, v in c.items():
+        if k == "eps":
+            out[k] = positive("certify", k, v)
+        else:
+            out[k] = integer("certify", k, v, {"n_empirical": 0, "n_starts": 0, "seed": 0}.get(k, 1))
+    return out
+
+
+def setup(problem, case=None):
+    """``(setting, ctrl, params)`` of the problem's one closed loop to certify (a dynamic law)."""
+    from wmrjax.problem import Law, ProblemError
+
+    setting = problem.setting("certification", case=case)
+    if setting.law != Law.DYNAMIC:
+        raise ProblemError("certification needs a dynamic linearizing law ([controller] law = \"dynamic\"): Lemma 2 "
+                           "and the exact map are about Table 4's closed loops")
+    setting.check_single("certification", keep=("initial",))
+    return setting, setting.ctrl, setting.params()
 
 
 def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title=""):
@@ -94,70 +109,125 @@ def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title="
     return {"n_grid": n_grid, "half_width": R, "fraction_unsafe": float(bad.mean())}
 
 
-def run(out, robot="(2,0)", reference="paper_62", level="velocity", poles=1.0, t_final=10.0, eps=1e-2, dt=0.01,
-        n_empirical=4096, n_directions=128, n_starts=16, heading_offset=None, map_grid=81, seed=0,
-        geometry=None, progress=None) -> dict:
+def run(out, problem, case=None, progress=None) -> dict:
+    """Certify the problem's closed loop; writes ``summary.json`` and ``slice_map.png`` in ``out``."""
     say = progress or (lambda msg: print(msg, flush=True))
     common.enable_x64()
     t0 = time.time()
-    ctrl, params = setup(robot, reference, level, poles, heading_offset, geometry)
-    say(f"certify {ctrl.robot.name} ({level}) along {reference}, T = {t_final} s, eps = {eps}")
+    cfg = settings(problem)
+    setting, ctrl, params = setup(problem, case)
+    t_final, dt = setting.t_final, setting.dt
+    say(f"certify {ctrl.robot.name} ({ctrl.level}) along {setting.reference.name}, T = {t_final} s, eps = {cfg['eps']}")
     from wmrjax import certify as C
 
-    report = C.analyse(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_empirical=n_empirical,
-                       n_directions=n_directions, n_starts=n_starts, seed=seed, log=say)
-    say(f"slice map ({map_grid} x {map_grid} runs)")
+    report = C.analyse(ctrl, params, t_final=t_final, eps=cfg["eps"], dt=dt, n_empirical=cfg["n_empirical"],
+                       n_directions=cfg["n_directions"], n_starts=cfg["n_starts"], seed=cfg["seed"], log=say)
+    say(f"slice map ({cfg['map_grid']} x {cfg['map_grid']} runs)")
     block = report.summary()
     out.mkdir(parents=True, exist_ok=True)
-    summary = {"experiment": "certify", "robot": ctrl.robot.name, "level": level, "reference": reference,
-               "heading_offset": float(params.reference.heading_offset), "geometry": params.geometry._asdict(),
-               "poles": poles, "dt": dt, **block}
-    summary["slice_map"] = slice_map(ctrl, params, block, out / "slice_map.png", t_final=t_final, dt=dt, eps=eps,
-                                     n_grid=map_grid, title=f"{ctrl.robot.name} along {reference}: initial position errors")
+    gains = params.gains
+    summary = {"experiment": "certify", "problem_name": problem.title, "case": case, "problem": problem.resolved(),
+               "certify": cfg, "robot": ctrl.robot.name, "level": str(ctrl.level), "reference": setting.reference.name,
+               "heading_offset": float(params.reference.heading_offset),
+               "geometry": {k: float(v) for k, v in params.geometry._asdict().items()},
+               "gains": C.plain({"coefficients": gains.coeffs} if not gains.time_varying else
+                                {"schedule_knots": gains.times}),
+               "closed_loop_poles_re_im": None if gains.time_varying else
+               [[float(p.real), float(p.imag)] for p in ctrl.error_poles(gains)],
+               "plant": ("not used: the certificates are those of the nominal continuous closed loop"
+                         if setting.plant else None),
+               "dt": dt, **block}
+    summary["slice_map"] = slice_map(ctrl, params, block, out / "slice_map.png", t_final=t_final, dt=dt,
+                                     eps=cfg["eps"], n_grid=cfg["map_grid"],
+                                     title=f"{ctrl.robot.name} along {setting.reference.name}: initial position errors")
     summary["wall_time_s"] = time.time() - t0
     common.write_json(out / "summary.json", summary)
     return summary
 
 
-def main(argv=None) -> int:
+# option -> dotted key of the problem file it sets
+_KEYS = {"level": "controller.level", "t_final": "simulation.t_final", "dt": "simulation.dt", "eps": "certify.eps",
+         "n_empirical": "certify.n_empirical", "n_directions": "certify.n_directions", "n_starts": "certify.n_starts",
+         "map_grid": "certify.map_grid", "heading_offset": "reference.heading_offset"}
+
+
+def problem_from_args(a):
+    """The problem file (default: section 6.1) with the options given on the command line applied.
+    As before problem files: ``--robot`` or ``--reference`` without ``--geometry`` take the
+    paper's geometry along (62) and (66) where the paper has one, else the type's default
+    (its Table 4 row), and the type's default heading offset unless ``--heading-offset``."""
     import wmrjax as w
+    from wmrjax.problem import Problem
+
+    problem = Problem.load(a.file if a.file is not None else DEFAULT_PROBLEM)
+    values = {key: getattr(a, k) for k, key in _KEYS.items() if getattr(a, k) is not None}
+    if a.poles is not None and a.gains is not None:
+        raise ValueError("give --poles or --gains, not both")
+    if a.poles is not None:
+        values["gains"] = {"poles": a.poles}
+    if a.gains is not None:
+        values["gains"] = {"file": str(Path(a.gains).resolve())}
+    if a.robot is not None:
+        values["controller.robot"] = w.robot_type(a.robot).name
+    if a.reference is not None:
+        values["reference"] = {"family": a.reference}
+    if a.robot is not None or a.reference is not None:
+        robot = values.get("controller.robot", problem.data["controller"]["robot"])
+        ref = values.get("reference", problem.data["reference"]).get("family")
+        row = w.controllers.TABLE4.get(robot)
+        if a.geometry is None and row is not None:
+            g = row.paper_geometry if ref in ("paper_62", "paper_66") and row.paper_geometry is not None \
+                else row.default_geometry
+            values["geometry"] = {k: float(v) for k, v in g._asdict().items()}
+        if a.heading_offset is None:
+            values["reference.heading_offset"] = None
+    if a.geometry is not None:
+        values["geometry"] = dict(zip(("L", "e", "delta"), a.geometry))
+    return problem.with_values(values) if values else problem
+
+
+def main(argv=None) -> int:
+    from wmrjax import cli
     from wmrjax import references as R
 
-    from wmrjax import cli
-
     p = common.parser(__doc__.splitlines()[0], "results/certify")
-    p.add_argument("--robot", default="(2,0)", help="robot type: (2,0), (2,1), (1,1) or (1,2)")
-    p.add_argument("--reference", default="paper_62", choices=sorted(R.REFERENCES), help="named reference")
-    p.add_argument("--level", default="velocity", choices=["velocity", "torque"], help="velocity or torque level")
-    p.add_argument("--poles", type=cli.positive, default=1.0, help="closed-loop poles at -POLES [1/s] (1: the paper's)")
-    p.add_argument("--t-final", type=cli.positive, default=10.0, help="horizon [s]")
-    p.add_argument("--eps", type=cli.positive, default=1e-2, help="Lemma 2's margin eps [zeta units: m, m/s]")
-    p.add_argument("--dt", type=cli.positive, default=0.01, help="RK4 step of the empirical checks [s]")
-    p.add_argument("--n-empirical", type=cli.count, default=4096, help="sampled initial errors (every K2 checked on them)")
-    p.add_argument("--n-directions", type=cli.count, default=128, help="rays of the position-slice empirical radius")
-    p.add_argument("--n-starts", type=cli.nonnegative_int, default=16,
+    p.add_argument("file", type=Path, nargs="?", default=None,
+                   help="a problem file (TOML; default: experiments/problems/section_6_1.toml)")
+    p.add_argument("--case", default=None, help="the [[case]] to certify, when the problem has several")
+    p.add_argument("--robot", default=None, help="robot type: (2,0), (2,1), (1,1) or (1,2)")
+    p.add_argument("--reference", default=None, choices=sorted(R.REFERENCES), help="a named reference")
+    p.add_argument("--level", default=None, choices=["velocity", "torque"], help="velocity or torque level")
+    p.add_argument("--poles", type=cli.positive, default=None, help="closed-loop poles at -POLES [1/s] (1: the paper's)")
+    p.add_argument("--gains", type=Path, default=None,
+                   help="a tuned-gains file (gains.json of python -m tuning): complex poles, schedules")
+    p.add_argument("--t-final", type=cli.positive, default=None, help="horizon [s]")
+    p.add_argument("--eps", type=cli.positive, default=None, help="Lemma 2's margin eps [zeta units: m, m/s]")
+    p.add_argument("--dt", type=cli.positive, default=None, help="RK4 step of the empirical checks [s]")
+    p.add_argument("--n-empirical", type=cli.count, default=None, help="sampled initial errors (every K2 checked on them)")
+    p.add_argument("--n-directions", type=cli.count, default=None, help="rays of the position-slice empirical radius")
+    p.add_argument("--n-starts", type=cli.nonnegative_int, default=None,
                    help="falsifier gradient starts per radius (0: no falsifier)")
     p.add_argument("--heading-offset", type=cli.finite, default=None,
-                   help="reference heading offset [rad] (crab angle; None: the type's default)")
-    p.add_argument("--map-grid", type=cli.grid_size, default=81, help="slice map resolution (N x N runs)")
+                   help="reference heading offset [rad] (crab angle; default: the file's, else the type's)")
+    p.add_argument("--map-grid", type=cli.grid_size, default=None, help="slice map resolution (N x N runs)")
     p.add_argument("--geometry", type=cli.finite, nargs=3, default=None, metavar=("L", "E", "DELTA"),
-                   help="robot geometry [m, m, rad] (None: the paper's along paper_62/66 where it has one, "
-                        "else the type's default)")
+                   help="robot geometry [m, m, rad]")
     p.add_argument("--devices", type=cli.count, default=os.cpu_count() or 1,
                    help="JAX host devices the batch simulations are spread over (one per core; sets XLA_FLAGS "
                         "before JAX starts its backend)")
     a = p.parse_args(argv)
     flag = f"--xla_force_host_platform_device_count={a.devices}"
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()   # read when the backend starts
-    cli.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=max(a.n_empirical, a.map_grid ** 2), saved_every=10)
     try:
-        w.robot_type(a.robot)
-        setup(a.robot, a.reference, a.level, a.poles, a.heading_offset, a.geometry)   # geometry, reference: now
+        common.enable_x64()
+        problem = problem_from_args(a)
+        cfg = settings(problem)
+        setting, _, _ = setup(problem, a.case)
     except ValueError as e:
         p.error(str(e))
-    s = cli.work(p, a, lambda progress: run(a.out, a.robot, a.reference, a.level, a.poles, a.t_final, a.eps, a.dt,
-                                            a.n_empirical, a.n_directions, a.n_starts, a.heading_offset,
-                                            a.map_grid, geometry=a.geometry, progress=progress))
+    cli.check_horizon(p, t_final=setting.t_final, dt=setting.dt, batch=max(cfg["n_empirical"], cfg["map_grid"] ** 2),
+                      saved_every=10)
+    s = cli.work(p, a, lambda progress: run(a.out, problem, a.case, progress=progress))
     keys = ["radius_paper", "radius_lyapunov", "radius_exact_norm", "radius_exact_map", "radius_exact_map_position_slice",
             "empirical_radius_position_slice"]
     print("  ".join(f"{k} {s[k]:.4f}" for k in keys if s.get(k) is not None))

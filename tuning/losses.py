@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -54,13 +55,32 @@ class Metrics(NamedTuple):
     min_margin: jnp.ndarray
 
 
+@dataclasses.dataclass(frozen=True)
+class SampleTerms:
+    """What a tuning run saves at each sample (``simulate``'s ``save_fn``; static, hashable): the
+    squared position error of the true state, the squared command, the command and the margin
+    (a digital controller's loop, whose samples record their error and command), or the law's
+    state (a continuous loop: the error is computed afterwards)."""
+
+    m: int
+    sampled: bool
+
+    def __call__(self, t, z, aux):
+        import jax.numpy as jnp
+
+        if not self.sampled:
+            return z
+        return (jnp.sum(z.error[: self.m] ** 2), z.command, jnp.asarray(aux.margin))
+
+
 def metrics(setting, tr, params, inputs: dict, margin_safe: float = MARGIN_SAFE) -> Metrics:
-    """The loss terms of one run: time averages over its samples (every saved state but the
+    """The loss terms of one run: time averages over its samples (every saved time but the
     final one; a digital controller's samples when it has one), failed samples counting zero.
 
     Args:
       setting: the problem's :class:`wmrjax.problem.Setting`.
-      tr: the run's :class:`wmrjax.Trajectory` (saved at the controller's samples).
+      tr: the run's :class:`wmrjax.Trajectory`, saved at the controller's samples with
+        :class:`SampleTerms` as ``save_fn``.
       params: the law's parameters of the run (reference, gains, nominal geometry).
       inputs: the run's inputs (``input_scale``, ``limit`` of the plant).
       margin_safe: the barrier term is ``relu(1 - |det K| / margin_safe)^2``.
@@ -70,15 +90,16 @@ def metrics(setting, tr, params, inputs: dict, margin_safe: float = MARGIN_SAFE)
 
     ctrl = setting.ctrl
     n = tr.t.shape[0] - 1
-    zs = jax.tree_util.tree_map(lambda x: x[:n], tr.state)
+    saved = jax.tree_util.tree_map(lambda x: x[:n], tr.state)
     if setting.control_period is not None:      # the digital controller's samples record their error
-        err, cmd = jnp.sum(zs.error[..., : ctrl.m] ** 2, axis=-1), zs.command     # the position row
+        err, cmd, margin = saved
     else:
-        err = jax.vmap(lambda t, z: jnp.sum(ctrl.error(t, z, params)[0] ** 2))(tr.t[:n], law_state(setting.system(), zs))
-        cmd = tr.control[:n]
+        zs = law_state(setting.system(), saved)
+        err = jax.vmap(lambda t, z: jnp.sum(ctrl.error(t, z, params)[0] ** 2))(tr.t[:n], zs)
+        cmd, margin = tr.control[:n], tr.margin[:n]
     excess = jax.nn.relu(jnp.abs(inputs["input_scale"] * cmd) - inputs["limit"])
     terms = (err, jnp.sum(cmd ** 2, axis=-1), jnp.sum(jnp.where(jnp.isfinite(excess), excess, 0.0) ** 2, axis=-1),
-             jax.nn.relu(1.0 - tr.margin[:n] / margin_safe) ** 2)
+             jax.nn.relu(1.0 - margin / margin_safe) ** 2)
     valid = tr.valid[:n]
     means = [jnp.sum(jnp.where(valid, x, 0.0)) / n for x in terms]
     dg = tr.diagnostics

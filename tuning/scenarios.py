@@ -21,7 +21,7 @@ import wmrjax as w
 from wmrjax import references as R
 from wmrjax.problem import Setting, initial_box, initial_keys, place, random_options
 
-from tuning.losses import MARGIN_FLOOR, MARGIN_SAFE, Metrics, metrics
+from tuning.losses import MARGIN_FLOOR, MARGIN_SAFE, Metrics, SampleTerms, metrics
 
 
 class Scenario(NamedTuple):
@@ -82,13 +82,15 @@ def draw_set(setting: Setting, mismatch: float, keys) -> Scenario:
 
 def rollout(setting: Setting, gains, sc: Scenario, trajectory: bool = False):
     """Simulate one scenario with ``gains`` (:class:`wmrjax.Gains` or a
-    :class:`wmrjax.GainSchedule`); returns :class:`tuning.Metrics` (and with ``trajectory``
-    the :class:`wmrjax.Trajectory` and the law's parameters)."""
+    :class:`wmrjax.GainSchedule`); returns :class:`tuning.Metrics` (with ``trajectory``:
+    ``(None, the wmrjax.Trajectory of its states, the law's parameters)``)."""
     every = setting.steps_per_sample or 1
+    save = None if trajectory else SampleTerms(setting.ctrl.m, setting.control_period is not None)
     tr, params = setting.run({**sc.inputs, "gains": gains}, save_every=every, error_tol=None,
-                             margin_floor=MARGIN_FLOOR, noise_key=sc.key)
-    m = metrics(setting, tr, params, sc.inputs, MARGIN_SAFE)
-    return (m, tr, params) if trajectory else m
+                             margin_floor=MARGIN_FLOOR, noise_key=sc.key, save_fn=save)
+    if trajectory:
+        return None, tr, params
+    return metrics(setting, tr, params, sc.inputs, MARGIN_SAFE)
 
 
 __all__ = ["Metrics", "Scenario", "draw", "draw_set", "rollout", "tuning_box"]

@@ -488,8 +488,12 @@ class Setting:
             return src
         return {k: jax.tree_util.tree_map(lambda x, k=k: np.asarray(x)[idx[AXIS_OF[k]]], v) for k, v in src.items()}
 
-    def run(self, p: dict, *, save_every: int = 1, error_tol=1e-3, margin_floor=1e-9, noise_key=None, t0=0.0):
+    def run(self, p: dict, *, save_every: int = 1, error_tol=1e-3, margin_floor=1e-9, noise_key=None, t0=0.0,
+            save_fn=None):
         """One run (pure: vmap it) from one run's inputs ``p`` (:meth:`inputs`, unbatched).
+
+        ``save_every``, ``error_tol``, ``margin_floor`` and ``save_fn`` are :func:`wmrjax.simulate`'s;
+        ``noise_key`` draws the measurement noise of a digital controller; ``t0`` [s] starts the run.
 
         Returns:
           ``(trajectory, params)``: the :class:`wmrjax.Trajectory` of :meth:`system`, and the
@@ -525,7 +529,7 @@ class Setting:
         else:
             params_run = params
         tr = w.simulate(loop, z0, params_run, dt=self.dt, n_steps=self.n_steps, t0=t0, save_every=save_every,
-                        error_tol=error_tol, margin_floor=margin_floor)
+                        error_tol=error_tol, margin_floor=margin_floor, save_fn=save_fn)
         return tr, params
 
 

@@ -372,31 +372,45 @@ def _sampler(system):
     every = getattr(system, "sample_every", None)
     if every is None:
         return None, None
-    return scalarized(_simplify.simplify(system.sample)), int(every)
+    return scalarized(system.sample), int(every)
 
 
-def _period_advance(field_s, t, z, dt, every: int, estimate: bool, parts, rebuild):
+def _period_advance(field_s, t, z, dt, every: int, estimate: bool, parts, rebuild, held_mask):
     """A sampled-data system's period from ``z`` at ``t`` (just sampled): ``every`` RK4 steps
     under the held values; ``(z_next, aux at (t, z), error estimate, (), False)``. The estimate
     is the largest of the steps after the first (the first follows the sample's jump). The
-    steps' loop body runs on scalars, like the main loop's (``field_s(t, z, p)``, ``p =
-    rebuild(parts)``)."""
+    steps integrate the moving leaves only (``held_mask``: the system's ``held(z)``, True where a
+    leaf is held between samples), on scalars like the main loop's body (``field_s(t, z, p)``,
+    ``p = rebuild(parts)``): the held ones come out as the same values, with no arithmetic."""
     _, aux = field_s(t, z, rebuild(parts))
+    leaves, treedef = jax.tree_util.tree_flatten(z)
+    moving = [_is_continuous(x) and not h for x, h in zip(leaves, jax.tree_util.tree_leaves(held_mask))]
+    like = [x for x, m in zip(leaves, moving) if m]
 
-    def sub(c, j, parts):
+    def merge(mov, hel):
+        mov, hel = iter(mov), iter(hel)
+        return jax.tree_util.tree_unflatten(treedef, [next(mov) if m else next(hel) for m in moving])
+
+    def sub(c, j, parts, hel):
         zt, k4_prev, est = c
-        zj = _from_scalars(zt, z)
-        z_next, _, k1, k4 = _rk4(lambda tt, zz: field_s(tt, zz, rebuild(parts)), t + j.astype(dt.dtype) * dt, zj, dt)
+
+        def f_moving(tt, mov):
+            dz, a = field_s(tt, merge(mov, hel), rebuild(parts))
+            return [k for k, m in zip(jax.tree_util.tree_leaves(dz), moving) if m], a
+
+        zj = _from_scalars(zt, like)
+        z_next, _, k1, k4 = _rk4(f_moving, t + j.astype(dt.dtype) * dt, zj, dt)
         if estimate:
             e = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1), _continuous(zj)))
             est = jnp.maximum(est, jnp.where(j == 0, 0.0, e))
         return (_to_scalars(z_next), _continuous(k4) if estimate else (), est), None
 
+    held = tuple(x for x, m in zip(leaves, moving) if not m)
     body = scalarized(sub)
-    k0 = tuple(jnp.zeros_like(x) for x in _continuous(z)) if estimate else ()
-    (zt, _, est), _ = jax.lax.scan(lambda c, j: body(c, j, parts), (_to_scalars(z), k0, jnp.zeros((), dt.dtype)),
+    k0s = tuple(jnp.zeros_like(x) for x in _continuous(like)) if estimate else ()
+    (zt, _, est), _ = jax.lax.scan(lambda c, j: body(c, j, parts, held), (_to_scalars(like), k0s, jnp.zeros((), dt.dtype)),
                                    jnp.arange(every))
-    return _from_scalars(zt, z), aux, est, (), jnp.array(False)
+    return merge(_from_scalars(zt, like), held), aux, est, (), jnp.array(False)
 
 
 def _first_float(z):
@@ -404,8 +418,8 @@ def _first_float(z):
     return jnp.reshape(leaves[0], (-1,))[0]
 
 
-@functools.partial(jax.jit, static_argnames=("system", "n_steps", "save_every"))
-def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol):
+@functools.partial(jax.jit, static_argnames=("system", "n_steps", "save_every", "save_fn"))
+def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn=None):
     dtype = jnp.result_type(*[x for x in jax.tree_util.tree_leaves(z0) if _is_continuous(x)])
     dt = jnp.asarray(dt, dtype)
     t0 = jnp.asarray(t0, dtype)
@@ -429,7 +443,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         last stage k4, jumped)``. A unit is one RK4 step (then the system's ``post_step``), or a
         sampled-data system's whole period: its ``sample_every`` steps under the held sample."""
         if sample is not None:
-            return _period_advance(field_s, t, z, dt, sample_every, estimate, parts, rebuild_params)
+            return _period_advance(field_s, t, z, dt, sample_every, estimate, parts, rebuild_params, system.held(z))
         if stage_loop:
             z_next, aux, k1, k4 = _rk4_stage_loop(field_s, t, z, dt, parts, rebuild_params)
         else:
@@ -485,7 +499,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         sign_next = jnp.where(sign != 0, sign, sign_prev)
         carry = (zt_next, ok, diag, sign_next, _continuous(k4) if estimate and sample is None else (),
                  None if est_ok is None else ~jumped)
-        return carry, (z, aux.control, margin, sample_ok)
+        return carry, (z if save_fn is None else save_fn(t, z, aux), aux.control, margin, sample_ok)
 
     # One step as operations on scalars: under vmap, elementwise on batch vectors, with no
     # array assembled or taken apart inside the loop, forward or transposed.
@@ -514,7 +528,11 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
              jax.tree_util.tree_map(lambda x: 0.0 * x, _continuous(z0)) if estimate and sample is None else (),
              None if post_step is None or not estimate else bad0 & False)
 
-    rec0 = (z0, jnp.zeros(control0.shape, control0.dtype) + zero.astype(control0.dtype), inf, ~bad0)
+    saved0 = z0
+    if save_fn is not None:     # zeros shaped like what save_fn returns (no evaluation at t0)
+        shapes = jax.eval_shape(lambda: save_fn(t0, z0, field(t0, z0)[1]))
+        saved0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype) + zero.astype(a.dtype), shapes)
+    rec0 = (saved0, jnp.zeros(control0.shape, control0.dtype) + zero.astype(control0.dtype), inf, ~bad0)
     unit = 1 if sample is None else sample_every      # a sampled-data system runs by whole periods
     n_saves = n_steps // save_every
     save_units, n_units = save_every // unit, n_steps // unit
@@ -581,7 +599,8 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     t_saved = t_saved.at[-1].set(t_final)
     traj = Trajectory(
         t=t_saved,
-        state=jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), states, z_final),
+        state=jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), states,
+                                     z_final if save_fn is None else save_fn(t_final, z_final, aux_f)),
         control=jnp.concatenate([controls, jnp.asarray(aux_f.control)[None]]),
         margin=jnp.concatenate([margins, jnp.asarray(aux_f.margin, dtype)[None]]),
         valid=jnp.concatenate([valids, final_ok[None]]),
@@ -669,7 +688,7 @@ def batch_map(fn, *args, chunk: int = 512, mesh=None):
 
 
 def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 1, margin_floor=1e-9,
-             error_tol=1e-3) -> Trajectory:
+             error_tol=1e-3, save_fn=None) -> Trajectory:
     """Simulate one closed loop with fixed-step RK4.
 
     Args:
@@ -697,6 +716,9 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
         to ``1 + max_i |z_i|``; :attr:`Diagnostics.error_estimate`) exceeds it (> 0). ``None``
         compiles the loop without the estimate (``error_estimate`` is then 0): about 10 %
         faster on CPUs, for sweeps whose step is known to be accurate.
+      save_fn: what to save at each saved time instead of the state (static, hashable):
+        ``save_fn(t, z, aux) -> pytree`` (e.g. a few loss terms); ``Trajectory.state`` then holds
+        its outputs (a leading axis of T); ``final_state`` stays the state. None: the state.
 
     Returns:
       :class:`Trajectory`.
@@ -759,7 +781,9 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
     check_run = getattr(system, "check_run", None)
     if check_run is not None:
         check_run(params, t0=t0, dt=dt, n_steps=n_steps)
-    return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol)
+    if save_fn is not None and not callable(save_fn):
+        raise ValueError(f"save_fn must be a function (t, z, aux) -> pytree, got {type(save_fn).__name__}")
+    return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn)
 
 
 def _check_memory(n_steps: int, save_every: int, n_state: int, dtype) -> None:

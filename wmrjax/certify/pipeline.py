@@ -70,7 +70,8 @@ class CertificationReport(NamedTuple):
         return max(float(c.radius) for c in self.lemma2.certificates().values())
 
     def summary(self) -> dict:
-        """The report as a JSON-able dict (the ``lemma2`` block of the experiments' summary.json)."""
+        """The report as plain JSON (numbers, strings, lists, dicts; the ``lemma2`` block of the
+        experiments' summary.json): ``json.dumps`` takes it as it is."""
         certs = self.lemma2.certificates()
         block = {"eps": self.eps, "t_final": self.t_final, "m1": self.lemma2.m1_method}
         for name, c in certs.items():
@@ -112,7 +113,21 @@ class CertificationReport(NamedTuple):
         er = self.empirical_position.radius
         tight["empirical_position_slice"] = None if fp is None or not np.isfinite(er) else er / fp
         block["tightness"] = tight
-        return block
+        return plain(block)
+
+
+def plain(x):
+    """``x`` with every array and NumPy or JAX scalar turned into lists and Python numbers."""
+    if isinstance(x, dict):
+        return {str(k): plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [plain(v) for v in x]
+    if isinstance(x, (str, bool, int, float)) or x is None:
+        return x
+    a = np.asarray(x)
+    if a.dtype == bool:
+        return a.tolist()
+    return a.tolist() if a.ndim else (int(a) if np.issubdtype(a.dtype, np.integer) else float(a))
 
 
 def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float = 1e-2,

@@ -8,8 +8,8 @@ command (zero-order hold) until the next sample. The plant integrates the held c
 scaled and saturated (:math:`\operatorname{clip}(s \odot u, -\bar u, \bar u)`), with its
 own geometry. The controller's own state (a dynamic law's compensator, and at torque level
 its commanded velocities) advances as a digital integrator: its rate, computed at the
-sample, is held over the period, so at the next sample it has moved by exactly one period
-times that rate.
+sample, is held over the period, and the next sample first advances it by that rate times
+the period (between samples the controller state is held).
 
 It is one :func:`wmrjax.simulate`-able system: the sample is its discrete transition
 (:meth:`SampledLoop.sample`), which ``simulate`` applies at the start of every period of
@@ -48,7 +48,9 @@ class SampledState(NamedTuple):
         its wheel velocities u [m, rad; m/s, rad/s].
       controller: (n_c,) the law's state beyond X (compensator; at torque level also its
         commanded velocities U), as the controller last set it; empty for static velocity laws.
-      rate: (n_c,) the controller state's rate computed at the last sample, held.
+      rate: (n_c,) the controller state's rate computed at the last sample, held; the next sample
+        first advances ``controller`` by ``rate`` times the time since this one.
+      t_sample: () the time of the last sample [s].
       command: (n_input,) the law's command at the last sample (u at velocity level, v = du/dt at
         torque level), held; the plant receives ``clip(scale * command, -limit, limit)``.
       regularity: () the law's signed regularity function (det K) at the last sample, held.
@@ -59,6 +61,7 @@ class SampledState(NamedTuple):
     plant: Any
     controller: Any
     rate: Any
+    t_sample: Any
     command: Any
     regularity: Any
     error: Any
@@ -116,7 +119,7 @@ class SampledLoop:
 
     @property
     def n_state(self) -> int:
-        return self.n_plant + 2 * self.n_controller + self.robot.n_input + 1 + self.ctrl.m * self.ctrl.relative_degree
+        return self.n_plant + 2 * self.n_controller + self.robot.n_input + 2 + self.ctrl.m * self.ctrl.relative_degree
 
     def law_state(self, z: SampledState):
         """The controller's state ``(X, controller)`` (true X, no noise); batched states keep their axes."""
@@ -165,16 +168,22 @@ class SampledLoop:
         c = z_law[nX:]
         nu, ne = self.robot.n_input, self.ctrl.m * self.ctrl.relative_degree
         zero = jnp.zeros((), z_law.dtype)
-        return SampledState(plant, c, jnp.zeros_like(c), jnp.zeros(nu, z_law.dtype), zero, jnp.zeros(ne, z_law.dtype))
+        return SampledState(plant, c, jnp.zeros_like(c), zero, jnp.zeros(nu, z_law.dtype), zero,
+                            jnp.zeros(ne, z_law.dtype))
 
     def applied(self, z: SampledState, params: SampledParams):
         """The plant's true input: the held command scaled and saturated."""
         p = params.plant
         return jnp.clip(p.input_scale * z.command, -p.input_limit, p.input_limit)
 
+    def held(self, z: SampledState) -> SampledState:
+        """Which leaves are held between samples (all but the plant's): ``simulate`` integrates
+        only the others over a period."""
+        return SampledState(False, *([True] * (len(SampledState._fields) - 1)))
+
     def vector_field(self, t, z: SampledState, params: SampledParams):
-        """``dz/dt`` between samples (the plant under the held input; the controller state at its
-        held rate) and :class:`wmrjax.Aux` (the applied input, the last sample's margin)."""
+        """``dz/dt`` between samples (the plant under the held input; everything else held) and
+        :class:`wmrjax.Aux` (the applied input, the last sample's margin)."""
         nX = self.robot.n_state
         a = self.applied(z, params)
         g = params.plant.geometry
@@ -182,8 +191,7 @@ class SampledLoop:
             dplant = jnp.concatenate([robots.kinematic(self.robot, z.plant[:nX], z.plant[nX:], g), a])
         else:
             dplant = robots.kinematic(self.robot, z.plant, a, g)
-        zero = lambda x: jnp.zeros_like(x)
-        dz = SampledState(dplant, z.rate, zero(z.rate), zero(z.command), zero(z.regularity), zero(z.error))
+        dz = SampledState(dplant, *(jnp.zeros_like(x) for x in z[1:]))
         return dz, Aux(a, jnp.abs(z.regularity), z.regularity)
 
     def sample(self, k, t, z: SampledState, params: SampledParams) -> SampledState:
@@ -193,14 +201,17 @@ class SampledLoop:
         nX = self.robot.n_state
         g = params.plant.law.geometry
         noise = jax.lax.dynamic_index_in_dim(params.noise, jnp.minimum(k, params.noise.shape[0] - 1), keepdims=False)
-        zm = jnp.concatenate([z.plant[:nX] + noise, z.controller])
+        c = z.controller + (t - z.t_sample) * z.rate           # the digital integrator's step
+        z = z._replace(controller=c)
+        zm = jnp.concatenate([z.plant[:nX] + noise, c])
         if self._torque:
             zm = law.lift_measured(zm, z.plant[nX:], g)     # measured wheel velocities
         U, regularity, error = ctrl.control_and_error(t, zm, self.law_state(z), params.plant.law)
         command = law.plant_control(zm, U, g)
         rate = law.field(zm, U, g)[nX:]
         error = error.reshape(-1)
-        return SampledState(z.plant, zm[nX:], rate, command, jnp.asarray(regularity, zm.dtype), error)
+        return SampledState(z.plant, zm[nX:], rate, jnp.asarray(t, zm.dtype), command,
+                            jnp.asarray(regularity, zm.dtype), error)
 
     def final_report(self, t, z, params: SampledParams):
         report = getattr(self.ctrl, "final_report", None)
