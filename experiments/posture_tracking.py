@@ -36,6 +36,7 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
     import numpy as np
 
     import wmrjax as w
+    from wmrjax.problem import Space, Task, place
     from wmrjax import references as R
 
     ctrl = w.dynamic_linearization(kind, level)
@@ -74,10 +75,10 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
             off = jax.random.uniform(ko1, (), minval=0.3, maxval=0.8) * jnp.sign(jax.random.normal(ko2, ()))
             ref = ref.with_heading_offset(off)
         params = ctrl.params_unchecked(ref, 1.0, g)
-        zr = ctrl.reference_state(0.0, params)
         dp = jax.random.uniform(ki, (n_post,), minval=-1.0, maxval=1.0)
         scale = jnp.array([0.3, 0.3, 0.15] + [0.1] * ctrl.robot.delta_s)
-        return params, zr.at[:n_post].add(dp * scale)
+        return params, place(ctrl, params, dp * scale, Space.PHYSICAL, Task.POSTURE,
+                             float(ctrl.reference_branch(params)))
 
     params_b, z0_b = jax.vmap(draw)(jax.random.split(k_ref, n_random), jax.random.split(k_ic, n_random),
                                     jax.random.split(k_off, n_random))

@@ -31,6 +31,7 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
     import numpy as np
 
     import wmrjax as w
+    from wmrjax.problem import Space, Task, place
     from wmrjax import references as R
 
     task = "posture" if w.robot_type(kind).omnidirectional else "point"
@@ -45,17 +46,16 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
         """Random initial state: the tracked point near the reference's start, at rest."""
         k1, k2, k3 = jax.random.split(key, 3)
         th = jax.random.uniform(k2, (), minval=-math.pi, maxval=math.pi)
-        if posture:
-            th = params.reference.posture(0.0)[2] + 0.3 * th / math.pi
-        X = jnp.zeros(nX).at[2].set(th)
+        # heading: any (the point task), or within 0.3 rad of the reference's (the posture task)
+        d_th = 0.3 * th / math.pi if posture else th - params.reference.posture(0.0)[2]
+        d_steer = jnp.zeros(ctrl.robot.delta_s)
         if ctrl.row.steering_index is not None:
-            X = X.at[nX - 1].set(params.steering(0.0) + jax.random.uniform(k3, (), minval=-0.3, maxval=0.3))
+            d_steer = d_steer.at[-1].set(jax.random.uniform(k3, (), minval=-0.3, maxval=0.3))
         if ctrl.robot.delta_m == 1:       # the steering wheel that is not an output: random angle
-            X = X.at[3].set(jax.random.uniform(k3, (), minval=-1.0, maxval=1.0))
-        # place P' = h(X) at p_ref(0) + dp: h is X's position plus an offset independent of x, y
-        target = params.reference.position(0.0) + jax.random.uniform(k1, (2,), minval=-0.5, maxval=0.5)
-        X = X.at[:2].add(target - ctrl.outputs(X, params)[:2])
-        return X if level == "velocity" else jnp.concatenate([X, jnp.zeros(nu)])
+            d_steer = d_steer.at[0].set(jax.random.uniform(k3, (), minval=-1.0, maxval=1.0))
+        dp = jax.random.uniform(k1, (2,), minval=-0.5, maxval=0.5)
+        error = jnp.concatenate([dp, d_th[None], d_steer])
+        return place(ctrl, params, error, Space.PHYSICAL, Task.POSTURE if posture else Task.POINT, 1.0, rest=True)
 
     def point_error(t, z, params):
         e = ctrl.error(t, z, params)[0]

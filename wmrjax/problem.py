@@ -555,23 +555,26 @@ def initial_keys(ctrl, space) -> tuple:
     return ("x", "y", "theta") + beta
 
 
-def place(ctrl, params, error, space, task, branch, t0=0.0):
+def place(ctrl, params, error, space, task, branch, t0=0.0, rest: bool = False):
     r"""The initial state of a run whose error from the reference at ``t0`` is ``error`` (pure).
 
     Output space (dynamic laws): the output jet is the reference's plus ``(x, y)`` in its
-    position row and ``(vx, vy)`` in its velocity row (r >= 2), mapped back by
-    :math:`\Psi^{-1}` on ``branch``. Physical space: the posture (and steering angles) are the
-    reference's plus ``(x, y, theta, beta...)``; a dynamic law's compensator is the
+    position row and ``(vx, vy)`` in its velocity row (r >= 2) -- or, with r * m entries, plus
+    the whole error jet (rows of derivative order, as ``ctrl.error`` flattens it) -- mapped back
+    by :math:`\Psi^{-1}` on ``branch``. Physical space: the posture (and steering angles) are
+    the reference's plus ``(x, y, theta, beta...)``; a dynamic law's compensator is the
     reference's; a static law tracking a point puts its tracked point at the reference's
     position plus ``(x, y)``, and at torque level starts with the wheel velocities that give the
-    reference's output velocity.
+    reference's output velocity (``rest``: at rest).
 
     Args:
       ctrl: the controller; params: its parameters (reference, geometry, gains).
-      error: (k,) errors in the keys of :func:`initial_keys` [m, m, m/s, m/s or m, m, rad, rad...].
+      error: (k,) errors in the keys of :func:`initial_keys` [m, m, m/s, m/s or m, m, rad, rad...],
+        or (r * m,) output-jet errors.
       space, task: :class:`Space`, :class:`Task` (or their strings).
       branch: +1 or -1 (dynamic laws; the reference's branch, ``ctrl.reference_branch``).
       t0: initial time [s].
+      rest: static laws at torque level: zero wheel velocities.
 
     Returns:
       The controller's state, shape (ctrl.n_state,).
@@ -586,15 +589,17 @@ def place(ctrl, params, error, space, task, branch, t0=0.0):
         r = ctrl.relative_degree
         zeta = ctrl.reference_jet(t0, params)[:r]
         if Space(space) == Space.OUTPUT:
+            if d.shape[0] == r * ctrl.m:            # the whole error jet
+                return ctrl.inverse_psi(zeta + d.reshape(r, ctrl.m), params, branch)
             zeta = zeta.at[0, 0].add(d[0]).at[0, 1].add(d[1])
             if r >= 2:
                 zeta = zeta.at[1, 0].add(d[2]).at[1, 1].add(d[3])
             return ctrl.inverse_psi(zeta, params, branch)
         return ctrl.inverse_psi(zeta, params, branch).at[: ctrl.robot.n_state].add(d)
-    return _place_static(ctrl, params, d, Task(task), t0)
+    return _place_static(ctrl, params, d, Task(task), t0, rest)
 
 
-def _place_static(ctrl, params, d, task, t0):
+def _place_static(ctrl, params, d, task, t0, rest):
     import jax.numpy as jnp
 
     ref, g = params.reference, params.geometry
@@ -607,6 +612,8 @@ def _place_static(ctrl, params, d, task, t0):
     X = X.at[:2].set(target + d[:2] - (offset if task == Task.POINT else 0.0))
     if ctrl.level != Level.TORQUE:
         return X
+    if rest:
+        return jnp.concatenate([X, jnp.zeros(ctrl.robot.n_input, X.dtype)])
     vl = controller(Law.STATIC, ctrl.robot.name, Level.VELOCITY, task)
     u = vl.law.solve_top(X, vl.reference_jet(t0, params)[1], g)   # output velocity = the reference's
     return ctrl.physical_state(X, u, params)

@@ -571,7 +571,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     finite_f = _all_finite((aux_f.control, m_f))
     regular_f = (m_f > margin_floor) & ~(sign_prev * _sign(getattr(aux_f, "regularity", None), m_f) < 0)
     est_f = jnp.zeros_like(m_f)
-    if estimate:
+    if estimate and sample is None:     # (a sampled period's steps estimated their own error)
         est_f = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1_f), _continuous(z_final)))
         if est_ok is not None:
             est_f = jnp.where(est_ok, est_f, 0.0)

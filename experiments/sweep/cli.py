@@ -25,6 +25,9 @@ def parser():
     p.add_argument("spec", type=Path, help="the sweep file (TOML; see the README and experiments/sweeps/)")
     p.add_argument("--out", type=Path, default=None, help="output directory (default: results/sweeps/<spec name>)")
     p.add_argument("--fresh", action="store_true", help="discard finished blocks of an earlier run in --out")
+    p.add_argument("--gains", type=Path, nargs="+", default=None,
+                   help="tuned-gains files (gains.json of python -m tuning): the sweep runs the file's own gains as case "
+                        "'default' and each file as a case of its own ('tuned', or the file's directory name)")
     p.add_argument("--processes", type=cli.count, default=1,
                    help="local processes joined by jax.distributed, each computing its share of the blocks")
     p.add_argument("--devices", type=cli.count, default=None,
@@ -63,6 +66,23 @@ def main(argv=None) -> int:
     return _run(p, a, a.process_id or 0, a.num_processes or 1)
 
 
+def problem_of(a):
+    """The sweep file's problem, paired with ``--gains`` files as cases (``default`` and one per file)."""
+    from wmrjax.problem import Problem, ProblemError
+
+    problem = Problem.load(a.spec)
+    if not a.gains:
+        return problem
+    if "case" in problem.data:
+        raise ProblemError("--gains pairs the file's own gains with tuned ones as [[case]]s; this file has [[case]]s "
+                           "already: add the tuned gains there")
+    names = ["tuned"] if len(a.gains) == 1 else [f.resolve().parent.name for f in a.gains]
+    if len(set(names)) != len(names):
+        names = [f"tuned_{i + 1}" for i in range(len(a.gains))]
+    cases = [{"name": "default"}] + [{"name": n, "gains": {"file": str(f.resolve())}} for n, f in zip(names, a.gains)]
+    return problem.with_values({"case": cases})
+
+
 def _launch(p, a, devices: int) -> int:
     """Start ``--processes`` local processes (jax.distributed over 127.0.0.1) and wait for them."""
     from wmrjax import cli
@@ -71,7 +91,7 @@ def _launch(p, a, devices: int) -> int:
     common.enable_x64()
     from experiments.sweep import run
     try:                            # refuse a bad file or another sweep's --out here, before starting anything
-        run.prepare(S.load(a.spec), a.out, a.fresh)
+        run.prepare(S.plan(problem_of(a)), a.out, a.fresh)
     except ValueError as err:
         cli.fail(p, str(err))
     with socket.socket() as s:
@@ -79,6 +99,8 @@ def _launch(p, a, devices: int) -> int:
         port = s.getsockname()[1]
     base = [sys.executable, "-m", "experiments.sweep", str(a.spec), "--out", str(a.out), "--devices", str(devices),
             "--coordinator", f"127.0.0.1:{port}", "--num-processes", str(a.processes)]
+    if a.gains:
+        base += ["--gains", *[str(f) for f in a.gains]]
     if a.no_compile_cache:
         base.append("--no-compile-cache")
     elif a.compile_cache is not None:
@@ -114,7 +136,7 @@ def _run(p, a, pid: int, n_proc: int) -> int:
 
     say = (lambda m: print(m, file=sys.stderr, flush=True)) if pid == 0 else (lambda m: None)
     try:                            # the user's errors (the file, --out): an argparse-style exit
-        plan = S.load(a.spec)
+        plan = S.plan(problem_of(a))
         say(f"{a.spec}: {plan.n_runs} runs in {len(plan.blocks())} blocks of {plan.block} "
             f"({len(plan.groups)} group(s); {plan.n_steps} RK4 steps each), {n_proc} process(es) x "
             f"{len(jax.local_devices())} device(s)")

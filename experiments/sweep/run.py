@@ -240,6 +240,8 @@ def assemble(plan: S.Plan, out: Path):
     if missing:
         raise RuntimeError(f"{len(missing)} blocks are missing (first: {missing[0]}); rerun the sweep to finish them")
     names = value_columns(plan)
+    # label columns (a gains file's name): null where a group has none, numbers NaN
+    labels = {k for g in plan.groups for a in g.axes for k, v in a.columns.items() if np.asarray(v).dtype.kind in "US"}
 
     def batches():
         for b, (gi, start, n) in enumerate(blocks):
@@ -252,13 +254,14 @@ def assemble(plan: S.Plan, out: Path):
                     **({"case": np.full(n, group.case)} if group.case is not None else {}),
                     "robot": np.full(n, group.ctrl.robot.name), "level": np.full(n, str(group.ctrl.level))}
             for k in names:
-                data[k] = cols[k] if k in cols else np.full(n, np.nan)
+                data[k] = cols[k] if k in cols else np.full(n, None if k in labels else np.nan,
+                                                            dtype=object if k in labels else float)
             data |= res
             data |= classify(plan, res)
             yield data
 
     def to_batch(d):
-        return pa.record_batch({k: pa.array(v) for k, v in d.items()})
+        return pa.record_batch({k: pa.array(v, type=pa.string() if k in labels else None) for k, v in d.items()})
 
     return io.write_parquet(out / "runs.parquet", (to_batch(d) for d in batches()))
 

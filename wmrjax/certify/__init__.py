@@ -57,4 +57,4 @@ from wmrjax.certify.lemma2 import (  # noqa: F401
     m1_closed_form,
     m1_numerical,
 )
-from wmrjax.certify.pipeline import CertificationReport, EmpiricalCheck, analyse  # noqa: F401
+from wmrjax.certify.pipeline import CertificationReport, EmpiricalCheck, analyse, plain  # noqa: F401

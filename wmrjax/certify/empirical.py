@@ -16,6 +16,7 @@ from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 from wmrjax.certify.exact_map import singular_rows
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
 from wmrjax._validate import check_int, check_positive, concrete
+from wmrjax.problem import Space, Task, place
 from wmrjax.simulate import batch_map, simulate
 
 
@@ -133,9 +134,7 @@ def run_from_error(ctrl, params, e0, branch, dt, n_steps, save_every):
     approach to the singular set, where the law's 1 / det K terms make any fixed step locally
     inaccurate; singular states and crossings of the singular set are flagged as always, and the
     falsifier confirms its failures on a ten times finer step."""
-    r = ctrl.relative_degree
-    zeta0 = ctrl.reference_jet(jnp.asarray(0.0), params)[:r] + e0.reshape(r, ctrl.m)
-    z0 = ctrl.inverse_psi(zeta0, params, branch)
+    z0 = place(ctrl, params, e0, Space.OUTPUT, Task.POSTURE, branch)
     return simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=save_every, error_tol=math.inf), z0
 
 
