@@ -157,6 +157,7 @@ def problem_from_args(a):
     paper's geometry along (62) and (66) where the paper has one, else the type's default
     (its Table 4 row), and the type's default heading offset unless ``--heading-offset``."""
     import wmrjax as w
+    from wmrjax import references as R
     from wmrjax.problem import Problem
 
     problem = Problem.load(a.file if a.file is not None else DEFAULT_PROBLEM)
@@ -176,8 +177,8 @@ def problem_from_args(a):
         ref = values.get("reference", problem.data["reference"]).get("family")
         row = w.controllers.TABLE4.get(robot)
         if a.geometry is None and row is not None:
-            g = row.paper_geometry if ref in ("paper_62", "paper_66") and row.paper_geometry is not None \
-                else row.default_geometry
+            paper = ref in R.FAMILIES and R.FAMILIES[ref].paper
+            g = row.paper_geometry if paper and row.paper_geometry is not None else row.default_geometry
             values["geometry"] = {k: float(v) for k, v in g._asdict().items()}
         if a.heading_offset is None:
             values["reference.heading_offset"] = None

@@ -125,7 +125,7 @@ def tracking_figure(out_dir, kind, per_level, prefix="posture", error_label="pos
 
     plt = pyplot()
     fig, axs = plt.subplots(2, 2, figsize=(10, 8.5))
-    for j, name in enumerate(["circle", "figure_eight"]):
+    for j, name in enumerate(list(next(iter(per_level.values()))[0])[:2]):     # the two named runs
         ax = axs[0, j]
         tr0 = next(iter(per_level.values()))[0][name]
         ax.plot(tr0["ref"][:, 0], tr0["ref"][:, 1], "k--", lw=1.2, label="reference")

@@ -49,12 +49,12 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
     # -- two named references, single runs kept for the figure
     named = {"circle": R.circle(radius=3.0, omega=0.4, heading_offset=0.3 if free_heading else 0.0),
              "figure_eight": R.figure_eight(size=4.0, omega=0.25, heading_offset=0.3 if free_heading else 0.0)}
-    pert = jnp.zeros(ctrl.n_state).at[:3].set(jnp.array([0.3, -0.2, 0.1]))
+    pert = jnp.zeros(n_post).at[:3].set(jnp.array([0.3, -0.2, 0.1]))       # x, y [m], theta [rad]
     traces = {}
     for name, ref in named.items():
         params = ctrl.params(ref, poles=1.0, geometry=g)
         ctrl.check_reference(params, t_final)
-        z0 = ctrl.reference_state(0.0, params) + pert
+        z0 = place(ctrl, params, pert, Space.PHYSICAL, Task.POSTURE, float(ctrl.reference_branch(params)))
         ctrl.check_regular(z0, params)
         tr = w.simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=max(1, n_steps // 300))
         post = jax.vmap(ref.posture)(tr.t)

@@ -271,3 +271,60 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
     path.write_text(text.replace("1.0,", "1.0", 1))
     with pytest.raises(ValueError, match="raw"):
         io.read_checkpoint(path, fingerprint="abc", config={"lr": 0.1}, templates=trees)
+
+
+def _calls(path, name):
+    """Line numbers where ``path`` calls a function or method named ``name``."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Call):
+            f = node.func
+            if (isinstance(f, ast.Attribute) and f.attr == name) or (isinstance(f, ast.Name) and f.id == name):
+                out.append(node.lineno)
+    return out
+
+
+def test_one_registry_of_reference_families():
+    """Only wmrjax.references names the families: no other module holds a collection (tuple,
+    list, set or dict keys) of two or more family names, and every family a problem file may
+    name is in the registry."""
+    names = set(R.FAMILIES) | {"random"}     # (the tuner once called random_smooth "random")
+    for pkg in ("wmrjax", "tuning", "experiments"):
+        for f in _sources(pkg):
+            if f == ROOT / "wmrjax" / "references.py":
+                continue
+            for node in ast.walk(ast.parse(f.read_text())):
+                elts = node.keys if isinstance(node, ast.Dict) else getattr(node, "elts", None)
+                if not isinstance(node, (ast.Tuple, ast.List, ast.Set, ast.Dict)) or elts is None:
+                    continue
+                found = [e.value for e in elts if isinstance(e, ast.Constant) and e.value in names]
+                assert len(found) < 2, f"{f.relative_to(ROOT)}:{node.lineno} lists reference families {found}"
+    assert set(R.REFERENCES) < set(R.FAMILIES) and {"samples", "waypoints", "random_smooth"} <= set(R.FAMILIES)
+
+
+def test_one_initial_state_placement():
+    """Initial states near a reference are placed by wmrjax.problem.place only: no other module
+    of the library, the tuner or the experiments maps an output jet back (inverse_psi)."""
+    allowed = {ROOT / "wmrjax" / "problem.py"} | set((ROOT / "wmrjax" / "controllers").rglob("*.py"))
+    for pkg in ("wmrjax", "tuning", "experiments"):
+        for f in _sources(pkg):
+            if f not in allowed:
+                assert not _calls(f, "inverse_psi"), f"{f.relative_to(ROOT)} places states itself (inverse_psi)"
+    users = [f.relative_to(ROOT).as_posix() for pkg in ("wmrjax", "tuning", "experiments") for f in _sources(pkg)
+             if _calls(f, "place")]
+    assert {"wmrjax/problem.py", "wmrjax/certify/empirical.py", "tuning/scenarios.py",
+            "experiments/posture_tracking.py", "experiments/static_tracking.py"} <= set(users)
+
+
+def test_no_rk4_step_outside_simulate():
+    """One RK4 step: wmrjax.simulate's. No other module of the library, the tuner or the
+    experiments weighs four stages 1, 2, 2, 1 (the benchmark's NumPy and C reference loops are
+    oracles, not the library's integrator)."""
+    pattern = re.compile(r"\+\s*2(\.0)?\s*\*\s*\w+\s*\+\s*2(\.0)?\s*\*\s*\w+\s*\+")
+    for pkg in ("wmrjax", "tuning", "experiments"):
+        for f in _sources(pkg):
+            if f.name in ("simulate.py", "benchmark.py"):
+                continue
+            hits = [i + 1 for i, line in enumerate(f.read_text().splitlines()) if pattern.search(line)]
+            assert not hits, f"{f.relative_to(ROOT)}:{hits} has an RK4 step of its own"
+    assert _calls(ROOT / "wmrjax" / "linearize.py", "rk4_step")       # the transition matrix uses simulate's

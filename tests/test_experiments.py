@@ -46,8 +46,13 @@ def test_certify_cli(tmp_path):
     """The CLI writes every key and the map; (1,2)'s curved singular set is covered in test_certify."""
     from experiments import certify
 
-    s = certify.run(tmp_path, robot="(2,1)", reference="circle", t_final=3.0, dt=0.02, n_empirical=16,
-                    n_directions=4, n_starts=0, map_grid=5)
+    from wmrjax.problem import Problem
+
+    problem = Problem.from_dict({
+        "controller": {"law": "dynamic", "robot": "(2,1)"}, "reference": {"family": "circle"},
+        "initial": {"space": "output"}, "simulation": {"t_final": 3.0, "dt": 0.02},
+        "certify": {"n_empirical": 16, "n_directions": 4, "n_starts": 0, "map_grid": 5}})
+    s = certify.run(tmp_path, problem)
     on_disk = json.loads((tmp_path / "summary.json").read_text())
     assert on_disk["m1"].startswith("closed form")
     assert 0 < on_disk["radius_lyapunov"] <= on_disk["radius_exact_norm"] <= on_disk["radius_exact_map"]
@@ -55,5 +60,7 @@ def test_certify_cli(tmp_path):
     for k in ("lyapunov", "exact_norm"):
         assert on_disk["empirical"][k]["violations_53_inside"] == 0 and on_disk["empirical"][k]["singular_inside"] == 0
     assert (tmp_path / "slice_map.png").read_bytes()[:4] == b"\x89PNG" and s["slice_map"]["n_grid"] == 5
+    assert json.dumps(on_disk) and Problem.from_dict(on_disk["problem"]).resolved() == problem.resolved()
+    assert on_disk["geometry"] == {"L": 1.0, "e": 0.0, "delta": 0.0} and on_disk["heading_offset"] == 0.3
     with pytest.raises(SystemExit):
         certify.main(["--robot", "(9,9)", "--out", str(tmp_path)])

@@ -1,9 +1,6 @@
-"""Tuning problems: gain schedules and torque-level gains in the tuner, the sampled-data
-torque loop with measured velocities, the baselines (CMA-ES, random search), the presets'
-bad input, and the study's aggregation."""
-
-import dataclasses
-import json
+"""Tuning problems: gain schedules and torque-level gains in the tuner, the sampled-data loop
+against the continuous one, the baselines (CMA-ES, random search), the shipped problem files
+and their bad input, and the study's aggregation."""
 
 import jax
 import jax.numpy as jnp
@@ -11,13 +8,11 @@ import numpy as np
 import pytest
 
 import wmrjax as w
-from tuning import GainSpec, TuneConfig, baselines, preset
-from tuning.loop import load_checkpoint, validate
-from tuning.scenarios import RolloutConfig, Scenario, rollout
+from tuning import GainSpec, baselines, config, loop
+from tuning.cli import baseline_budget
+from tuning.problems import PROBLEMS, problem_file
 from tuning.study import aggregate
-
-TINY = TuneConfig(n_train=3, n_heldout=2, n_validation=2, steps=6, t_final=2.0, control_dt=0.1, substeps=2,
-                  eval_every=2, baseline_seeds=2)
+from wmrjax.problem import Problem, ProblemError
 
 
 def test_schedule_spec_gives_a_schedule_and_starts_at_the_paper_gains():
@@ -44,24 +39,43 @@ def test_schedule_spec_gives_a_schedule_and_starts_at_the_paper_gains():
         GainSpec(2, 2, knots=(0.0, 1.0), parameterization="poles")
 
 
-def test_torque_rollout_with_measured_velocities_tracks_the_continuous_loop():
-    """(2,0) at torque level, nominal plant, 100 Hz hold: the sampled loop lifting the measured
-    wheel velocities follows the continuous closed loop (w.simulate) to the hold's O(dt) error,
-    and its velocities are the plant's."""
-    ctrl = w.dynamic_linearization("(2,0)", "torque")
-    g = w.Geometry()
-    ref = w.references.paper_62()
-    p = ctrl.params(ref, poles=1.0, geometry=g)
+@pytest.mark.parametrize("level", ["velocity", "torque"])
+def test_sampled_loop_tracks_the_continuous_loop(level):
+    """(2,0), nominal plant, no noise, a 100 Hz hold: the digital controller's loop (at torque level
+    lifting the measured wheel velocities) follows the continuous closed loop to the hold's first
+    order error, its first sample's command is the continuous law's, and halving the period
+    halves the difference (first order)."""
+    ctrl = w.dynamic_linearization("(2,0)", level)
+    p = ctrl.params(w.references.paper_62(), poles=1.0, geometry=w.Geometry())
     z0 = ctrl.reference_state(0.0, p).at[0].add(0.2).at[1].add(-0.1)
-    nu = ctrl.robot.n_input
-    sc = Scenario(z0, ref, g, jnp.ones(nu), jnp.full(nu, jnp.inf), jnp.zeros(3), jax.random.PRNGKey(0))
-    rcfg = RolloutConfig(t_final=2.0, control_dt=0.01, substeps=2)
-    m, (zs, cmds) = jax.jit(lambda s: rollout(ctrl, p.gains, g, s, rcfg, trajectory=True))(sc)
-    tr = w.simulate(ctrl, z0, p, dt=0.01, n_steps=200)
-    assert bool(m.valid)
-    err = np.abs(np.asarray(zs[:, :3]) - np.asarray(tr.state[:-1, :3])).max()
-    assert 1e-5 < err < 5e-3                          # the zero-order hold's first-order error, no more
-    np.testing.assert_allclose(np.asarray(cmds[0]), np.asarray(tr.control[0]), rtol=1e-10)
+    tr = w.simulate(ctrl, z0, p, dt=0.005, n_steps=400)
+    errs = []
+    for steps in (2, 1):
+        loop_ = w.sampled(ctrl, steps)
+        sp = loop_.params(p)
+        ts = w.simulate(loop_, loop_.initial_state(z0, sp), sp, dt=0.005, n_steps=400, save_every=steps)
+        assert not bool(ts.diagnostics.failed)
+        X = np.asarray(ts.state.plant[:, :3])
+        errs.append(np.abs(X - np.asarray(tr.state[::steps, :3])).max())
+        np.testing.assert_allclose(np.asarray(ts.state.command[0]), np.asarray(tr.control[0]), rtol=1e-10)
+    assert 1e-4 < errs[0] < 1e-2                      # the hold's first-order error (6.1e-3, 1.5e-3 measured)
+    assert 1.9 < errs[0] / errs[1] < 2.1              # first order in the period (2.00 measured)
+
+
+def test_sampled_loop_refuses_and_checks():
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    p = ctrl.params(w.references.paper_62(), poles=1.0, geometry=w.Geometry())
+    loop_ = w.sampled(ctrl, 5)
+    sp = loop_.params(p)
+    z0 = loop_.initial_state(ctrl.reference_state(0.0, p), sp)
+    with pytest.raises(ValueError, match="whole controller periods of 5 steps"):
+        w.simulate(loop_, z0, sp, dt=0.01, n_steps=12)
+    with pytest.raises(ValueError, match=r"noise must have shape \(n_samples, 3\)"):
+        loop_.params(p, noise=np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="needs a dynamic law"):
+        w.sampled(w.controller("(3,0)", level="torque", task="posture"), 2)
+    with pytest.raises(ValueError, match="steps_per_sample"):
+        w.sampled(ctrl, 0)
 
 
 def test_cma_es_and_random_search_on_a_known_quadratic():
@@ -109,32 +123,57 @@ def test_candidate_evaluator_chunks_pads_and_returns_aux():
         plain(raws, scen, with_aux=True)
 
 
-def test_presets_and_bad_tuning_problems(tmp_path):
-    car = preset("car_schedule")
-    assert validate(car).robot.name == "(1,1)"
-    assert GainSpec(2, 3, shared=False, knots=car.schedule_times()).size == 24
-    assert preset("torque_2_1").level == "torque" and preset("section_6_1") == TuneConfig()
+def test_shipped_problems_and_bad_tuning_problems(tmp_path):
+    assert set(PROBLEMS) == {"section_6_1", "car_schedule", "torque_2_1"}
+    car = Problem.load(problem_file("car_schedule"))
+    setting = car.setting("tuning", )
+    ts = config.read(car.section("tune"))
+    assert setting.ctrl.robot.name == "(1,1)" and ts.gain_spec(setting).size == 24
+    assert Problem.load(problem_file("torque_2_1")).setting("tuning").ctrl.level == "torque"
     with pytest.raises(ValueError, match="problem must be one of"):
-        preset("car")
-    with pytest.raises(ValueError, match="at least 2 knots"):
-        preset("car_schedule", knots=1)
-    with pytest.raises(ValueError, match="inside the horizon"):
-        preset("car_schedule", knot_times=(0.0, 5.0, 12.0))
-    with pytest.raises(ValueError, match="cma_population must be >= 2"):
-        preset("section_6_1", cma_population=1)
+        problem_file("car")
+    with pytest.raises(ProblemError, match="at least 2 knots"):
+        config.read(car.with_values({"tune.family.knots": 1}).section("tune"))
+    with pytest.raises(ProblemError, match=r"knot_times: expected >= 2 strictly increasing"):
+        config.read(car.with_values({"tune.family.knot_times": [0.0, 5.0, 5.0]}).section("tune"))
+    with pytest.raises(ValueError, match="reach beyond the horizon"):
+        loop.check(setting, GainSpec(2, 3, knots=(0.0, 5.0, 12.0)), ts.scenarios, ts.loss)
+    with pytest.raises(ValueError, match="certificate term needs a dynamic .* fixed reference"):
+        loop.check(setting, ts.gain_spec(setting), ts.scenarios, ts.loss._replace(certificate=1.0))
+    s61 = Problem.load(problem_file("section_6_1"))
+    ts61 = config.read(s61.with_values({"tune.baselines.budget": 0.01}).section("tune"))
     with pytest.raises(ValueError, match="less than one CMA-ES generation"):
-        validate(preset("section_6_1", baseline_budget=0.01))
-    with pytest.raises(ValueError, match="torque-level tuning needs a dynamic"):
-        validate(dataclasses.replace(TINY, robot="(3,0)", level="torque", input_limit=()))
-    # a checkpoint written by another problem
-    ck = tmp_path / "checkpoint.json"
-    ck.write_text(json.dumps({"fingerprint": "x", "config": dataclasses.asdict(preset("torque_2_1")), "step": 1}))
-    with pytest.raises(ValueError, match="from problem 'torque_2_1', this run is problem 'section_6_1'"):
-        load_checkpoint(ck, TuneConfig(), None, None)
+        baseline_budget(ts61, ts61.gain_spec(s61.setting("tuning")))
+    with pytest.raises(ValueError, match="takes one value of \\[gains\\]"):
+        loop.check(s61.with_values({"gains.poles": [1.0, 2.0]}).setting("tuning"), GainSpec(2, 2), ts61.scenarios,
+                   ts61.loss)
     from tuning.cli import main
 
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path / "o"), "--problem", "car_schedule", "--knots", "1"])
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "missing.toml"), "--out", str(tmp_path / "o")])
+
+
+def test_heading_offset_reaches_the_certificate_term():
+    """The certificate term's M1 is that of the problem's own reference, heading offset included
+    (the tuner used to rebuild the reference without it): with an output point that depends on
+    theta (e != 0) the two differ, and the term's equals wmrjax.certify's for the problem."""
+    from wmrjax import certify
+    from wmrjax import references as R
+
+    problem = Problem.load(problem_file("section_6_1")).with_values(
+        {"controller.robot": "(1,1)", "geometry.e": 0.3, "reference": {"family": "figure_eight", "heading_offset": 0.4},
+         "plant.noise_std": [0.01, 0.01, 0.005, 0.005], "tune.loss.certificate": 1.0})
+    setting = problem.setting("tuning")
+    cert = loop.certificate(setting, 1.0)
+    params = setting.params()
+    assert float(params.reference.heading_offset) == 0.4
+    np.testing.assert_allclose(np.asarray(cert.m1), np.asarray(certify.m1_closed_form(setting.ctrl, params, cert.ts)),
+                               rtol=1e-14)
+    without = setting.ctrl.params(R.figure_eight(), geometry=params.geometry)     # what the old term used
+    other = np.asarray(certify.m1_closed_form(setting.ctrl, without, cert.ts))
+    assert np.max(np.abs(other - np.asarray(cert.m1))) > 1e-3
 
 
 def test_study_aggregate_medians_and_targets():

@@ -93,7 +93,7 @@ def parser():
 
 
 # option -> dotted key of the problem file it sets
-_KEYS = {"robot": "controller.robot", "task": "controller.task", "level": "controller.level",
+_KEYS = {"robot": "controller.robot", "level": "controller.level",
          "heading_offset": "reference.heading_offset", "n_train": "tune.scenarios.train",
          "n_validation": "tune.scenarios.validation", "n_heldout": "tune.scenarios.heldout", "steps": "tune.steps",
          "learning_rate": "tune.optimizer.learning_rate", "poles_init": "gains.poles", "knots": "tune.family.knots",
@@ -127,6 +127,7 @@ def problem_from_args(a):
         values["tune.family.shared"] = False
     if a.reference is not None:
         values.update(_reference_values(a.reference))
+    values.update(_law_values(a, problem, values))
     box = {k: a.ic_position for k in ("x", "y")} if a.ic_position is not None else {}
     box |= {k: a.ic_velocity for k in ("vx", "vy")} if a.ic_velocity is not None else {}
     for k, v in box.items():
@@ -137,6 +138,23 @@ def problem_from_args(a):
         if getattr(a, f"w_{f}") is not None:
             values[f"tune.loss.{f}"] = getattr(a, f"w_{f}")
     return problem.with_values(values) if values else problem
+
+
+def _law_values(a, problem, values) -> dict:
+    """``--task`` and ``--robot`` as before problem files: the point task (and type (3,0)) take a
+    static law, whose initial errors are physical (the output box's x and y kept)."""
+    import wmrjax as w
+
+    if a.task is None and a.robot is None:
+        return {}
+    robot = w.robot_type(values.get("controller.robot", problem.data["controller"]["robot"])).name
+    task = a.task or problem.data["controller"].get("task", "posture")
+    law = "static" if task == "point" or robot not in w.controllers.TABLE4 else "dynamic"   # (3,0): Prop 3
+    out = {"controller.law": law, "controller.task": task}
+    ini = problem.data["initial"]
+    if law == "static" and ini.get("space", "output") == "output":
+        out["initial"] = {"space": "physical", **{k: v for k, v in ini.items() if k in ("random", "x", "y")}}
+    return out
 
 
 def _reference_values(text: str) -> dict:
@@ -224,12 +242,9 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None) -> di
     return summary
 
 
-def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say, log):
-    """Random search and CMA-ES, every seed: ``(report, runs, gradient rollouts to match)``."""
-    import numpy as np
-
-    from tuning import baselines
-
+def baseline_budget(settings, family) -> int:
+    """Rollouts of one baseline run (``budget`` times the gradient's); ValueError when that is less
+    than one CMA-ES generation."""
     b = settings.baselines
     budget = int(round(b.budget * settings.steps * settings.scenarios.train))
     pop = b.population(family.size)
@@ -237,6 +252,18 @@ def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say,
         raise ValueError(f"[tune.baselines] budget = {b.budget} gives {budget} rollouts, less than one CMA-ES "
                          f"generation ({pop} candidates x {settings.scenarios.train} scenarios); raise budget or steps, "
                          "or lower cma_population")
+    return budget
+
+
+def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say, log):
+    """Random search and CMA-ES, every seed: ``(report, runs, gradient rollouts to match)``."""
+    import numpy as np
+
+    from tuning import baselines
+
+    b = settings.baselines
+    budget = baseline_budget(settings, family)
+    pop = b.population(family.size)
     runs = {"random_search": [], "cma_es": []}
     t_base = {"random_search": 0.0, "cma_es": 0.0}
     n_train = settings.scenarios.train
@@ -524,7 +551,9 @@ def main(argv=None) -> int:
 
         setting = problem.setting("tuning")
         settings = config.read(problem.section("tune"))
-        loop.check(setting, settings.gain_spec(setting), settings.scenarios, settings.loss)
+        family = settings.gain_spec(setting)
+        loop.check(setting, family, settings.scenarios, settings.loss)
+        baseline_budget(settings, family)
     except ValueError as e:
         p.error(str(e))
     s = cli.work(p, a, lambda progress: run(problem, a.out, a.fresh, log=progress),

@@ -18,7 +18,6 @@ resumes from its checkpoint). The study writes
 from __future__ import annotations
 
 import csv
-import dataclasses
 import io as _stdio
 import json
 import sys
@@ -133,29 +132,31 @@ def run(args, log=print) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     from tuning import cli as tuning_cli
-    from tuning.problems import preset
+
+    from tuning.problems import problem_file
+    from wmrjax.problem import Problem
 
     out = Path(args.out)
     t0 = time.perf_counter()
     rows = []
-    for problem in args.problems:
+    for name in args.problems:
         for seed in range(args.seeds):
-            over = {"seed": seed, "baseline_seeds": 1}
+            over = {"tune.seed": seed, "tune.baselines.seeds": 1}
             if args.steps is not None:
-                over["steps"] = args.steps
+                over["tune.steps"] = args.steps
             if args.n_train is not None:
-                over["n_train"] = args.n_train
-            cfg = preset(problem, **over)
-            d = out / problem / f"seed_{seed}"
+                over["tune.scenarios.train"] = args.n_train
+            problem = Problem.load(problem_file(name)).with_values(over)
+            d = out / name / f"seed_{seed}"
             done = d / "summary.json"
             s = json.loads(done.read_text()) if done.exists() else None
-            if s is None or s.get("config") != json.loads(json.dumps(dataclasses.asdict(cfg))):
-                log(f"{problem}, seed {seed}: running ({time.perf_counter() - t0:.0f} s so far)")
-                s = tuning_cli.run(cfg, d, log=lambda msg: None)
+            if s is None or s.get("problem") != json.loads(json.dumps(problem.resolved())):
+                log(f"{name}, seed {seed}: running ({time.perf_counter() - t0:.0f} s so far)")
+                s = tuning_cli.run(problem, d, log=lambda msg: None)
             else:
-                log(f"{problem}, seed {seed}: done earlier, kept")
+                log(f"{name}, seed {seed}: done earlier, kept")
             history = json.loads((d / "history.json").read_text())["gradient"]
-            rows += rows_of(problem, seed, s, history)
+            rows += rows_of(name, seed, s, history)
     agg = aggregate(rows)
     table = markdown(agg)
     buf = _stdio.StringIO()

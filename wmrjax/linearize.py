@@ -183,16 +183,13 @@ def transition_matrix(gains, t, *, n_steps: int | None = None):
 
 def _rk4_transition(gains, P, a, b, n_steps: int):
     """P advanced from time a to b by n_steps equal RK4 steps of dP/dt = A(t) P."""
+    from wmrjax.simulate import rk4_step    # the one RK4 step (simulate's), imported when used
+
     h = (b - a) / n_steps
-    field = lambda s, P: companion(gains.coeffs_at(s)) @ P
+    field = lambda s, P: (companion(gains.coeffs_at(s)) @ P, None)
 
     def step(P, k):
-        s = a + k * h
-        k1 = field(s, P)
-        k2 = field(s + 0.5 * h, P + 0.5 * h * k1)
-        k3 = field(s + 0.5 * h, P + 0.5 * h * k2)
-        k4 = field(s + h, P + h * k3)
-        return P + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
+        return rk4_step(field, a + k * h, P, h)[0], None
 
     P, _ = jax.lax.scan(step, P, jnp.arange(n_steps, dtype=P.dtype))
     return P

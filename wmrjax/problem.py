@@ -207,7 +207,7 @@ def read_text(path: Path, what: str) -> str:
     """A small UTF-8 text file (a spreadsheet's byte-order mark dropped); ProblemError naming it otherwise."""
     try:
         if not path.is_file():
-            raise ProblemError(f"{what} {str(path)!r}: not a regular file")
+            raise ProblemError(f"{what} {str(path)!r}: not a regular file (missing, or a directory or device)")
         if path.stat().st_size > MAX_FILE_BYTES:
             raise ProblemError(f"{what} {str(path)!r}: {path.stat().st_size} bytes, more than {MAX_FILE_BYTES}")
         return path.read_bytes().decode("utf-8-sig")
@@ -334,9 +334,10 @@ class Problem:
         sections = [data] + list(data.get("case", []))
         for sec in sections:
             ref = sec.get("reference")
-            if isinstance(ref, dict) and "file" in ref and ref.get("family") in ("samples", "waypoints"):
+            family = _family_of(ref)
+            if family is not None and family.kind == "data" and "file" in ref:
                 path = self.base / ref["file"]
-                cols = _read_csv(path, ("t", "x", "y") if ref["family"] == "samples" else ("x", "y"))
+                cols = _read_csv(path, family.columns)
                 ref.pop("file")
                 ref.update({k: v.tolist() for k, v in cols.items()})
                 ref["source_file"] = {"path": str(path), "sha256": _digest(path)}
@@ -350,6 +351,13 @@ class Problem:
     def fingerprint(self) -> str:
         """A digest of the resolved problem (files included): equal problems, equal fingerprints."""
         return hashlib.sha256(json.dumps(self.resolved(), sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _family_of(ref):
+    """The registry's family a ``[reference]`` section names (None if it names none)."""
+    from wmrjax import references as R
+
+    return R.FAMILIES.get(ref.get("family")) if isinstance(ref, dict) else None
 
 
 def _digest(path: Path) -> str:
@@ -805,8 +813,8 @@ def reference_axis(rs, base: Path, law, kind):
     if not isinstance(rs, dict) or "family" not in rs:
         raise ProblemError(f"[reference]: needs family = one of {list(R.FAMILIES)}")
     fam = R.FAMILIES[choice("reference", "family", rs["family"], tuple(R.FAMILIES))]
-    build = {"named": _named_references, "random": _random_references, "samples": _data_reference,
-             "waypoints": _data_reference}[fam.kind]
+    build = _named_references if fam.kind == "named" else _random_references if fam.kind == "random" \
+        else _data_reference
     refs, cols = build(fam, rs, base, law)
     params = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *[r.params for r in refs])
     heading = axis_values("reference", "heading_offset", rs.get("heading_offset", _default_offset(law, kind)))
@@ -887,8 +895,8 @@ def _random_references(fam, rs, base, law):
 
 def _data_reference(fam, rs, base, law):
     """A reference through the user's samples (t, x, y) or waypoints (x, y), from a file or arrays."""
-    waypoints = fam.kind == "waypoints"
-    cols = ("x", "y") if waypoints else ("t", "x", "y")
+    cols = fam.columns
+    waypoints = "t" not in cols
     extra = ("speed", "t0") if waypoints else ()
     check_keys("reference", rs, COMMON_REFERENCE_KEYS + ("file", "min_speed", "source_file") + cols + extra)
     if ("file" in rs) == any(c in rs for c in cols):
@@ -925,7 +933,7 @@ def _data_reference(fam, rs, base, law):
 
 def _read_csv(path: Path, cols: tuple) -> dict:
     """The named columns of a CSV file with a header line (``#`` starts a comment)."""
-    text = read_text(path, "reference samples")
+    text = read_text(path, "[reference] file")
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if not lines:
         raise ProblemError(f"{path}: no header line; expected a CSV file with columns {', '.join(cols)}")
@@ -1094,7 +1102,7 @@ def read_gains_file(path: Path, ctrl=None) -> GainsFile:
     robot type and level, and of its shape."""
     import wmrjax as w
 
-    text = read_text(path, "gains file")
+    text = read_text(path, "[gains] file")
     where = f"[gains] file {str(path)!r}"
     try:
         data = json.loads(text)

@@ -457,16 +457,20 @@ class Family:
       make: its constructor: ``make(**options)`` for ``"named"`` families, ``make(key, **options)``
         for ``"random"`` ones, :func:`from_samples` / :func:`from_waypoints` for the data families.
       kind: ``"named"`` (deterministic, options from the constructor's keywords), ``"random"``
-        (one reference per PRNG key), ``"samples"`` (times and positions, from a CSV file or
-        arrays) or ``"waypoints"`` (positions only, timed at a chord speed).
+        (one reference per PRNG key) or ``"data"`` (the user's points, from a CSV file or arrays).
       defaults: the option values a problem file starts from (random families: the keywords
         of ``make`` after the key).
+      columns: a data family's columns: ``("t", "x", "y")`` (timed samples) or ``("x", "y")``
+        (waypoints, timed at a chord speed).
+      paper: the paper's own reference (eq 62 of §6.1, eq 66 of §6.2), tracked with its robot.
     """
 
     name: str
     make: Callable
     kind: str
     defaults: tuple = ()
+    columns: tuple = ()
+    paper: bool = False
 
     def options(self) -> dict:
         """Option name -> default value (named families: the constructor's keyword defaults)."""
@@ -482,14 +486,14 @@ class Family:
 RANDOM_SMOOTH_DEFAULTS = (("n_modes", 3), ("speed", 1.0), ("min_speed", 0.3), ("max_omega", 1.0), ("start_scale", 0.0))
 
 FAMILIES: dict[str, Family] = {f.name: f for f in (
-    Family("paper_62", paper_62, "named"),
-    Family("paper_66", paper_66, "named"),
+    Family("paper_62", paper_62, "named", paper=True),
+    Family("paper_66", paper_66, "named", paper=True),
     Family("line", line, "named"),
     Family("circle", circle, "named"),
     Family("figure_eight", figure_eight, "named"),
     Family("random_smooth", random_smooth, "random", RANDOM_SMOOTH_DEFAULTS),
-    Family("samples", from_samples, "samples"),
-    Family("waypoints", from_waypoints, "waypoints"),
+    Family("samples", from_samples, "data", columns=("t", "x", "y")),
+    Family("waypoints", from_waypoints, "data", columns=("x", "y")),
 )}
 """Every reference family, by name: the one registry the problem files, the sweep, the tuner and
 the certification read."""

@@ -281,6 +281,9 @@ def _from_scalars(scalars, like):
     out, i = [], 0
     for leaf in leaves:
         n = int(np.prod(np.shape(leaf)))
+        if n == 0:                      # an empty leaf (a static law's controller state)
+            out.append(jnp.zeros(np.shape(leaf), jnp.result_type(leaf)))
+            continue
         out.append(jnp.stack(scalars[i:i + n]).reshape(np.shape(leaf)) if np.ndim(leaf) else scalars[i])
         i += n
     return jax.tree_util.tree_unflatten(treedef, out)
