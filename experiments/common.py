@@ -145,7 +145,7 @@ def tracking_figure(out_dir, kind, per_level, prefix="posture", error_label="pos
         if lvl not in per_level:
             continue
         traces, (ep_random, _) = per_level[lvl]
-        for name, ls in (("circle", "-"), ("figure_eight", ":")):
+        for name, ls in zip(list(traces)[:2], ("-", ":")):
             tr = traces[name]
             ax_t.semilogy(tr["t"], np.maximum(tr["ep"], 1e-12), c + ls, label=f"{name.replace('_', '-')}, {lvl}")
         if ep_random.size:

@@ -47,8 +47,8 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
     out = {"geometry": g._asdict(), "poles": 1.0, "relative_degree": ctrl.relative_degree}
 
     # -- two named references, single runs kept for the figure
-    named = {"circle": R.circle(radius=3.0, omega=0.4, heading_offset=0.3 if free_heading else 0.0),
-             "figure_eight": R.figure_eight(size=4.0, omega=0.25, heading_offset=0.3 if free_heading else 0.0)}
+    named = {r.name: r for r in (R.circle(radius=3.0, omega=0.4, heading_offset=0.3 if free_heading else 0.0),
+                                       R.figure_eight(size=4.0, omega=0.25, heading_offset=0.3 if free_heading else 0.0))}
     pert = jnp.zeros(n_post).at[:3].set(jnp.array([0.3, -0.2, 0.1]))       # x, y [m], theta [rad]
     traces = {}
     for name, ref in named.items():

@@ -62,7 +62,8 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
         return jnp.hypot(e[0], e[1]), (jnp.abs(e[2]) if posture else 0.0 * e[0])
 
     traces = {}
-    for name, ref in {"circle": R.circle(radius=3.0, omega=0.4), "figure_eight": R.figure_eight(size=4.0, omega=0.25)}.items():
+    for ref in (R.circle(radius=3.0, omega=0.4), R.figure_eight(size=4.0, omega=0.25)):
+        name = ref.name
         params = ctrl.params(ref, poles=1.0, geometry=g)
         z0 = start(params, jax.random.PRNGKey(1))
         ctrl.check_regular(z0, params)
