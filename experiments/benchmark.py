@@ -470,6 +470,85 @@ def compile_table(cases, batch: int, devices: int, progress=print) -> dict:
     return out
 
 
+# The tuner's gradient program, timed in a fresh process with no persistent cache: its trace and
+# compile, and its step (best of 3 rounds of 5 calls). Written against both tuner APIs (problem
+# files since #31, the TuneConfig presets before) so a checkout of another commit runs it too.
+TUNER_WORKER = r"""
+import json, sys, time
+import jax
+jax.config.update("jax_enable_x64", True)
+name = sys.argv[1]
+t_start = time.perf_counter()
+from tuning import loop as L
+if hasattr(L, "prepare"):
+    from tuning import config
+    from tuning.problems import problem_file
+    from wmrjax.problem import Problem
+    problem = Problem.load(problem_file(name))
+    s = problem.setting("tuning"); ts = config.read(problem.section("tune")); fam = ts.gain_spec(s)
+    ctx = L.prepare(s, fam, ts.scenarios, ts.loss, ts.seed)
+    raw = L.initial_raw(s, fam)
+    args, static = (raw, ctx.sets.train, s, fam, ctx.weights), (2, 3)
+else:
+    import jax.numpy as jnp
+    from tuning import problems
+    cfg = problems.preset(name)
+    ctrl, spec, g, rcfg, train, _, _ = L.build(cfg)
+    raw = spec.init(cfg.poles_init)
+    args, static = (raw, train, ctrl, spec, g, rcfg, jnp.asarray(cfg.weights, float)), (2, 3, 5)
+t_ready = time.perf_counter()
+lowered = L._gradient_step.lower(*args)
+t_traced = time.perf_counter()
+compiled = lowered.compile()
+t_compiled = time.perf_counter()
+dyn = [a for i, a in enumerate(args) if i not in static]
+jax.block_until_ready(compiled(*dyn))
+best = float("inf")
+for _ in range(3):
+    t = time.perf_counter()
+    for _ in range(5):
+        out = compiled(*dyn)
+    jax.block_until_ready(out)
+    best = min(best, (time.perf_counter() - t) / 5)
+print(json.dumps({"problem": name, "setup_s": t_ready - t_start, "trace_s": t_traced - t_ready,
+                  "compile_s": t_compiled - t_traced, "step_s": best, "loss": float(out[0])}))
+"""
+
+
+def tuner_times(problems, baseline: Path | None, rounds: int = 3, progress=print) -> dict:
+    """The tuner's gradient program (trace, compile, step) per problem, in fresh processes with no
+    persistent cache, this checkout and ``baseline`` (another checkout, e.g. the commit before
+    #31) alternately, ``rounds`` times; the best of each is kept."""
+    import json
+
+    trees = {"this": Path(__file__).resolve().parent.parent} | ({"baseline": baseline.resolve()} if baseline else {})
+    best = {}
+    for r in range(rounds):
+        for name in problems:
+            for label, tree in trees.items():
+                env = dict(os.environ, PYTHONPATH=str(tree), JAX_ENABLE_COMPILATION_CACHE="false")
+                run = subprocess.run([sys.executable, "-c", TUNER_WORKER, name], capture_output=True, text=True,
+                                     env=env, cwd=tree)
+                if run.returncode:
+                    raise RuntimeError(f"tuner timing of {name} in {tree} failed: {run.stderr[-2000:]}")
+                res = json.loads(run.stdout.strip().splitlines()[-1])
+                key = (name, label)
+                best[key] = res if key not in best else {k: (min(v, res[k]) if k.endswith("_s") else v)
+                                                         for k, v in best[key].items()}
+                progress(f"tuner {name} ({label}, round {r + 1}): trace {res['trace_s']:.2f} s, compile "
+                         f"{res['compile_s']:.2f} s, step {1e3 * res['step_s']:.1f} ms", flush=True)
+    out = {"what": "the tuning loop's gradient program (tuning.loop._gradient_step) on the problem's training set, "
+                   "in a fresh process with no persistent cache: trace, XLA compile, and the step (best of 3 x 5 "
+                   f"calls); best of {rounds} rounds, the checkouts alternating",
+           "baseline": str(baseline) if baseline else None}
+    for name in problems:
+        out[name] = {label: best[(name, label)] for label in trees}
+        if baseline:
+            a, b = best[(name, "this")], best[(name, "baseline")]
+            out[name]["ratio_this_over_baseline"] = {k: a[k] / b[k] for k in ("trace_s", "compile_s", "step_s")}
+    return out
+
+
 def main(argv=None) -> int:
     import json
 
@@ -494,6 +573,10 @@ def main(argv=None) -> int:
     here = Path(__file__).resolve().parent.parent
     p.add_argument("--c-source", type=Path, default=here.parent / "shared" / "bench" / "closed_loop_simd.c",
                    help="the hand-vectorised C loop (the ceiling; skipped if missing)")
+    p.add_argument("--tuner-problems", nargs="*", default=["section_6_1", "car_schedule"],
+                   help="shipped tuning problems whose gradient program is timed (none: skip)")
+    p.add_argument("--tuner-baseline", type=Path, default=None,
+                   help="a checkout of another commit: its tuner is timed side by side with this one's")
     p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
     p.add_argument("--case", help=argparse.SUPPRESS)
     p.add_argument("--worker-batch", type=cli.count, default=256, help=argparse.SUPPRESS)
@@ -529,6 +612,8 @@ def main(argv=None) -> int:
         s["memory"] = m
         print(f"memory: gradient of {a.memory_steps} steps x {a.memory_batch} trajectories: peak RSS "
               f"{m['peak_rss_gb']:.2f} GB ({m['mode']}, {m['wall_s']:.1f} s)", flush=True)
+    if a.tuner_problems:
+        s["tuner"] = tuner_times(a.tuner_problems, a.tuner_baseline)
     common.write_json(a.out / "summary.json", s)
     g = s["gradient"]
     print(f"scipy solve_ivp: {s['scipy_solve_ivp_one_at_a_time']['equivalent_traj_steps_per_s'] / 1e6:.4f} M/s; "

@@ -71,21 +71,31 @@ def test_forward_and_reverse_modes_agree_and_match_differences(family, kind, lev
 
 
 def test_through_the_tuners_sampled_data_loop():
-    """Zero-order hold, saturation, sensor noise and mismatch (tuning.scenarios.rollout)."""
-    from tuning import TuneConfig, build
-    from tuning.losses import LossWeights, scenario_loss
+    """Zero-order hold, saturation, sensor noise and mismatch (tuning.scenarios.rollout on the
+    problem's sampled-data loop, wmrjax.sampled)."""
+    from tuning import config, loop
+    from tuning.losses import scenario_loss
     from tuning.scenarios import rollout
+    from wmrjax.problem import Problem
 
-    cfg = TuneConfig(n_train=3, n_heldout=2, n_validation=2, steps=2, t_final=1.0, control_dt=0.1, substeps=2,
-                     cma_population=2)
-    ctrl, spec, g, rcfg, train, _, _ = build(cfg)
-    wts = LossWeights(*cfg.weights)
+    box = {"low": -0.5, "high": 0.5}
+    problem = Problem.from_dict({
+        "controller": {"law": "dynamic", "robot": "(2,0)"}, "geometry": {"e": 0.0},
+        "plant": {"input_limit": [5.5, 1.0], "control_period": 0.1, "noise_std": [0.01, 0.01, 0.005]},
+        "reference": {"family": "paper_62"}, "gains": {"poles": 1.0},
+        "initial": {"space": "output", "random": {"count": 3}, "x": box, "y": box, "vx": box, "vy": box},
+        "simulation": {"t_final": 1.0, "dt": 0.05},
+        "tune": {"scenarios": {"train": 3, "validation": 2, "heldout": 2}}})
+    setting = problem.setting("test")
+    ts = config.read(problem.section("tune"))
+    spec = ts.gain_spec(setting)
+    train = loop.prepare(setting, spec, ts.scenarios, ts.loss, 0).sets.train
     # saturate the first scenario's wheels so the clip is active on part of the run
-    train = train._replace(input_limit=train.input_limit.at[0].set(1.2))
+    train = train._replace(inputs={**train.inputs, "limit": train.inputs["limit"].at[0].set(1.2)})
 
     def loss(raw):
-        ms = jax.vmap(lambda sc: rollout(ctrl, spec.gains(raw), g, sc, rcfg))(train)
-        return jnp.sum(jax.vmap(lambda m: scenario_loss(m, wts))(ms)), jnp.all(ms.valid)
+        ms = jax.vmap(lambda sc: rollout(setting, spec.gains(raw), sc))(train)
+        return jnp.sum(jax.vmap(lambda m: scenario_loss(m, ts.loss))(ms)), jnp.all(ms.valid)
 
     raw = spec.init(1.3) + jnp.array([0.1, -0.2])
     _check(loss, raw, jnp.array([0.6, -0.8]), h=1e-5)

@@ -496,11 +496,21 @@ class Setting:
             return src
         return {k: jax.tree_util.tree_map(lambda x, k=k: np.asarray(x)[idx[AXIS_OF[k]]], v) for k, v in src.items()}
 
-    def run(self, p: dict, *, save_every: int = 1, error_tol=1e-3, margin_floor=1e-9, noise_key=None, t0=0.0,
-            save_fn=None):
+    def run_inputs(self, i: int) -> dict:
+        """The inputs of run ``i`` (its flat index, last axis fastest), unbatched: for :meth:`run`."""
+        import jax
+
+        if not 0 <= i < self.size:
+            raise ProblemError(f"run index {i} outside [0, {self.size}) of this setting")
+        idx = list(np.unravel_index(np.array([i]), self.shape))
+        return jax.tree_util.tree_map(lambda x: np.asarray(x)[0], self.inputs(idx))
+
+    def run(self, p: dict, *, save_every: int | None = None, error_tol=1e-3, margin_floor=1e-9, noise_key=None,
+            t0=0.0, save_fn=None):
         """One run (pure: vmap it) from one run's inputs ``p`` (:meth:`inputs`, unbatched).
 
-        ``save_every``, ``error_tol``, ``margin_floor`` and ``save_fn`` are :func:`wmrjax.simulate`'s;
+        ``save_every`` (default: every sample of a digital controller, else every step),
+        ``error_tol``, ``margin_floor`` and ``save_fn`` are :func:`wmrjax.simulate`'s;
         ``noise_key`` draws the measurement noise of a digital controller; ``t0`` [s] starts the run.
 
         Returns:
@@ -536,6 +546,7 @@ class Setting:
                 z0, params_run = loop.initial_state(z0, plant), plant
         else:
             params_run = params
+        save_every = (self.steps_per_sample or 1) if save_every is None else save_every
         tr = w.simulate(loop, z0, params_run, dt=self.dt, n_steps=self.n_steps, t0=t0, save_every=save_every,
                         error_tol=error_tol, margin_floor=margin_floor, save_fn=save_fn)
         return tr, params
