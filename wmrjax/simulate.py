@@ -371,11 +371,11 @@ def _scalar_field(system, t, z, params):
 
 def _sampler(system):
     """``(sample, sample_every)`` of a sampled-data system (``(None, None)`` otherwise): its
-    ``sample(k, t, z, params)``, re-emitted on scalars, and its steps per sample."""
+    ``sample(k, t, z, params)`` and its steps per sample."""
     every = getattr(system, "sample_every", None)
     if every is None:
         return None, None
-    return scalarized(system.sample), int(every)
+    return system.sample, int(every)     # re-emitted on scalars with the step that calls it
 
 
 def _period_advance(field_s, t, z, dt, every: int, estimate: bool, parts, rebuild, held_mask):
