@@ -575,6 +575,7 @@ def main(argv=None) -> int:
                    help="the hand-vectorised C loop (the ceiling; skipped if missing)")
     p.add_argument("--tuner-problems", nargs="*", default=["section_6_1", "car_schedule"],
                    help="shipped tuning problems whose gradient program is timed (none: skip)")
+    p.add_argument("--tuner-rounds", type=cli.count, default=3, help="alternating rounds of the tuner timing (best kept)")
     p.add_argument("--tuner-baseline", type=Path, default=None,
                    help="a checkout of another commit: its tuner is timed side by side with this one's")
     p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
@@ -613,7 +614,7 @@ def main(argv=None) -> int:
         print(f"memory: gradient of {a.memory_steps} steps x {a.memory_batch} trajectories: peak RSS "
               f"{m['peak_rss_gb']:.2f} GB ({m['mode']}, {m['wall_s']:.1f} s)", flush=True)
     if a.tuner_problems:
-        s["tuner"] = tuner_times(a.tuner_problems, a.tuner_baseline)
+        s["tuner"] = tuner_times(a.tuner_problems, a.tuner_baseline, a.tuner_rounds)
     common.write_json(a.out / "summary.json", s)
     g = s["gradient"]
     print(f"scipy solve_ivp: {s['scipy_solve_ivp_one_at_a_time']['equivalent_traj_steps_per_s'] / 1e6:.4f} M/s; "
