@@ -52,6 +52,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import enum
+import functools
 import hashlib
 import json
 import math
@@ -59,6 +60,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 
 SECTIONS = ("title", "controller", "geometry", "plant", "reference", "initial", "gains", "simulation", "classify",
@@ -234,7 +236,8 @@ class Problem:
     source: Path | None = None
 
     def __post_init__(self):
-        self.settings()          # validates every key now: nothing compiles before this
+        # every key validated now, before anything compiles; the settings are kept (immutable data)
+        object.__setattr__(self, "_settings", self._validated())
 
     @classmethod
     def load(cls, path) -> "Problem":
@@ -304,6 +307,9 @@ class Problem:
 
     def settings(self) -> list:
         """One :class:`Setting` per case, robot type and level, every key validated."""
+        return list(self._settings)
+
+    def _validated(self) -> list:
         unknown = sorted(set(self.data) - set(SECTIONS))
         if unknown:
             raise ProblemError(f"unknown section(s) {unknown}; expected some of {list(SECTIONS)}")
@@ -896,12 +902,21 @@ def _random_references(fam, rs, base, law):
     count = integer("reference", "count", rs.get("count", 1), 1)
     seed = integer("reference", "seed", rs.get("seed", 0), 0)
     opts = random_options(rs)
-    keys = jax.random.split(jax.random.PRNGKey(seed), count)
-    batch = jax.vmap(lambda k: fam.make(k, **opts))(keys)
+    batch = _draw_references(fam.make, tuple(sorted(opts.items())), seed, count)
     params = jax.tree_util.tree_map(np.asarray, batch.params)
     refs = [R.Reference(jax.tree_util.tree_map(lambda x: jnp.asarray(x[i]), params), 0.0, batch.path, fam.name)
             for i in range(count)]
     return refs, {"reference_index": np.arange(count, dtype=float)}
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
+def _draw_references(make, opts: tuple, seed: int, count: int):
+    """``count`` references of a random family, one program (eagerly, each of the draw's small
+    operations compiled on its first use took seconds)."""
+    import jax
+
+    keys = jax.random.split(jax.random.PRNGKey(seed), count)
+    return jax.vmap(lambda k: make(k, **dict(opts)))(keys)
 
 
 def _data_reference(fam, rs, base, law):
