@@ -362,6 +362,10 @@ def check_reference_type(reference) -> None:
 
 REFERENCE_GRID_STEP = 0.01     # [s] spacing of the grid on which a reference is checked
 _BLOCK = 512                   # grid points per compiled evaluation (one compilation per controller)
+# the check's program runs a few times per problem: compiled at XLA's lowest backend
+# optimization level, which halves its compile (its values differ at most by rounding, far
+# below the check's floor and kink tolerance)
+CHECK_COMPILE = {"xla_backend_optimization_level": 0}
 KINK_TOLERANCE = 1e-3          # relative jump of a derivative (per unit step) flagged as a kink
 
 # RK4's stability function R(s) = 1 + s + s^2/2 + s^3/6 + s^4/24; |R| <= 1 on its region
@@ -383,7 +387,7 @@ def rk4_max_step(poles) -> float:
     return lo
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@functools.partial(jax.jit, static_argnums=0, compiler_options=CHECK_COMPILE)
 def _reference_profile(ctrl, ts, params):
     """The reference jet (n, r + 1, m) and the controller's regularity of the reference on ``ts``."""
     jets = jax.vmap(lambda t: ctrl.reference_jet(t, params))(ts)
