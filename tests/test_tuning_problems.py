@@ -78,6 +78,29 @@ def test_sampled_loop_refuses_and_checks():
         w.sampled(ctrl, 0)
 
 
+def test_sampled_loop_fails_frozen_at_the_last_good_state():
+    """A NaN in the measurement at sample 10 (under jit, where the eager check of the noise
+    cannot run) fails the run at t = 10 periods; its final state is the state before that sample:
+    the plant at t = 0.25 s and the controller's records of sample 9, all finite (the sample's
+    NaN command, rate and regularity used to be frozen into it)."""
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    p = ctrl.params(w.references.paper_62(), poles=1.0, geometry=w.Geometry())
+    loop_ = w.sampled(ctrl, 5)
+    z0 = loop_.initial_state(ctrl.reference_state(0.0, p).at[0].add(0.2), loop_.params(p))
+    noise = np.zeros((80, 3))
+    noise[10, 2] = np.nan
+    run = jax.jit(lambda nz: w.simulate(loop_, z0, loop_.params(p, noise=nz), dt=0.005, n_steps=400, save_every=5))
+    ts = run(noise)
+    d = ts.diagnostics
+    assert bool(d.failed) and bool(d.nonfinite) and float(d.t_failure) == pytest.approx(0.25, rel=1e-12)
+    assert np.asarray(ts.valid).nonzero()[0][-1] == 9
+    f = ts.final_state
+    assert all(np.all(np.isfinite(x)) for x in jax.tree_util.tree_leaves(f))
+    np.testing.assert_array_equal(f.plant, ts.state.plant[10])
+    np.testing.assert_array_equal(f.command, ts.state.command[9])
+    np.testing.assert_array_equal(f.regularity, ts.state.regularity[9])
+
+
 def test_cma_es_and_random_search_on_a_known_quadratic():
     """A quadratic with its minimum at raw = (0.3, -0.2): CMA-ES gets within 1e-3, random search
     samples inside its box and keeps frozen entries; the accounting is n_train per candidate."""

@@ -469,8 +469,9 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         p = rebuild_params(parts)
         z = _from_scalars(zt, z0)
         t = t0 + i.astype(dtype) * dt
-        if sample is not None:      # a digital controller samples at its period's start (a live run only)
-            z = jax.tree_util.tree_map(lambda a, b: jnp.where(alive, a, b), sample(i // sample_every, t, z, p), z)
+        z_in = z        # what a failed run keeps: a dead run's sample is discarded by the selection below
+        if sample is not None:      # a digital controller samples at its period's start
+            z = sample(i // sample_every, t, z, p)
         z_next, aux, est, k4, jumped = advance(t, z, i, p, parts, k4_prev, est_ok)
         margin = jnp.asarray(aux.margin, dtype)
         sign = _sign(getattr(aux, "regularity", None), margin)
@@ -497,7 +498,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
                                      diag.error_estimate),
         )
         # double where: no NaN leaks into grads
-        z_keep = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, jnp.where(finite_next, a, b), b), z_next, z)
+        z_keep = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, jnp.where(finite_next, a, b), b), z_next, z_in)
         zt_next = _to_scalars(z_keep)
         sign_next = jnp.where(sign != 0, sign, sign_prev)
         carry = (zt_next, ok, diag, sign_next, _continuous(k4) if estimate and sample is None else (),
