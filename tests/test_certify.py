@@ -113,6 +113,63 @@ def testmin_norm_to_ball_matches_boundary_search(rng):
     assert float(rho) == np.inf
 
 
+@pytest.mark.parametrize("scale", [1.0, 1e-30, 1e-200, 1e-300])
+def test_min_norm_to_ball_at_any_scale(scale):
+    """M = s diag(1, 2), a = (1, 0.5), eps = 0.01: the closest point of the eps-ball is along a
+    after the map's inverse; the oracle is the same boundary search as above, on M / s, times 1/s
+    (the smallest ||x|| scales as 1/s). A fixed bisection bracket in log(nu) of [-60, 60] gave
+    1.0e-30 -> 4.5e-5 here (the root nu ~ 1/s^2 left it), and s^2 underflows below 1e-162."""
+    M = np.diag([1.0, 2.0])
+    a = np.array([1.0, 0.5])
+    ph = np.linspace(0.0, 2 * np.pi, 200001)
+    Y = -a[None] + 1e-2 * np.stack([np.cos(ph), np.sin(ph)], 1)
+    brute = np.min(np.linalg.norm(Y @ np.linalg.inv(M).T, axis=1))
+    rho, x = C.min_norm_to_ball(jnp.asarray(scale * M), jnp.asarray(a), 1e-2)
+    np.testing.assert_allclose(float(rho) * scale, brute, rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(x) * scale, -np.linalg.solve(M, a) * brute / np.linalg.norm(
+        np.linalg.solve(M, a)), rtol=2e-2)        # near the unconstrained solution's direction
+    np.testing.assert_allclose(np.linalg.norm(a + M @ (np.asarray(x) * scale)), 1e-2, rtol=1e-8)
+    rho0, x0 = C.min_norm_to_ball(jnp.asarray(1e-320 * M), jnp.asarray(a), 1e-2)   # beyond float range
+    assert float(rho0) == np.inf and np.all(np.asarray(x0) == 0.0)
+
+
+def test_exact_map_radius_holds_on_long_horizons():
+    """Section 6.1's loop (position slice) with poles at -0.5 ... -5 over horizons to 1000 s: the
+    radius is the same as over 10 s (its worst time is early, 0.21-4.1 s), and above Lemma 2's
+    exact-norm radius over the same horizon. Before: poles at -2 gave 5.65 up to 30 s, 7.2e-5
+    at 40 s and 7e-59 at 100 s (s(e^{At}) ~ t e^{-2t} left the fixed bisection bracket)."""
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    for poles in (0.5, 1.0, 2.0, 5.0):
+        p = ctrl.params(R.paper_62(), poles=poles, geometry=w.Geometry(e=0.0))
+        short = C.exact_map_radius(ctrl, p, t_final=10.0, eps=1e-2, basis="position")
+        for T in (40.0, 200.0, 1000.0):
+            em = C.exact_map_radius(ctrl, p, t_final=T, eps=1e-2, basis="position")
+            np.testing.assert_allclose(float(em.radius), float(short.radius), rtol=1e-9)
+            assert np.all(np.isfinite(np.asarray(em.rho)) | (np.asarray(em.rho) == np.inf))
+            l2 = C.lemma2(ctrl, p, t_final=T, eps=1e-2, n_t=int(20 * T) + 1)
+            assert float(l2.exact_norm.radius) <= float(em.radius)
+
+
+def test_consistency_alarms():
+    """The certifier's alarms: a certified radius above a falsified one, and an exact map of a
+    linear singular set more than 1 % from its falsifier's radius (either way), each a message;
+    within the tolerance, and for (1,2)'s bounded map, none."""
+    from types import SimpleNamespace as NS
+
+    from wmrjax.certify.pipeline import consistency
+
+    exact = {"full": NS(radius=4.99, lower_bound=None), "position": NS(radius=8.789566, lower_bound=None)}
+    fals = {"full": NS(radius=4.990007), "position": NS(radius=8.789575)}
+    assert consistency({"lyapunov": 1.5}, exact, fals) == (True, [])
+    below, msgs = consistency({"lyapunov": 5.2}, exact, fals)          # a Lemma 2 radius above the falsifier's
+    assert not below and len(msgs) == 1 and "Lemma 2 (lyapunov) 5.2 > falsified 4.99001" in msgs[0]
+    collapsed = {**exact, "full": NS(radius=7.2e-5, lower_bound=None)}   # the old long-horizon collapse
+    below, msgs = consistency({"lyapunov": 1e-5}, collapsed, {"full": NS(radius=5.34), "position": None})
+    assert below and len(msgs) == 1 and "exact-map radius (full) 7.2e-05 and the falsified radius 5.34" in msgs[0]
+    assert consistency({}, {"full": NS(radius=1.0, lower_bound=0.9)}, {"full": NS(radius=1.5)}) == (True, [])
+    assert consistency({}, exact, {"full": NS(radius=None), "position": None}) == (True, [])
+
+
 def test_exact_map_radius_is_tight_and_above_lemma2(paper61, cert61, exact61):
     ctrl, params, _ = paper61
     full, pos = exact61["full"], exact61["position"]

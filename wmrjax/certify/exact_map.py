@@ -55,24 +55,45 @@ def slice_basis(ctrl: DynamicLinearization, kind="full"):
     return P
 
 
+# singular values below this fraction of the largest count as zero (directions M cannot move)
+RANK_TOLERANCE = 1e-14
+# the bisection's bracket in log(nu s_max^2) extends this far past where nu s^2 = 1 for the largest and
+# the smallest singular value: e^-60 and e^60 leave the residual's terms at 1 and 0 to rounding
+BRACKET_MARGIN = 60.0
+
+
 def min_norm_to_ball(M, a, eps, iters: int = 200):
     r"""Smallest :math:`\|x\|` with :math:`\|a + Mx\| \le \epsilon` and the minimiser (inf if unreachable).
 
     KKT: :math:`x(\nu) = -\nu (I + \nu M^TM)^{-1} M^T a`; in the SVD :math:`M = U S V^T` the
     residual :math:`\|a + Mx(\nu)\|^2 = \sum_i a_i'^2 / (1 + \nu s_i^2)^2` (+ the part of a
     outside range U) decreases in :math:`\nu`; bisection in :math:`\log\nu` finds the root.
+    It is solved for :math:`w = \nu s_{max}^2`; the bracket follows the singular values: at its
+    low end :math:`\nu s_{max}^2 = e^{-B}`
+    (the residual is :math:`\|a\|^2` to rounding), at its high end :math:`\nu s_{min}^2 = e^{B}`
+    (every term vanishes), :math:`s_{min}` the smallest singular value counted as nonzero. A
+    fixed bracket failed on long horizons, where :math:`s_i(e^{At})` decays like
+    :math:`t e^{-pt}` and the root left it: the radius collapsed (2.8e-13 at t = 50 s).
     """
     U, s, Vt = jnp.linalg.svd(M, full_matrices=False)
     ap = U.T @ a
     out2 = jnp.maximum(jnp.sum(a**2) - jnp.sum(ap**2), 0.0)
+    kept = s > RANK_TOLERANCE * jnp.max(s)
+    limit = out2 + jnp.sum(jnp.where(kept, 0.0, ap**2))
+    reachable = (limit < eps**2) & jnp.any(kept)
+    # scaled: w = nu s_max^2 and sigma = s / s_max in [0, 1], so that s^2 may underflow (a
+    # long horizon's e^{At} is ~1e-217 at t = 1000 s for p = 0.5) and nu overflow, not w
+    s_max = jnp.maximum(jnp.max(s), jnp.finfo(s.dtype).tiny)
+    sig = s / s_max
+    sig_min = jnp.min(jnp.where(kept, sig, 1.0))
 
-    def parts(lognu):
-        nu = jnp.exp(lognu)
-        d = 1.0 + nu * s**2
-        return jnp.sum((ap / d) ** 2) + out2, -(Vt.T @ (nu * s * ap / d))
+    def parts(logw):
+        """The residual and x's coordinates times s_max (bounded: w sigma / d <= 1 / (2 sigma))."""
+        w = jnp.exp(logw)
+        d = 1.0 + w * sig**2
+        return jnp.sum((ap / d) ** 2) + out2, w * sig * ap / d
 
-    limit = out2 + jnp.sum(jnp.where(s > 1e-14 * jnp.max(s), 0.0, ap**2))
-    reachable = limit < eps**2
+    bracket = (jnp.asarray(-BRACKET_MARGIN, s.dtype), -2.0 * jnp.log(sig_min) + BRACKET_MARGIN)
 
     def bisect(c, _):
         lo, hi = c
@@ -80,11 +101,12 @@ def min_norm_to_ball(M, a, eps, iters: int = 200):
         too_far = parts(mid)[0] > eps**2
         return (jnp.where(too_far, mid, lo), jnp.where(too_far, hi, mid)), None
 
-    (lo, hi), _ = jax.lax.scan(bisect, (jnp.asarray(-60.0), jnp.asarray(60.0)), None, length=iters)
-    x = parts(hi)[1]
+    (lo, hi), _ = jax.lax.scan(bisect, bracket, None, length=iters)
+    c = parts(hi)[1]
     inside = jnp.sum(a**2) <= eps**2
-    x = jnp.where(inside, jnp.zeros_like(x), x)
-    rho = jnp.where(reachable | inside, jnp.linalg.norm(x), jnp.inf)
+    # ||x|| = ||c|| / s_max (Vt has orthonormal rows): beyond float range it is inf, never NaN
+    rho = jnp.where(inside, 0.0, jnp.where(reachable, jnp.linalg.norm(c) / s_max, jnp.inf))
+    x = jnp.where(inside | ~jnp.isfinite(rho), 0.0, -(Vt.T @ (c / s_max)))
     return rho, x
 
 
@@ -138,7 +160,7 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
       ValueError: bad eps/horizon or a reference within eps of the singular set.
     """
     check_dynamic(ctrl, params)
-    check_lemma2_args(t_final=t_final, eps=eps)
+    check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
     rows = singular_rows(ctrl)
     scheduled = params.gains.time_varying
     if rows is None and scheduled:
@@ -226,7 +248,7 @@ def curved_exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *
       :class:`ExactMapRadius` with ``lower_bound``, ``gap`` and ``boxes``.
     """
     check_dynamic(ctrl, params)
-    check_lemma2_args(t_final=t_final, eps=eps)
+    check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
     if singular_rows(ctrl) is not None:
         raise ValueError(f"type {ctrl.robot.name} has a linear singular set: use exact_map_radius")
     P = slice_basis(ctrl, basis)
