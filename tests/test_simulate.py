@@ -198,6 +198,23 @@ def test_nonfinite_run_is_flagged():
     assert not bool(tr.valid[-1])
 
 
+def test_traced_bad_dt_fails_the_run_at_t0(paper61):
+    """Under jit and vmap dt cannot be refused before compiling: a dt <= 0 or NaN fails every run
+    at t0 (no sample valid, the state frozen at z0) instead of integrating backwards (it gave
+    t[-1] = -1 s and failed = False)."""
+    ctrl, params, z0 = paper61
+    run = jax.jit(lambda dt: w.simulate(ctrl, z0, params, dt=dt, n_steps=100, save_every=10))
+    assert not bool(run(0.01).diagnostics.failed)
+    for dt in (-0.01, 0.0, np.nan, np.inf):
+        tr = run(dt)
+        d = tr.diagnostics
+        assert bool(d.failed) and not bool(d.nonfinite) and not bool(d.singular) and float(d.t_failure) == 0.0
+        assert not np.asarray(tr.valid).any()
+        np.testing.assert_array_equal(tr.final_state, z0)
+    batch = jax.vmap(lambda dt: w.simulate(ctrl, z0, params, dt=dt, n_steps=100))(jnp.array([0.01, -0.01]))
+    assert np.asarray(batch.diagnostics.failed).tolist() == [False, True]
+
+
 # --- bad input --------------------------------------------------------------------
 
 def test_bad_simulate_arguments(paper61):

@@ -522,13 +522,16 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # initial flags derived from z0 so they carry its sharding/varying type (shard_map)
     first = _first_float(z0)
     bad0 = ~jnp.isfinite(first)
+    # a traced dt (under jit or vmap) cannot be refused before compiling: one that is not a
+    # finite number > 0 fails the run at t0 instead of integrating backwards
+    failed0 = bad0 | ~(jnp.isfinite(dt) & (dt > 0))
     inf = jnp.where(bad0, jnp.inf, jnp.inf * jnp.ones_like(first))
     zero = 0.0 * jnp.where(bad0, 0.0, first)
-    diag0 = _Running(bad0, bad0 & False, bad0, jnp.where(bad0, t0, inf), inf, t0 + zero, zero)
+    diag0 = _Running(bad0, bad0 & False, failed0, jnp.where(failed0, t0, inf), inf, t0 + zero, zero)
     # shapes only: evaluating the field at t0 would put one more copy of it in the program
     control0 = jax.eval_shape(field, t0, z0)[1].control
     # k4_prev starts at zero; the first step's estimate is set to zero (step index 0)
-    carry = (_to_scalars(z0), ~bad0, diag0, zero,
+    carry = (_to_scalars(z0), ~failed0, diag0, zero,
              jax.tree_util.tree_map(lambda x: 0.0 * x, _continuous(z0)) if estimate and sample is None else (),
              None if post_step is None or not estimate else bad0 & False)
 
@@ -536,7 +539,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     if save_fn is not None:     # zeros shaped like what save_fn returns (no evaluation at t0)
         shapes = jax.eval_shape(lambda: save_fn(t0, z0, field(t0, z0)[1]))
         saved0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype) + zero.astype(a.dtype), shapes)
-    rec0 = (saved0, jnp.zeros(control0.shape, control0.dtype) + zero.astype(control0.dtype), inf, ~bad0)
+    rec0 = (saved0, jnp.zeros(control0.shape, control0.dtype) + zero.astype(control0.dtype), inf, ~failed0)
     unit = 1 if sample is None else sample_every      # a sampled-data system runs by whole periods
     n_saves = n_steps // save_every
     save_units, n_units = save_every // unit, n_steps // unit
@@ -709,7 +712,8 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
         arrays with n components in all (e.g. :class:`wmrjax.HybridState`). Real; a float32
         state is promoted to the default float type.
       params: pytree of arrays the closed loop depends on (gains, reference, geometry).
-      dt: step [s], > 0.
+      dt: step [s], > 0 (refused eagerly; a traced dt that is not a finite number > 0 fails every
+        run at t0: ``diagnostics.failed``, no sample valid).
       n_steps: number of steps (static).
       t0: initial time [s], finite.
       save_every: keep every k-th state (static); the final state is always kept.
