@@ -137,3 +137,50 @@ def test_sampled_plan_is_tracked_as_well_as_the_exact_one():
     err_exact, err_sampled = (np.hypot(*e) for e in out)
     assert err_exact < 0.02
     assert abs(err_sampled - err_exact) < 1e-5
+
+
+def test_a_horizon_outside_the_samples_is_refused_unless_extrapolated(tmp_path):
+    """Circle samples on [0, 4] s: a run to 8 s, a run from t0 = -1 s, the reference check and a
+    Lemma 2 certificate over 8 s are refused by name; with extrapolate=True the run goes on (the
+    quintic end piece is then 0.24 m off the circle at 8 s: what used to be reported as 'converged'
+    silently); samples on [5, 25] s refuse a horizon starting at 0. The problem file's key too."""
+    from wmrjax import certify as C
+    from wmrjax.problem import Problem, ProblemError
+
+    circ = R.circle(radius=2.0, omega=0.5)
+    ts = np.linspace(0.0, 4.0, 81)
+    xy = np.asarray(jax.vmap(circ.position)(jnp.asarray(ts)))
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    p = ctrl.params(R.from_samples(ts, xy), poles=1.0, geometry=w.Geometry())
+    z0 = ctrl.reference_state(0.0, p)
+    lo, hi = p.reference.domain()
+    assert float(lo) == 0.0 and float(hi) == 4.0 and circ.domain() is None
+    with pytest.raises(ValueError, match=r"defined by its samples on \[0, 4\] s, and the horizon \[0, 8\] s goes past its last"):
+        w.simulate(ctrl, z0, p, dt=0.01, n_steps=800)
+    with pytest.raises(ValueError, match=r"goes before its first sample"):
+        w.simulate(ctrl, z0, p, dt=0.01, n_steps=100, t0=-1.0)
+    with pytest.raises(ValueError, match="extrapolate=True"):
+        ctrl.check_reference(p, 8.0)
+    with pytest.raises(ValueError, match="past its last sample"):
+        C.lemma2(ctrl, p, t_final=8.0, eps=1e-2)
+    assert not bool(w.simulate(ctrl, z0, p, dt=0.01, n_steps=400).diagnostics.failed)    # [0, 4] s: inside
+    pe = ctrl.params(R.from_samples(ts, xy, extrapolate=True), poles=1.0, geometry=w.Geometry())
+    assert pe.reference.domain() is None
+    tr = w.simulate(ctrl, z0, pe, dt=0.01, n_steps=800, save_every=800)
+    off = float(jnp.linalg.norm(pe.reference.position(8.0) - circ.position(8.0)))
+    assert not bool(tr.diagnostics.failed) and off > 0.1
+    late = R.from_samples(ts * 5.0 + 5.0, xy)
+    with pytest.raises(ValueError, match=r"on \[5, 25\] s, and the horizon \[0, 10\] s goes before its first"):
+        ctrl.check_reference(ctrl.params(late, poles=1.0, geometry=w.Geometry()), 10.0)
+    with pytest.raises(ValueError, match="extrapolate must be True or False"):
+        R.from_samples(ts, xy, extrapolate="yes")
+    data = {"controller": {"law": "dynamic", "robot": "(2,0)"},
+            "reference": {"family": "samples", "t": ts.tolist(), "x": xy[:, 0].tolist(), "y": xy[:, 1].tolist()},
+            "initial": {"space": "output"}, "simulation": {"t_final": 8.0, "dt": 0.01}}
+    with pytest.raises(ProblemError, match="past its last sample"):
+        Problem.from_dict(data)
+    data["reference"]["extrapolate"] = True
+    assert Problem.from_dict(data).settings()[0].reference.domain() is None
+    data["reference"]["extrapolate"] = "yes"
+    with pytest.raises(ProblemError, match=r"\[reference\] extrapolate: expected true or false"):
+        Problem.from_dict(data)

@@ -926,7 +926,8 @@ def _data_reference(fam, rs, base, law):
     cols = fam.columns
     waypoints = "t" not in cols
     extra = ("speed", "t0") if waypoints else ()
-    check_keys("reference", rs, COMMON_REFERENCE_KEYS + ("file", "min_speed", "source_file") + cols + extra)
+    check_keys("reference", rs, COMMON_REFERENCE_KEYS + ("file", "min_speed", "extrapolate", "source_file") + cols
+               + extra)
     if ("file" in rs) == any(c in rs for c in cols):
         raise ProblemError(f"[reference] family = \"{fam.name}\": give file = \"path.csv\" (columns {', '.join(cols)}) "
                            f"or the arrays {', '.join(cols)} = [...], not both")
@@ -947,13 +948,17 @@ def _data_reference(fam, rs, base, law):
     min_speed = rs.get("min_speed", default_speed)
     if min_speed is not None:
         min_speed = positive("reference", "min_speed", min_speed)
+    extrapolate = rs.get("extrapolate", False)
+    if not isinstance(extrapolate, bool):
+        raise ProblemError(f"[reference] extrapolate: expected true or false (extend the path past its first and "
+                           f"last point), got {extrapolate!r}")
     xy = np.stack([data["x"], data["y"]], axis=1)
     try:
         if waypoints:
             ref = fam.make(xy, speed=positive("reference", "speed", rs.get("speed", 1.0)),
-                           t0=float(rs.get("t0", 0.0)), min_speed=min_speed, name=name)
+                           t0=float(rs.get("t0", 0.0)), min_speed=min_speed, name=name, extrapolate=extrapolate)
         else:
-            ref = fam.make(data["t"], xy, min_speed=min_speed, name=name)
+            ref = fam.make(data["t"], xy, min_speed=min_speed, name=name, extrapolate=extrapolate)
     except ValueError as err:
         raise ProblemError(f"[reference] {'file ' + repr(rs['file']) if 'file' in rs else cols}: {err}") from None
     return [ref], {"reference_index": np.zeros(1)}

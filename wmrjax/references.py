@@ -103,9 +103,39 @@ class Reference:
         """Speed of P, ``|p'(t)|`` [m/s]."""
         return jnp.linalg.norm(self.velocity(t))
 
+    def domain(self):
+        """``(start, end)`` [s] of the times on which the path is defined by data (a sampled
+        path's first and last sample; arrays, batched like ``params``), or None for a path
+        defined at every time. Controllers refuse a horizon outside it (``check_reference``)."""
+        f = getattr(self.path, "domain", None)
+        return None if f is None else f(self.params)
+
     def with_heading_offset(self, offset) -> "Reference":
         """The same path with another constant heading offset [rad] (a crab angle)."""
         return dataclasses.replace(self, heading_offset=_as_array(offset))
+
+
+# a horizon may pass a sampled path's ends by this much (relative), the rounding of t0 + n dt
+DOMAIN_RTOL = 1e-9
+
+
+def check_domain(ref: "Reference", t0: float, t_final: float) -> None:
+    """ValueError if [t0, t_final] leaves the times on which ``ref`` is defined by data
+    (:meth:`Reference.domain`); no-op for paths defined at every time and for traced params."""
+    dom = ref.domain()
+    if dom is None:
+        return
+    lo, hi = (concrete(x) for x in dom)
+    if lo is None or hi is None:
+        return
+    lo, hi = float(np.max(lo)), float(np.min(hi))
+    tol = DOMAIN_RTOL * (1.0 + max(abs(lo), abs(hi)))
+    if t0 < lo - tol or t_final > hi + tol:
+        where = "before its first" if t0 < lo - tol else "past its last"
+        raise ValueError(f"reference {ref.name!r} is defined by its samples on [{lo:g}, {hi:g}] s, and the horizon "
+                         f"[{t0:g}, {t_final:g}] s goes {where} sample: fit the horizon inside the samples, add "
+                         "samples, or extend the path explicitly (from_samples(..., extrapolate=True); extrapolate "
+                         "= true in a problem file's [reference])")
 
 
 def _as_array(x):
@@ -282,6 +312,15 @@ def _path_spline(t, params):
     return _spline_value(params["knots"], params["coef"], t)
 
 
+def _path_spline_extrapolated(t, params):
+    """:func:`_path_spline`, extended past its samples on request (``extrapolate=True``)."""
+    return _spline_value(params["knots"], params["coef"], t)
+
+
+# a sampled path is defined by its data on [first sample, last sample] (the spline's end knots)
+_path_spline.domain = lambda params: (params["knots"][..., 0], params["knots"][..., -1])
+
+
 def _spline_knots(ts):
     """Not-a-knot knots of an interpolating spline of odd degree k at ``ts`` (as SciPy's
     ``make_interp_spline``): the end sample repeated k + 1 times, interior knots at the
@@ -318,15 +357,18 @@ def _check_samples(t, xy):
             raise ValueError("from_samples: xy has non-finite values")
 
 
-def from_samples(t, xy, *, min_speed: float | None = None, heading_offset=0.0, name: str = "samples") -> Reference:
+def from_samples(t, xy, *, min_speed: float | None = None, heading_offset=0.0, name: str = "samples",
+                 extrapolate: bool = False) -> Reference:
     r"""A reference through sampled positions: the quintic interpolating spline (C^4).
 
     The spline is the one SciPy's ``make_interp_spline(t, xy, k=5)`` builds (not-a-knot
     ends), solved in JAX: the reference is differentiable with respect to time (every
     derivative up to order 4 is continuous, as the torque-level dynamic laws need) and with
     respect to the samples ``t`` and ``xy`` (call ``from_samples`` inside the differentiated
-    function). Beyond the last sample the end pieces are extended polynomially: keep the
-    horizon inside ``[t[0], t[-1]]``.
+    function). The path is defined on ``[t[0], t[-1]]`` (:meth:`Reference.domain`): a run
+    or a check whose horizon leaves it is refused, unless ``extrapolate=True``, which extends
+    the end pieces polynomially (a quintic diverges fast: 0.24 m off a sampled circle 4 s past
+    its last sample).
 
     Args:
       t: (N,) strictly increasing sample times [s], N >= 6.
@@ -336,6 +378,7 @@ def from_samples(t, xy, *, min_speed: float | None = None, heading_offset=0.0, n
         need a moving reference (its heading is the path tangent).
       heading_offset: constant heading offset [rad].
       name: label used in reports.
+      extrapolate: allow times outside ``[t[0], t[-1]]`` (the end pieces extended).
 
     Returns:
       A :class:`Reference` whose params are ``{"knots": (N + 6,), "coef": (N, 2)}``.
@@ -344,6 +387,8 @@ def from_samples(t, xy, *, min_speed: float | None = None, heading_offset=0.0, n
       ValueError: times not strictly increasing, fewer than 6 samples, wrong shapes,
         non-finite values, or a stop (with ``min_speed``).
     """
+    if not isinstance(extrapolate, bool):
+        raise ValueError(f"from_samples: extrapolate must be True or False, got {extrapolate!r}")
     _check_samples(t, xy)
     dtype = jnp.result_type(float)
     t = jnp.asarray(t, dtype)
@@ -359,7 +404,7 @@ def from_samples(t, xy, *, min_speed: float | None = None, heading_offset=0.0, n
     collocation = jax.vmap(row)(t)
     coef = jnp.linalg.solve(collocation, xy)
     ref = Reference(params=dict(knots=knots, coef=coef), heading_offset=_as_array(heading_offset),
-                    path=_path_spline, name=name)
+                    path=_path_spline_extrapolated if extrapolate else _path_spline, name=name)
     if min_speed is not None:
         _check_min_speed(ref, t, float(min_speed))
     return ref
@@ -387,7 +432,7 @@ def _speeds(ref, ts):
 
 
 def from_waypoints(points, *, speed: float = 1.0, t0: float = 0.0, min_speed: float | None = None,
-                   heading_offset=0.0, name: str = "waypoints") -> Reference:
+                   heading_offset=0.0, name: str = "waypoints", extrapolate: bool = False) -> Reference:
     """A reference through position-only waypoints, timed at constant chord speed.
 
     Waypoint ``i`` is reached at ``t0 + (chord length from the first waypoint) / speed``;
@@ -398,7 +443,8 @@ def from_waypoints(points, *, speed: float = 1.0, t0: float = 0.0, min_speed: fl
       points: (N, 2) waypoints [m], N >= 6, consecutive points distinct.
       speed: chord speed [m/s], > 0.
       t0: time of the first waypoint [s].
-      min_speed, heading_offset, name: as in :func:`from_samples`.
+      min_speed, heading_offset, name, extrapolate: as in :func:`from_samples` (the path is
+        defined from the first waypoint's time to the last's).
     """
     pv = np.asarray(points, float)
     if pv.ndim != 2 or pv.shape[1] != 2:
@@ -411,12 +457,12 @@ def from_waypoints(points, *, speed: float = 1.0, t0: float = 0.0, min_speed: fl
         raise ValueError(f"from_waypoints: waypoints {i} and {i + 1} coincide ({pv[i].tolist()}); "
                          "consecutive waypoints must be distinct")
     t = t0 + np.concatenate([[0.0], np.cumsum(chords)]) / speed
-    return from_samples(t, pv, min_speed=min_speed, heading_offset=heading_offset, name=name)
+    return from_samples(t, pv, min_speed=min_speed, heading_offset=heading_offset, name=name, extrapolate=extrapolate)
 
 
-def load_samples(path, *, min_speed: float | None = None, heading_offset=0.0) -> Reference:
+def load_samples(path, *, min_speed: float | None = None, heading_offset=0.0, extrapolate: bool = False) -> Reference:
     """:func:`from_samples` of a CSV file with a header naming columns ``t``, ``x``, ``y``
-    (other columns ignored; ``#`` starts a comment).
+    (other columns ignored; ``#`` starts a comment; ``extrapolate`` as there).
 
     Raises:
       ValueError: an unreadable file, missing columns, or what :func:`from_samples` refuses.
@@ -443,7 +489,7 @@ def load_samples(path, *, min_speed: float | None = None, heading_offset=0.0) ->
         raise ValueError(f"{path}: every row needs {len(header)} values like the header")
     col = {h: rows[:, i] for i, h in enumerate(header)}
     return from_samples(col["t"], np.stack([col["x"], col["y"]], axis=1), min_speed=min_speed,
-                        heading_offset=heading_offset, name=path.stem)
+                        heading_offset=heading_offset, name=path.stem, extrapolate=extrapolate)
 
 
 # --- the one registry of reference families ------------------------------------------------

@@ -301,7 +301,7 @@ def empirical_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
       :class:`EmpiricalRadius`.
     """
     check_dynamic(ctrl, params)
-    check_lemma2_args(t_final=t_final, eps=eps)
+    check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
     n_steps_for(t_final, dt)
     check_positive("r_max", r_max)
     n_grid = check_int("n_grid", n_grid, 2)

@@ -192,7 +192,7 @@ def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
       :class:`FalsifiedRadius` (radius None if nothing failed up to 16 times the first radius).
     """
     check_dynamic(ctrl, params)
-    check_lemma2_args(t_final=t_final, eps=eps)
+    check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
     n_steps = n_steps_for(t_final, dt)
     if not (isinstance(r_lo, (int, float, np.floating, np.integer)) and np.isfinite(r_lo) and r_lo >= 0):
         raise ValueError(f"r_lo must be a finite radius >= 0, got {r_lo!r}")

@@ -32,6 +32,7 @@ import numpy as np
 
 from wmrjax._validate import concrete
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
+from wmrjax.references import check_domain
 
 
 
@@ -230,12 +231,15 @@ def certificate(ts, m1, k2, eps) -> Certificate:
     return Certificate(ts, m1, k2, F, F[i], ts[i])
 
 
-def check_lemma2_args(*, t_final, eps, m1=None) -> None:
-    """ValueError for eps <= 0, horizon <= 0, or a reference reaching the singular set (M1 <= eps)."""
+def check_lemma2_args(*, t_final, eps, m1=None, reference=None) -> None:
+    """ValueError for eps <= 0, horizon <= 0, a horizon past a sampled ``reference``'s samples,
+    or a reference reaching the singular set (M1 <= eps)."""
     if not (np.isfinite(eps) and eps > 0):
         raise ValueError(f"eps must be > 0 (Lemma 2's margin), got {eps!r}")
     if not (np.isfinite(t_final) and t_final > 0):
         raise ValueError(f"the horizon must be > 0 [s], got {t_final!r}")
+    if reference is not None:
+        check_domain(reference, 0.0, float(t_final))
     if m1 is not None:
         m = np.asarray(m1)
         if not np.all(np.isfinite(m)) or np.min(m) <= eps:
@@ -299,7 +303,7 @@ def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
         raise ValueError(f"m1 must be one of {M1_METHODS}, got {m1!r}")
     if isinstance(n_t, bool) or not isinstance(n_t, (int, np.integer)) or n_t < MIN_GRID:
         raise ValueError(f"n_t must be an integer >= {MIN_GRID} (time samples on which min F is taken), got {n_t!r}")
-    check_lemma2_args(t_final=t_final, eps=eps)
+    check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
     A = ctrl.error_matrix(params.gains)
     paper_k2 = ctrl.relative_degree == 2 and params.gains.is_double_pole(1.0)
     scheduled = params.gains.time_varying

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from wmrjax import _math, linearize, robots
 from wmrjax._validate import check_finite, check_real, check_shape, concrete, is_concrete
 from wmrjax.gains import Gains, GainSchedule
-from wmrjax.references import Reference
+from wmrjax.references import Reference, check_domain
 from wmrjax.robots import Geometry, RobotType
 
 # |det K| below this is treated as singular inside the law (the division is clamped);
@@ -602,6 +602,7 @@ class LinearizingController:
         t0, t_final = float(t0), float(t_final)
         if not t_final > t0:
             raise ValueError(f"the horizon must end after it starts: t0 = {t0} s, t_final = {t_final} s")
+        check_domain(params.reference, t0, t_final)
         # a grid of half the spacing: the kink test runs on its even and its odd points, so a jump
         # in the middle of an interval of one lies on a point of the other (residual >= J h / 4)
         prof = reference_profile(self, params, t0, t_final, REFERENCE_GRID_STEP / 2)
