@@ -1,8 +1,13 @@
 """The shared command-line layer: the persistent compilation cache (in subprocesses: it is global JAX
-configuration, which the library itself never touches)."""
+configuration, which the library itself never touches), and one writer per output directory."""
 
+import json
+import os
+import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 SCRIPT = """
 import sys, jax
@@ -29,3 +34,94 @@ def test_library_import_leaves_the_cache_alone():
     out = subprocess.run([sys.executable, "-c", "import jax, wmrjax; print(jax.config.jax_compilation_cache_dir)"],
                          capture_output=True, text=True, check=True).stdout.strip()
     assert out == "None"
+
+
+# --- one writer per output directory (real concurrent processes) ------------------------------
+
+ROOT = Path(__file__).resolve().parent.parent
+HOLDER = """
+import sys, time
+from wmrjax import io
+io.acquire_output(sys.argv[1], "holder of the test")
+print("locked", flush=True)
+time.sleep(120)
+"""
+SWEEP = """
+title = "lock"
+[controller]
+law = "dynamic"
+robot = "(2,0)"
+[reference]
+family = "circle"
+[initial]
+space = "output"
+x = [-0.5, 0.5]
+[simulation]
+t_final = 1.0
+dt = 0.02
+"""
+
+
+def _env():
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("WMRJAX_OUTPUT_LOCK", None)
+    return env
+
+
+def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
+    """A live process holds --out: a sweep into it exits 2 naming that process (pid, command);
+    killed with -9, its lock is stale: the next writer names it, takes it over, and removes the
+    temporary files a killed atomic write left (in --out and below)."""
+    from wmrjax import io
+
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(tmp_path)], stdout=subprocess.PIPE, text=True,
+                              env=_env())
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        spec = tmp_path / "s.toml"
+        spec.write_text(SWEEP)
+        r = subprocess.run([sys.executable, "-m", "experiments.sweep", str(spec), "--out", str(tmp_path)],
+                           capture_output=True, text=True, env=_env(), cwd=ROOT, timeout=300)
+        assert r.returncode == 2
+        assert f"being written by another run: process {holder.pid}" in r.stderr and "holder of the test" in r.stderr
+        assert not (tmp_path / "runs.parquet").exists()
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    (tmp_path / "blocks").mkdir()
+    torn = [tmp_path / ".runs.parquet.x1.tmp", tmp_path / "blocks" / ".block_000000.npz.x2.tmp"]
+    for f in torn:
+        f.write_bytes(b"half")
+    taker = subprocess.run([sys.executable, "-c", "import sys; from wmrjax import io; print(io.acquire_output(sys.argv[1], "
+                            "'taker'))", str(tmp_path)], capture_output=True, text=True, env=_env(), timeout=120)
+    assert taker.returncode == 0, taker.stderr
+    assert f"removed the stale lock of process {holder.pid} ('holder of the test'" in taker.stderr
+    assert not any(f.exists() for f in torn)
+    assert json.loads((tmp_path / io.LOCK_NAME).read_text())["command"] == "taker"
+
+
+def test_two_sweeps_into_one_directory(tmp_path):
+    """Two different sweeps started together into one --out: one runs to the end, the other is
+    refused (exit 2) while the first holds the directory; the table is the first's alone and its
+    lock is gone afterwards. (Both used to exit 0 with rows of one under the other's labels.)"""
+    from wmrjax import io
+
+    out = tmp_path / "out"
+    specs = []
+    for poles in (1.0, 2.0):
+        specs.append(tmp_path / f"s{poles}.toml")
+        specs[-1].write_text(SWEEP + f"[gains]\npoles = {poles}\n")
+    cmd = [sys.executable, "-m", "experiments.sweep", "--out", str(out), "--no-compile-cache"]
+    first = subprocess.Popen(cmd + [str(specs[0])], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             env=_env(), cwd=ROOT)
+    for _ in range(600):
+        if (out / io.LOCK_NAME).exists():
+            break
+        time.sleep(0.1)
+    second = subprocess.run(cmd + [str(specs[1])], capture_output=True, text=True, env=_env(), cwd=ROOT, timeout=300)
+    _, err = first.communicate(timeout=600)
+    assert first.returncode == 0, err[-2000:]
+    assert second.returncode == 2 and f"process {first.pid}" in second.stderr
+    s = json.loads((out / "summary.json").read_text())
+    assert s["problem"]["gains"]["poles"] == 1.0
+    assert not (out / io.LOCK_NAME).exists()

@@ -168,8 +168,16 @@ def check_horizon(p, *, t_final: float, dt: float, batch: int = 1, n_state: int 
     return n
 
 
-def prepare_output(p, out: Path) -> Path:
-    """Create ``out`` and prove it writable (write and delete a probe file) before any work; exits if not."""
+def prepare_output(p, out: Path, lock: bool = True) -> Path:
+    """Create ``out``, prove it writable (write and delete a probe file) and, with ``lock``, make
+    this process its one writer until it exits (:func:`wmrjax.io.acquire_output`: a second run
+    into the same directory is refused, naming the first; temporary files of a killed write are
+    removed); exits with a usage error if any of this fails. The lock's token is
+    ``os.environ[wmrjax.io.LOCK_ENV]`` afterwards, for worker processes."""
+    import atexit
+
+    from wmrjax import io
+
     out = Path(out)
     if out.exists() and not out.is_dir():
         fail(p, f"--out {out} exists and is not a directory")
@@ -180,6 +188,14 @@ def prepare_output(p, out: Path) -> Path:
         probe.unlink()
     except OSError as exc:
         fail(p, f"--out {out} is not a writable directory ({exc.strerror or exc})")
+    if lock:
+        try:
+            token = io.acquire_output(out, " ".join([Path(sys.argv[0]).name] + sys.argv[1:]))
+        except io.OutputLocked as exc:
+            fail(p, str(exc))
+        if token is not None:
+            os.environ[io.LOCK_ENV] = token
+            atexit.register(io.release_output, out, token)
     return out
 
 

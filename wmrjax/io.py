@@ -215,3 +215,123 @@ def write_parquet(path, batches) -> Path:
                 writer.close()
 
     return atomic_write(path, write)
+
+
+# --- one writer per output directory ---------------------------------------------------------
+
+LOCK_NAME = ".wmrjax-writer.lock"
+# a process given this variable (a sweep's --processes workers) writes under its parent's lock
+LOCK_ENV = "WMRJAX_OUTPUT_LOCK"
+
+
+class OutputLocked(ValueError):
+    """Another live process is writing to the output directory."""
+
+
+def _process_start(pid: int) -> str | None:
+    """The start time of process ``pid`` in clock ticks since boot (Linux), None if unknown or dead.
+    With the pid it identifies a process: a reused pid has another start time."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            stat = fh.read().decode(errors="replace")
+        return stat[stat.rindex(")") + 2:].split()[19]          # field 22, after the command name
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _alive(owner: dict) -> bool:
+    """Whether the lock's owner is a live process on this host."""
+    import socket
+
+    if owner.get("host") != socket.gethostname():
+        return True                         # another host's process: cannot tell, assume alive
+    pid = owner.get("pid")
+    if not isinstance(pid, int) or isinstance(pid, bool) or pid <= 0:
+        return False
+    start = _process_start(pid)
+    if start is not None:
+        return start == owner.get("start")
+    try:                                    # no /proc: is the pid in use at all?
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True
+    return True
+
+
+def _read_owner(path: Path) -> dict:
+    try:
+        d = json.loads(path.read_text())
+        return d if isinstance(d, dict) else {}
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return {}
+
+
+def acquire_output(out, command: str) -> str | None:
+    """Make this process the one writer of directory ``out``; returns the lock's token (for
+    :func:`release_output`, and :data:`LOCK_ENV` of workers), None for a worker of its owner.
+
+    The lock is a file created exclusively (``O_EXCL``) in ``out`` holding the owner's host,
+    process id, process start time and command. A lock whose owner is dead (on this host) is
+    stale: it is named on stderr and taken over. A process whose environment carries
+    :data:`LOCK_ENV` equal to the lock's token writes under it (a parent's workers). Once the
+    lock is held, temporary files a killed atomic write left in ``out`` are removed.
+
+    Raises:
+      OutputLocked: a live process (named) holds the lock.
+    """
+    import socket
+    import sys
+    import time
+    import uuid
+
+    out = Path(out)
+    path = out / LOCK_NAME
+    token = uuid.uuid4().hex
+    me = {"host": socket.gethostname(), "pid": os.getpid(), "start": _process_start(os.getpid()),
+          "command": command, "since": time.strftime("%Y-%m-%d %H:%M:%S"), "token": token}
+    for _ in range(100):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            owner = _read_owner(path)
+            if owner.get("token") and owner.get("token") == os.environ.get(LOCK_ENV):
+                return None                              # a worker of the lock's owner
+            if not owner and time.time() - path.stat().st_mtime < 5.0:
+                time.sleep(0.05)                         # being written this instant
+                continue
+            if owner and _alive(owner):
+                raise OutputLocked(
+                    f"{out} is being written by another run: process {owner.get('pid')} on {owner.get('host')} "
+                    f"({owner.get('command')!r}, since {owner.get('since')}); wait for it to finish, or choose "
+                    f"another output directory (if that process is gone, delete {path})") from None
+            stale = path.with_name(f"{LOCK_NAME}.stale-{token}")
+            try:                                         # one taker renames it; the others retry
+                os.rename(path, stale)
+            except FileNotFoundError:
+                continue
+            os.unlink(stale)
+            print(f"{out}: removed the stale lock of process {owner.get('pid')} ({owner.get('command')!r}, "
+                  f"since {owner.get('since')}), which is no longer running", file=sys.stderr)
+            continue
+        with os.fdopen(fd, "w") as fh:
+            json.dump(me, fh)
+        _remove_torn_writes(out)
+        return token
+    raise OutputLocked(f"could not take the lock {path}: it changed hands 100 times")
+
+
+def release_output(out, token: str | None) -> None:
+    """Remove the lock of ``out`` if ``token`` holds it (a no-op for None)."""
+    path = Path(out) / LOCK_NAME
+    if token is not None and _read_owner(path).get("token") == token:
+        path.unlink(missing_ok=True)
+
+
+def _remove_torn_writes(out: Path) -> None:
+    """Delete the temporary files of killed atomic writes (``.NAME.*.tmp``, see :func:`atomic_write`)
+    in ``out`` and its subdirectories: only the lock holder writes there."""
+    for tmp in out.rglob(".*.tmp"):
+        if tmp.is_file():
+            tmp.unlink(missing_ok=True)

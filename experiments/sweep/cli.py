@@ -60,7 +60,9 @@ def main(argv=None) -> int:
     devices = a.devices or max(1, (os.cpu_count() or 1) // n_proc)
     flag = f"--xla_force_host_platform_device_count={devices}"
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()   # before JAX starts
-    cli.prepare_output(p, a.out)
+    # one writer per --out: the launching process (its workers inherit the lock's token), or
+    # process 0 of a run over several hosts
+    cli.prepare_output(p, a.out, lock=not distributed or a.process_id == 0)
     if a.processes > 1:
         return _launch(p, a, devices)
     return _run(p, a, a.process_id or 0, a.num_processes or 1)
