@@ -131,6 +131,39 @@ def test_killed_sweep_resumes_to_the_same_table(tiny, cache, tmp_path, monkeypat
         sweep_cli.main([str(other), "--out", str(tmp_path), "--no-compile-cache"])
 
 
+def test_foreign_and_torn_blocks_are_named_and_recomputed(tiny, cache, tmp_path, capsys):
+    """A block file of another sweep (its fingerprint rewritten), one moved to another place,
+    and a truncated one are each named and recomputed, giving the same table; assembling them
+    directly is refused. Before: a foreign block was assembled silently (its rows under this
+    sweep's labels) and a truncated one raised a raw zipfile.BadZipFile naming no block."""
+    import shutil
+
+    spec, out = tiny
+    shutil.copytree(out, tmp_path / "o", ignore=shutil.ignore_patterns(".wmrjax-*"))
+    o = tmp_path / "o"
+    plan = S.load(spec)
+    with np.load(sweep_run.block_path(o, 0)) as f:
+        d = dict(f)
+    np.savez(sweep_run.block_path(o, 0), **{**d, "fingerprint": np.str_("0123456789abcdef")})
+    shutil.copy(sweep_run.block_path(o, 3), sweep_run.block_path(o, 1))            # block 3's rows as block 1
+    data = sweep_run.block_path(o, 2).read_bytes()
+    sweep_run.block_path(o, 2).write_bytes(data[: len(data) // 2])                # a torn write
+    with pytest.raises(ValueError, match="block_000000.npz belongs to another sweep"):
+        sweep_run.assemble(plan, o)
+    assert sweep_cli.main([str(spec), "--out", str(o), "--compile-cache", cache]) == 0
+    err = capsys.readouterr().err
+    assert "block_000000.npz belongs to another sweep" in err
+    assert "block_000001.npz holds block 3" in err and "block_000002.npz is torn" in err
+    assert pq.read_table(o / "runs.parquet").equals(pq.read_table(out / "runs.parquet"))
+    s = json.loads((o / "summary.json").read_text())
+    assert s["execution"]["runs_computed"] == 12          # the three bad blocks of 4 runs each
+    (o / sweep_run.STATE_FILE).write_text("{not json")
+    with pytest.raises(SystemExit):                       # corrupt state: refused, naming the way out
+        sweep_cli.main([str(spec), "--out", str(o), "--compile-cache", cache])
+    assert "sweep_state.json is not valid JSON" in capsys.readouterr().err
+    assert sweep_cli.main([str(spec), "--out", str(o), "--compile-cache", cache, "--fresh"]) == 0
+
+
 def test_two_processes_give_the_same_table(tiny, cache, tmp_path):
     spec, out = tiny
     env = dict(os.environ, PYTHONPATH=str(ROOT))

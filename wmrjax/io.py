@@ -275,7 +275,8 @@ def acquire_output(out, command: str) -> str | None:
     The lock is a file created exclusively (``O_EXCL``) in ``out`` holding the owner's host,
     process id, process start time and command. A lock whose owner is dead (on this host) is
     stale: it is named on stderr and taken over. A process whose environment carries
-    :data:`LOCK_ENV` equal to the lock's token writes under it (a parent's workers). Once the
+    :data:`LOCK_ENV` equal to the lock's token writes under it (a parent's workers), and so does
+    the owner itself (a command run again in the same process). Once the
     lock is held, temporary files a killed atomic write left in ``out`` are removed.
 
     Raises:
@@ -298,6 +299,8 @@ def acquire_output(out, command: str) -> str | None:
             owner = _read_owner(path)
             if owner.get("token") and owner.get("token") == os.environ.get(LOCK_ENV):
                 return None                              # a worker of the lock's owner
+            if owner.get("pid") == me["pid"] and owner.get("host") == me["host"] and owner.get("start") == me["start"]:
+                return None                              # this process holds it already (a command run again in-process)
             if not owner and time.time() - path.stat().st_mtime < 5.0:
                 time.sleep(0.05)                         # being written this instant
                 continue

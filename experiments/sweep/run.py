@@ -149,6 +149,50 @@ def block_path(out: Path, b: int) -> Path:
     return out / "blocks" / f"block_{b:06d}.npz"
 
 
+# every block file carries the sweep's fingerprint and its own place in the plan, so that a
+# block of another sweep (copied, or left by a concurrent writer) is never assembled as this one's
+BLOCK_KEYS = ("fingerprint", "block", "start", "n")
+
+
+def block_problem(plan: S.Plan, out: Path, b: int) -> str | None:
+    """Why block ``b``'s file cannot be used (None: it can, or it does not exist yet): torn
+    (not a readable ``.npz``), of another sweep, of another place in the plan, or lacking a
+    result column."""
+    import zipfile
+
+    path = block_path(out, b)
+    if not path.exists():
+        return None
+    _, start, n = plan.blocks()[b]
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            keys = set(f.files)
+            if not set(BLOCK_KEYS) <= keys:
+                return f"{path} carries no sweep fingerprint (a block of an older version or another program)"
+            if str(f["fingerprint"]) != plan.fingerprint:
+                return f"{path} belongs to another sweep (fingerprint {f['fingerprint']}, this one {plan.fingerprint})"
+            if (int(f["block"]), int(f["start"]), int(f["n"])) != (b, start, n):
+                return (f"{path} holds block {int(f['block'])} (runs {int(f['start'])}+{int(f['n'])}), "
+                        f"expected block {b} (runs {start}+{n})")
+            bad = [c for c in RESULT_COLUMNS if c not in keys or f[c].shape != (n,)]
+            if bad:
+                return f"{path} lacks result columns or has wrong lengths: {bad}"
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        return f"{path} is torn or not an .npz file ({type(exc).__name__}: {exc})"
+    return None
+
+
+def block_done(plan: S.Plan, out: Path, b: int, log=None) -> bool:
+    """Whether block ``b`` is on disk and usable; an unusable file is named (``log``), removed
+    and so recomputed."""
+    why = block_problem(plan, out, b)
+    if why is not None:
+        (log or (lambda m: print(m, file=sys.stderr, flush=True)))(f"recomputing: {why}")
+        block_path(out, b).unlink()
+        return False
+    return block_path(out, b).exists()
+
+
 def read_state(out: Path):
     p = out / STATE_FILE
     if not p.exists():
@@ -167,7 +211,7 @@ def prepare(plan: S.Plan, out: Path, fresh: bool) -> int:
     """
     from wmrjax import io
 
-    state = read_state(out)
+    state = None if fresh else read_state(out)      # --fresh discards even a corrupt state file
     blocks = plan.blocks()
     want = {"fingerprint": plan.fingerprint, "n_runs": plan.n_runs, "n_blocks": len(blocks), "block": plan.block}
     if fresh or state is None or state.get("fingerprint") != plan.fingerprint:
@@ -194,7 +238,7 @@ def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int 
     D = len(devices)
     blocks = plan.blocks()
     mine = [b for b in range(len(blocks)) if b % num_processes == process_id]
-    todo = [b for b in mine if not block_path(out, b).exists()]
+    todo = [b for b in mine if not block_done(plan, out, b)]
     done_runs = sum(blocks[b][2] for b in set(mine) - set(todo))
     prog = Progress(sum(blocks[b][2] for b in mine), len(mine), done_runs, len(mine) - len(todo),
                     prefix=f"[process {process_id}] " if num_processes > 1 else "")
@@ -217,7 +261,8 @@ def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int 
             for b, res in zip(ids, pending):
                 _, start, n = blocks[b]
                 res = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], res)
-                io.write_npz(block_path(out, b), **{c: res[c] for c in RESULT_COLUMNS})
+                io.write_npz(block_path(out, b), fingerprint=np.str_(plan.fingerprint), block=b, start=start, n=n,
+                             **{c: res[c] for c in RESULT_COLUMNS})
                 n_run += n
             dt_ = time.perf_counter() - t
             if k == 0:              # the group's first call compiles
@@ -239,6 +284,10 @@ def assemble(plan: S.Plan, out: Path):
     missing = [b for b in range(len(blocks)) if not block_path(out, b).exists()]
     if missing:
         raise RuntimeError(f"{len(missing)} blocks are missing (first: {missing[0]}); rerun the sweep to finish them")
+    bad = [why for why in (block_problem(plan, out, b) for b in range(len(blocks))) if why is not None]
+    if bad:     # changed since compute() checked them: refuse rather than mix another sweep's rows in
+        raise ValueError(f"{len(bad)} block files cannot be used (first: {bad[0]}); rerun the same sweep command: "
+                         "it recomputes them")
     names = value_columns(plan)
     # label columns (a gains file's name): null where a group has none, numbers NaN
     labels = {k for g in plan.groups for a in g.axes for k, v in a.columns.items() if np.asarray(v).dtype.kind in "US"}
