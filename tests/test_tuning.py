@@ -151,6 +151,33 @@ def test_checkpoint_of_another_configuration_is_refused(tmp_path, tiny):
         run_tiny(setting, out=tmp_path, steps=7)
 
 
+@pytest.mark.parametrize("edit, match", [
+    (lambda d: d.update(step=True), "integer 'step' >= 0"),                        # was taken as step 1
+    (lambda d: d["state"].update(history=d["state"]["history"][:1]), "state 'history'"),   # a short history
+    (lambda d: d["state"].update(stopped_early="no"), "state 'stopped_early' is 'no', expected true or false"),
+    (lambda d: d["state"].update(rollouts="6"), "state 'rollouts'"),
+    (lambda d: d["state"].update(best_raw=[1.0]), "state 'best_raw'"),
+])
+def test_edited_checkpoint_is_refused_by_name(tmp_path, tiny, edit, match):
+    """Hand-edited checkpoints that are valid JSON were accepted ("step": true as step 1, a
+    short history, stopped_early = "no" as true); each is now refused, naming the field."""
+    setting, _, _ = tiny
+    run_tiny(setting, out=tmp_path, stop_after=2)
+    path = tmp_path / "checkpoint.json"
+    d = json.loads(path.read_text())
+    edit(d)
+    path.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match=match):
+        run_tiny(setting, out=tmp_path)
+
+
+def test_checkpoint_that_is_a_directory_is_refused(tmp_path, tiny):
+    setting, _, _ = tiny
+    (tmp_path / "checkpoint.json").mkdir()
+    with pytest.raises(ValueError, match="not a regular file"):
+        run_tiny(setting, out=tmp_path)
+
+
 def test_converges_to_analytic_optimum():
     """(3,0) at velocity level, no noise/mismatch/limits, loss = tracking + w effort on a line
     reference: with a ZOH period dt the error obeys e_{k+1} = (1 - lam dt) e_k, so the loss is

@@ -258,7 +258,42 @@ def load_checkpoint(path: Path, fp: str, steps: int, raw_template, opt_state_tem
         raise ValueError(f"checkpoint {path} lacks {missing} in its state (an edited or partial checkpoint)")
     if not 0 <= ck.step <= steps:
         raise ValueError(f"checkpoint {path} is at step {ck.step}, outside [0, {steps}]")
+    _check_state(path, ck.step, ck.state, int(np.size(raw_template)))
     return ck.step, ck.trees["raw"], ck.trees["opt_state"], ck.state
+
+
+def _is_count(v) -> bool:
+    return type(v) is int and v >= 0
+
+
+def _is_number(v) -> bool:
+    return type(v) in (int, float)          # not bool; a loss may be inf
+
+
+def _check_state(path: Path, step: int, state: dict, n_params: int) -> None:
+    """ValueError naming the first field of a checkpoint's state that a run could not have
+    written: a history of another length than ``step``, a non-boolean ``stopped_early``, ..."""
+    hist, best_raw = state["history"], state["best_raw"]
+    checks = [
+        ("history", lambda: isinstance(hist, list) and len(hist) == step
+         and all(isinstance(h, dict) and _is_number(h.get("train_loss")) for h in hist),
+         f"a list of {step} step records (one per step done)"),
+        ("best", lambda: state["best"] is None or _is_number(state["best"]), "null or a number"),
+        ("best_raw", lambda: (best_raw is None) == (state["best"] is None) and (best_raw is None or (
+            isinstance(best_raw, list) and len(best_raw) == n_params and all(_is_number(v) for v in best_raw))),
+         f"{n_params} numbers (null only with 'best' null)"),
+        ("since_best", lambda: _is_count(state["since_best"]), "an integer >= 0"),
+        ("rollouts", lambda: _is_count(state["rollouts"]), "an integer >= 0"),
+        ("excluded", lambda: _is_count(state["excluded"]) and state["excluded"] <= state["rollouts"],
+         "an integer between 0 and rollouts"),
+        ("wall_time_s", lambda: _is_number(state["wall_time_s"]) and np.isfinite(state["wall_time_s"])
+         and state["wall_time_s"] >= 0, "seconds >= 0"),
+        ("stopped_early", lambda: type(state["stopped_early"]) is bool, "true or false"),
+    ]
+    for key, ok, expected in checks:      # in order: a later check may rely on an earlier one
+        if not ok():
+            raise ValueError(f"checkpoint {path}: state '{key}' is {state[key]!r:.80}, expected {expected} "
+                             "(an edited or corrupt checkpoint); delete it or rerun with --fresh")
 
 
 # --- the loop --------------------------------------------------------------------------------------

@@ -124,6 +124,8 @@ def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) ->
     import jax.numpy as jnp
 
     path = Path(path)
+    if path.exists() and not path.is_file():
+        raise ValueError(f"checkpoint {path} is not a regular file; remove it (or start fresh)")
     try:
         d = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -163,8 +165,10 @@ def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) ->
                                  f"{np.shape(t)} (a truncated or edited checkpoint)")
             leaves.append(jnp.asarray(a))
         trees[name] = jax.tree_util.tree_unflatten(treedef, leaves)
-    if not isinstance(d.get("step"), int) or not isinstance(d.get("state"), dict):
-        raise ValueError(f"checkpoint {path} lacks an integer 'step' or a 'state' object")
+    # bool is an int in Python: "step": true would be taken as step 1
+    if type(d.get("step")) is not int or d["step"] < 0 or not isinstance(d.get("state"), dict):
+        raise ValueError(f"checkpoint {path} lacks an integer 'step' >= 0 or a 'state' object (got step "
+                         f"{d.get('step')!r}); an edited or corrupt checkpoint: delete it (or start fresh)")
     return Checkpoint(d["step"], trees, d["state"])
 
 
