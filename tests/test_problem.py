@@ -71,9 +71,26 @@ def test_gains_in_every_form_and_files_of_another_controller(tmp_path):
     np.testing.assert_array_equal(coeffs["coefficients"], coeffs["damping"])
     np.testing.assert_array_equal(coeffs["file"], coeffs["damping"])
     assert read_gains_file(tmp_path / "tuned.json").robot == "(2,0)"
-    with pytest.raises(ProblemError, match="gains tuned for type \\(2,0\\) at torque level, this controller is type "
+    with pytest.raises(ProblemError, match="gains tuned for type \\(2,0\\) at torque level \\(dynamic law\\), this controller is type "
                                            "\\(2,0\\) at velocity level"):
         Problem.from_dict({**BASE, "gains": {"file": "torque.json"}}, base=tmp_path)
+    # the same shape, another robot: (1,1) at velocity level has gains of (2,0)'s shape
+    same_shape = gains_file_dict(tuned, w.dynamic_linearization("(1,1)", "velocity"))
+    (tmp_path / "t11.json").write_text(json.dumps(same_shape))
+    with pytest.raises(ProblemError, match="gains tuned for type \\(1,1\\) at velocity level \\(dynamic law\\), "
+                                           "this controller is type \\(2,0\\)"):
+        Problem.from_dict({**BASE, "gains": {"file": "t11.json"}}, base=tmp_path)
+    # a tuning summary says whose gains they are in its resolved problem (it was not read: accepted)
+    summary = {"problem": {"controller": {"law": "dynamic", "robot": "(1,1)", "level": "velocity"}},
+               "tuned_gains": {"coefficients_k0_to_kr-1": np.asarray(tuned.coeffs).tolist()}}
+    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(ProblemError, match="gains tuned for type \\(1,1\\)"):
+        Problem.from_dict({**BASE, "gains": {"file": "summary.json"}}, base=tmp_path)
+    (tmp_path / "anon.json").write_text(json.dumps({k: v for k, v in same_shape.items() if k not in ("robot", "level")}))
+    with pytest.raises(ProblemError, match="does not say which robot type and level"):
+        Problem.from_dict({**BASE, "gains": {"file": "anon.json"}}, base=tmp_path)
+    with pytest.raises(ProblemError, match="not a regular file"):
+        Problem.from_dict({**BASE, "gains": {"file": "/dev/zero"}}, base=tmp_path)
     with pytest.raises(ProblemError, match="a file listed twice"):
         Problem.from_dict({**BASE, "gains": {"file": ["tuned.json", "tuned.json"]}}, base=tmp_path)
     with pytest.raises(ProblemError, match=r"\[gains\] file: expected a path, or a list of paths"):

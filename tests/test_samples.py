@@ -114,6 +114,15 @@ def test_waypoints_and_csv(tmp_path):
     (tmp_path / "bad.csv").write_text("time,x,y\n0,0,0\n")
     with pytest.raises(ValueError, match=r"missing column\(s\) \['t'\]"):
         R.load_samples(tmp_path / "bad.csv")
+    # a duplicated column used the last one; a device was read without bound; a BOM was refused
+    (tmp_path / "dup.csv").write_text("t,x,y,x\n0,0,0,5\n1,1,0,6\n")
+    with pytest.raises(ValueError, match=r"column\(s\) \['x'\] appear more than once"):
+        R.load_samples(tmp_path / "dup.csv")
+    with pytest.raises(ValueError, match="'/dev/zero': not a regular file"):
+        R.load_samples("/dev/zero")
+    (tmp_path / "bom.csv").write_bytes("\ufeff# a plan\nt,x,y,vx\n".encode() + path.read_bytes().split(b"vx\n", 1)[1])
+    np.testing.assert_allclose(np.asarray(R.load_samples(tmp_path / "bom.csv").position(jnp.asarray(1.234))),
+                               np.asarray(loaded.position(jnp.asarray(1.234))), rtol=0, atol=0)
 
 
 def _lane_change(t, params):

@@ -63,13 +63,13 @@ from typing import Any
 import jax
 import numpy as np
 
+from wmrjax import io
+
 SECTIONS = ("title", "controller", "geometry", "plant", "reference", "initial", "gains", "simulation", "classify",
             "case", "tune", "certify")
 CASE_SECTIONS = ("controller", "geometry", "plant", "reference", "initial", "gains")
 GEOMETRY_KEYS = ("L", "e", "delta")
 GAIN_FILE_KIND = "wmrjax.gains"
-# a gains or samples file larger than this is not a gains or samples file
-MAX_FILE_BYTES = 64 * 2**20
 
 
 class Law(enum.StrEnum):
@@ -206,17 +206,11 @@ def product(named: dict) -> dict:
 
 
 def read_text(path: Path, what: str) -> str:
-    """A small UTF-8 text file (a spreadsheet's byte-order mark dropped); ProblemError naming it otherwise."""
+    """A small UTF-8 text file (:func:`wmrjax.io.read_small_text`); ProblemError naming it otherwise."""
     try:
-        if not path.is_file():
-            raise ProblemError(f"{what} {str(path)!r}: not a regular file (missing, or a directory or device)")
-        if path.stat().st_size > MAX_FILE_BYTES:
-            raise ProblemError(f"{what} {str(path)!r}: {path.stat().st_size} bytes, more than {MAX_FILE_BYTES}")
-        return path.read_bytes().decode("utf-8-sig")
-    except OSError as err:
-        raise ProblemError(f"cannot read {what} {str(path)!r}: {err.strerror}") from None
-    except UnicodeDecodeError as err:
-        raise ProblemError(f"{what} {str(path)!r} is not UTF-8 text ({err.reason} at byte {err.start})") from None
+        return io.read_small_text(path, what)
+    except ValueError as err:
+        raise ProblemError(str(err)) from None
 
 
 # --- the problem -------------------------------------------------------------------------------
@@ -965,25 +959,11 @@ def _data_reference(fam, rs, base, law):
 
 
 def _read_csv(path: Path, cols: tuple) -> dict:
-    """The named columns of a CSV file with a header line (``#`` starts a comment)."""
-    text = read_text(path, "[reference] file")
-    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    if not lines:
-        raise ProblemError(f"{path}: no header line; expected a CSV file with columns {', '.join(cols)}")
-    header = [h.strip() for h in lines[0].split(",")]
-    dup = sorted({h for h in header if header.count(h) > 1})
-    if dup:
-        raise ProblemError(f"{path}: column(s) {dup} appear more than once in the header {header}")
-    missing = [c for c in cols if c not in header]
-    if missing:
-        raise ProblemError(f"{path}: missing column(s) {missing}; the header must name {', '.join(cols)} (got {header})")
+    """The named columns of a CSV file with a header line (:func:`wmrjax.io.read_csv_columns`)."""
     try:
-        rows = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]], float)
+        return io.read_csv_columns(path, cols, "[reference] file")
     except ValueError as err:
-        raise ProblemError(f"{path}: a value is not a number ({err})") from None
-    if rows.ndim != 2 or rows.shape[0] == 0 or rows.shape[1] != len(header):
-        raise ProblemError(f"{path}: every row needs {len(header)} values like the header")
-    return {c: rows[:, header.index(c)] for c in cols}
+        raise ProblemError(str(err)) from None
 
 
 def _default_offset(law, kind):
@@ -1148,17 +1128,27 @@ def read_gains_file(path: Path, ctrl=None) -> GainsFile:
         robot, level, law = data.get("robot"), data.get("level"), data.get("law")
     elif isinstance(data.get("tuned_gains"), dict) and "coefficients_k0_to_kr-1" in data["tuned_gains"]:
         body = {"coefficients": data["tuned_gains"]["coefficients_k0_to_kr-1"]}
-        cfg = data.get("config") if isinstance(data.get("config"), dict) else {}
-        robot, level, law = cfg.get("robot"), cfg.get("level"), None
+        # where the summary says what it tuned: its resolved problem (older summaries: config)
+        prob = data.get("problem") if isinstance(data.get("problem"), dict) else {}
+        cfg = prob.get("controller") if isinstance(prob.get("controller"), dict) else (
+            data.get("config") if isinstance(data.get("config"), dict) else {})
+        robot, level, law = cfg.get("robot"), cfg.get("level"), cfg.get("law")
     else:
         raise ProblemError(f"{where}: neither a gains file (kind = \"{GAIN_FILE_KIND}\") nor a tuning summary "
                            "(tuned_gains.coefficients_k0_to_kr-1)")
     if len(body) != 1:
         raise ProblemError(f"{where}: needs one of coefficients or schedule")
-    if ctrl is not None and ((robot is not None and robot != ctrl.robot.name)
-                             or (level is not None and level != str(ctrl.level))):
-        raise ProblemError(f"{where}: gains tuned for type {robot} at {level} level, this controller is type "
-                           f"{ctrl.robot.name} at {ctrl.level} level")
+    if ctrl is not None:
+        # gains of the same shape fit other types and levels (e.g. (2,0) and (1,1) at velocity
+        # level); on another robot they are not the tuned gains, so the file must say whose they are
+        if not (isinstance(robot, str) and isinstance(level, str)):
+            raise ProblemError(f"{where}: does not say which robot type and level the gains were tuned for "
+                               f"(keys robot and level, e.g. robot = \"{ctrl.robot.name}\", level = \"{ctrl.level}\")")
+        law_here = "dynamic" if ctrl.law.extension.n_comp else "static"
+        if robot != ctrl.robot.name or level != str(ctrl.level) or (isinstance(law, str) and law != law_here):
+            raise ProblemError(f"{where}: gains tuned for type {robot} at {level} level"
+                               + (f" ({law} law)" if isinstance(law, str) else "")
+                               + f", this controller is type {ctrl.robot.name} at {ctrl.level} level ({law_here} law)")
     try:
         if "schedule" in body:
             sch = body["schedule"]

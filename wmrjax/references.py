@@ -465,29 +465,16 @@ def load_samples(path, *, min_speed: float | None = None, heading_offset=0.0, ex
     (other columns ignored; ``#`` starts a comment; ``extrapolate`` as there).
 
     Raises:
-      ValueError: an unreadable file, missing columns, or what :func:`from_samples` refuses.
+      ValueError: what :func:`wmrjax.io.read_csv_columns` refuses (not a regular file, over
+        64 MiB, not UTF-8, a column named twice, missing columns, ...), or what
+        :func:`from_samples` refuses.
     """
     from pathlib import Path
 
+    from wmrjax import io
+
     path = Path(path)
-    try:
-        with open(path) as fh:
-            lines = [ln for ln in fh if ln.strip() and not ln.lstrip().startswith("#")]
-    except OSError as err:
-        raise ValueError(f"cannot read reference samples {str(path)!r}: {err.strerror}") from None
-    if not lines:
-        raise ValueError(f"{path}: no header line; expected a CSV file with columns t, x, y")
-    header = [h.strip() for h in lines[0].split(",")]
-    missing = [c for c in ("t", "x", "y") if c not in header]
-    if missing:
-        raise ValueError(f"{path}: missing column(s) {missing}; the header must name t, x, y (got {header})")
-    try:
-        rows = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]], float)
-    except ValueError as err:
-        raise ValueError(f"{path}: a value is not a number ({err})") from None
-    if rows.ndim != 2 or rows.shape[0] == 0 or rows.shape[1] != len(header):
-        raise ValueError(f"{path}: every row needs {len(header)} values like the header")
-    col = {h: rows[:, i] for i, h in enumerate(header)}
+    col = io.read_csv_columns(path, ("t", "x", "y"), "reference samples")
     return from_samples(col["t"], np.stack([col["x"], col["y"]], axis=1), min_speed=min_speed,
                         heading_offset=heading_offset, name=path.stem, extrapolate=extrapolate)
 
