@@ -83,7 +83,7 @@ def _api_cases():
                     ("empty", lambda z: ()), ("scalar", lambda z: z[0])):
         add(f"simulate-z0-{name}", lambda c, p, zz, f=z: sim(c, p, zz, z0=f(zz)), "z0 must be")
     add("simulate-unstable-dt", lambda c, p, z: sim(c, p, z, dt=3.0), "outside RK4's stability region")
-    add("simulate-memory", lambda c, p, z: sim(c, p, z, dt=1e-10, n_steps=10**11), "more than this machine's")
+    add("simulate-memory", lambda c, p, z: sim(c, p, z, dt=1e-10, n_steps=10**11), "of memory available now")
     add("simulate-other-controller-params",
         lambda c, p, z: sim(c, p, z, params=w.dynamic_linearization("(1,1)").params(
             R.circle(), poles=1.0, geometry=w.Geometry(L=1.0, e=0.3))), r"coeffs must have shape \(2, 2\)")
@@ -266,13 +266,13 @@ def _option_cases():
 CROSS_CASES = [   # (cli, argv, what the message must say)
     ("section_6_1", ["--dt", "20"], "longer than the horizon"),
     ("section_6_1", ["--dt", "0.03"], "not a whole number of steps"),
-    ("section_6_1", ["--dt", "1e-9"], "GB of samples"),
+    ("section_6_1", ["--dt", "1e-9"], "GB of memory available now"),
     ("section_6_2", ["--t-final", "5"], "must exceed 10 s"),
-    ("section_6_2", ["--dt", "1e-9"], "GB of samples"),
+    ("section_6_2", ["--dt", "1e-9"], "GB of memory available now"),
     ("posture_tracking", ["--types", "(9,9)"], "argument --types: unknown robot type"),
     ("posture_tracking", ["--types", "(3,0)"], "not among"),
     ("posture_tracking", ["--t-final", "inf"], "argument --t-final: must be finite"),
-    ("static_tracking", ["--dt", "1e-9"], "GB of samples"),
+    ("static_tracking", ["--dt", "1e-9"], "GB of memory available now"),
     ("certify", ["--dt", "20"], "not a whole number of steps dt = 20.0 s"),
     ("certify", ["--robot", "(3,0)"], "no dynamic linearizing law (Table 4) for type(s) ['(3,0)']"),
     ("certify", ["--robot", "(7,7)"], "unknown robot type"),

@@ -129,7 +129,7 @@ def test_simulation_scalars_are_checked(paper61):
             w.simulate(ctrl, z0, params, **({"dt": 0.01, "n_steps": 10} | kw))
     with pytest.raises(ValueError, match="z0 must be real, got a complex state"):
         w.simulate(ctrl, z0.astype(jnp.complex128), params, dt=0.01, n_steps=10)
-    with pytest.raises(ValueError, match=r"n_steps = 100000000000 .* GB, more than this machine's"):
+    with pytest.raises(ValueError, match=r"n_steps = 100000000000 .* needs about .* GB .* of memory available now"):
         w.simulate(ctrl, z0, params, dt=1e-10, n_steps=10**11)
 
 

@@ -298,6 +298,17 @@ def _check_state(path: Path, step: int, state: dict, n_params: int) -> None:
 
 # --- the loop --------------------------------------------------------------------------------------
 
+def check_memory(setting, scenarios: Scenarios) -> None:
+    """ValueError before anything compiles when a gradient step over ``scenarios.train`` runs
+    (reverse mode through every step) would not fit in memory (:mod:`wmrjax.resources`)."""
+    from wmrjax import resources
+
+    n_state = int(getattr(setting.system(), "n_state", None) or setting.ctrl.n_state)
+    est = resources.Estimate(resources.gradient_bytes(scenarios.train, setting.n_steps, n_state), 0.0)
+    resources.check_fits(est, f"a gradient step over {scenarios.train} training scenarios of {setting.n_steps} steps",
+                         "lower the training scenarios (--n-train) or the horizon, or raise dt")
+
+
 def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, steps: int,
          scenarios: Scenarios = Scenarios(), loss: LossWeights = LossWeights(), stopping: Stopping = Stopping(),
          seed: int = 0, out_dir=None, run_id: str = "", log: Callable = print, stop_after: int | None = None,
@@ -329,6 +340,7 @@ def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, 
     Returns:
       :class:`TuneResult`.
     """
+    check_memory(setting, scenarios)
     ctx = prepare(setting, family, scenarios, loss, seed)
     cert_vg = (jax.jit(jax.value_and_grad(lambda r: certificate_term(family, r, ctx.certificate)))
                if ctx.certificate is not None else None)

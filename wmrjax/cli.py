@@ -20,7 +20,7 @@ import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
-from wmrjax._validate import memory_bytes
+from wmrjax import resources
 
 # --- argument types ------------------------------------------------------------------------------
 
@@ -153,18 +153,19 @@ def check_horizon(p, *, t_final: float, dt: float, batch: int = 1, n_state: int 
                   t_name: str = "--t-final", dt_name: str = "--dt") -> int:
     """Steps of a run of ``t_final`` in steps of ``dt``; exits if the step exceeds the horizon,
     the horizon is not a whole number of steps (to 1e-6), or the saved samples of ``batch``
-    runs would not fit in this machine's memory."""
+    runs would not fit in the memory available now (:mod:`wmrjax.resources`)."""
     if dt > t_final:
         fail(p, f"{dt_name} = {dt} s is longer than the horizon {t_name} = {t_final} s")
     steps = t_final / dt
     n = int(round(steps))
     if abs(steps - n) > 1e-6 * max(1.0, steps):
         fail(p, f"{t_name} = {t_final} s is not a whole number of steps of {dt_name} = {dt} s ({steps:.6g} steps)")
-    need = (n // saved_every + 1) * batch * (2 * n_state + 4) * 8
-    total = memory_bytes()
-    if total is not None and need > total / 2:
-        fail(p, f"{t_name} / {dt_name} = {n} steps for {batch} runs would store {need / 1e9:.3g} GB of samples, more than "
-                f"half of this machine's {total / 1e9:.3g} GB of memory: raise {dt_name} or shorten {t_name}")
+    # the samples of the batch; the reference check's memory is simulate's own check
+    est = resources.Estimate(resources.samples_bytes(n // saved_every + 1, n_state, 8, batch), 0.0)
+    try:
+        resources.check_fits(est, f"{t_name} / {dt_name} = {n} steps for {batch} runs", f"raise {dt_name} or shorten {t_name}")
+    except ValueError as err:
+        fail(p, str(err))
     return n
 
 

@@ -63,7 +63,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from wmrjax import io
+from wmrjax import io, resources
 
 SECTIONS = ("title", "controller", "geometry", "plant", "reference", "initial", "gains", "simulation", "classify",
             "case", "tune", "certify")
@@ -197,10 +197,21 @@ def nonnegative(section: str, key: str, v) -> float:
     return float(v)
 
 
+PRODUCT_COPIES = 3
+
+
 def product(named: dict) -> dict:
     """Cartesian product of named 1-D (or (n, k)) value arrays -> columns of equal length (last fastest)."""
     names = list(named)
     sizes = [len(named[k]) for k in names]
+    runs = math.prod(sizes)
+    # the index grid and the columns: refused before allocating (a 1e8-run grid took 22 s and 6.5 GB
+    # to fail with MemoryError); PRODUCT_COPIES arrays of runs x names numbers are alive at once
+    try:
+        resources.check_fits(resources.Estimate(0.0, PRODUCT_COPIES * runs * max(1, len(names)) * 8.0),
+                             f"a grid of {runs} runs over {names}", "sweep fewer values")
+    except ValueError as err:
+        raise ProblemError(str(err)) from None
     idx = np.indices(sizes).reshape(len(names), -1) if names else np.zeros((0, 1), int)
     return {k: named[k][idx[i]] for i, k in enumerate(names)}
 

@@ -42,8 +42,8 @@ from jax.ad_checkpoint import checkpoint_name
 from jax.extend import core as jex_core
 import numpy as np
 
-from wmrjax import _scalarize, _simplify
-from wmrjax._validate import check_finite, check_int, concrete, memory_bytes
+from wmrjax import _scalarize, _simplify, resources
+from wmrjax._validate import check_finite, check_int, concrete
 
 
 # from this many steps on, reverse-mode differentiation checkpoints the saving chunks too
@@ -785,7 +785,9 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
         check_finite("z0", leaf)
     z0 = jax.tree_util.tree_map(                  # float32 with float64 enabled: promote, never mix
         lambda x: x.astype(floating) if _is_continuous(x) and jnp.result_type(x) != floating else x, z0)
-    _check_memory(n_steps, save_every, size, floating)
+    t0c, dtc = concrete(t0), concrete(dt)
+    horizon = n_steps * float(dtc) if dtc is not None and np.ndim(dtc) == 0 else 0.0
+    _check_memory(system, n_steps, save_every, size, floating, horizon if t0c is not None else 0.0)
     check_run = getattr(system, "check_run", None)
     if check_run is not None:
         check_run(params, t0=t0, dt=dt, n_steps=n_steps)
@@ -794,12 +796,10 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
     return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn)
 
 
-def _check_memory(n_steps: int, save_every: int, n_state: int, dtype) -> None:
-    """ValueError when one run's saved samples cannot fit in this machine's memory."""
-    samples = n_steps // save_every + 1
-    need = samples * (2 * n_state + 4) * np.dtype(dtype).itemsize     # states, controls (<= n), margin, valid
-    total = memory_bytes()
-    if total is not None and need > total:
-        raise ValueError(f"n_steps = {n_steps} with save_every = {save_every} saves {samples} samples per run, "
-                         f"{need / 1e9:.3g} GB, more than this machine's {total / 1e9:.3g} GB of memory: "
-                         "raise dt or save_every")
+def _check_memory(system, n_steps: int, save_every: int, n_state: int, dtype, horizon: float) -> None:
+    """ValueError when one run (its saved samples and its reference check) cannot fit in the
+    memory available now (:mod:`wmrjax.resources`)."""
+    est = resources.run_estimate(system, n_steps=n_steps, save_every=save_every, n_state=n_state,
+                                 itemsize=np.dtype(dtype).itemsize, horizon=horizon)
+    resources.check_fits(est, f"n_steps = {n_steps} with save_every = {save_every} (a horizon of {horizon:.6g} s)",
+                         "raise dt or save_every, or shorten the horizon")

@@ -145,6 +145,29 @@ class Progress:
                 print(line, file=self.stream, flush=True)
 
 
+def estimate(plan: S.Plan, devices: int, processes: int = 1):
+    """The sweep's memory on this machine (:mod:`wmrjax.resources`): every device of every local
+    process runs a block at a time, holding each run's samples (every ``distance_every`` steps;
+    host devices share the machine's memory), beside each process's reference checks."""
+    from wmrjax import resources
+
+    n_state = max(int(getattr(g.system(), "n_state", None) or g.ctrl.n_state) for g in plan.groups)
+    samples = plan.n_steps // plan.save_every + 1
+    per_block = resources.samples_bytes(samples, n_state, 8, plan.block)
+    check = max(resources.check_bytes(plan.t_final, resources.jet_floats(g.ctrl)) for g in plan.groups)
+    return resources.Estimate(per_block * devices * processes, check * processes, processes)
+
+
+def check_memory(plan: S.Plan, devices: int, processes: int = 1) -> None:
+    """ValueError before anything compiles when the sweep would not fit in memory."""
+    from wmrjax import resources
+
+    resources.check_fits(estimate(plan, devices, processes),
+                         f"{processes} process(es) x {devices} device(s), each running a block of {plan.block} runs "
+                         f"with {plan.n_steps // plan.save_every + 1} samples each",
+                         "lower [simulation] block, raise distance_every, or use fewer --processes/--devices")
+
+
 def block_path(out: Path, b: int) -> Path:
     return out / "blocks" / f"block_{b:06d}.npz"
 

@@ -95,7 +95,8 @@ def plan(problem: Problem) -> Plan:
             raise SpecError("[[case]]: the cases of one sweep share the horizon and the step")
     sim = problem.data["simulation"]
     n_steps = first.n_steps
-    block = integer("simulation", "block", sim.get("block", 256), 1)
+    # a block never exceeds the largest group: a block of 1e7 for 9 runs padded every call to 1e7 runs
+    block = min(integer("simulation", "block", sim.get("block", 256), 1), max(g.size for g in groups))
     every = sim.get("distance_every", max(1, int(round(0.1 / first.dt))))
     every = min(integer("simulation", "distance_every", every, 1), n_steps)
     tol = sim.get("error_tol", 1e-3)

@@ -1,0 +1,147 @@
+"""One resource model: the memory a run, a batch of runs or a sweep block will need, checked
+against the machine before anything compiles.
+
+The model counts the arrays that grow with the problem and multiplies them by factors
+measured on this code (peak resident memory over a warm baseline, float64, CPU; the method
+and the numbers are on the docs' benchmarks page and in ``tests/test_resources.py``):
+
+* a saved sample of one run: the state (n), the control (at most n), the margin, the valid
+  flag and the time, and the copy handed back to NumPy: ``(2 n + SAMPLE_EXTRA_FLOATS)``
+  floats (measured 120-126 B at n = 4);
+* a point of the reference check's grid (every ``REFERENCE_GRID_STEP / 2`` s of the horizon):
+  the reference's jet, its time, regularity and branch, held twice while the blocks are
+  joined and again by the kink test: ``GRID_COPIES * (jet + 3)`` floats (measured 157 B for
+  a velocity-level law of two outputs, 216 B at torque level);
+* a step of a reverse-mode gradient: the carry kept for the backward pass,
+  :data:`GRADIENT_CARRY_COPIES` states per run and step;
+* a process: JAX, XLA and the compiled programs, :data:`PROCESS_BYTES`.
+
+The estimate is an upper bound within :data:`ESTIMATE_FACTOR` of the measured peak
+(:data:`GRADIENT_ESTIMATE_FACTOR` for a gradient step; a test holds it to that); it is deliberately conservative: a refused run that would have fit costs
+the user a smaller ``save_every``, an accepted one that does not fit costs the machine.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import NamedTuple
+
+import numpy as np
+
+# floats per saved sample beyond the state and the control (margin, valid, time, NumPy copy)
+SAMPLE_EXTRA_FLOATS = 9
+# copies of the reference check's grid alive at its peak (the blocks, their concatenation, the kink test)
+GRID_COPIES = 2.5
+# floats per grid point beside the jet: time, regularity, branch
+GRID_EXTRA_FLOATS = 3
+# the reference check's grid spacing [s] (half of law.REFERENCE_GRID_STEP: it checks both parities)
+GRID_STEP = 0.005
+# copies of a step's carry reverse mode keeps, per run and step (measured on section 6.1's sampled
+# loop, 13 states, 1000 steps, one process going from 64 to 1024 training scenarios: 141 MB more,
+# 147 B per scenario-step where one carry is 104 B; the residuals of the sample and the loss
+# come on top of the carry)
+GRADIENT_CARRY_COPIES = 1.5
+# one JAX process with its compiled programs (measured: 0.53 GB resident after importing wmrjax
+# and running section 6.1; the command lines' processes reach 0.6 GB)
+PROCESS_BYTES = 0.6e9
+# the estimate is above the measured peak and at most this factor above it (runs, sweeps)
+ESTIMATE_FACTOR = 2.0
+# the same for a gradient step, whose measured growth varies from run to run (110-180 MB for the
+# same step: how much the allocator reuses across XLA's buffers)
+GRADIENT_ESTIMATE_FACTOR = 4.0
+# what a run may take of the memory available now (the rest: the OS, the caller's own arrays)
+USABLE_FRACTION = 0.8
+
+
+class Estimate(NamedTuple):
+    """Memory a piece of work needs [bytes].
+
+    Attributes:
+      device: arrays on one device (the saved samples of its runs, their carries).
+      host: arrays on the host beside them (the reference check, NumPy copies).
+      processes: processes to start (each :data:`PROCESS_BYTES`).
+    """
+
+    device: float
+    host: float
+    processes: int = 0
+
+    @property
+    def total(self) -> float:
+        """Everything on one machine: devices' and host arrays and the processes [bytes]."""
+        return self.device + self.host + self.processes * PROCESS_BYTES
+
+
+def available_bytes() -> int | None:
+    """Memory available to a new allocation now [bytes] (``MemAvailable`` on Linux, else the
+    physical memory), None where unknown."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):   # pragma: no cover - non-POSIX
+        return None
+
+
+def samples_bytes(n_samples: int, n_state: int, itemsize: int = 8, runs: int = 1) -> float:
+    """The saved samples of ``runs`` runs of ``n_samples`` samples each [bytes]."""
+    return float(runs) * n_samples * (2 * n_state + SAMPLE_EXTRA_FLOATS) * itemsize
+
+
+def check_bytes(horizon: float, jet_floats: int) -> float:
+    """The reference check over ``horizon`` seconds of a law whose reference jet has
+    ``jet_floats`` numbers per time (0: a system without a reference check) [bytes]."""
+    if jet_floats <= 0 or not np.isfinite(horizon):
+        return 0.0
+    points = horizon / GRID_STEP + 2
+    return points * GRID_COPIES * (jet_floats + GRID_EXTRA_FLOATS) * 8
+
+
+def jet_floats(system) -> int:
+    """Numbers per time in ``system``'s reference check (0 without one): its outputs' jets up to
+    the relative degree."""
+    while getattr(system, "check_reference", None) is None and getattr(system, "ctrl", None) is not None:
+        system = system.ctrl            # a plant or sampled-data loop checks its law's reference
+    r, m = getattr(system, "relative_degree", None), getattr(system, "m", None)
+    if getattr(system, "check_reference", None) is None or not isinstance(r, int) or not isinstance(m, int):
+        return 0
+    return (r + 1) * m
+
+
+def run_estimate(system, *, n_steps: int, save_every: int, n_state: int, itemsize: int, horizon: float,
+                 runs: int = 1) -> Estimate:
+    """One call of :func:`wmrjax.simulate` (or ``runs`` of them batched): saved samples on the
+    device, the reference check on the host."""
+    samples = n_steps // save_every + 1
+    return Estimate(samples_bytes(samples, n_state, itemsize, runs), check_bytes(horizon, jet_floats(system)))
+
+
+def gradient_bytes(runs: int, n_steps: int, n_state: int, itemsize: int = 8) -> float:
+    """Reverse-mode memory of a loss over ``runs`` runs of ``n_steps`` steps [bytes]: the scan
+    keeps each step's carry (the state, :data:`GRADIENT_CARRY_COPIES` times) for the backward pass."""
+    return float(runs) * n_steps * n_state * GRADIENT_CARRY_COPIES * itemsize
+
+
+def check_fits(estimate: Estimate, what: str, fix: str) -> None:
+    """ValueError when ``estimate`` exceeds :data:`USABLE_FRACTION` of the memory available now.
+
+    Args:
+      estimate: the work's :class:`Estimate`.
+      what: the work, for the message (e.g. ``"n_steps = 10000000 with save_every = 1"``).
+      fix: how to make it smaller (e.g. ``"raise dt or save_every"``).
+    """
+    have = available_bytes()
+    if have is None:
+        return
+    if estimate.total > USABLE_FRACTION * have:
+        parts = [f"{v / 1e9:.3g} GB {name}" for v, name in ((estimate.device, "of run arrays"),
+                                                             (estimate.host, "on the host")) if v > 0]
+        if estimate.processes:
+            parts.append(f"{estimate.processes} processes of {PROCESS_BYTES / 1e9:.2g} GB")
+        raise ValueError(f"{what} needs about {estimate.total / 1e9:.3g} GB ({', '.join(parts)}), more than "
+                         f"{USABLE_FRACTION:.0%} of the {have / 1e9:.3g} GB of memory available now: {fix}")
