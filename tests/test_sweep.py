@@ -267,6 +267,44 @@ def test_sweep_options_documented_and_output_checked(tmp_path, capsys):
     with pytest.raises(SystemExit):
         sweep_cli.main([str(spec), "--out", str(tmp_path / "o"), "--processes", "0"])
     assert "argument --processes" in capsys.readouterr().err
+    # more processes or host devices than cores (--devices 4096 ran 8x slower) are refused
+    cores = os.cpu_count() or 1
+    for opt in ("--processes", "--devices"):
+        with pytest.raises(SystemExit):
+            sweep_cli.main([str(spec), "--out", str(tmp_path / "o"), opt, str(cores + 1)])
+        assert f"{opt} {cores + 1} is more than this machine's {cores} cores" in capsys.readouterr().err
+    # a block larger than the group is the group (it padded every call to the block: 1e7 runs for 18)
+    big = _write(tmp_path, TINY.replace("block = 4", "block = 10000000"), "big.toml")
+    assert S.load(big).block == 18
+
+
+def test_a_dead_worker_stops_the_others(tiny, cache, tmp_path):
+    """kill -9 of one of two worker processes: the launcher stops the other within seconds,
+    names the dead one and says how to resume (before: the other waited 96 s at the barrier and
+    aborted with a C++ stack dump); the same command then resumes to the same table."""
+    import signal
+    import time
+
+    spec, out = tiny
+    slow = _write(tmp_path, TINY.replace("t_final = 2.0", "t_final = 40.0").replace("block = 4", "block = 1"), "slow.toml")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    cmd = [sys.executable, "-m", "experiments.sweep", str(slow), "--out", str(tmp_path / "o"), "--processes", "2",
+           "--compile-cache", cache]
+    launcher = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True)
+    children = Path(f"/proc/{launcher.pid}/task/{launcher.pid}/children")
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 120 and not (tmp_path / "o" / "blocks").exists():
+        time.sleep(0.2)                 # the workers have started computing
+    pids = [int(x) for x in children.read_text().split()]
+    assert len(pids) == 2
+    os.kill(pids[1], signal.SIGKILL)
+    killed = time.monotonic()
+    _, err = launcher.communicate(timeout=120)
+    assert launcher.returncode != 0
+    assert time.monotonic() - killed < 30, err[-2000:]
+    assert "process 1 of 2 failed" in err and "run the same command again to resume" in err
+    r = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
 
 
 STATIC = """
