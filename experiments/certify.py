@@ -40,6 +40,7 @@ from pathlib import Path
 from experiments import common
 
 DEFAULT_PROBLEM = Path(__file__).resolve().parent / "problems" / "section_6_1.toml"
+EMPIRICAL_GRID = 48          # radii per ray of certify.empirical_radius (its n_grid)
 CERTIFY_KEYS = {"eps": 1e-2, "n_empirical": 4096, "n_directions": 128, "n_starts": 16, "map_grid": 81, "seed": 0}
 
 
@@ -228,8 +229,10 @@ def main(argv=None) -> int:
         setting, _, _ = setup(problem, a.case)
     except ValueError as e:
         p.error(str(e))
-    cli.check_horizon(p, t_final=setting.t_final, dt=setting.dt, batch=max(cfg["n_empirical"], cfg["map_grid"] ** 2),
-                      saved_every=10)
+    # the largest batch: the empirical checks, the slice map, or every ray's grid of radii at once
+    # (--n-directions 1000000 aborted with std::bad_alloc after 90 s)
+    batch = max(cfg["n_empirical"], cfg["map_grid"] ** 2, (cfg["n_directions"] + 1) * EMPIRICAL_GRID)
+    cli.check_horizon(p, t_final=setting.t_final, dt=setting.dt, batch=batch, saved_every=10)
     s = cli.work(p, a, lambda progress: run(a.out, problem, a.case, progress=progress))
     keys = ["radius_paper", "radius_lyapunov", "radius_exact_norm", "radius_exact_map", "radius_exact_map_position_slice",
             "empirical_radius_position_slice"]

@@ -115,6 +115,10 @@ def _api_cases():
         "e")
     add("dynamic-12-L0", lambda c, p, z: w.dynamic_linearization("(1,2)").params(R.circle(), geometry=w.Geometry(L=0.0)),
         "L")
+    # a negative L was accepted as a mirrored robot; an integer key raised a raw TypeError
+    add("dynamic-11-L-negative", lambda c, p, z: w.dynamic_linearization("(1,1)").params(
+        R.circle(), poles=1.0, geometry=w.Geometry(L=-1.0, e=0.3)), r"geometry.L is a length .* must be >= 0")
+    add("random-smooth-int-key", lambda c, p, z: R.random_smooth(3), "key must be a jax.random key")
     for v in ("(4,0)", "(2,2)", "abc", None):
         add(f"robot-type-{v!r}", lambda c, p, z, v=v: w.dynamic_linearization(v), "type")
     add("level", lambda c, p, z: w.dynamic_linearization("(2,0)", "acceleration"), "level must be one of")
@@ -276,6 +280,7 @@ CROSS_CASES = [   # (cli, argv, what the message must say)
     ("certify", ["--dt", "20"], "not a whole number of steps dt = 20.0 s"),
     ("certify", ["--robot", "(3,0)"], "no dynamic linearizing law (Table 4) for type(s) ['(3,0)']"),
     ("certify", ["--robot", "(7,7)"], "unknown robot type"),
+    ("certify", ["--n-directions", "1000000"], "48000048 runs needs about"),   # was std::bad_alloc after 90 s
     ("certify", ["--reference", "spiral"], "argument --reference: invalid choice"),
     ("certify", ["--level", "jerk"], "argument --level: invalid choice"),
     ("certify", ["--robot", "(1,2)", "--geometry", "0", "0.3", "0"], "geometry.L must be != 0"),
