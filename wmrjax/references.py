@@ -236,6 +236,10 @@ def random_smooth(key, n_modes: int = 3, speed: float = 1.0, min_speed: float = 
     """
     if not 0.0 < min_speed < speed:
         raise ValueError(f"random_smooth needs 0 < min_speed < speed, got min_speed={min_speed}, speed={speed}")
+    if not (hasattr(key, "dtype") and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+                                       or (key.dtype == jnp.uint32 and key.shape[-1:] == (2,)))):
+        raise ValueError(f"random_smooth: key must be a jax.random key (jax.random.key(seed) or "
+                         f"jax.random.PRNGKey(seed)), got {key!r:.60}")
     k = jax.random.split(key, 6)
     ang = jax.random.uniform(k[0], (), minval=-jnp.pi, maxval=jnp.pi)
     sd, cd = _math.sincos(ang)

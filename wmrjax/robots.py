@@ -145,6 +145,10 @@ def check_geometry(geometry: Geometry) -> None:
         if concrete(val) is not None and jnp.ndim(val) != 0:
             raise ValueError(f"geometry.{name} must be a scalar, got shape {jnp.shape(val)}")
         check_finite(f"geometry.{name}", val)
+    L = concrete(geometry.L)
+    if L is not None and float(L) < 0:      # a negative length is a mirrored robot, not this one
+        raise ValueError(f"geometry.L is a length (the distance from the body's reference point to the "
+                         f"steering wheels) and must be >= 0 [m], got {float(L)}; mirror the frame instead")
 
 
 def rotation(theta):
