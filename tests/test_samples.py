@@ -193,3 +193,19 @@ def test_a_horizon_outside_the_samples_is_refused_unless_extrapolated(tmp_path):
     data["reference"]["extrapolate"] = "yes"
     with pytest.raises(ProblemError, match=r"\[reference\] extrapolate: expected true or false"):
         Problem.from_dict(data)
+
+
+def test_kink_message_names_the_likely_cause():
+    """A failed kink test named every cause 'a kink or corner'; the message now tells clock
+    times (epoch seconds) and a path that stops from a corner (float32 round-off is told by
+    the default float type, checked here by its absence)."""
+    from wmrjax.controllers.law import kink_cause
+
+    ts = np.linspace(0.0, 10.0, 101)
+    moving = np.zeros((101, 3, 2))
+    moving[:, 1, 0] = 1.0
+    assert kink_cause(ts, moving) == "a kink or corner in the path"
+    assert "clock readings (epoch seconds)" in kink_cause(ts + 1.7e9, moving)
+    stops = moving.copy()
+    stops[50, 1, 0] = 0.0
+    assert "the path stops: its speed falls to 0 m/s at t = 5 s" in kink_cause(ts, stops)

@@ -442,6 +442,28 @@ def find_kink(ts, jets, angle_outputs=()):
     return None
 
 
+# a time beyond this [s] is a clock reading (epoch seconds), not a time from the start
+CLOCK_TIME_S = 1e6
+# a speed below this fraction of the largest is a stop
+STOP_FRACTION = 1e-3
+
+
+def kink_cause(ts, jets) -> str:
+    """The likeliest cause of a failed kink test, for its message: float32 round-off, times
+    that are clock readings, a path that stops, or else a kink or corner."""
+    if jnp.result_type(float) == jnp.float32:
+        return ("float32 round-off: JAX runs in single precision, and the test's finite differences need "
+                "double; enable it with jax.config.update('jax_enable_x64', True) before building anything")
+    if np.max(np.abs(ts)) > CLOCK_TIME_S:
+        return (f"times up to {np.max(np.abs(ts)):.4g} s look like clock readings (epoch seconds), where the "
+                "path's polynomials lose their digits: subtract the first sample time so the path starts at 0")
+    speed = np.linalg.norm(jets[:, 1, :2], axis=-1)
+    if speed.size and np.min(speed) < STOP_FRACTION * max(np.max(speed), 1e-300):
+        return (f"the path stops: its speed falls to {np.min(speed):.3g} m/s at t = {ts[int(np.argmin(speed))]:.4g} s "
+                "(a stop or a turn on the spot); plan a path that keeps moving")
+    return "a kink or corner in the path"
+
+
 @functools.partial(jax.jit, static_argnums=0)
 def margin_at(ctrl, z, params):
     """``ctrl.margin(z, params)``, compiled once per controller (the eager jet takes seconds)."""
@@ -628,7 +650,7 @@ class LinearizingController:
             raise ValueError(f"reference {params.reference.name!r} is not smooth enough for the {self._law_name}: its "
                              f"derivative of order {j} jumps between t = {a:.4g} and {b:.4g} s (trapezoid residual "
                              f"{res:.3g}); the law uses derivatives up to order {self.relative_degree}, which must be "
-                             "continuous (a kink or corner in the path)")
+                             f"continuous ({kink_cause(ts, jets)})")
 
     def _reference_level(self, raw, params):
         """The regularity level (>= 0, 0 singular) from what ``reference_regularity`` returned."""
