@@ -350,3 +350,16 @@ def test_static_physical_sweep_starts_on_the_reference_and_draws_reproducibly(tm
     np.testing.assert_array_equal(cols["initial_error_x"], x)
     np.testing.assert_array_equal(cols["initial_error_theta"], 0.0)
     assert plan.swept == ["initial_error_x"]
+
+
+def test_histogram_of_a_constant_margin():
+    """A static point law's |det K| = |e sin(delta)| is the same for every run up to its last bits:
+    numpy's 50 bins over a range of 1e-16 raised 'Too many bins' and the sweep wrote no summary."""
+    from experiments.sweep.report import _hist_args
+
+    x = np.log10(np.full(10, 0.3 * np.sin(1.2))) + np.r_[np.zeros(9), 1e-16]
+    with pytest.raises(ValueError, match="Too many bins"):
+        np.histogram(x, bins=50)
+    counts, edges = np.histogram(*_hist_args(x))
+    assert counts.tolist() == [10] and edges[0] < x.min() <= x.max() < edges[1]
+    assert _hist_args(np.arange(5.0))[1] == 50

@@ -219,11 +219,12 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
     for g, c in zip(plan.groups, itertools.cycle([f"C{i}" for i in range(10)])):
         sel = ok & select(table, g)
         lab = group_name(g)
-        axs[0].hist(np.log10(np.maximum(table["final_position_error"][sel], 1e-16)), bins=50, alpha=0.6, color=c, label=lab)
-        axs[1].hist(np.log10(np.maximum(table["min_margin"][sel], 1e-16)), bins=50, alpha=0.6, color=c, label=lab)
+        axs[0].hist(*_hist_args(np.log10(np.maximum(table["final_position_error"][sel], 1e-16))), alpha=0.6, color=c,
+                    label=lab)
+        axs[1].hist(*_hist_args(np.log10(np.maximum(table["min_margin"][sel], 1e-16))), alpha=0.6, color=c, label=lab)
         if plan.law == "dynamic":
             d = table["min_distance"][sel]
-            axs[2].hist(d[np.isfinite(d)], bins=50, alpha=0.6, color=c, label=lab)
+            axs[2].hist(*_hist_args(d[np.isfinite(d)]), alpha=0.6, color=c, label=lab)
     axs[0].set_xlabel("log10 final position error [m]")
     axs[1].set_xlabel("log10 min margin |det K| over the run")
     if plan.law == "dynamic":
@@ -237,3 +238,17 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
     plt.close(fig)
     written.append("histograms.png")
     return written
+
+
+HIST_BINS = 50
+
+
+def _hist_args(x):
+    """``(values, bins)`` for ``hist``: 50 bins, or one bin around a constant (a static point
+    law's |det K| = |e sin(delta)| is the same for every run, up to the last bits, and 50 bins
+    over a range of 1e-16 do not exist)."""
+    x = np.asarray(x, float)
+    if x.size and np.ptp(x) <= 1e-9 * max(1.0, float(np.max(np.abs(x)))):
+        mid = float(np.mean(x))
+        return x, np.array([mid - 0.5, mid + 0.5])
+    return x, HIST_BINS
