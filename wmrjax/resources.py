@@ -7,7 +7,7 @@ and the numbers are on the docs' benchmarks page and in ``tests/test_resources.p
 
 * a saved sample of one run: the state (n), the control (at most n), the margin, the valid
   flag and the time, and the copy handed back to NumPy: ``(2 n + SAMPLE_EXTRA_FLOATS)``
-  floats (measured 120-126 B at n = 4);
+  floats (measured 120-150 B at n = 4: the smaller the run, the larger its share of fixed buffers);
 * a point of the reference check's grid (every ``REFERENCE_GRID_STEP / 2`` s of the horizon):
   the reference's jet, its time, regularity and branch, held twice while the blocks are
   joined and again by the kink test: ``GRID_COPIES * (jet + 3)`` floats (measured 157 B for
@@ -29,7 +29,7 @@ from typing import NamedTuple
 import numpy as np
 
 # floats per saved sample beyond the state and the control (margin, valid, time, NumPy copy)
-SAMPLE_EXTRA_FLOATS = 9
+SAMPLE_EXTRA_FLOATS = 11
 # copies of the reference check's grid alive at its peak (the blocks, their concatenation, the kink test)
 GRID_COPIES = 2.5
 # floats per grid point beside the jet: time, regularity, branch
@@ -37,16 +37,15 @@ GRID_EXTRA_FLOATS = 3
 # the reference check's grid spacing [s] (half of law.REFERENCE_GRID_STEP: it checks both parities)
 GRID_STEP = 0.005
 # copies of a step's carry reverse mode keeps, per run and step (measured on section 6.1's sampled
-# loop, 13 states, 1000 steps, one process going from 64 to 1024 training scenarios: 141 MB more,
-# 147 B per scenario-step where one carry is 104 B; the residuals of the sample and the loss
-# come on top of the carry)
-GRADIENT_CARRY_COPIES = 1.5
+# loop, 13 states, 1000 steps, one process going from 64 to 2048 training scenarios: 91-180 MB
+# more over six runs, 46-91 B per scenario-step, where one carry is 104 B)
+GRADIENT_CARRY_COPIES = 1.25      # one carry and a margin for the run-to-run spread
 # one JAX process with its compiled programs (measured: 0.53 GB resident after importing wmrjax
 # and running section 6.1; the command lines' processes reach 0.6 GB)
 PROCESS_BYTES = 0.6e9
 # the estimate is above the measured peak and at most this factor above it (runs, sweeps)
 ESTIMATE_FACTOR = 2.0
-# the same for a gradient step, whose measured growth varies from run to run (110-180 MB for the
+# the same for a gradient step, whose measured growth varies from run to run (91-180 MB for the
 # same step: how much the allocator reuses across XLA's buffers)
 GRADIENT_ESTIMATE_FACTOR = 4.0
 # what a run may take of the memory available now (the rest: the OS, the caller's own arrays)
