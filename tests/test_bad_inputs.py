@@ -119,6 +119,13 @@ def _api_cases():
     add("dynamic-11-L-negative", lambda c, p, z: w.dynamic_linearization("(1,1)").params(
         R.circle(), poles=1.0, geometry=w.Geometry(L=-1.0, e=0.3)), r"geometry.L is a length .* must be >= 0")
     add("random-smooth-int-key", lambda c, p, z: R.random_smooth(3), "key must be a jax.random key")
+    # a complex path lost its imaginary part with a ComplexWarning; lemma2 under jit raised a raw
+    # TracerArrayConversionError
+    ts, circ = np.linspace(0.0, 6.0, 13), np.stack([np.cos(np.linspace(0.0, 6.0, 13)), np.sin(np.linspace(0.0, 6.0, 13))], 1)
+    add("from-samples-complex", lambda c, p, z: R.from_samples(ts, circ.astype(complex)), "xy must be real")
+    add("from-waypoints-complex", lambda c, p, z: R.from_waypoints(circ * (1 + 0j)), "points must be real")
+    add("lemma2-under-jit", lambda c, p, z: jax.jit(lambda q: C.lemma2(c, q, t_final=10.0, eps=0.01).exact_norm.radius)(p),
+        "lemma2 runs eagerly")
     for v in ("(4,0)", "(2,2)", "abc", None):
         add(f"robot-type-{v!r}", lambda c, p, z, v=v: w.dynamic_linearization(v), "type")
     add("level", lambda c, p, z: w.dynamic_linearization("(2,0)", "acceleration"), "level must be one of")

@@ -56,7 +56,13 @@ def check_int(name: str, x, minimum: int = 1) -> int:
 
 def check_real(name: str, x) -> None:
     """ValueError for a complex (or non-numeric) array: its imaginary part would be dropped silently."""
-    dt = np.result_type(x) if not hasattr(x, "dtype") else np.dtype(x.dtype)
+    if hasattr(x, "dtype"):
+        dt = np.dtype(x.dtype)
+    else:
+        try:                    # nested lists: np.result_type would read them as a structured dtype
+            dt = np.asarray(x).dtype
+        except (TypeError, ValueError):
+            dt = np.dtype(object)
     if dt.kind == "c":
         raise ValueError(f"{name} must be real, got a complex array of dtype {dt}")
     if dt.kind not in "biuf":

@@ -24,7 +24,7 @@ from jax.experimental import jet
 import numpy as np
 
 from wmrjax import _math, _simplify
-from wmrjax._validate import concrete
+from wmrjax._validate import check_real, concrete
 
 
 def taylor(fn: Callable, t, order: int):
@@ -336,6 +336,8 @@ def _spline_knots(ts):
 
 def _check_samples(t, xy):
     """ValueError for samples a quintic spline cannot interpolate (concrete inputs only)."""
+    for name, v in (("t", t), ("xy", xy)):      # a complex path lost its imaginary part silently
+        check_real(f"from_samples: {name}", v)
     tv, xv = concrete(t), concrete(xy)
     if tv is not None:
         tv = np.asarray(tv)
@@ -450,6 +452,7 @@ def from_waypoints(points, *, speed: float = 1.0, t0: float = 0.0, min_speed: fl
       min_speed, heading_offset, name, extrapolate: as in :func:`from_samples` (the path is
         defined from the first waypoint's time to the last's).
     """
+    check_real("from_waypoints: points", points)
     pv = np.asarray(points, float)
     if pv.ndim != 2 or pv.shape[1] != 2:
         raise ValueError(f"from_waypoints: points must have shape (N, 2) [m], got {pv.shape}")

@@ -299,6 +299,9 @@ def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
         min F, or a reference within eps of the singular set.
     """
     check_dynamic(ctrl, params)
+    if any(concrete(x) is None for x in jax.tree_util.tree_leaves(params)):
+        raise ValueError("lemma2 runs eagerly (its grid search and refinement need values): call it outside "
+                         "jax.jit / jax.vmap, with concrete params (a raw TracerArrayConversionError before)")
     if not isinstance(m1, str) or m1 not in M1_METHODS:
         raise ValueError(f"m1 must be one of {M1_METHODS}, got {m1!r}")
     if isinstance(n_t, bool) or not isinstance(n_t, (int, np.integer)) or n_t < MIN_GRID:
