@@ -209,3 +209,15 @@ def test_kink_message_names_the_likely_cause():
     stops = moving.copy()
     stops[50, 1, 0] = 0.0
     assert "the path stops: its speed falls to 0 m/s at t = 5 s" in kink_cause(ts, stops)
+
+
+def test_min_speed_on_traced_samples_warns():
+    """from_samples(min_speed=) under jit cannot check traced samples: it says so (a warning)
+    instead of skipping the check silently, and the path it builds is the eager one."""
+    t = jnp.linspace(0.0, 6.0, 13)
+    xy = jnp.stack([jnp.cos(t), jnp.sin(t)], 1)
+    f = jax.jit(lambda xy: R.from_samples(t, xy, min_speed=0.5).position(jnp.asarray(1.0)))
+    with pytest.warns(UserWarning, match="min_speed = 0.5 m/s is not checked on traced samples"):
+        got = f(xy)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(R.from_samples(t, xy).position(jnp.asarray(1.0))),
+                               rtol=1e-13)

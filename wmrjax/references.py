@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from typing import Any, Callable
 
 import jax
@@ -418,13 +419,18 @@ def from_samples(t, xy, *, min_speed: float | None = None, heading_offset=0.0, n
 
 def _check_min_speed(ref: Reference, t, min_speed: float) -> None:
     tv = concrete(t)
-    if tv is None:
+    speed = None
+    if tv is not None:
+        tv = np.asarray(tv)
+        frac = np.arange(8) / 8.0
+        grid = np.concatenate([(tv[:-1, None] + frac * np.diff(tv)[:, None]).ravel(), tv[-1:]])
+        with jax.ensure_compile_time_eval():
+            speed = concrete(_speeds(ref, jnp.asarray(grid, jnp.result_type(float))))
+    if speed is None:       # traced samples (under jit or vmap): the check needs values
+        warnings.warn(f"from_samples: min_speed = {min_speed} m/s is not checked on traced samples (under jax.jit "
+                      "or jax.vmap); build the reference from concrete samples to check it", stacklevel=3)
         return
-    tv = np.asarray(tv)
-    frac = np.arange(8) / 8.0
-    grid = np.concatenate([(tv[:-1, None] + frac * np.diff(tv)[:, None]).ravel(), tv[-1:]])
-    with jax.ensure_compile_time_eval():
-        speed = np.asarray(_speeds(ref, jnp.asarray(grid, jnp.result_type(float))))
+    speed = np.asarray(speed)
     if not np.all(speed >= min_speed):
         i = int(np.nanargmin(speed)) if np.any(np.isfinite(speed)) else 0
         raise ValueError(f"reference {ref.name!r} slows to {speed[i]:.3g} m/s at t = {grid[i]:.4g} s, below "
