@@ -4,7 +4,7 @@ Compares, in one run and on the same initial conditions: wmrjax (``batch_map``: 
 device per core, 512-trajectory chunks, with and without the per-step error estimate of
 ``simulate``; and plain ``jit(vmap)`` on one device), a NumPy
 implementation vectorised over the batch, SciPy ``solve_ivp`` one trajectory at a time,
-and the hand-vectorised C loop ``../shared/bench/closed_loop_simd.c`` (the ceiling; skipped
+and the hand-vectorised C loop ``experiments/bench/closed_loop_simd.c`` (the ceiling; skipped
 with a note if no C compiler or source is found). Also times a reverse-mode gradient of a
 batch tracking loss with respect to the gains relative to the forward pass.
 
@@ -571,7 +571,7 @@ def main(argv=None) -> int:
     p.add_argument("--devices", type=cli.count, default=os.cpu_count() or 1,
                    help="JAX host devices (one per core; sets XLA_FLAGS for this process before JAX starts its backend)")
     here = Path(__file__).resolve().parent.parent
-    p.add_argument("--c-source", type=Path, default=here.parent / "shared" / "bench" / "closed_loop_simd.c",
+    p.add_argument("--c-source", type=Path, default=here / "experiments" / "bench" / "closed_loop_simd.c",
                    help="the hand-vectorised C loop (the ceiling; skipped if missing)")
     p.add_argument("--tuner-problems", nargs="*", default=["section_6_1", "car_schedule"],
                    help="shipped tuning problems whose gradient program is timed (none: skip)")
