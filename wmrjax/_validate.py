@@ -6,8 +6,6 @@ caller has already been validated at the outer entry point.
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 from jax import core
 
@@ -67,11 +65,3 @@ def check_real(name: str, x) -> None:
         raise ValueError(f"{name} must be real, got a complex array of dtype {dt}")
     if dt.kind not in "biuf":
         raise ValueError(f"{name} must be a numeric array, got dtype {dt}")
-
-
-def memory_bytes() -> int | None:
-    """Physical memory of this machine [bytes], None where unknown."""
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):   # pragma: no cover - non-POSIX
-        return None

@@ -2,13 +2,13 @@
 against the machine before anything compiles.
 
 The model counts the arrays that grow with the problem and multiplies them by factors
-measured on this code (peak resident memory over a warm baseline, float64, CPU; the method
-and the numbers are on the docs' benchmarks page and in ``tests/test_resources.py``):
+measured on this code (growth of the peak resident memory over a warm baseline, float64, CPU;
+the numbers are in the README's "Memory estimates" and ``tests/test_resources.py``):
 
 * a saved sample of one run: the state (n), the control (at most n), the margin, the valid
   flag and the time, and the copy handed back to NumPy: ``(2 n + SAMPLE_EXTRA_FLOATS)``
   floats (measured 120-150 B at n = 4: the smaller the run, the larger its share of fixed buffers);
-* a point of the reference check's grid (every ``REFERENCE_GRID_STEP / 2`` s of the horizon):
+* a point of the reference check's grid (every ``law.REFERENCE_GRID_STEP / 2`` s of the horizon):
   the reference's jet, its time, regularity and branch, held twice while the blocks are
   joined and again by the kink test: ``GRID_COPIES * (jet + 3)`` floats (measured 157 B for
   a velocity-level law of two outputs, 216 B at torque level);
@@ -34,14 +34,12 @@ SAMPLE_EXTRA_FLOATS = 11
 GRID_COPIES = 2.5
 # floats per grid point beside the jet: time, regularity, branch
 GRID_EXTRA_FLOATS = 3
-# the reference check's grid spacing [s] (half of law.REFERENCE_GRID_STEP: it checks both parities)
-GRID_STEP = 0.005
 # copies of a step's carry reverse mode keeps, per run and step (measured on section 6.1's sampled
 # loop, 13 states, 1000 steps, one process going from 64 to 2048 training scenarios: 91-180 MB
 # more over six runs, 46-91 B per scenario-step, where one carry is 104 B)
 GRADIENT_CARRY_COPIES = 1.25      # one carry and a margin for the run-to-run spread
 # one JAX process with its compiled programs (measured: 0.53 GB resident after importing wmrjax
-# and running section 6.1; the command lines' processes reach 0.6 GB)
+# and a first simulate of the section 6.1 loop; the issue's probe: 0.6 GB per sweep process)
 PROCESS_BYTES = 0.6e9
 # the estimate is above the measured peak and at most this factor above it (runs, sweeps)
 ESTIMATE_FACTOR = 2.0
@@ -56,7 +54,8 @@ class Estimate(NamedTuple):
     """Memory a piece of work needs [bytes].
 
     Attributes:
-      device: arrays on one device (the saved samples of its runs, their carries).
+      device: the runs' arrays on the devices, all of them (host devices share the machine's
+        memory): saved samples, carries kept for reverse mode.
       host: arrays on the host beside them (the reference check, NumPy copies).
       processes: processes to start (each :data:`PROCESS_BYTES`).
     """
@@ -95,9 +94,11 @@ def samples_bytes(n_samples: int, n_state: int, itemsize: int = 8, runs: int = 1
 def check_bytes(horizon: float, jet_floats: int) -> float:
     """The reference check over ``horizon`` seconds of a law whose reference jet has
     ``jet_floats`` numbers per time (0: a system without a reference check) [bytes]."""
+    from wmrjax.controllers.law import REFERENCE_GRID_STEP      # lazily: this module needs only NumPy
+
     if jet_floats <= 0 or not np.isfinite(horizon):
         return 0.0
-    points = horizon / GRID_STEP + 2
+    points = horizon / (REFERENCE_GRID_STEP / 2) + 2            # both parities of the check's grid
     return points * GRID_COPIES * (jet_floats + GRID_EXTRA_FLOATS) * 8
 
 

@@ -734,7 +734,7 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
     Raises:
       ValueError: on a non-positive ``dt``, ``n_steps`` or ``save_every``, a non-finite
         ``t0``, a negative or NaN ``margin_floor`` or ``error_tol``, a non-finite, complex or
-        wrongly-shaped ``z0``, a saved trajectory larger than the machine's memory, or
+        wrongly-shaped ``z0``, a run larger than the memory available (:mod:`wmrjax.resources`), or
         what the system's ``check_run`` refuses (all checked before compilation).
     """
     n_steps = check_int("n_steps", n_steps, 1)
@@ -748,6 +748,22 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
     if every is not None and (n_steps % every or save_every % every):
         raise ValueError(f"a sampled-data loop runs whole controller periods of {every} steps: n_steps ({n_steps}) "
                          f"and save_every ({save_every}) must be multiples of {every}")
+    dtv, t0v = _check_scalars(dt, t0, margin_floor, error_tol)
+    z0, size = _prepared_state(system, z0)
+    # the reference check runs (and takes memory) only with concrete times
+    horizon = n_steps * float(dtv) if dtv is not None and t0v is not None else 0.0
+    _check_memory(system, n_steps, save_every, size, jnp.result_type(float), horizon)
+    check_run = getattr(system, "check_run", None)
+    if check_run is not None:
+        check_run(params, t0=t0, dt=dt, n_steps=n_steps)
+    if save_fn is not None and not callable(save_fn):
+        raise ValueError(f"save_fn must be a function (t, z, aux) -> pytree, got {type(save_fn).__name__}")
+    return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn)
+
+
+def _check_scalars(dt, t0, margin_floor, error_tol):
+    """ValueError for a concrete ``dt``, ``t0``, ``margin_floor`` or ``error_tol`` out of range;
+    returns the concrete ``(dt, t0)`` (None where traced)."""
     dtv = concrete(dt)
     if dtv is not None and not (np.ndim(dtv) == 0 and np.isrealobj(dtv) and np.isfinite(dtv) and dtv > 0):
         raise ValueError(f"dt must be a finite real scalar > 0 [s], got {dt!r}")
@@ -760,6 +776,13 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
     tol = concrete(error_tol) if error_tol is not None else 1.0
     if tol is not None and not (np.ndim(tol) == 0 and np.isrealobj(tol) and tol > 0):
         raise ValueError(f"error_tol must be a real scalar > 0 (or None: no error estimate), got {error_tol!r}")
+    return dtv, t0v
+
+
+def _prepared_state(system, z0):
+    """``(z0, n)``: the initial state as arrays of the default float type (numbers keep their
+    dtype, booleans and all-integer vectors become floats) and its number of components;
+    ValueError for an empty, wrongly-shaped, complex or non-finite state."""
     leaves = jax.tree_util.tree_leaves(z0)
     if not leaves:
         raise ValueError("z0 must be a state array (or a pytree of arrays), got an empty pytree")
@@ -785,15 +808,7 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
         check_finite("z0", leaf)
     z0 = jax.tree_util.tree_map(                  # float32 with float64 enabled: promote, never mix
         lambda x: x.astype(floating) if _is_continuous(x) and jnp.result_type(x) != floating else x, z0)
-    t0c, dtc = concrete(t0), concrete(dt)
-    horizon = n_steps * float(dtc) if dtc is not None and np.ndim(dtc) == 0 else 0.0
-    _check_memory(system, n_steps, save_every, size, floating, horizon if t0c is not None else 0.0)
-    check_run = getattr(system, "check_run", None)
-    if check_run is not None:
-        check_run(params, t0=t0, dt=dt, n_steps=n_steps)
-    if save_fn is not None and not callable(save_fn):
-        raise ValueError(f"save_fn must be a function (t, z, aux) -> pytree, got {type(save_fn).__name__}")
-    return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn)
+    return z0, size
 
 
 def _check_memory(system, n_steps: int, save_every: int, n_state: int, dtype, horizon: float) -> None:
