@@ -165,26 +165,12 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     n_steps = n_steps_for(t_final, dt)
     falsifier_dt = dt if falsifier_dt is None else falsifier_dt
     n_steps_for(t_final, falsifier_dt, "falsifier_dt")
-    check_int("n_empirical", n_empirical, 0)
-    check_int("n_directions", n_directions, 1)
-    check_int("n_starts", n_starts, 0)
-    check_int("seed", seed, 0)
+    for name, v, lo in (("n_empirical", n_empirical, 0), ("n_directions", n_directions, 1),
+                        ("n_starts", n_starts, 0), ("seed", seed, 0)):
+        check_int(name, v, lo)
     if not callable(log):
         raise ValueError(f"log must be a function of one message, got {type(log).__name__}")
-    try:
-        cert = lemma2(ctrl, params, t_final=t_final, eps=eps, n_t=n_steps + 1)
-    except ValueError as exc:
-        if "n_t" not in str(exc):
-            raise
-        raise ValueError(f"dt = {dt} s gives Lemma 2 a grid of n_t = {n_steps + 1} times over [0, {t_final}] s, "
-                         f"too coarse: use a smaller dt ({exc})") from None
-    A = ctrl.error_matrix(params.gains)
-    if cert.lyapunov is None:        # a gain schedule: K2 = ||Phi(t, 0)|| only
-        k2s = {"exact_norm": lambda ts: k2_transition(params.gains, ts)}
-    else:
-        k2s = {"lyapunov": lambda ts: k2_lyapunov(A, ts), "exact_norm": lambda ts: k2_exact(A, ts)}
-    if cert.paper is not None:
-        k2s = {"paper": k2_paper, **k2s}
+    cert = _lemma2_on_grid(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_steps=n_steps)
     radii = {n: float(c.radius) for n, c in cert.certificates().items()}
     certified = max(radii.values())
     log("  Lemma 2 radii " + ", ".join(f"{n} {r:.4f}" for n, r in radii.items()) + f"  ({time.time() - t0:.0f} s)")
@@ -203,30 +189,13 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
                 "sampling": "uniform direction, uniform radius"}
     emp, alarms = {}, []
     if n_empirical:
-        dirs = sample_sphere(kd, n_empirical, A.shape[0])
-        errs = dirs * (2.0 * r_top * jax.random.uniform(kr, (n_empirical,)))[:, None]
-        n0 = np.asarray(jnp.linalg.norm(errs, axis=1))
-        # every step saved: the same compiled rollout as the distance measurements below
-        checks = verify_all(ctrl, params, t_final=t_final, initial_errors=errs, k2s=k2s, dt=dt, save_every=1)
-        for name, res in checks.items():
-            inside = n0 <= radii[name]
-            sing, viol = np.asarray(res.singular), np.asarray(res.violation_53)
-            emp[name] = EmpiricalCheck(int(inside.sum()), int((viol & inside).sum()), int((sing & inside).sum()),
-                                       int(sing.sum()))
-            if emp[name].violations_53_inside or emp[name].singular_inside:
-                msg = f"LEMMA 2 VIOLATED inside the {name} certificate: {emp[name]}"
-                alarms.append(msg)
-                log(msg)
-                warnings.warn(msg, RuntimeWarning, stacklevel=2)
-        log(f"  empirical: {n_empirical} runs, every K2 checked on them, violations inside "
-            f"{sum(e.violations_53_inside + e.singular_inside for e in emp.values())}  ({time.time() - t0:.0f} s)")
+        errs = sample_sphere(kd, n_empirical, ctrl.error_matrix(params.gains).shape[0]) * (
+            2.0 * r_top * jax.random.uniform(kr, (n_empirical,)))[:, None]
+        emp, alarms = _empirical_checks(ctrl, params, cert, radii, errs, t_final=t_final, dt=dt, log=log)
 
     # -- empirical safe radius per direction of the position slice
     P = slice_basis(ctrl, "position")
-    ang = np.linspace(0.0, 2.0 * math.pi, n_directions, endpoint=False)
-    ring = np.stack([np.cos(ang), np.sin(ang)], 1)
-    wd = np.asarray(P.T @ exact["position"].worst_error)    # the exact map's worst direction is among the rays
-    ring = np.concatenate([ring, (wd / np.linalg.norm(wd))[None]])
+    ring = _rays(n_directions, np.asarray(P.T @ exact["position"].worst_error))
     er = empirical_radius(ctrl, params, t_final=t_final, eps=eps, directions=ring @ np.asarray(P).T,
                           r_max=2.0 * r_top, dt=dt)
     log(f"  empirical safe radius (position slice, {len(ring)} rays): {er.radius:.4f}  ({time.time() - t0:.0f} s)")
@@ -246,6 +215,55 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     return CertificationReport(eps, t_final, cert, zeta0_norm, exact["full"], exact["position"], emp,
                                sampling, er, fs.get("full"), fs.get("position"), below, tuple(alarms),
                                time.time() - t0)
+
+
+def _lemma2_on_grid(ctrl, params, *, t_final: float, eps: float, dt: float, n_steps: int):
+    """:func:`lemma2` on the empirical checks' time grid, its refusal of a coarse grid said in
+    terms of ``dt``."""
+    try:
+        return lemma2(ctrl, params, t_final=t_final, eps=eps, n_t=n_steps + 1)
+    except ValueError as exc:
+        if "n_t" not in str(exc):
+            raise
+        raise ValueError(f"dt = {dt} s gives Lemma 2 a grid of n_t = {n_steps + 1} times over [0, {t_final}] s, "
+                         f"too coarse: use a smaller dt ({exc})") from None
+
+
+def _rays(n: int, worst) -> np.ndarray:
+    """(n + 1, 2) unit directions of the position slice: n evenly spaced, and the exact map's
+    worst direction ``worst`` (so that it is among the rays)."""
+    ang = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+    return np.concatenate([np.stack([np.cos(ang), np.sin(ang)], 1), (worst / np.linalg.norm(worst))[None]])
+
+
+def _empirical_checks(ctrl, params, cert, radii: dict, errs, *, t_final: float, dt: float, log) -> tuple[dict, list]:
+    """Every K2 of Lemma 2 checked on the same runs from ``errs`` (B, n): per certificate an
+    :class:`EmpiricalCheck` (violations of (53) and singular runs inside its ball), and an
+    alarm message for each certificate violated inside its ball."""
+    A = ctrl.error_matrix(params.gains)
+    if cert.lyapunov is None:        # a gain schedule: K2 = ||Phi(t, 0)|| only
+        k2s = {"exact_norm": lambda ts: k2_transition(params.gains, ts)}
+    else:
+        k2s = {"lyapunov": lambda ts: k2_lyapunov(A, ts), "exact_norm": lambda ts: k2_exact(A, ts)}
+    if cert.paper is not None:
+        k2s = {"paper": k2_paper, **k2s}
+    n0 = np.asarray(jnp.linalg.norm(errs, axis=1))
+    # every step saved: the same compiled rollout as the distance measurements
+    checks = verify_all(ctrl, params, t_final=t_final, initial_errors=errs, k2s=k2s, dt=dt, save_every=1)
+    emp, alarms = {}, []
+    for name, res in checks.items():
+        inside = n0 <= radii[name]
+        sing, viol = np.asarray(res.singular), np.asarray(res.violation_53)
+        emp[name] = EmpiricalCheck(int(inside.sum()), int((viol & inside).sum()), int((sing & inside).sum()),
+                                   int(sing.sum()))
+        if emp[name].violations_53_inside or emp[name].singular_inside:
+            msg = f"LEMMA 2 VIOLATED inside the {name} certificate: {emp[name]}"
+            alarms.append(msg)
+            log(msg)
+            warnings.warn(msg, RuntimeWarning, stacklevel=3)
+    log(f"  empirical: {len(errs)} runs, every K2 checked on them, violations inside "
+        f"{sum(e.violations_53_inside + e.singular_inside for e in emp.values())}")
+    return emp, alarms
 
 
 # the exact map of a linear singular set and the falsifier's smallest failing radius, both of the
