@@ -117,6 +117,20 @@ def value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has_aux: 
     return wrapped
 
 
+def _batch_size(args: tuple, nums: tuple) -> int:
+    """The leading batch size B of the arguments outside ``nums`` (the first leaf's: batch_map
+    checks that every other leaf has it too); ValueError for bad ``argnums`` or no batch."""
+    if any(not 0 <= i < len(args) for i in nums):
+        raise ValueError(f"argnums {nums} out of range for {len(args)} positional arguments")
+    leaves = jax.tree_util.tree_leaves([a for i, a in enumerate(args) if i not in nums])
+    if not leaves:
+        raise ValueError("batch_value_and_grad needs at least one batched argument (outside argnums)")
+    if jnp.ndim(leaves[0]) == 0:
+        raise ValueError("batch_value_and_grad: the batched arguments need a leading batch axis (the same "
+                         f"leading batch size on every leaf), got shapes {[jnp.shape(x) for x in leaves]}")
+    return jnp.shape(leaves[0])[0]
+
+
 def batch_value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has_aux: bool = False,
                          mode: str = "auto", chunk: int | None = None, mesh=None) -> Callable:
     """The mean of a per-example loss over a batch, and its gradient in the cheaper mode.
@@ -160,15 +174,7 @@ def batch_value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has
     nums = (argnums,) if single else tuple(argnums)
 
     def wrapped(*args):
-        if any(not 0 <= i < len(args) for i in nums):
-            raise ValueError(f"argnums {nums} out of range for {len(args)} positional arguments")
-        leaves = jax.tree_util.tree_leaves([a for i, a in enumerate(args) if i not in nums])
-        if not leaves:
-            raise ValueError("batch_value_and_grad needs at least one batched argument (outside argnums)")
-        if jnp.ndim(leaves[0]) == 0:
-            raise ValueError("batch_value_and_grad: the batched arguments need a leading batch axis (the same "
-                             f"leading batch size on every leaf), got shapes {[jnp.shape(x) for x in leaves]}")
-        b = jnp.shape(leaves[0])[0]         # batch_map checks that every other leaf has it too
+        b = _batch_size(args, nums)
 
         def spread(a):     # shared arguments enter batch_map broadcast along the batch
             return [jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + jnp.shape(x)), v) if i in nums else v
