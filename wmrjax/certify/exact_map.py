@@ -210,6 +210,32 @@ def _exact_map(ctrl, params, P, C, eps, ts, Phis, refine, n_phi):
 
 # --- (1,2): the curved singular set, by branch and bound over (t, phi) ----------------------
 
+def _turn_of_headings(ctrl, params, P, eps_a, t_c, theta_c, phi_width: float):
+    """``(rho, x)`` of shapes (n_t, n_phi) and (n_t, n_phi, k): the attained radius at every time
+    centre ``t_c`` and a full turn of headings around the reference's ``theta_c`` (an odd number,
+    so that the reference's own heading is one of them)."""
+    psi_c = np.linspace(-np.pi, np.pi, 2 * int(np.ceil(np.pi / phi_width)) + 1)
+    T, Ps = np.meshgrid(t_c, psi_c, indexing="ij")
+    rho, x = _curved_centres(ctrl, params, P, eps_a, jnp.asarray(T.ravel()), jnp.asarray((Ps + theta_c[:, None]).ravel()))
+    return np.asarray(rho).reshape(T.shape), np.asarray(x).reshape(T.shape + (-1,))
+
+
+def _heading_boxes(t_c, theta_c, h_t: float, half: float, phi_width: float):
+    """``(t_lo, t_hi, p_lo, p_hi)``: per time box of width ``h_t`` centred at ``t_c``, heading
+    boxes of width <= ``phi_width`` covering ``theta_c +- half`` [rad]."""
+    n_phi = int(np.ceil(2 * half / phi_width))
+    edges = np.linspace(-half, half, n_phi + 1)
+    t_lo, t_hi = np.repeat(t_c - 0.5 * h_t, n_phi), np.repeat(t_c + 0.5 * h_t, n_phi)
+    return t_lo, t_hi, (theta_c[:, None] + edges[None, :-1]).ravel(), (theta_c[:, None] + edges[None, 1:]).ravel()
+
+
+def _split_in_four(t_lo, t_hi, p_lo, p_hi):
+    """Every (t, phi) box split at its centre into four."""
+    tm, pm = 0.5 * (t_lo + t_hi), 0.5 * (p_lo + p_hi)
+    return (np.concatenate([t_lo, t_lo, tm, tm]), np.concatenate([tm, tm, t_hi, t_hi]),
+            np.concatenate([p_lo, pm, p_lo, pm]), np.concatenate([pm, p_hi, pm, p_hi]))
+
+
 def curved_exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float,
                             basis="full", n_t: int = 400, phi_width: float = 0.05, rtol: float = 2e-3,
                             max_rounds: int = 24, max_boxes: int = 1 << 18) -> ExactMapRadius:
@@ -252,34 +278,23 @@ def curved_exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *
     if singular_rows(ctrl) is not None:
         raise ValueError(f"type {ctrl.robot.name} has a linear singular set: use exact_map_radius")
     P = slice_basis(ctrl, basis)
-    dtype = jnp.result_type(float)
-    eps_a = jnp.asarray(eps, dtype)
+    eps_a = jnp.asarray(eps, jnp.result_type(float))
     tg = jnp.linspace(0.0, t_final, 4001)
     m1 = m1_closed_form(ctrl, params, tg)
     check_lemma2_args(t_final=t_final, eps=eps, m1=m1)
     G = 2.0 * float(jnp.max(_zeta_ref_accel(ctrl, params, tg)))
     # a first upper bound from box centres over a full turn of headings around theta_ref
     t_c = (np.arange(n_t) + 0.5) * (t_final / n_t)
-    n_phi0 = 2 * int(np.ceil(np.pi / phi_width)) + 1      # odd: the reference's own heading is one of them
-    psi_c = np.linspace(-np.pi, np.pi, n_phi0)
     theta_c = np.asarray(_reference_heading(ctrl, params, jnp.asarray(t_c)))
-    T, Ps = np.meshgrid(t_c, psi_c, indexing="ij")
-    tt, pp = jnp.asarray(T.ravel()), jnp.asarray((Ps + theta_c[:, None]).ravel())
-    ub0, x0 = _curved_centres(ctrl, params, P, eps_a, tt, pp)
-    ub0 = np.asarray(ub0)
-    best = int(np.argmin(ub0))
-    rho_up, t_best, x_best = float(ub0[best]), float(T.ravel()[best]), np.asarray(x0[best])
+    ub0, x0 = _turn_of_headings(ctrl, params, P, eps_a, t_c, theta_c, phi_width)
+    best = np.unravel_index(int(np.argmin(ub0)), ub0.shape)
+    rho_up, t_best, x_best = float(ub0[best]), float(t_c[best[0]]), np.asarray(x0[best])
     if not np.isfinite(rho_up):
         raise ValueError("no initial error in this slice brings zeta within eps of the singular set over the horizon")
     # boxes: per time box, headings within reach of theta(t) for errors up to rho_up
     reach = np.asarray(_heading_reach(ctrl, params, P, jnp.asarray(t_c), t_final / (2 * n_t), rho_up, G))
-    half = float(np.max(reach)) + eps + phi_width
-    n_phi = int(np.ceil(2 * half / phi_width))
-    edges = np.linspace(-half, half, n_phi + 1)
-    t_lo = np.repeat(t_c - 0.5 * t_final / n_t, n_phi)
-    t_hi = np.repeat(t_c + 0.5 * t_final / n_t, n_phi)
-    p_lo = (theta_c[:, None] + edges[None, :-1]).ravel()
-    p_hi = (theta_c[:, None] + edges[None, 1:]).ravel()
+    t_lo, t_hi, p_lo, p_hi = _heading_boxes(t_c, theta_c, t_final / n_t, float(np.max(reach)) + eps + phi_width,
+                                            phi_width)
     closed_min = np.inf          # smallest lower bound of the closed boxes
     evaluated = 0
     for _ in range(max_rounds):
@@ -296,13 +311,10 @@ def curved_exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *
         open_ = ~done
         if not open_.any() or 4 * open_.sum() > max_boxes:
             break
-        t_lo, t_hi, p_lo, p_hi = (x[open_] for x in (t_lo, t_hi, p_lo, p_hi))
-        tm, pm = 0.5 * (t_lo + t_hi), 0.5 * (p_lo + p_hi)
-        t_lo, t_hi = np.concatenate([t_lo, t_lo, tm, tm]), np.concatenate([tm, tm, t_hi, t_hi])
-        p_lo, p_hi = np.concatenate([p_lo, pm, p_lo, pm]), np.concatenate([pm, p_hi, pm, p_hi])
+        t_lo, t_hi, p_lo, p_hi = _split_in_four(*(x[open_] for x in (t_lo, t_hi, p_lo, p_hi)))
     lower = min(closed_min, float(lb[open_].min()) if open_.any() else np.inf, rho_up)
     worst = np.asarray(P) @ x_best
-    return ExactMapRadius(jnp.asarray(t_c), jnp.asarray(ub0.reshape(T.shape).min(axis=1)), jnp.asarray(rho_up),
+    return ExactMapRadius(jnp.asarray(t_c), jnp.asarray(ub0.min(axis=1)), jnp.asarray(rho_up),
                           jnp.asarray(t_best), jnp.asarray(worst), lower, (rho_up - lower) / rho_up, evaluated)
 
 
