@@ -268,7 +268,7 @@ def _empirical_checks(ctrl, params, cert, radii: dict, errs, *, t_final: float, 
 
 # the exact map of a linear singular set and the falsifier's smallest failing radius, both of the
 # same slice, agree to this (the falsifier samples time at its dt, the map is continuous in t:
-# 2e-7 relative on section 6.1, 1.4e-3 on the S-path example); further apart, one is wrong
+# 1.4e-6 relative on section 6.1, 1.4e-3 on the S-path example); further apart, one is wrong
 EXACT_FALSIFIED_RTOL = 1e-2
 
 
