@@ -118,7 +118,8 @@ def test_min_norm_to_ball_at_any_scale(scale):
     """M = s diag(1, 2), a = (1, 0.5), eps = 0.01: the closest point of the eps-ball is along a
     after the map's inverse; the oracle is the same boundary search as above, on M / s, times 1/s
     (the smallest ||x|| scales as 1/s). A fixed bisection bracket in log(nu) of [-60, 60] gave
-    1.0e-30 -> 4.5e-5 here (the root nu ~ 1/s^2 left it), and s^2 underflows below 1e-162."""
+    ||x|| = 1.6e-4 at s = 1e-30 where it is 1.02e30 (measured on e922c0c: the root nu ~ 1/s^2 left
+    the bracket), and s^2 underflows below 1e-162."""
     M = np.diag([1.0, 2.0])
     a = np.array([1.0, 0.5])
     ph = np.linspace(0.0, 2 * np.pi, 200001)
