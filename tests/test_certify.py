@@ -258,3 +258,61 @@ def test_m1_closed_form_12_is_the_distance_to_its_singular_set(rng):
         zeta = jnp.asarray(np.stack([jet[0] + np.array([0.0, 0.0, best]), v]))
         X = np.asarray(c12.inverse_psi(zeta, params, 1.0))
         assert abs(np.sin(X[3]) * np.sin(X[4])) < 1e-9
+
+
+# --- the differentiable exact-map radius (issue 32): value against exact_map_radius, gradient
+# against central differences of exact_map_radius itself (an independent computation: no
+# envelope theorem, only the grid, the golden section and the bisection)
+
+def _radius_of(ctrl, params, gains, basis, differentiable, t_final=5.0):
+    fn = C.differentiable_exact_map_radius if differentiable else lambda *a, **k: C.exact_map_radius(*a, **k).radius
+    return fn(ctrl, params._replace(gains=gains), t_final=t_final, eps=0.01, basis=basis)
+
+
+def _central_differences(f, x, h):
+    x = np.asarray(x, float)
+    out = np.zeros(x.size)
+    for i in range(x.size):
+        d = np.zeros(x.size)
+        d[i] = h
+        out[i] = (float(f(x + d.reshape(x.shape))) - float(f(x - d.reshape(x.shape)))) / (2 * h)
+    return out.reshape(x.shape)
+
+
+@pytest.mark.parametrize("basis", ["full", "position"])
+def test_differentiable_exact_map_radius_value_and_gradient(basis):
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    params = ctrl.params(R.paper_62(), poles=1.0, geometry=w.Geometry(e=0.15))
+    gains = w.Gains.from_damping([[2.0], [1.6]], [[0.5], [0.6]])     # minimum at t* = 0.84 s (full), 0.79 s
+    value, grad = jax.jit(jax.value_and_grad(lambda k: _radius_of(ctrl, params, w.Gains(k), basis, True)))(gains.coeffs)
+    exact = float(_radius_of(ctrl, params, gains, basis, False))
+    assert abs(float(value) - exact) <= 1e-10 * exact
+    fd = _central_differences(lambda k: _radius_of(ctrl, params, w.Gains(jnp.asarray(k)), basis, False), gains.coeffs,
+                              1e-6)
+    assert np.all(np.abs(np.asarray(grad)) > 1e-3)          # every coefficient moves the radius here
+    np.testing.assert_allclose(np.asarray(grad), fd, rtol=1e-6, atol=1e-8)
+
+
+def test_differentiable_exact_map_radius_of_a_gain_schedule():
+    """Phi(t*, 0) by RK4 through the schedule: the gradient in the knot values against central
+    differences of exact_map_radius (the transition-matrix version)."""
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    params = ctrl.params(R.paper_62(), poles=1.0, geometry=w.Geometry(e=0.15))
+    sched = w.GainSchedule.from_damping([0.0, 2.0, 4.0], np.full((3, 2, 1), 1.5) * [[[1.0]], [[1.3]], [[0.8]]],
+                                        np.full((3, 2, 1), 0.7))
+    rad = lambda om: _radius_of(ctrl, params, sched._replace(omega=om), "position", True, t_final=4.0)
+    value, grad = jax.value_and_grad(rad)(sched.omega)
+    exact = float(_radius_of(ctrl, params, sched, "position", False, t_final=4.0))
+    assert abs(float(value) - exact) <= 1e-10 * exact
+    fd = _central_differences(
+        lambda om: _radius_of(ctrl, params, sched._replace(omega=jnp.asarray(om)), "position", False, t_final=4.0),
+        sched.omega, 1e-6)
+    assert np.max(np.abs(fd)) > 1e-2
+    np.testing.assert_allclose(np.asarray(grad), fd, rtol=1e-5, atol=1e-7)
+
+
+def test_differentiable_exact_map_radius_refuses_the_curved_set():
+    ctrl = w.dynamic_linearization("(1,2)", "velocity")
+    params = ctrl.params(R.circle(), poles=1.0)
+    with pytest.raises(ValueError, match="curved singular set"):
+        C.differentiable_exact_map_radius(ctrl, params, t_final=2.0, eps=0.01)

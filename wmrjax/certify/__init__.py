@@ -35,6 +35,7 @@ from wmrjax.certify.empirical import (  # noqa: F401
 from wmrjax.certify.exact_map import (  # noqa: F401
     ExactMapRadius,
     curved_exact_map_radius,
+    differentiable_exact_map_radius,
     exact_map_radius,
     min_norm_to_ball,
     singular_rows,

@@ -180,18 +180,28 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     return ExactMapRadius(ts, rho, rad, t_star, worst)
 
 
+def _ball_problem(ctrl, params, P, C, t, Phi=None, n_phi=None):
+    """``(M, a)`` of the problem at time t: reach ``||a + M s|| <= eps`` with ``M = C Phi(t, 0) P``."""
+    a = C @ ctrl.reference_jet(t, params)[:ctrl.relative_degree].reshape(-1)
+    if Phi is None:
+        Phi = linearize.transition_matrix(params.gains, t, n_steps=n_phi)
+    return C @ Phi @ P, a
+
+
 @functools.partial(jax.jit, static_argnums=(0, 7, 8))
 def _exact_map(ctrl, params, P, C, eps, ts, Phis, refine, n_phi):
     """Grid minimum of rho(t), refined by golden section (one compiled program per type and slice shape).
     For a gain schedule ``Phis`` holds Phi(t, 0) on the grid and ``n_phi`` the RK4 steps of one
     Phi(t, 0) off it; for constant gains both are None (expm(A t))."""
-    r = ctrl.relative_degree
+    return _exact_map_core(ctrl, params, P, C, eps, ts, Phis, refine, n_phi)
+
+
+def _exact_map_core(ctrl, params, P, C, eps, ts, Phis, refine, n_phi):
+    """:func:`_exact_map`'s body: ``(rho on the grid, radius, its time, its initial error)``."""
 
     def rho_x(t, Phi=None):
-        a = C @ ctrl.reference_jet(t, params)[:r].reshape(-1)
-        if Phi is None:
-            Phi = linearize.transition_matrix(params.gains, t, n_steps=n_phi)
-        return min_norm_to_ball(C @ Phi @ P, a, eps)
+        M, a = _ball_problem(ctrl, params, P, C, t, Phi, n_phi)
+        return min_norm_to_ball(M, a, eps)
 
     if Phis is None:
         rho = jax.vmap(lambda t: rho_x(t)[0])(ts)
@@ -205,6 +215,63 @@ def _exact_map(ctrl, params, P, C, eps, ts, Phis, refine, n_phi):
     t_star = jnp.where(rr < rho[i], tr, ts[i])
     rad, xs = rho_x(t_star)
     return rho, rad, t_star, P @ xs
+
+
+def differentiable_exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float,
+                                    basis="full", n_t: int = 2001, refine: int = 40):
+    r"""The exact-map radius of a linear singular set as a differentiable function of the gains.
+
+    Its value is :func:`exact_map_radius`'s ``radius`` (the same grid and golden section; no
+    rollout). Its gradient is the envelope theorem's, twice: at the minimising time
+    :math:`t^*` (the outer minimum over t) and at the minimiser :math:`s^*` of the inner QCQP
+    :math:`\min \|s\|^2` s.t. :math:`\|a + M(	heta) s\|^2 \le \epsilon^2`, whose multiplier
+    :math:`
+u = -\langle s^*, M^T rangle / \|M^T r\|^2` (:math:`r = a + M s^*`) comes from
+    stationarity :math:`s^* = -
+u M^T r`. So
+    :math:`\partialho/\partial	heta = 
+u\, r^T (\partial M/\partial	heta)\, s^* / ho`
+    with :math:`M = C\,\Phi(t^*, 0; 	heta)\,P` (``expm(A t*)`` for constant gains, RK4 for a
+    :class:`wmrjax.GainSchedule`). Where the minimum over t is attained at two times at once
+    the radius has a kink and this is one of its one-sided derivatives. Traceable: it runs under
+    ``jit``, ``grad`` and ``vmap`` (the eager checks of :func:`exact_map_radius` are left to it).
+
+    Args:
+      ctrl, params: a dynamic closed loop of type (2,0), (2,1) or (1,1) (a linear singular set);
+        the gains in ``params`` are what it is differentiated in.
+      t_final: horizon T [s]; eps: the margin.
+      basis: slice (:func:`slice_basis`); n_t: time grid; refine: golden-section iterations.
+
+    Returns:
+      A scalar [m, in output-error units]: 0 when the reference itself is within eps, inf when
+      no initial error in the slice reaches the singular set (gradient 0 at both).
+
+    Raises:
+      ValueError: a static law, or (1,2)'s curved singular set (its radius is a branch and
+        bound: :func:`curved_exact_map_radius`).
+    """
+    rows = singular_rows(ctrl)
+    if rows is None:
+        raise ValueError(f"type {ctrl.robot.name} has a curved singular set: its exact-map radius is a branch and "
+                         "bound (curved_exact_map_radius, with a proved lower bound), not differentiable")
+    P = slice_basis(ctrl, basis)
+    C = jnp.eye(ctrl.relative_degree * ctrl.m)[jnp.asarray(rows)]
+    ts = np.linspace(0.0, float(t_final), n_t)
+    n_phi = transition_steps(t_final) if params.gains.time_varying else None
+    frozen = jax.lax.stop_gradient(params)
+    Phis = (linearize.transition_matrices(frozen.gains, ts, max_step=TRANSITION_STEP)
+            if n_phi is not None else None)
+    eps = jnp.asarray(eps, jnp.result_type(float))
+    _, rad, t_star, _ = _exact_map_core(ctrl, frozen, P, C, eps, jnp.asarray(ts), Phis, refine, n_phi)
+    M0, a0 = _ball_problem(ctrl, frozen, P, C, t_star, None, n_phi)
+    _, s = min_norm_to_ball(M0, a0, eps)                          # s*, in slice coordinates
+    g = M0.T @ (a0 + M0 @ s)
+    nu = -(s @ g) / jnp.maximum(g @ g, jnp.finfo(g.dtype).tiny)
+    M, a = _ball_problem(ctrl, params, P, C, t_star, None, n_phi)  # the live one: gains traced
+    lagrange = nu * jnp.sum((a + M @ s) ** 2)
+    moving = jnp.isfinite(rad) & (rad > 0)
+    step = (lagrange - jax.lax.stop_gradient(lagrange)) / (2.0 * jnp.where(moving, rad, 1.0))
+    return rad + jnp.where(moving, step, 0.0)
 
 
 
