@@ -88,8 +88,24 @@ def parser():
     p.add_argument("--cma-population", type=cli.nonnegative_int, default=None,
                    help=f"CMA-ES population (0: 4 + floor(3 ln n)) {S}")
     p.add_argument("--seed", type=cli.seed, default=None, help=f"PRNG seed of the scenarios (and the baselines) {S}")
+    p.add_argument("--require-radius", type=_required, default=None, metavar="R",
+                   help="keep the exact-map radius of initial errors certified >= R throughout [m, m/s]; 'initial': "
+                        f"the initial gains', 'box': the [initial] box's half-diagonal (sets [tune.requirement]) {S}")
+    p.add_argument("--require-slice", default=None, choices=["full", "position"],
+                   help=f"the requirement's slice of initial errors {S}")
+    p.add_argument("--falsify", action="store_true",
+                   help="also falsify the initial and tuned gains' exact-map radii by rollouts (slower)")
     p.add_argument("--fresh", action="store_true", help="ignore (delete) an existing checkpoint in --out")
     return p
+
+
+def _required(text: str):
+    """``--require-radius``: a radius >= 0, ``initial`` or ``box``."""
+    if text in ("initial", "box"):
+        return text
+    from wmrjax import cli
+
+    return cli.nonnegative(text)
 
 
 # option -> dotted key of the problem file it sets
@@ -100,7 +116,8 @@ _KEYS = {"robot": "controller.robot", "level": "controller.level",
          "parameterization": "tune.family.parameterization", "mismatch": "tune.scenarios.mismatch",
          "control_dt": "plant.control_period", "t_final": "simulation.t_final", "baseline_seeds": "tune.baselines.seeds",
          "baseline_budget": "tune.baselines.budget", "cma_population": "tune.baselines.cma_population",
-         "seed": "tune.seed", "min_damping": "tune.family.min_damping", "resample": "tune.scenarios.resample"}
+         "seed": "tune.seed", "min_damping": "tune.family.min_damping", "resample": "tune.scenarios.resample",
+         "require_radius": "tune.requirement.radius", "require_slice": "tune.requirement.slice"}
 
 
 def problem_from_args(a):
@@ -169,9 +186,9 @@ def _reference_values(text: str) -> dict:
     raise ValueError(f"--reference: expected a family ({', '.join(R.FAMILIES)}) or a CSV file of samples, got {text!r}")
 
 
-def run(problem, out: Path, fresh: bool = False, log=print, progress=None) -> dict:
+def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsify: bool = False) -> dict:
     """Tune, evaluate, run the baselines, write ``gains.json``, the figures and ``summary.json``;
-    returns the summary."""
+    returns the summary (``falsify``: falsify the exact-map radii of the initial and tuned gains)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)   # this entry point runs in float64
@@ -183,7 +200,7 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None) -> di
 
     say = progress or log
     setting = problem.setting("tuning")
-    settings = config.read(problem.section("tune"))
+    settings = config.read(problem.section("tune"), problem.section("certify"))
     family = settings.gain_spec(setting)
     out.mkdir(parents=True, exist_ok=True)
     if fresh and (out / "checkpoint.json").exists():
@@ -205,7 +222,8 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None) -> di
     try:
         res = loop.tune(setting, family, settings.optimizer.build(settings.steps), steps=settings.steps,
                         scenarios=settings.scenarios, loss=settings.loss, stopping=settings.stopping,
-                        seed=settings.seed, out_dir=out, run_id=run_id, log=log, on_built=prepare)
+                        seed=settings.seed, out_dir=out, run_id=run_id, log=log, on_built=prepare,
+                        requirement=settings.requirement)
         for done in programs["ready"]:
             done.result()                   # their errors are raised here
     except BaseException:
@@ -228,7 +246,8 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None) -> di
     log(f"held-out loss: initial gains {ho_paper:.5g}, tuned {ho_tuned:.5g} (ratio {ho_paper / ho_tuned:.2f}); "
         f"singular events {int(np.sum(ho_m.singular[0]))} -> {int(np.sum(ho_m.singular[1]))}")
     base, runs, match = _baselines(settings, family, train_eval, heldout_eval, paper_raw, res.history, say, log)
-    radius = _certified_radius(setting, family, paper_raw, tuned_raw)
+    say("certifying the initial and the tuned gains (Lemma 2, exact map" + (", falsifier)" if falsify else ")"))
+    radius = _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify)
     summary = _summary(problem, setting, settings, family, res, paper_raw, tuned_raw, (tr_paper, tr_tuned),
                        (ho_paper, ho_tuned), ho_ok, ho_m, base, match, radius, grad_wall)
     say("writing gains, history, figures and summary")
@@ -309,24 +328,33 @@ def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say,
     return base, runs, match
 
 
-def _certified_radius(setting, family, paper_raw, tuned_raw):
-    """Lemma 2's radius of the initial and the tuned gains (the certificate term's: the automatic
-    Lyapunov K2, the transition matrix's norm for a schedule), where the problem allows one."""
-    import jax
+def _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify: bool):
+    """Every radius of the initial and the tuned gains (:func:`tuning.certified.radii`), the
+    requirement and how it was kept; None where the problem has no certificate (a static law,
+    a random reference family) with the reason."""
+    import numpy as np
 
-    from tuning import loop
-    from tuning.losses import certificate_radius
+    from tuning import certified
 
     try:
-        loop.check(setting, family, loop.Scenarios(), loop.LossWeights(certificate=1.0))
-    except ValueError:
-        return None
-    cert = loop.certificate(setting, 1.0)
-    radius_of = jax.jit(lambda r: certificate_radius(family.gains(r), cert.m1, cert.ts, cert.eps),
-                        compiler_options=loop.QUICK_COMPILE)
-    return {"method": "Lemma 2, K2 = ||Phi(t, 0)|| (gain schedule)" if family.knots else
-            "Lemma 2, automatic Lyapunov K2", "eps": cert.eps,
-            "paper_gains": float(radius_of(paper_raw)), "tuned": float(radius_of(tuned_raw))}
+        certified.check(setting, family)
+    except ValueError as err:
+        return {"skipped": str(err)}
+    req, kept = settings.requirement, res.context.kept
+    eps = req.eps if req is not None else certified.DEFAULT_EPS
+    kw = dict(eps=eps, falsify=falsify, seed=settings.seed)
+    out = {"initial": certified.radii(setting, family.gains(paper_raw), **kw),
+           "tuned": certified.radii(setting, family.gains(tuned_raw), **kw)}
+    if kept is not None:
+        path = [h["radius"] for h in res.history if "radius" in h]
+        tuned = out["tuned"][f"exact_map_{req.slice}"]
+        held = tuned.get("lower_bound", tuned["radius"])
+        out["requirement"] = {**req._asdict(), "required_radius": kept.required, "measured_by": kept.radius.label,
+                              "initial_gains_radius": kept.initial, "smallest_radius_of_the_run": float(np.min(path)),
+                              "tuned_radius": held, "held": bool(held >= kept.required),
+                              "steps_projected": sum(1 for h in res.history if h.get("halvings") == -1),
+                              "steps_halved": sum(1 for h in res.history if h.get("halvings", 0) > 0)}
+    return out
 
 
 def _summary(problem, setting, settings, family, res, paper_raw, tuned_raw, train, heldout, ho_ok, ho_m, base, match,
@@ -369,7 +397,7 @@ def _summary(problem, setting, settings, family, res, paper_raw, tuned_raw, trai
         "rollouts_to_match": match,
         "steps": len(hist), "stopped_early": res.stopped_early,
         "gradient_wall_time_s": grad_wall, "tuning_wall_time_s_including_compile": res.wall_time_s,
-        "certified_radius": radius,
+        "radii": radius,
     }
 
 
@@ -550,13 +578,17 @@ def main(argv=None) -> int:
         from tuning import config, loop
 
         setting = problem.setting("tuning")
-        settings = config.read(problem.section("tune"))
+        settings = config.read(problem.section("tune"), problem.section("certify"))
         family = settings.gain_spec(setting)
         loop.check(setting, family, settings.scenarios, settings.loss)
+        if settings.requirement is not None:
+            from tuning import certified
+
+            certified.check(setting, family)
         baseline_budget(settings, family)
     except ValueError as e:
         p.error(str(e))
-    s = cli.work(p, a, lambda progress: run(problem, a.out, a.fresh, log=progress),
+    s = cli.work(p, a, lambda progress: run(problem, a.out, a.fresh, log=progress, falsify=a.falsify),
                  hint=lambda msg: msg + "; or rerun with --fresh to start over" if "checkpoint" in msg else msg)
     b = s["baselines"]
     print(f"{problem.title}: {s['n_parameters']} parameters; held-out loss initial {s['heldout_loss']['paper_gains']:.4g} "

@@ -28,6 +28,10 @@
     [tune.stopping]           # tuning.Stopping
     eval_every = 5
     patience = 6
+    [tune.requirement]        # tuning.certified.Requirement (absent: none)
+    radius = "initial"        # keep the exact-map radius >= this [m, m/s] ("initial": the initial gains'; "box")
+    slice = "full"            # or "position"
+    eps = 0.01                # the margin (default: [certify] eps, else 0.01)
     [tune.baselines]          # tuning.Baselines
     seeds = 5
     budget = 1.0
@@ -49,6 +53,8 @@ import optax
 
 from wmrjax.problem import ProblemError, check_keys, integer, nonnegative, positive
 
+from tuning import certified
+from tuning.certified import Requirement
 from tuning.gains import GainSpec
 from tuning.losses import LossWeights
 
@@ -126,6 +132,7 @@ class TuneSettings(NamedTuple):
     baselines: Baselines
     steps: int = 40
     seed: int = 0
+    requirement: Requirement | None = None
 
     def gain_spec(self, setting) -> GainSpec:
         """The gain family for the problem's controller (knots uniform on [0, t_final] when given as a count)."""
@@ -143,15 +150,19 @@ class TuneSettings(NamedTuple):
         out = {"seed": self.seed, "steps": self.steps, "family": dict(self.family)}
         for k in ("loss", "scenarios", "optimizer", "stopping", "baselines"):
             out[k] = getattr(self, k)._asdict()
+        if self.requirement is not None:
+            out["requirement"] = self.requirement._asdict()
         return out
 
 
 FAMILY_KEYS = ("parameterization", "shared", "knots", "knot_times", "min_damping", "frozen")
 
 
-def read(tune: dict) -> TuneSettings:
-    """The :class:`TuneSettings` of a ``[tune]`` section (a dict), checked key by key."""
-    check_keys("tune", tune, ("seed", "steps", "family", "loss", "scenarios", "optimizer", "stopping", "baselines"))
+def read(tune: dict, certify: dict | None = None) -> TuneSettings:
+    """The :class:`TuneSettings` of a ``[tune]`` section (a dict), checked key by key
+    (``certify``: the problem's ``[certify]`` section, whose eps a requirement defaults to)."""
+    check_keys("tune", tune, ("seed", "steps", "family", "loss", "scenarios", "optimizer", "stopping", "baselines",
+                              "requirement"))
     seed = integer("tune", "seed", tune.get("seed", 0), 0, 2**32 - 1)
     steps = integer("tune", "steps", tune.get("steps", 40), 1)
     family = _family(tune.get("family", {}))
@@ -175,7 +186,8 @@ def read(tune: dict) -> TuneSettings:
     check_keys("tune.stopping", st, Stopping._fields)
     stopping = Stopping(*(integer("tune.stopping", k, st.get(k, getattr(Stopping(), k)), 1) for k in Stopping._fields))
     baselines = _baselines(tune.get("baselines", {}))
-    return TuneSettings(family, loss, scenarios, opt, stopping, baselines, steps, seed)
+    requirement = certified.read(tune.get("requirement"), certify or {})
+    return TuneSettings(family, loss, scenarios, opt, stopping, baselines, steps, seed, requirement)
 
 
 def _floats(section, table, fields, check) -> dict:

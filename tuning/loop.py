@@ -24,6 +24,7 @@ import wmrjax as w
 from wmrjax import io
 from wmrjax.references import FAMILIES
 
+from tuning import certified
 from tuning.config import Scenarios, Stopping
 from tuning.gains import GainSpec
 from tuning.losses import LossWeights, certificate_radius, scenario_loss
@@ -65,6 +66,23 @@ class Context(NamedTuple):
     sets: ScenarioSets
     weights: jnp.ndarray
     certificate: Certificate | None
+    kept: "Kept | None" = None
+
+
+class Kept(NamedTuple):
+    """A certified-region requirement as the loop keeps it (:mod:`tuning.certified`).
+
+    Attributes:
+      requirement: :class:`tuning.certified.Requirement` as given.
+      required: the required radius as a number [output-error units].
+      radius: :class:`tuning.certified.Radius` (the exact-map radius of raw parameters).
+      initial: the initial gains' radius.
+    """
+
+    requirement: object
+    required: float
+    radius: object
+    initial: float
 
 
 class TuneResult(NamedTuple):
@@ -312,7 +330,7 @@ def check_memory(setting, scenarios: Scenarios) -> None:
 def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, steps: int,
          scenarios: Scenarios = Scenarios(), loss: LossWeights = LossWeights(), stopping: Stopping = Stopping(),
          seed: int = 0, out_dir=None, run_id: str = "", log: Callable = print, stop_after: int | None = None,
-         on_built: Callable | None = None) -> TuneResult:
+         on_built: Callable | None = None, requirement=None) -> TuneResult:
     """Tune the gains of a problem's controller by gradient descent through its runs.
 
     The optimizer steps on the mean loss of the valid training scenarios (with
@@ -336,6 +354,10 @@ def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, 
       stop_after: stop after this many steps of *this* call (to test resumption).
       on_built: called with the :class:`Context` once the scenarios are drawn and a checkpoint
         is read, before the first gradient (the command line compiles its later programs then).
+      requirement: a :class:`tuning.certified.Requirement` (None: none): every accepted point
+        keeps the exact-map radius at or above it (:mod:`tuning.certified`: the initial gains
+        raised to it first when they miss it, the gradient projected near it, steps halved back
+        to it); each history entry then has the point's ``radius`` and the step's ``halvings``.
 
     Returns:
       :class:`TuneResult`.
@@ -345,6 +367,10 @@ def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, 
     cert_vg = (jax.jit(jax.value_and_grad(lambda r: certificate_term(family, r, ctx.certificate)))
                if ctx.certificate is not None else None)
     raw = initial_raw(setting, family)
+    if requirement is not None:
+        ctx = ctx._replace(kept=keep(setting, family, requirement, raw))
+        run_id += repr(tuple(requirement))
+        raw, _ = certified.restore(raw, ctx.kept.radius, ctx.kept.required, log)
     opt_state = optimizer.init(raw)
 
     @jax.jit
@@ -371,9 +397,13 @@ def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, 
                  if scenarios.resample else ctx.sets.train)
         val, grad, ok, _ = _gradient_step(raw, batch, setting, family, ctx.weights)
         c_val, c_grad = cert_vg(raw) if cert_vg is not None else (0.0, None)
+        grad = grad if c_grad is None else grad + c_grad
         rec = _record(ctx, step, raw, val, ok, c_val, state, stopping, steps, scenarios.resample)
         state["history"].append(rec)
-        raw, opt_state = update(grad if c_grad is None else grad + c_grad, opt_state, raw)
+        if ctx.kept is None:
+            raw, opt_state = update(grad, opt_state, raw)
+        else:
+            raw, opt_state = _kept_step(ctx.kept, update, grad, opt_state, raw, rec)
         step += 1
         done_here += 1
         state["wall_time_s"] = time.perf_counter() - t0
@@ -385,6 +415,29 @@ def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, 
     finished = step >= steps or state["stopped_early"]
     return TuneResult(finished, np.asarray(raw), np.asarray(state["best_raw"]), state["history"], state["rollouts"],
                       state["excluded"], state["stopped_early"], state["wall_time_s"], ctx)
+
+
+def keep(setting, family: GainSpec, requirement, raw0) -> Kept:
+    """The :class:`Kept` of a requirement, its radius function built and its value resolved
+    (``"initial"``: the radius at ``raw0``, the initial gains)."""
+    radius = certified.radius_function(setting, family, requirement)
+    initial = radius.value(jnp.asarray(raw0))
+    return Kept(requirement, certified.required_radius(setting, requirement, radius, raw0), radius, initial)
+
+
+def _kept_step(kept: Kept, update, grad, opt_state, raw, rec: dict):
+    """One optimizer step that keeps the requirement: the gradient projected near it, the step
+    halved back to it (:mod:`tuning.certified`); records the point's radius and the halvings."""
+    rad = kept.radius
+    if rad.value_and_grad is not None:
+        r, g_r = rad.value_and_grad(raw)
+        r = float(r)
+    else:
+        r, g_r = rad.value(raw), None
+    proposal, opt_state = update(certified.project(grad, r, g_r, kept.required), opt_state, raw)
+    raw, _, halvings = certified.feasible_step(raw, proposal, rad, kept.required)
+    rec["radius"], rec["halvings"] = r, halvings
+    return raw, opt_state
 
 
 def _record(ctx: Context, step: int, raw, val, ok, c_val, state: dict, stopping: Stopping, steps: int,

@@ -1,0 +1,267 @@
+r"""The certified region while tuning (issue 32): a required exact-map radius kept throughout,
+and every radius of the initial and the tuned gains, labelled.
+
+The exact-map radius (:func:`wmrjax.certify.exact_map_radius`) is the largest ball of initial
+output errors, in the full error space or the position slice, from which the linearized error
+:math:`\tilde\zeta(t) = \Phi(t, 0)\tilde\zeta(0)` stays eps away from the singular set over the
+horizon. It is a minimum over time of closed-form problems in :math:`\Phi(t, 0)` (no rollout),
+so it is cheap and, for the linear singular sets of (2,0), (2,1) and (1,1), differentiable in
+the gains (:func:`wmrjax.certify.differentiable_exact_map_radius`). The tuner
+
+* starts from a point that meets the requirement (when the initial gains do not, it first climbs
+  the radius's gradient until they do: :func:`restore`);
+* removes from each loss gradient the part that would shrink the radius while the radius is
+  within :data:`BAND` of the requirement (gradient projection on the one active constraint);
+* accepts an optimizer step where the radius still meets the requirement; otherwise projects it
+  back onto the requirement along the radius's gradient (a few Newton steps), or failing that
+  halves it back toward the last accepted point (:func:`feasible_step`).
+
+Every accepted point therefore holds the requirement, not just the last. For (1,2), whose
+singular set is curved, the radius is a branch and bound: the requirement is checked after
+every step on its *proved lower bound* (no gradient term), which is slower but as strict.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wmrjax import certify
+from wmrjax.problem import ProblemError, check_keys, positive
+
+SLICES = ("full", "position")
+DEFAULT_EPS = 1e-2       # the certify command's default margin [output-error units]
+BAND = 0.02              # project the gradient when the radius is within 2 % of the requirement
+MAX_HALVINGS = 30        # a rejected step is halved at most this often (2^-30 of it), then not taken
+RESTORE_STEPS = 200      # ascent steps on the radius when the initial gains miss the requirement
+RESTORE_STEP = 0.2       # their first length in the unconstrained parameters
+RESTORE_MARGIN = 1e-3    # the ascent and the projection aim this fraction above the requirement
+PROJECTION_STEPS = 5     # Newton steps projecting a step back onto the requirement
+
+
+class Requirement(NamedTuple):
+    """The initial errors the tuned gains must stay certified for (``[tune.requirement]``).
+
+    Attributes:
+      radius: the required exact-map radius [output-error units: m, m/s, ...]; or ``"initial"``
+        (the initial gains' radius: keep the region the user has) or ``"box"`` (the smallest
+        ball holding the problem's ``[initial]`` box in the slice).
+      slice: ``"full"`` (every output-error component: position and velocity errors, what a
+        start of the ``[initial]`` box differs in) or ``"position"`` (the position error only,
+        the paper's setting).
+      eps: the margin to the singular set (the problem's ``[certify] eps`` by default).
+    """
+
+    radius: float | str
+    slice: str = "full"
+    eps: float = DEFAULT_EPS
+
+
+def read(table: dict | None, certify_section: dict) -> Requirement | None:
+    """The :class:`Requirement` of a ``[tune.requirement]`` table (None when absent)."""
+    if not table:
+        return None
+    check_keys("tune.requirement", table, Requirement._fields)
+    if "radius" not in table:
+        raise ProblemError('[tune.requirement] radius: required (a radius >= 0, "initial" or "box")')
+    r = table["radius"]
+    if not (r in ("initial", "box") or (isinstance(r, (int, float)) and not isinstance(r, bool)
+                                        and math.isfinite(r) and r >= 0)):
+        raise ProblemError(f'[tune.requirement] radius: expected a radius >= 0, "initial" or "box", got {r!r}')
+    sl = table.get("slice", "full")
+    if sl not in SLICES:
+        raise ProblemError(f"[tune.requirement] slice: expected one of {SLICES}, got {sl!r}")
+    eps = positive("tune.requirement", "eps", table.get("eps", certify_section.get("eps", DEFAULT_EPS)))
+    return Requirement(float(r) if not isinstance(r, str) else r, sl, float(eps))
+
+
+def check(setting, family) -> None:
+    """ValueError when the problem has no exact-map radius to keep: a static law or a random
+    reference family (no fixed reference), or a gain schedule of (1,2) (its radius is for
+    constant gains)."""
+    from wmrjax.controllers.dynamic import DynamicLinearization
+    from wmrjax.references import FAMILIES
+
+    if not isinstance(setting.ctrl, DynamicLinearization):
+        raise ValueError("a certified-region requirement needs a dynamic linearizing law (only those are certified)")
+    if FAMILIES[setting.data["reference"]["family"]].kind == "random":
+        raise ValueError("a certified-region requirement needs a fixed reference, not a random family")
+    if certify.singular_rows(setting.ctrl) is None and family.knots:
+        raise ValueError("the exact-map radius of (1,2) is for constant gains: a requirement cannot be kept on a "
+                         "gain schedule of (1,2)")
+
+
+class Radius(NamedTuple):
+    """The radius as the loop uses it.
+
+    Attributes:
+      value: ``raw -> radius`` (a float; for (1,2) the proved lower bound).
+      value_and_grad: ``raw -> (radius, gradient in raw)``, or None for (1,2).
+      label: what it is, for the summary.
+    """
+
+    value: Callable
+    value_and_grad: Callable | None
+    label: str
+
+
+def radius_function(setting, family, req: Requirement) -> Radius:
+    """The exact-map radius of the gains ``family.gains(raw)`` on the problem's reference,
+    nominal geometry and horizon (:func:`wmrjax.certify.differentiable_exact_map_radius`)."""
+    check(setting, family)
+    base = setting.params()
+    kw = dict(t_final=setting.t_final, eps=req.eps, basis=req.slice)
+    if certify.singular_rows(setting.ctrl) is None:
+        def lower(raw):
+            em = certify.curved_exact_map_radius(setting.ctrl, base._replace(gains=family.gains(jnp.asarray(raw))), **kw)
+            return float(em.lower_bound)
+
+        return Radius(lower, None, f"exact map ({req.slice}), proved lower bound (branch and bound)")
+    fn = lambda raw: certify.differentiable_exact_map_radius(setting.ctrl, base._replace(gains=family.gains(raw)), **kw)
+    vg = jax.jit(jax.value_and_grad(fn))
+    return Radius(lambda raw: float(vg(raw)[0]), vg, f"exact map ({req.slice})")
+
+
+def required_radius(setting, req: Requirement, radius: Radius, raw0) -> float:
+    """The requirement as a number: ``"initial"`` is the radius at ``raw0``, ``"box"`` the
+    half-diagonal of the ``[initial]`` box in the slice."""
+    if req.radius == "initial":
+        return radius.value(raw0)
+    if req.radius == "box":
+        from wmrjax.problem import Space
+
+        if Space(setting.data["initial"].get("space", "output")) != Space.OUTPUT:
+            raise ValueError('[tune.requirement] radius = "box" needs output-space initial errors ([initial] space '
+                             '= "output"): the radius is a ball of output errors')
+        keys = ("x", "y") if req.slice == "position" else ("x", "y", "vx", "vy")
+        return float(math.sqrt(sum(_half_width(setting.data["initial"].get(k, 0.0)) ** 2 for k in keys)))
+    return float(req.radius)
+
+
+def _half_width(v) -> float:
+    """The largest |value| of one ``[initial]`` key (a number, a list or a ``{low, high}`` box)."""
+    if isinstance(v, dict):
+        return max(abs(float(v.get("low", 0.0))), abs(float(v.get("high", 0.0))))
+    return float(np.max(np.abs(np.asarray(v, float)))) if np.size(v) else 0.0
+
+
+def project(grad, r: float, g_r, required: float):
+    """The loss gradient without the part that would shrink the radius, when the radius is within
+    :data:`BAND` of ``required`` (a descent step moves by about ``-grad``; it lowers the radius
+    where ``grad . g_r > 0``)."""
+    if g_r is None or r > required * (1.0 + BAND):
+        return grad
+    g, gr = np.asarray(grad, float), np.asarray(g_r, float)
+    dot, nn = float(np.sum(g * gr)), float(np.sum(gr * gr))
+    if dot <= 0.0 or nn == 0.0:
+        return grad
+    return jnp.asarray(g - dot / nn * gr, dtype=jnp.asarray(grad).dtype)
+
+
+def feasible_step(raw, proposal, radius: Radius, required: float):
+    """``(accepted point, its radius, halvings)`` for an optimizer's ``proposal`` from ``raw``.
+
+    A proposal below ``required`` is first projected back along the radius's gradient (Newton
+    steps on ``radius = required (1 + RESTORE_MARGIN)``, at most :data:`PROJECTION_STEPS`): the
+    iterate slides along the boundary instead of stopping at it (a step tangent to it still
+    loses radius at second order where the radius is concave). Where that fails (or for (1,2),
+    without a gradient) the step is halved back toward ``raw``: the furthest of
+    ``raw + 2^-k (proposal - raw)`` that meets ``required``, else ``raw`` itself (``halvings``
+    is then ``MAX_HALVINGS + 1``; -1 marks a projected step).
+    """
+    proposal = jnp.asarray(proposal)
+    r = radius.value(proposal)
+    if r >= required:
+        return proposal, r, 0
+    if radius.value_and_grad is not None:
+        p, target = proposal, required * (1.0 + RESTORE_MARGIN)
+        for _ in range(PROJECTION_STEPS):
+            rv, g = radius.value_and_grad(p)
+            gg = float(jnp.sum(g * g))
+            if float(rv) >= target or gg == 0.0 or not np.isfinite(gg):
+                break
+            p = p + (target - float(rv)) / gg * g
+        r = radius.value(p)
+        if r >= required:
+            return p, r, -1
+    raw = np.asarray(raw)
+    for k in range(1, MAX_HALVINGS + 1):
+        cand = jnp.asarray(raw + 0.5 ** k * (np.asarray(proposal) - raw))
+        r = radius.value(cand)
+        if r >= required:
+            return cand, r, k
+    return jnp.asarray(raw), radius.value(jnp.asarray(raw)), MAX_HALVINGS + 1
+
+
+def restore(raw, radius: Radius, required: float, log=print):
+    """Climb the radius from ``raw`` until it meets ``required`` (normalised gradient steps,
+    lengthened after an improvement, halved after a failure); ValueError when it cannot."""
+    r = radius.value(raw)
+    if r >= required:
+        return raw, r
+    if radius.value_and_grad is None:
+        raise ValueError(f"the initial gains' certified radius {r:.4g} is below the requirement {required:.4g}, and "
+                         "for (1,2) the tuner cannot climb it (no gradient): start from gains that meet it")
+    target, step = required * (1.0 + RESTORE_MARGIN), RESTORE_STEP
+    for _ in range(RESTORE_STEPS):
+        r, g = radius.value_and_grad(raw)
+        if float(r) >= target:
+            break
+        gn = float(jnp.linalg.norm(g))
+        if gn == 0.0:
+            break
+        trial = raw + step * g / gn
+        rt = float(radius.value_and_grad(trial)[0])
+        if rt > float(r):
+            raw, step = trial, step * 1.5
+        else:
+            step *= 0.5
+    r = radius.value(raw)
+    if r < required:
+        raise ValueError(f"the requirement {required:.4g} is beyond what this gain family reaches from the initial gains "
+                         f"(the radius climbed to {r:.4g} in {RESTORE_STEPS} ascent steps): lower it")
+    log(f"requirement {required:.4g}: the initial gains' radius raised to {r:.4g} before tuning")
+    return raw, r
+
+
+# --- every radius of a set of gains, labelled ----------------------------------------------------
+
+K2_LABELS = {"paper": "Lemma 2, K2 of eq (64) (the double pole at -1 only)",
+             "lyapunov": "Lemma 2, automatic Lyapunov K2",
+             "exact_norm": "Lemma 2, K2 = ||e^{At}||"}
+SCHEDULE_K2_LABEL = "Lemma 2, K2 = ||Phi(t, 0)|| (gain schedule)"
+
+
+def radii(setting, gains, *, eps: float, falsify: bool = False, seed: int = 0, n_starts: int = 16) -> dict:
+    """Every radius of ``gains`` on the problem, as the certify module computes it (plain JSON).
+
+    Lemma 2 with each K2 that applies, the exact-map radius of the full error space and of the
+    position slice (with the proved lower bound for (1,2)), and with ``falsify`` the falsified
+    radius of both (an upper bound, from rollouts; :func:`wmrjax.certify.falsified_radius`
+    started from the largest Lemma 2 radius, as :func:`wmrjax.certify.analyse` does).
+    """
+    ctrl, T = setting.ctrl, setting.t_final
+    params = setting.params(gains=gains)
+    report = certify.lemma2(ctrl, params, t_final=T, eps=eps)
+    out = {"eps": eps, "t_final": T, "lemma2": {}}
+    for name, c in report.certificates().items():
+        label = SCHEDULE_K2_LABEL if gains.time_varying else K2_LABELS[name]
+        out["lemma2"][name] = {"radius": float(c.radius), "label": label}
+    certified = max(v["radius"] for v in out["lemma2"].values())
+    keys = jax.random.split(jax.random.PRNGKey(seed))
+    for basis, key in zip(SLICES, keys):
+        em = certify.exact_map_radius(ctrl, params, t_final=T, eps=eps, basis=basis)
+        block = {"radius": float(em.radius), "label": f"exact map ({basis})"}
+        if em.lower_bound is not None:
+            block["lower_bound"] = float(em.lower_bound)
+        if falsify:
+            f = certify.falsified_radius(ctrl, params, t_final=T, eps=eps, key=key, dt=setting.dt, basis=basis,
+                                         n_starts=n_starts, r_lo=certified)
+            block["falsified"] = None if f.radius is None else float(f.radius)
+            block["falsified_over_exact"] = None if f.radius is None else float(f.radius) / float(em.radius)
+        out[f"exact_map_{basis}"] = block
+    return out
