@@ -1,6 +1,6 @@
 """Tuning problems: gain schedules and torque-level gains in the tuner, the sampled-data loop
 against the continuous one, the baselines (CMA-ES, random search), the shipped problem files
-and their bad input, and the study's aggregation."""
+and their bad input (the study's tests: test_tuning_study.py)."""
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +11,6 @@ import wmrjax as w
 from tuning import GainSpec, baselines, config, loop
 from tuning.cli import baseline_budget
 from tuning.problems import PROBLEMS, problem_file
-from tuning.study import aggregate
 from wmrjax.problem import Problem, ProblemError
 
 
@@ -197,24 +196,3 @@ def test_heading_offset_reaches_the_certificate_term():
     without = setting.ctrl.params(R.figure_eight(), geometry=params.geometry)     # what the old term used
     other = np.asarray(certify.m1_closed_form(setting.ctrl, without, cert.ts))
     assert np.max(np.abs(other - np.asarray(cert.m1))) > 1e-3
-
-
-def test_study_aggregate_medians_and_targets():
-    rows = []
-    for seed, (paper, grad, cma, cma_best, match) in enumerate([(0.09, 0.02, 0.05, 6000, 500),
-                                                                (0.06, 0.03, 0.04, 4000, None),
-                                                                (0.08, 0.02, 0.06, 5000, 400)]):
-        rows += [dict(problem="p", method="paper_gains", seed=seed, heldout_loss=paper, best_train_loss=paper,
-                      rollouts_to_best=0, gradient_rollouts_to_match=None, singularity_events=0, wall_time_s=0.0),
-                 dict(problem="p", method="gradient", seed=seed, heldout_loss=grad, best_train_loss=grad,
-                      rollouts_to_best=1000, gradient_rollouts_to_match=None, singularity_events=0, wall_time_s=1.0),
-                 dict(problem="p", method="cma_es", seed=seed, heldout_loss=cma, best_train_loss=cma,
-                      rollouts_to_best=cma_best, gradient_rollouts_to_match=match, singularity_events=None,
-                      wall_time_s=1.0)]
-    a = aggregate(rows)["p"]
-    assert a["gradient"]["heldout_loss"] == {"median": 0.02, "min": 0.02, "max": 0.03}
-    assert a["cma_es"]["gradient_rollouts_to_match"] == {"median": 500.0, "matched_seeds": 2}   # never = inf
-    assert a["cma_es"]["rollout_ratio_baseline_over_gradient"]["median"] == 12.0                # 6000/500, 0, 12.5
-    t = a["targets"]
-    assert t["heldout_ratio_paper_over_gradient"] == 0.08 / 0.02 and t["heldout_3x_below_paper"]
-    assert t["10x_fewer_rollouts_than_cma_es"] and t["heldout_at_or_below_cma_es"] and t["no_more_singularity_events"]
