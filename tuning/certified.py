@@ -236,13 +236,21 @@ K2_LABELS = {"paper": "Lemma 2, K2 of eq (64) (the double pole at -1 only)",
 SCHEDULE_K2_LABEL = "Lemma 2, K2 = ||Phi(t, 0)|| (gain schedule)"
 
 
-def radii(setting, gains, *, eps: float, falsify: bool = False, seed: int = 0, n_starts: int = 16) -> dict:
+def radii(setting, gains, *, eps: float, falsify=False, seed: int = 0, n_starts: int = 16) -> dict:
     """Every radius of ``gains`` on the problem, as the certify module computes it (plain JSON).
 
     Lemma 2 with each K2 that applies, the exact-map radius of the full error space and of the
     position slice (with the proved lower bound for (1,2)), and with ``falsify`` the falsified
-    radius of both (an upper bound, from rollouts; :func:`wmrjax.certify.falsified_radius`
-    started from the largest Lemma 2 radius, as :func:`wmrjax.certify.analyse` does).
+    radius (an upper bound, from rollouts; :func:`wmrjax.certify.falsified_radius` started from
+    the largest Lemma 2 radius, as :func:`wmrjax.certify.analyse` does).
+
+    Each exact-map block also has ``worst_error_rollouts`` (:func:`worst_error_rollouts`): the
+    map's own worst initial error simulated at 0.99 and 1.01 times its size.
+
+    Args:
+      setting: the problem's :class:`wmrjax.problem.Setting`; gains: the gains to certify.
+      eps: the margin; seed: the falsifier's PRNG seed; n_starts: its gradient starts.
+      falsify: True (both slices), a slice name (that one only) or False.
     """
     ctrl, T = setting.ctrl, setting.t_final
     params = setting.params(gains=gains)
@@ -258,10 +266,29 @@ def radii(setting, gains, *, eps: float, falsify: bool = False, seed: int = 0, n
         block = {"radius": float(em.radius), "label": f"exact map ({basis})"}
         if em.lower_bound is not None:
             block["lower_bound"] = float(em.lower_bound)
-        if falsify:
+        block["worst_error_rollouts"] = worst_error_rollouts(setting, params, em, eps)
+        if falsify is True or falsify == basis:
             f = certify.falsified_radius(ctrl, params, t_final=T, eps=eps, key=key, dt=setting.dt, basis=basis,
                                          n_starts=n_starts, r_lo=certified)
             block["falsified"] = None if f.radius is None else float(f.radius)
             block["falsified_over_exact"] = None if f.radius is None else float(f.radius) / float(em.radius)
         out[f"exact_map_{basis}"] = block
     return out
+
+
+CONFIRM_SCALES = (0.99, 1.01)   # the exact map's worst initial error, simulated this much inside and outside
+
+
+def worst_error_rollouts(setting, params, em, eps: float) -> dict:
+    """The exact map's worst initial error simulated (RK4 at a tenth of the problem's step) at
+    :data:`CONFIRM_SCALES` times its size: inside, the run must stay eps away; outside, it must
+    come within eps or turn singular. Both holding confirms by rollouts that the radius is
+    right to 1 % (an upper bound found where a falsifier's search may miss a brief approach)."""
+    x = jnp.asarray(em.worst_error)[None]
+    d = certify.min_distance(setting.ctrl, params, initial_errors=jnp.concatenate([x * s for s in CONFIRM_SCALES]),
+                             t_final=setting.t_final, dt=setting.dt / 10)
+    dist, sing = np.asarray(d.distance), np.asarray(d.singular)
+    inside_ok = bool(dist[0] >= eps and not sing[0])
+    outside_fails = bool(dist[1] < eps or sing[1])
+    return {"scales": list(CONFIRM_SCALES), "min_distance": dist.tolist(), "singular": sing.tolist(),
+            "confirmed": inside_ok and outside_fails}
