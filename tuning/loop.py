@@ -373,20 +373,10 @@ def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, 
         raw, _ = certified.restore(raw, ctx.kept.radius, ctx.kept.required, log)
     opt_state = optimizer.init(raw)
 
-    @jax.jit
-    def update(grad, opt_state, raw):       # one program (eager, optax's update is ~30 small ones)
-        with jax.numpy_dtype_promotion("standard"):   # optax mixes its int32 step count with floats
-            upd, opt_state = optimizer.update(grad, opt_state, raw)
-        return optax.apply_updates(raw, upd), opt_state
-
-    state = {"history": [], "best": None, "best_raw": None, "since_best": 0, "rollouts": 0, "excluded": 0,
-             "wall_time_s": 0.0, "stopped_early": False}
+    update = _update_program(optimizer)
     fp = fingerprint(setting, family, scenarios, loss, stopping, steps, seed, run_id)
     ckpt = Path(out_dir) / "checkpoint.json" if out_dir is not None else None
-    step = 0
-    if ckpt is not None and ckpt.exists():
-        step, raw, opt_state, state = load_checkpoint(ckpt, fp, steps, raw, opt_state)
-        log(f"resumed from {ckpt} at step {step}")
+    step, raw, opt_state, state = _start(ckpt, fp, steps, raw, opt_state, log)
     if on_built is not None:
         on_built(ctx)
     t0 = time.perf_counter() - state["wall_time_s"]
@@ -415,6 +405,29 @@ def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, 
     finished = step >= steps or state["stopped_early"]
     return TuneResult(finished, np.asarray(raw), np.asarray(state["best_raw"]), state["history"], state["rollouts"],
                       state["excluded"], state["stopped_early"], state["wall_time_s"], ctx)
+
+
+def _update_program(optimizer):
+    """``update(grad, opt_state, raw) -> (raw, opt_state)`` as one program (eager, optax's
+    update is ~30 small ones)."""
+    @jax.jit
+    def update(grad, opt_state, raw):
+        with jax.numpy_dtype_promotion("standard"):   # optax mixes its int32 step count with floats
+            upd, opt_state = optimizer.update(grad, opt_state, raw)
+        return optax.apply_updates(raw, upd), opt_state
+
+    return update
+
+
+def _start(ckpt, fp: str, steps: int, raw, opt_state, log):
+    """``(step, raw, opt_state, state)``: a fresh run's, or those of the checkpoint ``ckpt``."""
+    if ckpt is not None and ckpt.exists():
+        step, raw, opt_state, state = load_checkpoint(ckpt, fp, steps, raw, opt_state)
+        log(f"resumed from {ckpt} at step {step}")
+        return step, raw, opt_state, state
+    state = {"history": [], "best": None, "best_raw": None, "since_best": 0, "rollouts": 0, "excluded": 0,
+             "wall_time_s": 0.0, "stopped_early": False}
+    return 0, raw, opt_state, state
 
 
 def keep(setting, family: GainSpec, requirement, raw0) -> Kept:
