@@ -282,7 +282,7 @@ def test_cli_writes_summary_and_gains(tmp_path):
     ho = on_disk["heldout_loss"]
     np.testing.assert_allclose(ho["ratio_paper_over_tuned"], ho["paper_gains"] / ho["tuned"], rtol=1e-15)
     np.testing.assert_allclose(on_disk["initial_gains"]["coefficients_k0_to_kr-1"], [[1.0, 2.0]] * 2, rtol=1e-12)
-    for f in ("loss.png", "trajectories.png", "schedule.png"):
+    for f in ("loss.png", "trajectories.png", "schedule.png", "radii.png"):
         assert (out / f).read_bytes()[:4] == b"\x89PNG"
     assert s["heldout_loss"] == on_disk["heldout_loss"]
     # the summary carries the whole problem: it runs again from there alone

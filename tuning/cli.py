@@ -11,8 +11,10 @@ counts, the optimizer, early stopping and the baselines. The shipped problems
 Every option below overrides the file's value.
 
 Writes ``gains.json`` (the tuned gains: ``[gains] file`` of any problem reads it),
-``summary.json`` (with the whole resolved problem), ``history.json``, ``checkpoint.json`` (a
-killed run resumes from it), ``loss.png``, ``schedule.png`` and ``trajectories.png``.
+``summary.json`` (with the whole resolved problem and every certified radius of the initial
+and tuned gains), ``history.json``, ``checkpoint.json`` (a killed run resumes from it),
+``loss.png``, ``schedule.png``, ``trajectories.png`` and, where the problem has a certificate,
+``radii.png``.
 """
 
 from __future__ import annotations
@@ -256,6 +258,8 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
         name: [{"seed": r.seed, "best_so_far": r.best_so_far, "rollouts_per_candidate": r.rollouts_per_candidate}
                for r in rs] for name, rs in runs.items()}})
     _figures(out, problem.title, setting, family, res.history, runs, paper_raw, tuned_raw, programs)
+    if "initial" in radius:
+        _radii_figure(out, problem.title, radius)
     summary["wall_time_s"] = time.perf_counter() - t0
     io.write_json(out / "summary.json", summary)
     return summary
@@ -565,6 +569,40 @@ def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, progra
     plt.close(fig)
 
 
+def _radii_figure(out, title, radii: dict) -> None:
+    """``radii.png``: every radius of the initial and the tuned gains side by side, the
+    falsified ones and the requirement marked."""
+    import numpy as np
+
+    plt = io.headless_pyplot()
+    rows = [(f"lemma2_{k}", v["label"]) for k, v in radii["initial"]["lemma2"].items()]
+    rows += [(f"exact_map_{b}", f"exact map ({b})") for b in ("full", "position")]
+
+    def value(which, key, field="radius"):
+        d = radii[which]
+        block = d["lemma2"].get(key[len("lemma2_"):]) if key.startswith("lemma2_") else d[key]
+        return np.nan if block is None or block.get(field) is None else block[field]
+
+    fig, ax = plt.subplots(figsize=(7.4, 0.55 * len(rows) + 1.6))
+    y = np.arange(len(rows))
+    for dy, which, c in ((-0.18, "initial", "C3"), (0.18, "tuned", "C0")):
+        ax.barh(y + dy, [value(which, k) for k, _ in rows], height=0.34, color=c, label=f"{which} gains")
+        ax.plot([value(which, k, "falsified") for k, _ in rows], y + dy, "k|", ms=12)
+    req = radii.get("requirement")
+    if req is not None:
+        ax.axvline(req["required_radius"], color="C2", ls="--",
+                   label=f"required ({req['slice']} slice): {req['required_radius']:.3g}")
+    ax.set_yticks(y, [lab for _, lab in rows], fontsize=7)
+    ax.invert_yaxis()
+    ax.set_xlabel("radius of certified initial errors [m, m/s]  (|: falsified, an upper bound)")
+    ax.set_title(f"{title}: certified radii, eps = {radii['initial']['eps']:g}", fontsize=10)
+    ax.grid(alpha=0.3, axis="x")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    io.write_png(fig, out / "radii.png")
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     from wmrjax import cli
 
@@ -597,7 +635,7 @@ def main(argv=None) -> int:
           f"gradient rollouts {s['rollouts']}, to match CMA-ES {s['rollouts_to_match']['cma_es']} (CMA-ES best after "
           f"{b['cma_es']['rollouts_to_best']:.0f}); {s['wall_time_s']:.1f} s")
     print(f"wrote {a.out}/gains.json, summary.json, history.json, checkpoint.json, loss.png, schedule.png, "
-          "trajectories.png")
+          "trajectories.png" + (", radii.png" if "initial" in s["radii"] else ""))
     return 0
 
 
