@@ -103,3 +103,14 @@ def test_pareto_points_are_certified_and_resume(tmp_path):
     logged = []
     again = pareto.run(problem, out, "position", fractions=[0.0, 1.0], log=logged.append)
     assert sum("kept" in m for m in logged) == 2 and again["points"] == s["points"]
+
+
+def test_requirement_on_type_12_is_refused_with_its_reason():
+    from tuning import certified
+
+    pr = TINY.with_values({"controller.robot": "(1,2)", "geometry.L": 0.5, "geometry.e": 0.3, "geometry.delta": 0.5,
+                           "reference": {"family": "figure_eight", "heading_offset": 0.5},
+                           "plant.input_limit": [5.5, 1.0, 1.0], "plant.noise_std": [0.01, 0.01, 0.005, 0.005]})
+    st = pr.setting("tuning")
+    with pytest.raises(ValueError, match=r"\(1,2\) is not supported: .*branch and bound"):
+        certified.check(st, TS.gain_spec(st))

@@ -17,8 +17,12 @@ the gains (:func:`wmrjax.certify.differentiable_exact_map_radius`). The tuner
   halves it back toward the last accepted point (:func:`feasible_step`).
 
 Every accepted point therefore holds the requirement, not just the last. For (1,2), whose
-singular set is curved, the radius is a branch and bound: the requirement is checked after
-every step on its *proved lower bound* (no gradient term), which is slower but as strict.
+singular set is curved, the radius is a branch and bound over (t, heading) with a proved lower
+bound (:func:`wmrjax.certify.curved_exact_map_radius`): not differentiable, and one evaluation
+took minutes on the 2 s test problem (3 tuning steps did not finish in 500 s: every round's box
+count is a new compiled shape), so a requirement on (1,2) is refused; tune without it and
+certify the result (``python -m experiments.certify ... --gains``), or require a Lemma 2 radius
+through the certificate term of the loss.
 """
 
 from __future__ import annotations
@@ -80,9 +84,8 @@ def read(table: dict | None, certify_section: dict) -> Requirement | None:
 
 
 def check(setting, family) -> None:
-    """ValueError when the problem has no exact-map radius to keep: a static law or a random
-    reference family (no fixed reference), or a gain schedule of (1,2) (its radius is for
-    constant gains)."""
+    """ValueError when the problem has no exact-map radius to keep: a static law, a random
+    reference family (no fixed reference), or type (1,2) (see the module docstring)."""
     from wmrjax.controllers.dynamic import DynamicLinearization
     from wmrjax.references import FAMILIES
 
@@ -90,17 +93,20 @@ def check(setting, family) -> None:
         raise ValueError("a certified-region requirement needs a dynamic linearizing law (only those are certified)")
     if FAMILIES[setting.data["reference"]["family"]].kind == "random":
         raise ValueError("a certified-region requirement needs a fixed reference, not a random family")
-    if certify.singular_rows(setting.ctrl) is None and family.knots:
-        raise ValueError("the exact-map radius of (1,2) is for constant gains: a requirement cannot be kept on a "
-                         "gain schedule of (1,2)")
+    if certify.singular_rows(setting.ctrl) is None:
+        raise ValueError("a certified-region requirement on type (1,2) is not supported: its exact-map radius (a "
+                         "curved singular set) is a branch and bound taking minutes per evaluation, without a "
+                         "gradient; tune without it and certify the tuned gains (python -m experiments.certify "
+                         "PROBLEM --gains gains.json), or weight the loss's certificate term (Lemma 2)")
 
 
 class Radius(NamedTuple):
     """The radius as the loop uses it.
 
     Attributes:
-      value: ``raw -> radius`` (a float; for (1,2) the proved lower bound).
-      value_and_grad: ``raw -> (radius, gradient in raw)``, or None for (1,2).
+      value: ``raw -> radius`` (a float).
+      value_and_grad: ``raw -> (radius, gradient in raw)`` (None: a radius without a gradient,
+        which :func:`feasible_step` keeps by halving only).
       label: what it is, for the summary.
     """
 
@@ -115,12 +121,6 @@ def radius_function(setting, family, req: Requirement) -> Radius:
     check(setting, family)
     base = setting.params()
     kw = dict(t_final=setting.t_final, eps=req.eps, basis=req.slice)
-    if certify.singular_rows(setting.ctrl) is None:
-        def lower(raw):
-            em = certify.curved_exact_map_radius(setting.ctrl, base._replace(gains=family.gains(jnp.asarray(raw))), **kw)
-            return float(em.lower_bound)
-
-        return Radius(lower, None, f"exact map ({req.slice}), proved lower bound (branch and bound)")
     fn = lambda raw: certify.differentiable_exact_map_radius(setting.ctrl, base._replace(gains=family.gains(raw)), **kw)
     vg = jax.jit(jax.value_and_grad(fn))
     return Radius(lambda raw: float(vg(raw)[0]), vg, f"exact map ({req.slice})")
@@ -168,8 +168,8 @@ def feasible_step(raw, proposal, radius: Radius, required: float):
     A proposal below ``required`` is first projected back along the radius's gradient (Newton
     steps on ``radius = required (1 + RESTORE_MARGIN)``, at most :data:`PROJECTION_STEPS`): the
     iterate slides along the boundary instead of stopping at it (a step tangent to it still
-    loses radius at second order where the radius is concave). Where that fails (or for (1,2),
-    without a gradient) the step is halved back toward ``raw``: the furthest of
+    loses radius at second order where the radius is concave). Where that fails (or without a
+    gradient) the step is halved back toward ``raw``: the furthest of
     ``raw + 2^-k (proposal - raw)`` that meets ``required``, else ``raw`` itself (``halvings``
     is then ``MAX_HALVINGS + 1``; -1 marks a projected step).
     """
@@ -205,7 +205,7 @@ def restore(raw, radius: Radius, required: float, log=print):
         return raw, r
     if radius.value_and_grad is None:
         raise ValueError(f"the initial gains' certified radius {r:.4g} is below the requirement {required:.4g}, and "
-                         "for (1,2) the tuner cannot climb it (no gradient): start from gains that meet it")
+                         "without a gradient the tuner cannot climb it: start from gains that meet it")
     target, step = required * (1.0 + RESTORE_MARGIN), RESTORE_STEP
     for _ in range(RESTORE_STEPS):
         r, g = radius.value_and_grad(raw)

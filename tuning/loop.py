@@ -356,8 +356,9 @@ def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, 
         is read, before the first gradient (the command line compiles its later programs then).
       requirement: a :class:`tuning.certified.Requirement` (None: none): every accepted point
         keeps the exact-map radius at or above it (:mod:`tuning.certified`: the initial gains
-        raised to it first when they miss it, the gradient projected near it, steps halved back
-        to it); each history entry then has the point's ``radius`` and the step's ``halvings``.
+        raised to it first when they miss it, the gradient projected near it, a crossing step
+        projected or halved back); each history entry then has the point's ``radius`` and the
+        step's ``halvings`` (-1: projected back).
 
     Returns:
       :class:`TuneResult`.
