@@ -191,9 +191,43 @@ def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     Returns:
       :class:`FalsifiedRadius` (radius None if nothing failed up to 16 times the first radius).
     """
+    r_hi = _check_falsifier_args(ctrl, params, t_final=t_final, eps=eps, r_lo=r_lo, r_hi=r_hi, n_starts=n_starts,
+                                 steps=steps, n_samples=n_samples, n_bisect=n_bisect, n_windows=n_windows,
+                                 learning_rate=learning_rate, rtol=rtol)
+    search = _Search(ctrl, params, t_final=t_final, eps=eps, key=key, dt=dt, basis=basis, n_starts=n_starts,
+                     steps=steps, n_samples=n_samples, learning_rate=learning_rate, n_windows=n_windows, r_lo=r_lo)
+    rad, found, warm = float(r_hi), None, None
+    for _ in range(5):
+        found, warm = search.attempt(rad, warm)
+        if found is not None:
+            searched = rad
+            break
+        search.lo, rad = rad, 2.0 * rad
+    if found is None:
+        return FalsifiedRadius(None, None, None, search.rollouts(), None, rad / 2.0, search.counts, None)
+    step = 0.02
+    for _ in range(n_bisect):
+        lo, hi = search.lo, found[0]
+        if hi - lo <= rtol * hi:
+            break
+        # a step below the smallest failure that doubles while failures keep being found, and
+        # halving once one is not: the bracket shrinks fast whether or not its lower end (often
+        # a loose certified radius) is near the answer
+        mid = max(0.5 * (lo + hi), (1.0 - step) * hi)
+        new, warm = search.attempt(mid, warm)
+        if new is not None:
+            found, step = new, min(2.0 * step, 0.5)
+        else:
+            search.lo = mid
+    return FalsifiedRadius(float(found[0]), np.asarray(found[1]), found[2], search.rollouts(),
+                           (search.lo, float(found[0])), searched, search.counts, found[3])
+
+
+def _check_falsifier_args(ctrl, params, *, t_final, eps, r_lo, r_hi, n_starts, steps, n_samples, n_bisect, n_windows,
+                          learning_rate, rtol) -> float:
+    """ValueError for a bad argument of :func:`falsified_radius`; returns ``r_hi`` (its default filled in)."""
     check_dynamic(ctrl, params)
     check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
-    n_steps = n_steps_for(t_final, dt)
     if not (isinstance(r_lo, (int, float, np.floating, np.integer)) and np.isfinite(r_lo) and r_lo >= 0):
         raise ValueError(f"r_lo must be a finite radius >= 0, got {r_lo!r}")
     if r_hi is None:
@@ -201,29 +235,48 @@ def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     check_positive("r_hi", r_hi)
     if not r_lo < r_hi:
         raise ValueError(f"r_lo must satisfy 0 <= r_lo < r_hi = {r_hi}, got {r_lo!r}")
-    n_starts = check_int("n_starts", n_starts, 1)
-    steps = check_int("steps", steps, 1)
-    n_samples = check_int("n_samples", n_samples, 1)
-    n_bisect = check_int("n_bisect", n_bisect, 0)
-    n_windows = check_int("n_windows", n_windows, 1)
+    for name, v, lo in (("n_starts", n_starts, 1), ("steps", steps, 1), ("n_samples", n_samples, 1),
+                        ("n_bisect", n_bisect, 0), ("n_windows", n_windows, 1)):
+        check_int(name, v, lo)
     check_positive("learning_rate", learning_rate)
     check_positive("rtol", rtol)
-    P = slice_basis(ctrl, basis)
-    k = P.shape[1]
-    counts = {"instantaneous": 0, "sampling": 0, "gradient": 0, "confirmation": 0}
-    fine = 0.1 * dt
-    n_fine = n_steps_for(t_final, fine)
-    keys = iter(jax.random.split(key, 64))
-    n_inst = 64
+    return r_hi
 
-    def confirm(errs):
+
+N_INSTANTANEOUS = 64     # random starts of the instantaneous stage (no rollout)
+
+
+class _Search:
+    """One falsification's state: the closed loop and settings, the PRNG keys still unused, the
+    rollouts spent per stage (``counts``) and the largest radius known safe so far (``lo``).
+    Its methods are the stages of :func:`falsified_radius`."""
+
+    def __init__(self, ctrl, params, *, t_final, eps, key, dt, basis, n_starts, steps, n_samples, learning_rate,
+                 n_windows, r_lo):
+        self.ctrl, self.params, self.t_final, self.eps, self.dt, self.basis = ctrl, params, t_final, eps, dt, basis
+        self.n_starts, self.steps, self.n_samples = n_starts, steps, n_samples
+        self.learning_rate, self.n_windows = learning_rate, n_windows
+        self.n_steps = n_steps_for(t_final, dt)
+        self.fine = 0.1 * dt
+        self.n_fine = n_steps_for(t_final, self.fine)
+        P = slice_basis(ctrl, basis)
+        self.k, self.Pn, self.Q = P.shape[1], np.asarray(P), _square(P)
+        self.keys = iter(jax.random.split(key, 64))
+        self.counts = {"instantaneous": 0, "sampling": 0, "gradient": 0, "confirmation": 0}
+        self.lo = float(r_lo)
+
+    def rollouts(self) -> int:
+        """Rollouts spent (the instantaneous stage simulates nothing)."""
+        return sum(v for n, v in self.counts.items() if n != "instantaneous")
+
+    def confirm(self, errs):
         """Fine runs (blocks of 32) of initial errors: (failed, distance, time of the closest approach)."""
-        per, s, t = window_distances(ctrl, params, errs, dt=fine, n_steps=n_fine, block=32)
-        counts["confirmation"] += len(per)
+        per, s, t = window_distances(self.ctrl, self.params, errs, dt=self.fine, n_steps=self.n_fine, block=32)
+        self.counts["confirmation"] += len(per)
         d = per.min(axis=1)
-        return (d < eps) | s, np.where(s, 0.0, d), t
+        return (d < self.eps) | s, np.where(s, 0.0, d), t
 
-    def along_rays(errs, lo, hi):
+    def along_rays(self, errs, lo, hi):
         """Per failing error (its radius ``hi`` fails), the smallest confirmed failing radius on its
         ray: three rounds of an 8-point grid between ``lo`` and the current failing radius."""
         u = errs / np.linalg.norm(errs, axis=1, keepdims=True)
@@ -233,7 +286,7 @@ def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
         rows = np.arange(len(u))
         for _ in range(3):
             rs = lo[:, None] + (hi - lo)[:, None] * frac[None]            # (n, 8)
-            fail, _, _ = confirm((rs[..., None] * u[:, None, :]).reshape(-1, u.shape[1]))
+            fail, _, _ = self.confirm((rs[..., None] * u[:, None, :]).reshape(-1, u.shape[1]))
             fail = fail.reshape(rs.shape)
             j = np.argmax(fail, axis=1)
             any_fail = fail.any(axis=1)
@@ -242,95 +295,75 @@ def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
             lo = np.where(any_fail, prev, rs[:, -2])
         return hi
 
-    Pn = np.asarray(P)
-    Q = _square(P)
-
-    def on_sphere(dirs, rad):
+    def on_sphere(self, dirs, rad):
         """(N, k) slice directions -> (N, r m) initial errors of norm ``rad``."""
         dirs = np.asarray(dirs)
-        return rad * (dirs / np.linalg.norm(dirs, axis=1, keepdims=True)) @ Pn.T
+        return rad * (dirs / np.linalg.norm(dirs, axis=1, keepdims=True)) @ self.Pn.T
 
-    def settle(cands, rad):
+    def settle(self, cands, rad):
         """Confirm the (at most 8) best candidates at ``rad`` (a coarse failure may be spurious); pull
         the two best confirmed failures in along their rays. (radius, error, distance, t) or None."""
         cands = cands[:8]
-        fail, _, _ = confirm(cands)
+        fail, _, _ = self.confirm(cands)
         if not fail.any():
             return None
         failing = cands[np.where(fail)[0][:2]]
-        r_ray = along_rays(failing, lo_now[0], rad)
+        r_ray = self.along_rays(failing, self.lo, rad)
         j = int(np.argmin(r_ray))
         e = failing[j] / np.linalg.norm(failing[j]) * r_ray[j]
-        _, d, t = confirm(e[None])
+        _, d, t = self.confirm(e[None])
         return float(r_ray[j]), e, float(d[0]), float(t[0])
 
-    def attempt(rad, warm):
+    def cheap_stages(self, rad):
+        """Stages 1 and 2 at one radius: the instantaneous distance at t = 0 over the sphere (no
+        rollout) and global sampling ranked per time window. ``(u_inst, d_inst, dirs, per_win)``."""
+        u_inst, d_inst = _instantaneous(self.ctrl, self.params, jnp.asarray(rad), self.Q,
+                                        _pad(jax.random.normal(next(self.keys), (N_INSTANTANEOUS, self.k)), self.Q),
+                                        200, self.learning_rate)
+        self.counts["instantaneous"] += N_INSTANTANEOUS * 201
+        best_inst = np.argsort(np.asarray(d_inst))[:2]
+        u_inst, d_inst = np.asarray(u_inst)[best_inst, :self.k], np.asarray(d_inst)[best_inst]
+        dirs = np.asarray(jax.random.normal(next(self.keys), (self.n_samples, self.k)))
+        per_win, _, _ = window_distances(self.ctrl, self.params, self.on_sphere(dirs, rad), dt=self.dt,
+                                         n_steps=self.n_steps, n_windows=self.n_windows)
+        self.counts["sampling"] += self.n_samples
+        return u_inst, d_inst, dirs, per_win
+
+    def attempt(self, rad, warm):
         """The three stages at one radius: ((radius <= rad, error, distance) or None, warm directions).
         The gradient stage runs only when the cheap stages find no confirmed failure."""
-        # 1. instantaneous distance at t = 0, over the sphere (no rollout)
-        u_inst, d_inst = _instantaneous(ctrl, params, jnp.asarray(rad), Q,
-                                        _pad(jax.random.normal(next(keys), (n_inst, k)), Q), 200, learning_rate)
-        counts["instantaneous"] += n_inst * 201
-        best_inst = np.argsort(np.asarray(d_inst))[:2]
-        u_inst, d_inst = np.asarray(u_inst)[best_inst, :k], np.asarray(d_inst)[best_inst]
-        # 2. global sampling, ranked per time window
-        dirs = np.asarray(jax.random.normal(next(keys), (n_samples, k)))
-        per_win, _, _ = window_distances(ctrl, params, on_sphere(dirs, rad), dt=dt, n_steps=n_steps, n_windows=n_windows)
-        counts["sampling"] += n_samples
+        u_inst, d_inst, dirs, per_win = self.cheap_stages(rad)
         best_samples = np.argsort(per_win.min(axis=1))[:2]
         cheap = np.concatenate([u_inst, dirs[best_samples]])
         order = np.argsort(np.concatenate([d_inst, per_win.min(axis=1)[best_samples]]))
-        found = settle(on_sphere(cheap[order], rad), rad)
+        found = self.settle(self.on_sphere(cheap[order], rad), rad)
         if found is not None:
             return found, warm
-        # 3. gradient refinement: the best samples of every window, the instantaneous minimisers
-        # (on the first interval) and the previous attempt's iterates (on the whole horizon)
-        # a fixed number of starts (one compiled program): slots without a warm start get samples
-        n_slots = n_starts // 4
+        errs = self.gradient_stage(rad, warm, u_inst, dirs, per_win)
+        order = np.argsort(np.asarray(errs[1]))
+        return self.settle(errs[0][order], rad), errs[0] @ self.Pn
+
+    def gradient_stage(self, rad, warm, u_inst, dirs, per_win):
+        """Stage 3, gradient refinement from the best samples of every window, the instantaneous
+        minimisers (on the first interval) and the previous attempt's iterates (on the whole
+        horizon); a fixed number of starts (one compiled program): slots without a warm start get
+        samples. ``(final initial errors, their distances)``."""
+        n_w, dt = self.n_windows, self.dt
+        n_slots = self.n_starts // 4
         n_warm = 0 if warm is None else min(len(warm), n_slots)
-        n_samp = max(n_starts - len(u_inst) - n_slots, n_windows) + n_slots - n_warm
+        n_samp = max(self.n_starts - len(u_inst) - n_slots, n_w) + n_slots - n_warm
         ranked = np.argsort(per_win, axis=0)
-        wins = np.arange(n_samp) % n_windows
-        starts = [dirs[ranked[i // n_windows, w]] for i, w in enumerate(wins)] + list(u_inst)
-        edges = np.linspace(0.0, dt * n_steps, n_windows + 1)
+        wins = np.arange(n_samp) % n_w
+        starts = [dirs[ranked[i // n_w, w]] for i, w in enumerate(wins)] + list(u_inst)
+        edges = np.linspace(0.0, dt * self.n_steps, n_w + 1)
         windows = [(edges[w] - 0.5 * dt, edges[w + 1] + 0.5 * dt) for w in wins] + [(-0.5 * dt, 0.5 * dt)] * len(u_inst)
         if n_warm:
             starts += list(warm[:n_warm])
-            windows += [(-0.5 * dt, dt * n_steps + 0.5 * dt)] * n_warm
-        f = falsify(ctrl, params, t_final=t_final, radius=rad, starts=np.stack(starts), dt=dt, basis=basis,
-                    steps=steps, learning_rate=learning_rate, windows=np.asarray(windows))
-        counts["gradient"] += len(starts) * (steps + 1)
-        errs = np.asarray(f.initial_errors)
-        return settle(errs[np.argsort(np.asarray(f.distance))], rad), errs @ Pn
-
-    lo_now = [float(r_lo)]
-    rad, found, warm = float(r_hi), None, None
-    for _ in range(5):
-        found, warm = attempt(rad, warm)
-        if found is not None:
-            searched = rad
-            break
-        lo_now[0], rad = rad, 2.0 * rad
-    if found is None:
-        return FalsifiedRadius(None, None, None, sum(v for n, v in counts.items() if n != "instantaneous"), None,
-                               rad / 2.0, counts, None)
-    step = 0.02
-    for _ in range(n_bisect):
-        lo, hi = lo_now[0], found[0]
-        if hi - lo <= rtol * hi:
-            break
-        # a step below the smallest failure that doubles while failures keep being found, and
-        # halving once one is not: the bracket shrinks fast whether or not its lower end (often
-        # a loose certified radius) is near the answer
-        mid = max(0.5 * (lo + hi), (1.0 - step) * hi)
-        new, warm = attempt(mid, warm)
-        if new is not None:
-            found, step = new, min(2.0 * step, 0.5)
-        else:
-            lo_now[0] = mid
-    return FalsifiedRadius(float(found[0]), np.asarray(found[1]), found[2],
-                           sum(v for n, v in counts.items() if n != "instantaneous"), (lo_now[0], float(found[0])),
-                           searched, counts, found[3])
+            windows += [(-0.5 * dt, dt * self.n_steps + 0.5 * dt)] * n_warm
+        f = falsify(self.ctrl, self.params, t_final=self.t_final, radius=rad, starts=np.stack(starts), dt=dt,
+                    basis=self.basis, steps=self.steps, learning_rate=self.learning_rate, windows=np.asarray(windows))
+        self.counts["gradient"] += len(starts) * (self.steps + 1)
+        return np.asarray(f.initial_errors), np.asarray(f.distance)
 
 
 def _square(P):
