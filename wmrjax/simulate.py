@@ -439,30 +439,8 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     post_step = getattr(system, "post_step", None)
     sample, sample_every = _sampler(system)
     params_parts, rebuild_params = scalar_parts(params)
-    field_of = lambda p: (lambda t, z: field_s(t, z, p))
 
-    def advance(t, z, i, p, parts, k4_prev, est_ok):
-        """One unit of the time loop from ``z`` at ``t``: ``(z_next, aux at (t, z), error estimate,
-        last stage k4, jumped)``. A unit is one RK4 step (then the system's ``post_step``), or a
-        sampled-data system's whole period: its ``sample_every`` steps under the held sample."""
-        if sample is not None:
-            return _period_advance(field_s, t, z, dt, sample_every, estimate, parts, rebuild_params, system.held(z))
-        if stage_loop:
-            z_next, aux, k1, k4 = _rk4_stage_loop(field_s, t, z, dt, parts, rebuild_params)
-        else:
-            z_next, aux, k1, k4 = _rk4(field_of(p), t, z, dt)
-        jumped = jnp.array(False)
-        if post_step is not None:   # hybrid systems: discrete transition at the end of the step
-            z_post = post_step(t + dt, z_next, p)
-            jumped = ~_all_equal(z_post, z_next) if estimate else jumped
-            z_next = z_post
-        est = jnp.zeros((), dtype)
-        if estimate:
-            est = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1), _continuous(z)))
-            est = jnp.where(i == 0, 0.0, est)       # no previous step to compare with
-            if est_ok is not None:      # no estimate across a discrete jump
-                est = jnp.where(est_ok, est, 0.0)
-        return z_next, aux, est, k4, jumped
+    loop = _Loop(system, field_s, dt, estimate, stage_loop, post_step, sample, sample_every, rebuild_params)
 
     def step_on_scalars(carry, i, parts):
         zt, alive, diag, sign_prev, k4_prev, est_ok = carry   # est_ok is None without discrete transitions
@@ -472,7 +450,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         z_in = z        # what a failed run keeps: a dead run's sample is discarded by the selection below
         if sample is not None:      # a digital controller samples at its period's start
             z = sample(i // sample_every, t, z, p)
-        z_next, aux, est, k4, jumped = advance(t, z, i, p, parts, k4_prev, est_ok)
+        z_next, aux, est, k4, jumped = _advance(loop, t, z, i, p, parts, k4_prev, est_ok)
         margin = jnp.asarray(aux.margin, dtype)
         sign = _sign(getattr(aux, "regularity", None), margin)
         crossed = sign_prev * sign < 0                              # det K changed sign since the last step
@@ -485,18 +463,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         # reverse mode stores these two flags (the step's checkpoint policy, below), so that
         # its recomputation of the step needs neither the diagnostics nor the error estimate
         ok, finite_next = checkpoint_name(ok, _SAVED_FLAGS[0]), checkpoint_name(finite_next, _SAVED_FLAGS[1])
-        newly_failed = alive & ~ok
-        better = sample_ok & (margin < diag.min_margin)
-        diag = _Running(
-            nonfinite=diag.nonfinite | (alive & ~(finite_here & finite_next)),
-            singular=diag.singular | (alive & finite_here & ~regular),
-            failed=diag.failed | newly_failed,
-            t_failure=jnp.where(newly_failed, t, diag.t_failure),
-            min_margin=jnp.where(better, margin, diag.min_margin),
-            t_min_margin=jnp.where(better, t, diag.t_min_margin),
-            error_estimate=jnp.where(alive & finite_here & jnp.isfinite(est), jnp.maximum(diag.error_estimate, est),
-                                     diag.error_estimate),
-        )
+        diag = _running_update(diag, t, alive, ok, sample_ok, finite_here, finite_next, regular, margin, est)
         # double where: no NaN leaks into grads
         z_keep = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, jnp.where(finite_next, a, b), b), z_next, z_in)
         zt_next = _to_scalars(z_keep)
@@ -519,6 +486,74 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         # stores its residuals instead of recomputing the period
         step = lambda carry, i: step_on_scalars(carry, i, params_parts)
 
+    carry, rec0 = _initial_carry(field, z0, t0, dt, save_fn, estimate and sample is None,
+                                 post_step is not None and estimate)
+    carry, recs = _scan_steps(step, carry, rec0, n_steps, save_every, 1 if sample is None else sample_every)
+    return _finish(system, field, carry, recs, z0, params, t0, dt, n_steps, save_every, margin_floor, error_tol,
+                   estimate and sample is None, save_fn)
+
+
+class _Loop(NamedTuple):
+    """What one unit of the time loop needs (static pieces and the step; see :func:`_simulate`)."""
+
+    system: object
+    field_s: object           # the vector field on scalars, parameters as an argument
+    dt: object
+    estimate: bool            # compute the error estimate
+    stage_loop: bool          # the RK stages in a loop over one copy of the field
+    post_step: object         # a hybrid system's discrete transition, or None
+    sample: object            # a sampled-data system's sampler, or None
+    sample_every: object
+    rebuild_params: object
+
+
+def _advance(loop: _Loop, t, z, i, p, parts, k4_prev, est_ok):
+    """One unit of the time loop from ``z`` at ``t``: ``(z_next, aux at (t, z), error estimate,
+    last stage k4, jumped)``. A unit is one RK4 step (then the system's ``post_step``), or a
+    sampled-data system's whole period: its ``sample_every`` steps under the held sample."""
+    dt = loop.dt
+    if loop.sample is not None:
+        return _period_advance(loop.field_s, t, z, dt, loop.sample_every, loop.estimate, parts, loop.rebuild_params,
+                               loop.system.held(z))
+    if loop.stage_loop:
+        z_next, aux, k1, k4 = _rk4_stage_loop(loop.field_s, t, z, dt, parts, loop.rebuild_params)
+    else:
+        z_next, aux, k1, k4 = _rk4(lambda tt, zz: loop.field_s(tt, zz, p), t, z, dt)
+    jumped = jnp.array(False)
+    if loop.post_step is not None:   # hybrid systems: discrete transition at the end of the step
+        z_post = loop.post_step(t + dt, z_next, p)
+        jumped = ~_all_equal(z_post, z_next) if loop.estimate else jumped
+        z_next = z_post
+    est = jnp.zeros((), dt.dtype)
+    if loop.estimate:
+        est = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1), _continuous(z)))
+        est = jnp.where(i == 0, 0.0, est)       # no previous step to compare with
+        if est_ok is not None:      # no estimate across a discrete jump
+            est = jnp.where(est_ok, est, 0.0)
+    return z_next, aux, est, k4, jumped
+
+
+def _running_update(diag, t, alive, ok, sample_ok, finite_here, finite_next, regular, margin, est):
+    """One step's diagnostics: the failure flags (non-finite, singular, failed and when), the
+    smallest margin of a valid sample and when, the largest error estimate of the live run."""
+    newly_failed = alive & ~ok
+    better = sample_ok & (margin < diag.min_margin)
+    return _Running(
+        nonfinite=diag.nonfinite | (alive & ~(finite_here & finite_next)),
+        singular=diag.singular | (alive & finite_here & ~regular),
+        failed=diag.failed | newly_failed,
+        t_failure=jnp.where(newly_failed, t, diag.t_failure),
+        min_margin=jnp.where(better, margin, diag.min_margin),
+        t_min_margin=jnp.where(better, t, diag.t_min_margin),
+        error_estimate=jnp.where(alive & finite_here & jnp.isfinite(est), jnp.maximum(diag.error_estimate, est),
+                                 diag.error_estimate),
+    )
+
+
+def _initial_carry(field, z0, t0, dt, save_fn, carry_k4: bool, carry_jumps: bool):
+    """``(carry, rec0)``: the loop's first carry (scalars of z0, alive, diagnostics, the sign of
+    det K, the previous step's last stage when ``carry_k4``, a jump flag when ``carry_jumps``)
+    and a record shaped like a step's (zeros), for steps that are not saved."""
     # initial flags derived from z0 so they carry its sharding/varying type (shard_map)
     first = _first_float(z0)
     bad0 = ~jnp.isfinite(first)
@@ -532,15 +567,21 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     control0 = jax.eval_shape(field, t0, z0)[1].control
     # k4_prev starts at zero; the first step's estimate is set to zero (step index 0)
     carry = (_to_scalars(z0), ~failed0, diag0, zero,
-             jax.tree_util.tree_map(lambda x: 0.0 * x, _continuous(z0)) if estimate and sample is None else (),
-             None if post_step is None or not estimate else bad0 & False)
+             jax.tree_util.tree_map(lambda x: 0.0 * x, _continuous(z0)) if carry_k4 else (),
+             bad0 & False if carry_jumps else None)
 
     saved0 = z0
     if save_fn is not None:     # zeros shaped like what save_fn returns (no evaluation at t0)
         shapes = jax.eval_shape(lambda: save_fn(t0, z0, field(t0, z0)[1]))
         saved0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype) + zero.astype(a.dtype), shapes)
     rec0 = (saved0, jnp.zeros(control0.shape, control0.dtype) + zero.astype(control0.dtype), inf, ~failed0)
-    unit = 1 if sample is None else sample_every      # a sampled-data system runs by whole periods
+    return carry, rec0
+
+
+def _scan_steps(step, carry, rec0, n_steps, save_every, unit):
+    """``(carry, records)``: ``step`` over the horizon by units of ``unit`` steps (a sampled-data
+    system runs by whole periods), keeping the record of the first step of every ``save_every``
+    (one copy of the step body in the compiled program, whatever save_every is)."""
     n_saves = n_steps // save_every
     save_units, n_units = save_every // unit, n_steps // unit
 
@@ -570,6 +611,16 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     rest = unit * jnp.arange(n_saves * save_units, n_units)
     if rest.shape[0]:  # steps beyond the last saving chunk run without saving
         (carry, _), _ = jax.lax.scan(inner, (carry, rec0), (rest, jnp.ones_like(rest)))
+    return carry, recs
+
+
+def _finish(system, field, carry, recs, z0, params, t0, dt, n_steps, save_every, margin_floor, error_tol,
+            estimate_last, save_fn):
+    """The run's end: the failure rule applied at the final state too (its margin, sign, finite
+    values and -- ``estimate_last``, the continuous loops -- the last step's error estimate), the
+    diagnostics completed (``inaccurate``, the system's ``final_report``) and the
+    :class:`Trajectory` assembled from the saved records."""
+    dtype = dt.dtype
     zt, alive, diag, sign_prev, k4_prev, est_ok = carry
     z_final = _from_scalars(zt, z0)
     t_final = t0 + n_steps * dt
@@ -578,7 +629,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     finite_f = _all_finite((aux_f.control, m_f))
     regular_f = (m_f > margin_floor) & ~(sign_prev * _sign(getattr(aux_f, "regularity", None), m_f) < 0)
     est_f = jnp.zeros_like(m_f)
-    if estimate and sample is None:     # (a sampled period's steps estimated their own error)
+    if estimate_last:     # (a sampled period's steps estimated their own error)
         est_f = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1_f), _continuous(z_final)))
         if est_ok is not None:
             est_f = jnp.where(est_ok, est_f, 0.0)
@@ -602,6 +653,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     if final_report is not None:    # e.g. the internal dynamics of a static law
         diag = diag._replace(internal=final_report(t_final, z_final, params))
     states, controls, margins, valids = recs
+    n_saves = n_steps // save_every
     t_saved = t0 + dt * jnp.arange(n_saves + 1, dtype=dtype) * save_every
     t_saved = t_saved.at[-1].set(t_final)
     traj = Trajectory(
