@@ -25,50 +25,52 @@ KINDS = ("(3,0)", "(2,0)", "(2,1)", "(1,1)", "(1,2)")
 LEVELS = ("velocity", "torque")
 
 
-def run_case(kind, level, n_random, t_final, dt, seed, tol):
+def _start(ctrl, posture: bool, params, key):
+    """Random initial state: the tracked point near the reference's start, at rest."""
     import jax
     import jax.numpy as jnp
+
+    from wmrjax.problem import Space, Task, place
+
+    k1, k2, k3 = jax.random.split(key, 3)
+    th = jax.random.uniform(k2, (), minval=-math.pi, maxval=math.pi)
+    # heading: any (the point task), or within 0.3 rad of the reference's (the posture task)
+    d_th = 0.3 * th / math.pi if posture else th - params.reference.posture(0.0)[2]
+    d_steer = jnp.zeros(ctrl.robot.delta_s)
+    if ctrl.row.steering_index is not None:
+        d_steer = d_steer.at[-1].set(jax.random.uniform(k3, (), minval=-0.3, maxval=0.3))
+    if ctrl.robot.delta_m == 1:       # the steering wheel that is not an output: random angle
+        d_steer = d_steer.at[0].set(jax.random.uniform(k3, (), minval=-1.0, maxval=1.0))
+    dp = jax.random.uniform(k1, (2,), minval=-0.5, maxval=0.5)
+    error = jnp.concatenate([dp, d_th[None], d_steer])
+    return place(ctrl, params, error, Space.PHYSICAL, Task.POSTURE if posture else Task.POINT, 1.0, rest=True)
+
+
+def _point_error(ctrl, posture: bool, t, z, params):
+    """(point error [m], heading error [rad] for the posture task, else 0)."""
+    import jax.numpy as jnp
+
+    e = ctrl.error(t, z, params)[0]
+    return jnp.hypot(e[0], e[1]), (jnp.abs(e[2]) if posture else 0.0 * e[0])
+
+
+def _named_references(ctrl, g, posture: bool, dt: float, n_steps: int, out: dict) -> dict:
+    """One run on a circle and one on a figure eight: their summaries into ``out``, their traces returned."""
+    import jax
     import numpy as np
 
     import wmrjax as w
-    from wmrjax.problem import Space, Task, place
     from wmrjax import references as R
-
-    task = "posture" if w.robot_type(kind).omnidirectional else "point"
-    ctrl = w.controller(kind, level, task)
-    posture = ctrl.task == "posture"      # (3,0): the heading is an output too
-    g = ctrl.row.default_geometry
-    n_steps = int(round(t_final / dt))
-    nX, nu = ctrl.robot.n_state, ctrl.robot.n_input
-    out = {"task": task, "geometry": g._asdict(), "poles": 1.0, "outputs": ctrl.row.regularity}
-
-    def start(params, key):
-        """Random initial state: the tracked point near the reference's start, at rest."""
-        k1, k2, k3 = jax.random.split(key, 3)
-        th = jax.random.uniform(k2, (), minval=-math.pi, maxval=math.pi)
-        # heading: any (the point task), or within 0.3 rad of the reference's (the posture task)
-        d_th = 0.3 * th / math.pi if posture else th - params.reference.posture(0.0)[2]
-        d_steer = jnp.zeros(ctrl.robot.delta_s)
-        if ctrl.row.steering_index is not None:
-            d_steer = d_steer.at[-1].set(jax.random.uniform(k3, (), minval=-0.3, maxval=0.3))
-        if ctrl.robot.delta_m == 1:       # the steering wheel that is not an output: random angle
-            d_steer = d_steer.at[0].set(jax.random.uniform(k3, (), minval=-1.0, maxval=1.0))
-        dp = jax.random.uniform(k1, (2,), minval=-0.5, maxval=0.5)
-        error = jnp.concatenate([dp, d_th[None], d_steer])
-        return place(ctrl, params, error, Space.PHYSICAL, Task.POSTURE if posture else Task.POINT, 1.0, rest=True)
-
-    def point_error(t, z, params):
-        e = ctrl.error(t, z, params)[0]
-        return jnp.hypot(e[0], e[1]), (jnp.abs(e[2]) if posture else 0.0 * e[0])
 
     traces = {}
     for ref in (R.circle(radius=3.0, omega=0.4), R.figure_eight(size=4.0, omega=0.25)):
         name = ref.name
         params = ctrl.params(ref, poles=1.0, geometry=g)
-        z0 = start(params, jax.random.PRNGKey(1))
+        z0 = _start(ctrl, posture, params, jax.random.PRNGKey(1))
         ctrl.check_regular(z0, params)
         tr = w.simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=max(1, n_steps // 300))
-        ep, eh = (np.asarray(a) for a in jax.vmap(lambda t, z: point_error(t, z, params))(tr.t, tr.state))
+        ep, eh = (np.asarray(a) for a in jax.vmap(lambda t, z: _point_error(ctrl, posture, t, z, params))(
+            tr.t, tr.state))
         pts = np.asarray(jax.vmap(lambda z: ctrl.outputs(z, params))(tr.state))
         refp = np.asarray(jax.vmap(ref.position)(tr.t))
         traces[name] = dict(t=np.asarray(tr.t), state=pts, ref=refp, ep=ep)
@@ -78,6 +80,18 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
                      if ctrl.row.z3 else None,
                      "final_heading_error_vs_reference_rad": float(tr.diagnostics.internal.heading_error),
                      "turned_round": bool(tr.diagnostics.internal.turned_round)}
+    return traces
+
+
+def _random_runs(ctrl, g, posture: bool, n_random: int, dt: float, n_steps: int, seed: int):
+    """``n_random`` runs on random smooth references from random starts, one compiled batch:
+    ``(ep, eh, diagnostics, initial margins, max ||z3||, wall seconds including compile)``."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import wmrjax as w
+    from wmrjax import references as R
 
     key = jax.random.PRNGKey(seed)
     k_ref, k_ic = jax.random.split(key)
@@ -85,9 +99,9 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
     def one(kr, ki):
         ref = R.random_smooth(kr, n_modes=3, speed=1.0, min_speed=0.3, max_omega=0.6, start_scale=2.0)
         params = ctrl.params_unchecked(ref, 1.0, g)
-        z0 = start(params, ki)
+        z0 = _start(ctrl, posture, params, ki)
         tr = w.simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=max(1, n_steps // 100))
-        ep, eh = point_error(tr.t[-1], tr.final_state, params)
+        ep, eh = _point_error(ctrl, posture, tr.t[-1], tr.final_state, params)
         z3n = jnp.max(jnp.linalg.norm(jax.vmap(ctrl.z3)(tr.state), axis=-1)) if ctrl.row.z3 else 0.0
         return ep, eh, tr.diagnostics, ctrl.margin(z0, params), z3n
 
@@ -95,7 +109,22 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
     ep, eh, diag, m0, z3n = jax.jit(jax.vmap(one))(jax.random.split(k_ref, n_random), jax.random.split(k_ic, n_random))
     jax.block_until_ready(ep)
     wall = time.perf_counter() - t0
-    ep, eh, z3n = np.asarray(ep), np.asarray(eh), np.asarray(z3n)
+    return np.asarray(ep), np.asarray(eh), diag, m0, np.asarray(z3n), wall
+
+
+def run_case(kind, level, n_random, t_final, dt, seed, tol):
+    import numpy as np
+
+    import wmrjax as w
+
+    task = "posture" if w.robot_type(kind).omnidirectional else "point"
+    ctrl = w.controller(kind, level, task)
+    posture = ctrl.task == "posture"      # (3,0): the heading is an output too
+    g = ctrl.row.default_geometry
+    n_steps = int(round(t_final / dt))
+    out = {"task": task, "geometry": g._asdict(), "poles": 1.0, "outputs": ctrl.row.regularity}
+    traces = _named_references(ctrl, g, posture, dt, n_steps, out)
+    ep, eh, diag, m0, z3n, wall = _random_runs(ctrl, g, posture, n_random, dt, n_steps, seed)
     failed = np.asarray(diag.failed)
     ok = ~failed
     turned = np.asarray(diag.internal.turned_round)
