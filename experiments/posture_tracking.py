@@ -30,7 +30,9 @@ def _posture_error(xi, xi_ref):
     return np.hypot(d[..., 0], d[..., 1]), np.abs(d[..., 2])
 
 
-def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
+def _named_references(ctrl, g, free_heading: bool, t_final: float, dt: float, n_steps: int, out: dict) -> dict:
+    """Single runs on a circle and a figure eight from one perturbation, kept for the figure:
+    their summaries into ``out``, their traces returned."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -39,17 +41,9 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
     from wmrjax.problem import Space, Task, place
     from wmrjax import references as R
 
-    ctrl = w.dynamic_linearization(kind, level)
-    g = ctrl.row.default_geometry
-    free_heading = bool(ctrl.row.extension.angle_outputs)   # theta is an output: a crab angle is possible
-    n_steps = int(round(t_final / dt))
-    n_post = ctrl.robot.n_state
-    out = {"geometry": g._asdict(), "poles": 1.0, "relative_degree": ctrl.relative_degree}
-
-    # -- two named references, single runs kept for the figure
     named = {r.name: r for r in (R.circle(radius=3.0, omega=0.4, heading_offset=0.3 if free_heading else 0.0),
                                        R.figure_eight(size=4.0, omega=0.25, heading_offset=0.3 if free_heading else 0.0))}
-    pert = jnp.zeros(n_post).at[:3].set(jnp.array([0.3, -0.2, 0.1]))       # x, y [m], theta [rad]
+    pert = jnp.zeros(ctrl.robot.n_state).at[:3].set(jnp.array([0.3, -0.2, 0.1]))       # x, y [m], theta [rad]
     traces = {}
     for name, ref in named.items():
         params = ctrl.params(ref, poles=1.0, geometry=g)
@@ -62,10 +56,21 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
         traces[name] = dict(t=np.asarray(tr.t), state=np.asarray(tr.state), ref=np.asarray(post), ep=ep, eh=eh)
         out[name] = {"final_position_error": float(ep[-1]), "final_heading_error": float(eh[-1]),
                      "min_margin": float(tr.diagnostics.min_margin), "failed": bool(tr.diagnostics.failed)}
+    return traces
 
-    # -- random references x random initial conditions
-    key = jax.random.PRNGKey(seed)
-    k_ref, k_ic, k_off = jax.random.split(key, 3)
+
+def _random_runs(ctrl, g, free_heading: bool, n_random: int, t_final: float, dt: float, n_steps: int, seed: int):
+    """Random references x random initial conditions, one compiled batch: ``(final states,
+    diagnostics, reference postures at the end, initial margins, reference regular, wall seconds)``."""
+    import jax
+    import jax.numpy as jnp
+
+    import wmrjax as w
+    from wmrjax.problem import Space, Task, place
+    from wmrjax import references as R
+
+    k_ref, k_ic, k_off = jax.random.split(jax.random.PRNGKey(seed), 3)
+    n_post = ctrl.robot.n_state
 
     def draw(kr, ki, ko):
         ref = R.random_smooth(kr, n_modes=3, speed=1.0, min_speed=0.3, max_omega=0.6, start_scale=2.0)
@@ -92,7 +97,21 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
     t0 = time.perf_counter()
     zf, diag, post_f, m0, ref_ok = jax.jit(jax.vmap(one))(params_b, z0_b)
     jax.block_until_ready(zf)
-    wall = time.perf_counter() - t0
+    return zf, diag, post_f, m0, ref_ok, time.perf_counter() - t0
+
+
+def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
+    import numpy as np
+
+    import wmrjax as w
+
+    ctrl = w.dynamic_linearization(kind, level)
+    g = ctrl.row.default_geometry
+    free_heading = bool(ctrl.row.extension.angle_outputs)   # theta is an output: a crab angle is possible
+    n_steps = int(round(t_final / dt))
+    out = {"geometry": g._asdict(), "poles": 1.0, "relative_degree": ctrl.relative_degree}
+    traces = _named_references(ctrl, g, free_heading, t_final, dt, n_steps, out)
+    zf, diag, post_f, m0, ref_ok, wall = _random_runs(ctrl, g, free_heading, n_random, t_final, dt, n_steps, seed)
     ep, eh = _posture_error(zf, post_f)
     ref_ok = np.asarray(ref_ok)
     failed = np.asarray(diag.failed)
