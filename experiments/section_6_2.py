@@ -51,7 +51,6 @@ def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_
     import numpy as np
 
     import wmrjax as w
-    from wmrjax import certify as C
 
     hy, params, zeta0 = setup(r_switch, lam)
     n_steps = int(round(t_final / dt))
@@ -90,50 +89,68 @@ def run(out, dt=0.01, t_final=60.0, n_batch=1024, tol_pos=0.05, tol_head=0.1, r_
                         if s <= t_final},
         "nonfinite": bool(tr.diagnostics.nonfinite), "failed": bool(tr.diagnostics.failed),
     }
-    # -- Lemma 2 up to the switch (M1 -> 0 at rest: it certifies nothing beyond)
     if switched:
         say("Lemma 2 up to the switch")
-        ctrl, tp = hy.tracking, params.tracking
-        cert = C.lemma2(ctrl, tp, t_final=t_sw, eps=eps, n_t=max(int(round(t_sw / dt)) + 1, 3))
-        e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0.tracking, tp)))
-        summary["lemma2"] = {"eps": eps, "horizon": t_sw, "zeta0_norm": e0,
-                             "radius_paper": float(cert.paper.radius), "argmin_F_paper": float(cert.paper.argmin),
-                             "condition_52_paper": bool(e0 <= float(cert.paper.radius)),
-                             "radius_exact_norm": float(cert.exact_norm.radius),
-                             "condition_52_exact_norm": bool(e0 <= float(cert.exact_norm.radius)),
-                             "min_M1": float(jnp.min(cert.paper.m1))}
-    # -- batch around the paper's initial conditions
+        summary["lemma2"] = _lemma2_to_switch(hy, params, z0, t_sw, dt, eps)
+    batch = None
     if n_batch:
         say(f"compiling and running a batch of {n_batch} initial conditions")
-        k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
-        dp = jax.random.uniform(k1, (n_batch, 2), minval=-0.3, maxval=0.3)
-        dv = jax.random.uniform(k2, (n_batch, 2), minval=-0.2, maxval=0.2)
-        zetas = zeta0[None] + jnp.stack([dp, dv], axis=1)
-        z0s = jax.vmap(lambda zz: hy.initial_state(zz, params))(zetas)
-        fins, diag = jax.jit(jax.vmap(lambda z: (lambda r: (r.final_state, r.diagnostics))(
-            w.simulate(hy, z, params, dt=dt, n_steps=n_steps, save_every=n_steps))))(z0s)
-        switched_b = np.asarray(fins.switched)
-        ok = ~np.asarray(diag.failed)
-        d, h, parked = _parked(np.asarray(fins.tracking), tol_pos, tol_head)
-        tsw = np.asarray(fins.t_switch)[switched_b]
-        q = lambda a: {k: float(np.quantile(a, p)) for k, p in (("min", 0), ("median", .5), ("p90", .9), ("max", 1))} \
-            if len(a) else None
-        summary["batch"] = {
-            "n_runs": n_batch, "perturbation": "position +-0.3 m, velocity +-0.2 m/s (uniform) around the paper's",
-            "tolerance": {"distance_m": tol_pos, "heading_rad": tol_head},
-            "fraction_parked": float(np.mean(parked & ok)), "fraction_within_distance": float(np.mean((d <= tol_pos) & ok)),
-            "fraction_switched": float(np.mean(switched_b)), "n_failed": int((~ok).sum()),
-            "nonfinite": int(np.asarray(diag.nonfinite).sum()),
-            "t_switch_s": q(tsw), "final_distance_m": q(d[ok]), "final_abs_heading_rad": q(h[ok])}
-        batch = (tsw, d[ok])
-    else:
-        batch = None
+        summary["batch"], batch = _batch(hy, params, zeta0, n_batch, seed, dt, n_steps, tol_pos, tol_head)
     out.mkdir(parents=True, exist_ok=True)
     _figures(out, t, st, u, ref_post, eta1_ref, t_sw, float(params.r_switch), batch)
     common.write_npz(out / "trajectory.npz", t=t, state=st, control=u, reference=ref_post,
                      mode=np.asarray(tr.state.mode), state_names=np.array(hy.state_names[:4]))
     common.write_json(out / "summary.json", summary)
     return summary
+
+
+def _lemma2_to_switch(hy, params, z0, t_sw: float, dt: float, eps: float) -> dict:
+    """Lemma 2 of the tracking phase up to the switch (M1 -> 0 at rest: it certifies nothing beyond)."""
+    import jax.numpy as jnp
+
+    from wmrjax import certify as C
+
+    ctrl, tp = hy.tracking, params.tracking
+    cert = C.lemma2(ctrl, tp, t_final=t_sw, eps=eps, n_t=max(int(round(t_sw / dt)) + 1, 3))
+    e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0.tracking, tp)))
+    return {"eps": eps, "horizon": t_sw, "zeta0_norm": e0,
+            "radius_paper": float(cert.paper.radius), "argmin_F_paper": float(cert.paper.argmin),
+            "condition_52_paper": bool(e0 <= float(cert.paper.radius)),
+            "radius_exact_norm": float(cert.exact_norm.radius),
+            "condition_52_exact_norm": bool(e0 <= float(cert.exact_norm.radius)),
+            "min_M1": float(jnp.min(cert.paper.m1))}
+
+
+def _batch(hy, params, zeta0, n_batch: int, seed: int, dt: float, n_steps: int, tol_pos: float, tol_head: float):
+    """A batch of initial conditions around the paper's: ``(its summary block, (switch times,
+    final distances of the runs that did not fail))`` for the figure."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import wmrjax as w
+
+    k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
+    dp = jax.random.uniform(k1, (n_batch, 2), minval=-0.3, maxval=0.3)
+    dv = jax.random.uniform(k2, (n_batch, 2), minval=-0.2, maxval=0.2)
+    zetas = zeta0[None] + jnp.stack([dp, dv], axis=1)
+    z0s = jax.vmap(lambda zz: hy.initial_state(zz, params))(zetas)
+    fins, diag = jax.jit(jax.vmap(lambda z: (lambda r: (r.final_state, r.diagnostics))(
+        w.simulate(hy, z, params, dt=dt, n_steps=n_steps, save_every=n_steps))))(z0s)
+    switched_b = np.asarray(fins.switched)
+    ok = ~np.asarray(diag.failed)
+    d, h, parked = _parked(np.asarray(fins.tracking), tol_pos, tol_head)
+    tsw = np.asarray(fins.t_switch)[switched_b]
+    q = lambda a: {k: float(np.quantile(a, p)) for k, p in (("min", 0), ("median", .5), ("p90", .9), ("max", 1))} \
+        if len(a) else None
+    block = {
+        "n_runs": n_batch, "perturbation": "position +-0.3 m, velocity +-0.2 m/s (uniform) around the paper's",
+        "tolerance": {"distance_m": tol_pos, "heading_rad": tol_head},
+        "fraction_parked": float(np.mean(parked & ok)), "fraction_within_distance": float(np.mean((d <= tol_pos) & ok)),
+        "fraction_switched": float(np.mean(switched_b)), "n_failed": int((~ok).sum()),
+        "nonfinite": int(np.asarray(diag.nonfinite).sum()),
+        "t_switch_s": q(tsw), "final_distance_m": q(d[ok]), "final_abs_heading_rad": q(h[ok])}
+    return block, (tsw, d[ok])
 
 
 def _figures(out, t, st, u, ref, eta1_ref, t_sw, r_s, batch):
