@@ -218,13 +218,48 @@ def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_traj
         many_forward: bool = True) -> dict:
     common.enable_x64()
     import jax
+
+    ctrl, params, _, _ = common.section_6_1_setup()
+    rows, c_note = _rollout_rows(ctrl, params, batches, reps, source)
+    scipy_rate, nfev = _scipy_rate(scipy_trajs)
+    gradient, gradient_many, by_batch = _gradients(ctrl, params, reps, grad_batch, grad_batches, many_forward)
+    summary = {
+        "experiment": "benchmark",
+        "closed_loop": "section 6.1: (2,0) robot, e = 0, dynamic FL (eq 39), poles -1, reference (62)",
+        "integration": {"method": "RK4", "dt": DT, "steps": N_STEPS, "dtype": "float64"},
+        "machine": {"cpu_count": os.cpu_count(), "jax_devices": len(jax.devices()), "platform": platform.platform(),
+                    "jax_version": jax.__version__, "backend": jax.default_backend()},
+        "units": "trajectory-steps per second (batch size x 1000 steps / wall time, best of reps, compile excluded)",
+        "gradient_timing": "seconds, best of reps x rounds: the forward pass and the gradients timed alternately, "
+                           "reps calls each per round (3 rounds; gradient_by_batch above 10000 trajectories: "
+                           "2 rounds of reps // 2 calls)",
+        "rollout": rows,
+        "c_ceiling_note": c_note,
+        "scipy_solve_ivp_one_at_a_time": {"method": "RK45", "rtol": 1e-8, "atol": 1e-10, "trajectories": scipy_trajs,
+                                          "mean_rhs_evaluations": nfev / scipy_trajs,
+                                          "equivalent_traj_steps_per_s": scipy_rate},
+        "gradient": gradient,
+        "gradient_many": gradient_many,
+        "gradient_by_batch": by_batch,
+    }
+    for b, row in rows.items():
+        row["ratio_wmrjax_over_scipy"] = row["wmrjax_batch_map"] / scipy_rate
+    common.write_json(out / "summary.json", summary)
+    return summary
+
+
+
+
+def _rollout_rows(ctrl, params, batches, reps: int, source: Path):
+    """Per batch size: trajectory-steps per second of wmrjax (batch_map with and without the error
+    estimate, jit(vmap) on one device), vectorised NumPy and the C ceiling, with their ratios;
+    ``(rows, the C ceiling's note)``."""
+    import jax
     import jax.numpy as jnp
     import numpy as np
-    from scipy.integrate import solve_ivp
 
     import wmrjax as w
 
-    ctrl, params, _, _ = common.section_6_1_setup()
     sim_final = lambda z: w.simulate(ctrl, z, params, dt=DT, n_steps=N_STEPS, save_every=N_STEPS).final_state
     fast = jax.jit(lambda z: w.batch_map(sim_final, z, chunk=512))
     # the same loop without the per-step error estimate (error_tol=None): what the guard costs
@@ -265,6 +300,14 @@ def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_traj
               f"{row['wmrjax_jit_vmap_1_device'] / 1e6:.2f}), numpy {row['numpy_vectorised'] / 1e6:.2f}"
               + (f", C {c_res[b] / 1e6:.2f} -> ratio {row['ratio_wmrjax_over_c']:.2f}" if c_res else ""), flush=True)
 
+    return rows, c_note
+
+
+def _scipy_rate(scipy_trajs: int):
+    """``(equivalent trajectory-steps per second, right-hand-side evaluations)`` of SciPy."""
+    import numpy as np
+    from scipy.integrate import solve_ivp
+
     # SciPy, one trajectory at a time: adaptive RK45 (rtol 1e-8, atol 1e-10) on the same
     # closed loop; reported as equivalent trajectory-steps/s (1000 steps per trajectory).
     S = initial_states_numpy(scipy_trajs)
@@ -278,7 +321,13 @@ def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_traj
         sol = solve_ivp(rhs, (0.0, N_STEPS * DT), S[i], method="RK45", rtol=1e-8, atol=1e-10)
         nfev += sol.nfev
     ts = time.perf_counter() - t0
-    scipy_rate = scipy_trajs * N_STEPS / ts
+    return scipy_trajs * N_STEPS / ts, nfev
+
+
+def _gradients(ctrl, params, reps: int, grad_batch: int, grad_batches, many_forward: bool):
+    """The gradient timings: 4 shared poles, per-group poles, and by batch size; ``(gradient,
+    gradient_many, gradient_by_batch)``."""
+    import jax.numpy as jnp
 
     # Gradients: value and gradient of a batch tracking loss relative to its forward pass
     zg = jnp.asarray(initial_states_numpy(grad_batch))
@@ -314,29 +363,7 @@ def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_traj
         print(f"gradient_by_batch B = {b}: {r['ratio_grad_over_forward']:.2f}x (batch_value_and_grad, {r['mode']}); "
               f"value_and_grad {r['ratio_value_and_grad_forward_mode']:.2f}x (forward)", flush=True)
 
-    summary = {
-        "experiment": "benchmark",
-        "closed_loop": "section 6.1: (2,0) robot, e = 0, dynamic FL (eq 39), poles -1, reference (62)",
-        "integration": {"method": "RK4", "dt": DT, "steps": N_STEPS, "dtype": "float64"},
-        "machine": {"cpu_count": os.cpu_count(), "jax_devices": len(jax.devices()), "platform": platform.platform(),
-                    "jax_version": jax.__version__, "backend": jax.default_backend()},
-        "units": "trajectory-steps per second (batch size x 1000 steps / wall time, best of reps, compile excluded)",
-        "gradient_timing": "seconds, best of reps x rounds: the forward pass and the gradients timed alternately, "
-                           "reps calls each per round (3 rounds; gradient_by_batch above 10000 trajectories: "
-                           "2 rounds of reps // 2 calls)",
-        "rollout": rows,
-        "c_ceiling_note": c_note,
-        "scipy_solve_ivp_one_at_a_time": {"method": "RK45", "rtol": 1e-8, "atol": 1e-10, "trajectories": scipy_trajs,
-                                          "mean_rhs_evaluations": nfev / scipy_trajs,
-                                          "equivalent_traj_steps_per_s": scipy_rate},
-        "gradient": gradient,
-        "gradient_many": gradient_many,
-        "gradient_by_batch": by_batch,
-    }
-    for b, row in rows.items():
-        row["ratio_wmrjax_over_scipy"] = row["wmrjax_batch_map"] / scipy_rate
-    common.write_json(out / "summary.json", summary)
-    return summary
+    return gradient, gradient_many, by_batch
 
 
 def numpy_rollout_rhs(t, s):
