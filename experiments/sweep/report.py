@@ -142,17 +142,7 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
     written = []
     for old in out.glob("map_*.png"):       # an earlier run's maps (other quantities) must not linger
         old.unlink()
-    numeric = [c for c in plan.swept if c not in ("case", "robot", "level")]
-    # one map axis per quantity: drop a column in one-to-one correspondence with an earlier one
-    # (random draws of several columns are one-to-one by construction: they are kept, and mapped as scatter plots)
-    random_cols = {c for g in plan.groups for a in g.axes[-1:] if a.random for c in a.columns}   # the initial axis
-    numeric = [c for i, c in enumerate(numeric)
-               if c in random_cols or not any(_determines(table, q, c) and _determines(table, c, q) for q in numeric[:i])]
-    pairs = [(a, b) for a, b in itertools.combinations(numeric, 2)
-             if {a, b} <= random_cols or not (_determines(table, a, b) or _determines(table, b, a))]
-    # initial errors first (x against y above all), then the rest in the file's order
-    pairs.sort(key=lambda ab: -sum(c.startswith("initial_error_") for c in ab) - 2 * (ab == ("initial_error_x", "initial_error_y")))
-    pairs = pairs[:MAX_MAPS if len(plan.groups) == 1 else MAX_MAPS_PER_GROUP]
+    numeric, random_cols, pairs = _map_pairs(plan, table)
     for g in plan.groups:
         robot, level = g.ctrl.robot.name, str(g.ctrl.level)
         gsel = select(table, g)
@@ -171,49 +161,79 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
                     v0 = vals[0]
                     sel &= table[c] == v0
                     fixed.append(f"{c} = {v0:.4g}")
-            fig, ax = plt.subplots(figsize=(6.4, 5.6))
-            xa, yb, oc = table[a][sel], table[b][sel], table["outcome"][sel]
-            ux, uy = np.unique(xa), np.unique(yb)
-            grid = a not in random_cols and b not in random_cols and len(xa) == len(ux) * len(uy) > 1
-            if grid and len(ux) > 1 and len(uy) > 1:     # a full grid: cells that touch
-                from matplotlib.colors import ListedColormap
-
-                code = np.full((len(uy), len(ux)), np.nan)
-                code[np.searchsorted(uy, yb), np.searchsorted(ux, xa)] = [OUTCOMES.index(o) for o in oc]
-                ax.pcolormesh(_edges(ux), _edges(uy), code, cmap=ListedColormap([COLORS[o] for o in OUTCOMES]),
-                              vmin=-0.5, vmax=len(OUTCOMES) - 0.5, shading="flat")
-                for o in OUTCOMES:
-                    m = int(np.sum(oc == o))
-                    if m:
-                        ax.scatter([], [], marker="s", c=COLORS[o], label=f"{LABELS[o]} ({m})")
-            else:
-                for o in OUTCOMES:
-                    m = oc == o
-                    if m.any():
-                        ax.scatter(xa[m], yb[m], s=12, c=COLORS[o], linewidths=0,
-                                   label=f"{LABELS[o]} ({int(m.sum())})")
-            if radii and {a, b} == {"initial_error_x", "initial_error_y"}:
-                th = np.linspace(0, 2 * np.pi, 400)
-                styles = {"lemma2_paper": ("k", ":"), "lemma2_lyapunov": ("k", "-."), "lemma2_exact_norm": ("k", "--"),
-                          "exact_map_position_slice": ("b", "-")}
-                for name, (col, ls) in styles.items():
-                    rad = radii.get(name)
-                    if rad:
-                        ax.plot(rad * np.cos(th), rad * np.sin(th), color=col, ls=ls, lw=1.2,
-                                label=f"{name.replace('_', ' ')}: {rad:.3g} m")
-            ax.set_xlabel(label(a))
-            ax.set_ylabel(label(b))
-            title = (f"{g.case}: " if g.case is not None else "") + f"{robot}, {plan.law} law, {level} level"
-            ax.set_title(title + ("\n" + ", ".join(fixed) if fixed else ""), fontsize=9)
-            ax.legend(fontsize=7, loc="upper right", framealpha=0.85)
-            ax.grid(alpha=0.3)
-            if len(ux) > 1 and len(uy) > 1 and {a, b} <= {"initial_error_x", "initial_error_y"}:
-                ax.set_aspect("equal")
-            fig.tight_layout()
             path = out / f"map_{a}_{b}{tag}.png"
-            common.save_figure(fig, path)
-            plt.close(fig)
+            _map_figure(plt, plan, table, g, a, b, sel, fixed, random_cols, radii, path)
             written.append(path.name)
+    _histograms(plt, plan, table, out)
+    written.append("histograms.png")
+    return written
+
+
+def _map_pairs(plan: S.Plan, table: dict):
+    """``(numeric columns, random columns, pairs to map)``: one map axis per quantity (a column in
+    one-to-one correspondence with an earlier one dropped; random draws of several columns are
+    one-to-one by construction: kept, and mapped as scatter plots), initial errors first."""
+    numeric = [c for c in plan.swept if c not in ("case", "robot", "level")]
+    random_cols = {c for g in plan.groups for a in g.axes[-1:] if a.random for c in a.columns}   # the initial axis
+    numeric = [c for i, c in enumerate(numeric)
+               if c in random_cols or not any(_determines(table, q, c) and _determines(table, c, q) for q in numeric[:i])]
+    pairs = [(a, b) for a, b in itertools.combinations(numeric, 2)
+             if {a, b} <= random_cols or not (_determines(table, a, b) or _determines(table, b, a))]
+    # initial errors first (x against y above all), then the rest in the file's order
+    pairs.sort(key=lambda ab: -sum(c.startswith("initial_error_") for c in ab) - 2 * (ab == ("initial_error_x", "initial_error_y")))
+    return numeric, random_cols, pairs[:MAX_MAPS if len(plan.groups) == 1 else MAX_MAPS_PER_GROUP]
+
+
+def _map_figure(plt, plan: S.Plan, table: dict, g, a: str, b: str, sel, fixed: list, random_cols, radii: dict,
+                path: Path) -> None:
+    """One outcome map of columns ``a`` against ``b`` over the runs ``sel`` (cells on a full grid,
+    points otherwise), the certified circles on the initial-position plane."""
+    robot, level = g.ctrl.robot.name, str(g.ctrl.level)
+    fig, ax = plt.subplots(figsize=(6.4, 5.6))
+    xa, yb, oc = table[a][sel], table[b][sel], table["outcome"][sel]
+    ux, uy = np.unique(xa), np.unique(yb)
+    grid = a not in random_cols and b not in random_cols and len(xa) == len(ux) * len(uy) > 1
+    if grid and len(ux) > 1 and len(uy) > 1:     # a full grid: cells that touch
+        from matplotlib.colors import ListedColormap
+
+        code = np.full((len(uy), len(ux)), np.nan)
+        code[np.searchsorted(uy, yb), np.searchsorted(ux, xa)] = [OUTCOMES.index(o) for o in oc]
+        ax.pcolormesh(_edges(ux), _edges(uy), code, cmap=ListedColormap([COLORS[o] for o in OUTCOMES]),
+                      vmin=-0.5, vmax=len(OUTCOMES) - 0.5, shading="flat")
+        for o in OUTCOMES:
+            m = int(np.sum(oc == o))
+            if m:
+                ax.scatter([], [], marker="s", c=COLORS[o], label=f"{LABELS[o]} ({m})")
+    else:
+        for o in OUTCOMES:
+            m = oc == o
+            if m.any():
+                ax.scatter(xa[m], yb[m], s=12, c=COLORS[o], linewidths=0,
+                           label=f"{LABELS[o]} ({int(m.sum())})")
+    if radii and {a, b} == {"initial_error_x", "initial_error_y"}:
+        th = np.linspace(0, 2 * np.pi, 400)
+        styles = {"lemma2_paper": ("k", ":"), "lemma2_lyapunov": ("k", "-."), "lemma2_exact_norm": ("k", "--"),
+                  "exact_map_position_slice": ("b", "-")}
+        for name, (col, ls) in styles.items():
+            rad = radii.get(name)
+            if rad:
+                ax.plot(rad * np.cos(th), rad * np.sin(th), color=col, ls=ls, lw=1.2,
+                        label=f"{name.replace('_', ' ')}: {rad:.3g} m")
+    ax.set_xlabel(label(a))
+    ax.set_ylabel(label(b))
+    title = (f"{g.case}: " if g.case is not None else "") + f"{robot}, {plan.law} law, {level} level"
+    ax.set_title(title + ("\n" + ", ".join(fixed) if fixed else ""), fontsize=9)
+    ax.legend(fontsize=7, loc="upper right", framealpha=0.85)
+    ax.grid(alpha=0.3)
+    if len(ux) > 1 and len(uy) > 1 and {a, b} <= {"initial_error_x", "initial_error_y"}:
+        ax.set_aspect("equal")
+    fig.tight_layout()
+    common.save_figure(fig, path)
+    plt.close(fig)
+
+
+def _histograms(plt, plan: S.Plan, table: dict, out: Path) -> None:
+    """``histograms.png``: final position error, min margin (and min distance) of the regular runs, per group."""
     fig, axs = plt.subplots(1, 3 if plan.law == "dynamic" else 2, figsize=(14 if plan.law == "dynamic" else 10, 4))
     ok = ~table["failed"]
     for g, c in zip(plan.groups, itertools.cycle([f"C{i}" for i in range(10)])):
@@ -236,8 +256,8 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
     fig.tight_layout()
     common.save_figure(fig, out / "histograms.png")
     plt.close(fig)
-    written.append("histograms.png")
-    return written
+
+
 
 
 HIST_BINS = 50
