@@ -105,8 +105,7 @@ class Radius(NamedTuple):
 
     Attributes:
       value: ``raw -> radius`` (a float).
-      value_and_grad: ``raw -> (radius, gradient in raw)`` (None: a radius without a gradient,
-        which :func:`feasible_step` keeps by halving only).
+      value_and_grad: ``raw -> (radius, gradient in raw)``.
       label: what it is, for the summary.
     """
 
@@ -153,7 +152,7 @@ def project(grad, r: float, g_r, required: float):
     """The loss gradient without the part that would shrink the radius, when the radius is within
     :data:`BAND` of ``required`` (a descent step moves by about ``-grad``; it lowers the radius
     where ``grad . g_r > 0``)."""
-    if g_r is None or r > required * (1.0 + BAND):
+    if r > required * (1.0 + BAND):
         return grad
     g, gr = np.asarray(grad, float), np.asarray(g_r, float)
     dot, nn = float(np.sum(g * gr)), float(np.sum(gr * gr))
@@ -168,8 +167,7 @@ def feasible_step(raw, proposal, radius: Radius, required: float):
     A proposal below ``required`` is first projected back along the radius's gradient (Newton
     steps on ``radius = required (1 + RESTORE_MARGIN)``, at most :data:`PROJECTION_STEPS`): the
     iterate slides along the boundary instead of stopping at it (a step tangent to it still
-    loses radius at second order where the radius is concave). Where that fails (or without a
-    gradient) the step is halved back toward ``raw``: the furthest of
+    loses radius at second order where the radius is concave). Where that fails the step is halved back toward ``raw``: the furthest of
     ``raw + 2^-k (proposal - raw)`` that meets ``required``, else ``raw`` itself (``halvings``
     is then ``MAX_HALVINGS + 1``; -1 marks a projected step).
     """
@@ -177,17 +175,16 @@ def feasible_step(raw, proposal, radius: Radius, required: float):
     r = radius.value(proposal)
     if r >= required:
         return proposal, r, 0
-    if radius.value_and_grad is not None:
-        p, target = proposal, required * (1.0 + RESTORE_MARGIN)
-        for _ in range(PROJECTION_STEPS):
-            rv, g = radius.value_and_grad(p)
-            gg = float(jnp.sum(g * g))
-            if float(rv) >= target or gg == 0.0 or not np.isfinite(gg):
-                break
-            p = p + (target - float(rv)) / gg * g
-        r = radius.value(p)
-        if r >= required:
-            return p, r, -1
+    p, target = proposal, required * (1.0 + RESTORE_MARGIN)
+    for _ in range(PROJECTION_STEPS):
+        rv, g = radius.value_and_grad(p)
+        gg = float(jnp.sum(g * g))
+        if float(rv) >= target or gg == 0.0 or not np.isfinite(gg):
+            break
+        p = p + (target - float(rv)) / gg * g
+    r = radius.value(p)
+    if r >= required:
+        return p, r, -1
     raw = np.asarray(raw)
     for k in range(1, MAX_HALVINGS + 1):
         cand = jnp.asarray(raw + 0.5 ** k * (np.asarray(proposal) - raw))
@@ -203,9 +200,6 @@ def restore(raw, radius: Radius, required: float, log=print):
     r = radius.value(raw)
     if r >= required:
         return raw, r
-    if radius.value_and_grad is None:
-        raise ValueError(f"the initial gains' certified radius {r:.4g} is below the requirement {required:.4g}, and "
-                         "without a gradient the tuner cannot climb it: start from gains that meet it")
     target, step = required * (1.0 + RESTORE_MARGIN), RESTORE_STEP
     for _ in range(RESTORE_STEPS):
         r, g = radius.value_and_grad(raw)

@@ -443,11 +443,8 @@ def _kept_step(kept: Kept, update, grad, opt_state, raw, rec: dict):
     """One optimizer step that keeps the requirement: the gradient projected near it, the step
     halved back to it (:mod:`tuning.certified`); records the point's radius and the halvings."""
     rad = kept.radius
-    if rad.value_and_grad is not None:
-        r, g_r = rad.value_and_grad(raw)
-        r = float(r)
-    else:
-        r, g_r = rad.value(raw), None
+    r, g_r = rad.value_and_grad(raw)
+    r = float(r)
     proposal, opt_state = update(certified.project(grad, r, g_r, kept.required), opt_state, raw)
     raw, _, halvings = certified.feasible_step(raw, proposal, rad, kept.required)
     rec["radius"], rec["halvings"] = r, halvings

@@ -226,11 +226,14 @@ def differentiable_exact_map_radius(ctrl: DynamicLinearization, params: DynamicP
     :math:`t^*` (the outer minimum over t) and at the minimiser :math:`s^*` of the inner QCQP
     :math:`\min \|s\|^2` s.t. :math:`\|a + M(	heta) s\|^2 \le \epsilon^2`, whose multiplier
     :math:`
-u = -\langle s^*, M^T rangle / \|M^T r\|^2` (:math:`r = a + M s^*`) comes from
+u = -\langle s^*, M^T r
+angle / \|M^T r\|^2` (:math:`r = a + M s^*`) comes from
     stationarity :math:`s^* = -
 u M^T r`. So
-    :math:`\partialho/\partial	heta = 
-u\, r^T (\partial M/\partial	heta)\, s^* / ho`
+    :math:`\partial
+ho/\partial	heta = 
+u\, r^T (\partial M/\partial	heta)\, s^* / 
+ho`
     with :math:`M = C\,\Phi(t^*, 0; 	heta)\,P` (``expm(A t*)`` for constant gains, RK4 for a
     :class:`wmrjax.GainSchedule`). Where the minimum over t is attained at two times at once
     the radius has a kink and this is one of its one-sided derivatives. Traceable: it runs under
@@ -262,9 +265,9 @@ u\, r^T (\partial M/\partial	heta)\, s^* / ho`
     Phis = (linearize.transition_matrices(frozen.gains, ts, max_step=TRANSITION_STEP)
             if n_phi is not None else None)
     eps = jnp.asarray(eps, jnp.result_type(float))
-    _, rad, t_star, _ = _exact_map_core(ctrl, frozen, P, C, eps, jnp.asarray(ts), Phis, refine, n_phi)
+    _, rad, t_star, worst = _exact_map_core(ctrl, frozen, P, C, eps, jnp.asarray(ts), Phis, refine, n_phi)
+    s = P.T @ worst                                               # s*, in slice coordinates (P orthonormal)
     M0, a0 = _ball_problem(ctrl, frozen, P, C, t_star, None, n_phi)
-    _, s = min_norm_to_ball(M0, a0, eps)                          # s*, in slice coordinates
     g = M0.T @ (a0 + M0 @ s)
     nu = -(s @ g) / jnp.maximum(g @ g, jnp.finfo(g.dtype).tiny)
     M, a = _ball_problem(ctrl, params, P, C, t_star, None, n_phi)  # the live one: gains traced
