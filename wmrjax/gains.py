@@ -90,7 +90,7 @@ class Gains(NamedTuple):
 
     @property
     def shape(self):
-        """(m, r): outputs and relative degree."""
+        """The number of outputs m and the relative degree r, as the pair ``(m, r)``."""
         return tuple(jnp.shape(self.coeffs))
 
     @classmethod
@@ -243,7 +243,7 @@ class GainSchedule(NamedTuple):
 
     @property
     def shape(self):
-        """(m, r): outputs and relative degree."""
+        """The number of outputs m and the relative degree r, as the pair ``(m, r)``."""
         m, q = jnp.shape(self.omega)[-2:]
         return (m, 2 * q + (0 if self.lam is None else 1))
 

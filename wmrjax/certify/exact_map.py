@@ -224,17 +224,11 @@ def differentiable_exact_map_radius(ctrl: DynamicLinearization, params: DynamicP
     Its value is :func:`exact_map_radius`'s ``radius`` (the same grid and golden section; no
     rollout). Its gradient is the envelope theorem's, twice: at the minimising time
     :math:`t^*` (the outer minimum over t) and at the minimiser :math:`s^*` of the inner QCQP
-    :math:`\min \|s\|^2` s.t. :math:`\|a + M(	heta) s\|^2 \le \epsilon^2`, whose multiplier
-    :math:`
-u = -\langle s^*, M^T r
-angle / \|M^T r\|^2` (:math:`r = a + M s^*`) comes from
-    stationarity :math:`s^* = -
-u M^T r`. So
-    :math:`\partial
-ho/\partial	heta = 
-u\, r^T (\partial M/\partial	heta)\, s^* / 
-ho`
-    with :math:`M = C\,\Phi(t^*, 0; 	heta)\,P` (``expm(A t*)`` for constant gains, RK4 for a
+    :math:`\min \|s\|^2` s.t. :math:`\|a + M(\theta) s\|^2 \le \epsilon^2`, whose multiplier
+    :math:`\nu = -\langle s^*, M^T r\rangle / \|M^T r\|^2` (:math:`r = a + M s^*`) comes from
+    stationarity :math:`s^* = -\nu M^T r`. So
+    :math:`\partial\rho/\partial\theta = \nu\, r^T (\partial M/\partial\theta)\, s^* / \rho`
+    with :math:`M = C\,\Phi(t^*, 0; \theta)\,P` (``expm(A t*)`` for constant gains, RK4 for a
     :class:`wmrjax.GainSchedule`). Where the minimum over t is attained at two times at once
     the radius has a kink and this is one of its one-sided derivatives. Traceable: it runs under
     ``jit``, ``grad`` and ``vmap`` (the eager checks of :func:`exact_map_radius` are left to it).

@@ -72,10 +72,10 @@ class ClosedLoop(Protocol):
       n_state: size of the (flattened) state.
       state_names: one name per flattened state component.
 
-    Methods:
-      vector_field(t, z, params) -> (dz/dt, Aux): ``z`` and ``dz/dt`` share one pytree
-        structure; integer leaves are discrete state (held constant by the integrator).
-      post_step(t, z, params) -> z (optional): a discrete transition after every step.
+    Its methods: ``vector_field(t, z, params) -> (dz/dt, Aux)``, where ``z`` and ``dz/dt``
+    share one pytree structure and integer leaves are discrete state (held constant by the
+    integrator); optionally ``post_step(t, z, params) -> z``, a discrete transition after
+    every step.
     """
 
     n_state: int
