@@ -1,6 +1,6 @@
 # Two commands do everything on a fresh machine with Python >= 3.11 and make:
 #   make demo   -- create .venv if missing, install, run section 6.1 and its position-grid sweep into results/
-#   make test   -- create .venv if missing, install with test extras, run the whole suite
+#   make test   -- create .venv if missing, install with the test, cli and docs extras, run the whole suite
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
@@ -13,7 +13,7 @@ $(PY):
 	$(PY) -m pip install --quiet --upgrade pip
 
 $(STAMP): $(PY) pyproject.toml
-	$(PY) -m pip install --quiet -e ".[test]"
+	$(PY) -m pip install --quiet -e ".[test,cli,docs]"
 	touch $(STAMP)
 
 venv: $(STAMP)

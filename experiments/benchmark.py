@@ -579,44 +579,44 @@ def tuner_times(problems, baseline: Path | None, rounds: int = 3, progress=print
 def main(argv=None) -> int:
     import json
 
-    from wmrjax import cli
+    from wmrjax_cli import options
 
     p = common.parser(__doc__.splitlines()[0], "results/benchmark", compile_cache=False)   # it times compilation
-    p.add_argument("--batches", type=cli.count, nargs="+", default=[1024, 16384, 65536],
+    p.add_argument("--batches", type=options.count, nargs="+", default=[1024, 16384, 65536],
                    help="batch sizes of the rollout comparison [trajectories]")
-    p.add_argument("--reps", type=cli.count, default=5, help="timed repetitions (best kept)")
-    p.add_argument("--grad-batch", type=cli.count, default=1024, help="batch of the gradient timing [trajectories]")
-    p.add_argument("--grad-batches", type=cli.count, nargs="*", default=[1024, 8192, 65536],
+    p.add_argument("--reps", type=options.count, default=5, help="timed repetitions (best kept)")
+    p.add_argument("--grad-batch", type=options.count, default=1024, help="batch of the gradient timing [trajectories]")
+    p.add_argument("--grad-batches", type=options.count, nargs="*", default=[1024, 8192, 65536],
                    help="batches of gradient_by_batch [trajectories]")
     p.add_argument("--compile-types", choices=("all", "section_6_1", "none"), default="all",
                    help="compile times in fresh processes: the section 6.1 loss and every type x level (several "
                         "minutes), the section 6.1 loss only, or none")
-    p.add_argument("--memory-steps", type=cli.count, default=20000, help="horizon of the gradient memory measurement")
+    p.add_argument("--memory-steps", type=options.count, default=20000, help="horizon of the gradient memory measurement")
     p.add_argument("--memory-batch", type=int, default=4096,
                    help="trajectories of the gradient memory measurement (0: skip it)")
-    p.add_argument("--scipy-trajectories", type=cli.count, default=8, help="trajectories integrated one by one by SciPy")
-    p.add_argument("--devices", type=cli.count, default=os.cpu_count() or 1,
+    p.add_argument("--scipy-trajectories", type=options.count, default=8, help="trajectories integrated one by one by SciPy")
+    p.add_argument("--devices", type=options.count, default=os.cpu_count() or 1,
                    help="JAX host devices (one per core; sets XLA_FLAGS for this process before JAX starts its backend)")
     here = Path(__file__).resolve().parent.parent
     p.add_argument("--c-source", type=Path, default=here / "experiments" / "bench" / "closed_loop_simd.c",
                    help="the hand-vectorised C loop (the ceiling; skipped if missing)")
     p.add_argument("--tuner-problems", nargs="*", default=["section_6_1", "car_schedule"],
                    help="shipped tuning problems whose gradient program is timed (none: skip)")
-    p.add_argument("--tuner-rounds", type=cli.count, default=3, help="alternating rounds of the tuner timing (best kept)")
+    p.add_argument("--tuner-rounds", type=options.count, default=3, help="alternating rounds of the tuner timing (best kept)")
     p.add_argument("--tuner-baseline", type=Path, default=None,
                    help="a checkout of another commit: its tuner is timed side by side with this one's")
     p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
     p.add_argument("--case", help=argparse.SUPPRESS)
-    p.add_argument("--worker-batch", type=cli.count, default=256, help=argparse.SUPPRESS)
+    p.add_argument("--worker-batch", type=options.count, default=256, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.worker:
-        cli.use_compilation_cache(a)
+        options.use_compilation_cache(a)
         res = compile_worker(a.case, a.worker_batch) if a.worker == "compile" else memory_worker(a.memory_steps,
                                                                                                   a.memory_batch)
         print(json.dumps(res))
         return 0
-    cli.prepare_output(p, a.out)
-    cli.use_compilation_cache(a)
+    options.prepare_output(p, a.out)
+    options.use_compilation_cache(a)
     flag = f"--xla_force_host_platform_device_count={a.devices}"
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()   # read when the backend starts
     s = run(a.out, a.batches, a.reps, a.grad_batch, a.grad_batches, a.scipy_trajectories, a.c_source,

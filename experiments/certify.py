@@ -191,7 +191,7 @@ def problem_from_args(a):
 
 
 def main(argv=None) -> int:
-    from wmrjax import cli
+    from wmrjax_cli import options
     from wmrjax import references as R
 
     p = common.parser(__doc__.splitlines()[0], "results/certify")
@@ -201,22 +201,22 @@ def main(argv=None) -> int:
     p.add_argument("--robot", default=None, help="robot type: (2,0), (2,1), (1,1) or (1,2)")
     p.add_argument("--reference", default=None, choices=sorted(R.REFERENCES), help="a named reference")
     p.add_argument("--level", default=None, choices=["velocity", "torque"], help="velocity or torque level")
-    p.add_argument("--poles", type=cli.positive, default=None, help="closed-loop poles at -POLES [1/s] (1: the paper's)")
+    p.add_argument("--poles", type=options.positive, default=None, help="closed-loop poles at -POLES [1/s] (1: the paper's)")
     p.add_argument("--gains", type=Path, default=None,
                    help="a tuned-gains file (gains.json of python -m tuning): complex poles, schedules")
-    p.add_argument("--t-final", type=cli.positive, default=None, help="horizon [s]")
-    p.add_argument("--eps", type=cli.positive, default=None, help="Lemma 2's margin eps [zeta units: m, m/s]")
-    p.add_argument("--dt", type=cli.positive, default=None, help="RK4 step of the empirical checks [s]")
-    p.add_argument("--n-empirical", type=cli.count, default=None, help="sampled initial errors (every K2 checked on them)")
-    p.add_argument("--n-directions", type=cli.count, default=None, help="rays of the position-slice empirical radius")
-    p.add_argument("--n-starts", type=cli.nonnegative_int, default=None,
+    p.add_argument("--t-final", type=options.positive, default=None, help="horizon [s]")
+    p.add_argument("--eps", type=options.positive, default=None, help="Lemma 2's margin eps [zeta units: m, m/s]")
+    p.add_argument("--dt", type=options.positive, default=None, help="RK4 step of the empirical checks [s]")
+    p.add_argument("--n-empirical", type=options.count, default=None, help="sampled initial errors (every K2 checked on them)")
+    p.add_argument("--n-directions", type=options.count, default=None, help="rays of the position-slice empirical radius")
+    p.add_argument("--n-starts", type=options.nonnegative_int, default=None,
                    help="falsifier gradient starts per radius (0: no falsifier)")
-    p.add_argument("--heading-offset", type=cli.finite, default=None,
+    p.add_argument("--heading-offset", type=options.finite, default=None,
                    help="reference heading offset [rad] (crab angle; default: the file's, else the type's)")
-    p.add_argument("--map-grid", type=cli.grid_size, default=None, help="slice map resolution (N x N runs)")
-    p.add_argument("--geometry", type=cli.finite, nargs=3, default=None, metavar=("L", "E", "DELTA"),
+    p.add_argument("--map-grid", type=options.grid_size, default=None, help="slice map resolution (N x N runs)")
+    p.add_argument("--geometry", type=options.finite, nargs=3, default=None, metavar=("L", "E", "DELTA"),
                    help="robot geometry [m, m, rad]")
-    p.add_argument("--devices", type=cli.count, default=os.cpu_count() or 1,
+    p.add_argument("--devices", type=options.count, default=os.cpu_count() or 1,
                    help="JAX host devices the batch simulations are spread over (one per core; sets XLA_FLAGS "
                         "before JAX starts its backend)")
     a = p.parse_args(argv)
@@ -232,8 +232,8 @@ def main(argv=None) -> int:
     # the largest batch: the empirical checks, the slice map, or every ray's grid of radii at once
     # (--n-directions 1000000 aborted with std::bad_alloc after 90 s)
     batch = max(cfg["n_empirical"], cfg["map_grid"] ** 2, (cfg["n_directions"] + 1) * EMPIRICAL_GRID)
-    cli.check_horizon(p, t_final=setting.t_final, dt=setting.dt, batch=batch, saved_every=10)
-    s = cli.work(p, a, lambda progress: run(a.out, problem, a.case, progress=progress))
+    options.check_horizon(p, t_final=setting.t_final, dt=setting.dt, batch=batch, saved_every=10)
+    s = options.work(p, a, lambda progress: run(a.out, problem, a.case, progress=progress))
     keys = ["radius_paper", "radius_lyapunov", "radius_exact_norm", "radius_exact_map", "radius_exact_map_position_slice",
             "empirical_radius_position_slice"]
     print("  ".join(f"{k} {s[k]:.4f}" for k in keys if s.get(k) is not None))

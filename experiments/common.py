@@ -1,5 +1,5 @@
 """What the experiment entry points share: float64, argument parsing, writing results and
-figures (atomically, through :mod:`wmrjax.io`), the paper's §6.1 set-up, and the command
+figures (atomically, through :mod:`wmrjax_cli.files`), the paper's §6.1 set-up, and the command
 line and figure of the two tracking experiments. Experiments import this module, never
 each other."""
 
@@ -15,23 +15,23 @@ from pathlib import Path
 
 def pyplot():
     """matplotlib.pyplot on the Agg backend."""
-    from wmrjax.io import headless_pyplot
+    from wmrjax_cli.files import headless_pyplot
 
     return headless_pyplot()
 
 
 def write_json(path: Path, obj) -> None:
-    """Write JSON atomically (:func:`wmrjax.io.write_json`)."""
-    from wmrjax import io
+    """Write JSON atomically (:func:`wmrjax_cli.files.write_json`)."""
+    from wmrjax_cli import files
 
-    io.write_json(path, obj)
+    files.write_json(path, obj)
 
 
 def write_npz(path: Path, **arrays) -> None:
-    """Write a pickle-free ``.npz`` atomically (:func:`wmrjax.io.write_npz`)."""
-    from wmrjax import io
+    """Write a pickle-free ``.npz`` atomically (:func:`wmrjax_cli.files.write_npz`)."""
+    from wmrjax_cli import files
 
-    io.write_npz(path, **arrays)
+    files.write_npz(path, **arrays)
 
 
 def enable_x64() -> None:
@@ -42,16 +42,16 @@ def enable_x64() -> None:
 
 
 def parser(description: str, default_out: str, compile_cache: bool = True) -> argparse.ArgumentParser:
-    """The experiments' parser (:func:`wmrjax.cli.parser`: defaults shown, ``--out``, the
+    """The experiments' parser (:func:`wmrjax_cli.options.parser`: defaults shown, ``--out``, the
     persistent compilation cache on unless ``compile_cache`` is False)."""
-    from wmrjax import cli
+    from wmrjax_cli import options
 
-    return cli.parser(description, default_out, compile_cache)
+    return options.parser(description, default_out, compile_cache)
 
 
 def save_figure(fig, path: Path) -> None:
     """Write a figure as PNG (atomically)."""
-    from wmrjax.io import write_png
+    from wmrjax_cli.files import write_png
 
     write_png(fig, path)
 
@@ -81,16 +81,16 @@ def section_6_1_setup():
 
 def tracking_cli(argv, doc, default_out, kinds, run_fn) -> int:
     """The command line shared by the tracking experiments."""
-    from wmrjax import cli
+    from wmrjax_cli import options
 
     p = parser(doc.splitlines()[0], default_out)
-    p.add_argument("--n-random", type=cli.count, default=1024, help="random references per (type, level)")
-    p.add_argument("--t-final", type=cli.positive, default=15.0, help="horizon [s]")
-    p.add_argument("--dt", type=cli.positive, default=0.01, help="RK4 step [s]")
-    p.add_argument("--seed", type=cli.seed, default=0, help="PRNG seed of the random references and initial errors")
+    p.add_argument("--n-random", type=options.count, default=1024, help="random references per (type, level)")
+    p.add_argument("--t-final", type=options.positive, default=15.0, help="horizon [s]")
+    p.add_argument("--dt", type=options.positive, default=0.01, help="RK4 step [s]")
+    p.add_argument("--seed", type=options.seed, default=0, help="PRNG seed of the random references and initial errors")
     p.add_argument("--types", nargs="+", default=list(kinds), help=f"subset of {' '.join(kinds)}")
     a = p.parse_args(argv)
-    cli.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=a.n_random, n_state=7, saved_every=10)
+    options.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=a.n_random, n_state=7, saved_every=10)
     import wmrjax as w
 
     try:
@@ -101,7 +101,7 @@ def tracking_cli(argv, doc, default_out, kinds, run_fn) -> int:
     if bad:
         p.error(f"argument --types: {bad} not among this experiment's types {list(kinds)}")
     t0 = time.perf_counter()
-    cli.work(p, a, lambda progress: run_fn(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=chosen, progress=progress))
+    options.work(p, a, lambda progress: run_fn(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=chosen, progress=progress))
     print(f"wrote {a.out}/summary.json and one PNG per type ({time.perf_counter() - t0:.0f} s)", file=sys.stdout)
     return 0
 

@@ -215,24 +215,24 @@ def _figures(out, t, st, u, ref, eta1_ref, t_sw, r_s, batch):
 
 
 def main(argv=None) -> int:
-    from wmrjax import cli
+    from wmrjax_cli import options
 
     p = common.parser(__doc__.splitlines()[0], "results/section_6_2")
-    p.add_argument("--dt", type=cli.positive, default=0.01, help="RK4 step [s]")
-    p.add_argument("--t-final", type=cli.positive, default=60.0,
+    p.add_argument("--dt", type=options.positive, default=0.01, help="RK4 step [s]")
+    p.add_argument("--t-final", type=options.positive, default=60.0,
                    help="horizon [s]; must exceed 10 s, when the reference (66) comes to rest")
-    p.add_argument("--n-batch", type=cli.count, default=1024, help="initial conditions around the paper's")
-    p.add_argument("--tol-distance", type=cli.positive, default=0.05, help="parked: distance to the goal <= this [m]")
-    p.add_argument("--tol-heading", type=cli.positive, default=0.1, help="parked: |heading| <= this [rad]")
-    p.add_argument("--r-switch", type=cli.positive, default=None,
+    p.add_argument("--n-batch", type=options.count, default=1024, help="initial conditions around the paper's")
+    p.add_argument("--tol-distance", type=options.positive, default=0.05, help="parked: distance to the goal <= this [m]")
+    p.add_argument("--tol-heading", type=options.positive, default=0.1, help="parked: |heading| <= this [rad]")
+    p.add_argument("--r-switch", type=options.positive, default=None,
                    help="switching radius [m] (None: the paper's sqrt(sqrt(2)/10) = 0.376 m)")
-    p.add_argument("--lam", type=cli.positive, default=None, help="stabilizer gain lambda [1/s] (None: the paper's 40)")
+    p.add_argument("--lam", type=options.positive, default=None, help="stabilizer gain lambda [1/s] (None: the paper's 40)")
     a = p.parse_args(argv)
     if not a.t_final > 10.0:
         p.error(f"argument --t-final: must exceed 10 s (the reference (66) stops at t = 10 s and parking follows), "
                 f"got {a.t_final}")
-    cli.check_horizon(p, t_final=a.t_final, dt=a.dt, n_state=10)   # the single run keeps every step
-    s = cli.work(p, a, lambda progress: run(a.out, a.dt, a.t_final, a.n_batch, a.tol_distance, a.tol_heading,
+    options.check_horizon(p, t_final=a.t_final, dt=a.dt, n_state=10)   # the single run keeps every step
+    s = options.work(p, a, lambda progress: run(a.out, a.dt, a.t_final, a.n_batch, a.tol_distance, a.tol_heading,
                                             a.r_switch, a.lam, progress=progress))
     print(f"section 6.2: switch at t = {s['t_switch']} s, state {s['state_at_switch']}, eta1 = {s['eta1_at_switch']}; "
           f"final distance {s['final_distance']:.4g} m, heading {s['final_heading']:.3g} rad")

@@ -109,13 +109,13 @@ def run(out: Path, runs: int, block: int, progress=print) -> dict:
 
 
 def main(argv=None) -> int:
-    from wmrjax import cli
+    from wmrjax_cli import options
 
     p = common.parser(__doc__.splitlines()[0], "results/sweep_benchmark")
-    p.add_argument("--runs", type=cli.count, default=1_000_000, help="runs per sweep (rounded down to a square grid)")
-    p.add_argument("--block", type=cli.count, default=1024, help="runs per block")
+    p.add_argument("--runs", type=options.count, default=1_000_000, help="runs per sweep (rounded down to a square grid)")
+    p.add_argument("--block", type=options.count, default=1024, help="runs per block")
     a = p.parse_args(argv)
-    cli.prepare_output(p, a.out)
+    options.prepare_output(p, a.out)
     res = run(a.out, a.runs, a.block)
     one, two = res["one_process"], res["two_processes"]
     print(f"{res['runs']} runs: 1 process {one['wall_s']:.0f} s ({one['throughput_runs_per_s']:.0f} runs/s, peak "

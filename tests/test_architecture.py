@@ -3,7 +3,9 @@ static laws reporting their internal dynamics, float32 runs, checkpoints that re
 
 import ast
 import inspect
+import json
 import math
+import os
 import pathlib
 import re
 import subprocess
@@ -17,8 +19,8 @@ from scipy.linalg import expm, solve_continuous_lyapunov
 
 import wmrjax as w
 from wmrjax import certify as C
-from wmrjax import io
 from wmrjax import references as R
+from wmrjax_cli import files
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -39,8 +41,14 @@ def _imports(path):
     return mods, names
 
 
+LAYERS = ("wmrjax", "wmrjax_cli", "tuning", "experiments")     # bottom to top
+
+
 def test_layers_never_point_up():
-    forbidden = {"wmrjax": ("tuning", "experiments"), "tuning": ("experiments",)}
+    """wmrjax (the library) imports none of the others; wmrjax_cli (the command lines' options
+    and files) the library only; tuning the library and wmrjax_cli; experiments anything."""
+    forbidden = {"wmrjax": ("wmrjax_cli", "tuning", "experiments"), "wmrjax_cli": ("tuning", "experiments"),
+                 "tuning": ("experiments",)}
     for pkg, above in forbidden.items():
         for f in _sources(pkg):
             mods, _ = _imports(f)
@@ -54,12 +62,67 @@ def test_layers_never_point_up():
                   and not (own and (m == own or m.startswith(own + ".")))]
         others += [n for m, n in names if m == "experiments" and n != "common"]
         assert not others, f"{f.relative_to(ROOT)} imports another experiment: {others}"
-    for pkg in ("wmrjax", "tuning", "experiments"):
+    for pkg in LAYERS:
         for f in _sources(pkg):
             _, names = _imports(f)
             # private names stay in their module (the package's private helper modules excepted)
             private = [(m, n) for m, n in names if n.startswith("_") and n not in ("_math", "_scalarize", "_simplify", "_validate")]
             assert not private, f"{f.relative_to(ROOT)} imports private names {private}"
+
+
+# what the command lines, figures and tables need (the cli extra, the test extra): never the library
+NOT_IN_THE_LIBRARY = ("matplotlib", "pyarrow", "cmaes", "optuna", "scipy", "argparse", "wmrjax_cli")
+
+
+def test_the_library_imports_no_command_line_dependency():
+    """No module of wmrjax/ imports, even inside a function, what ``pip install wmrjax`` does not
+    install (matplotlib, pyarrow, cmaes, optuna; scipy is the tests' reference) or the command
+    lines' plumbing (argparse, wmrjax_cli). jax.scipy is JAX's own."""
+    for f in _sources("wmrjax"):
+        mods, _ = _imports(f)
+        bad = [m for m in mods if m.split(".")[0] in NOT_IN_THE_LIBRARY]
+        assert not bad, f"{f.relative_to(ROOT)} imports {bad}: not a dependency of the library (pyproject's core)"
+
+
+def test_the_library_runs_without_the_cli_extra(tmp_path):
+    """With matplotlib, pyarrow, cmaes and optuna made unimportable, ``import wmrjax`` and a short
+    simulation work, and nothing of the upper layers is loaded."""
+    code = """
+import sys
+for m in ("matplotlib", "pyarrow", "cmaes", "optuna"):
+    sys.modules[m] = None
+import wmrjax as w
+ctrl = w.dynamic_linearization("(2,0)")
+params = ctrl.params(w.references.paper_62(), poles=1.0, geometry=w.Geometry(e=0.0))
+tr = w.simulate(ctrl, ctrl.reference_state(0.0, params), params, dt=0.01, n_steps=10)
+upper = sorted(m for m in sys.modules if m.split(".")[0] in ("wmrjax_cli", "tuning", "experiments"))
+print(tr.state.shape, upper)
+"""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.strip() == "(11, 4) []", r.stdout
+
+
+def test_core_requirements_are_jax_numpy_optax(tmp_path):
+    """The installed distribution (``pip install wmrjax``) requires jax, numpy and optax, nothing
+    else outside its extras, and carries the package's one version. Read in a fresh process
+    outside the repository (its checkout's ``wmrjax.egg-info`` is not the installed metadata); a
+    failure after editing pyproject.toml means: reinstall (``pip install -e ".[test,cli,docs]"``)."""
+    code = """
+import importlib.metadata as m, json, re
+reqs = m.requires("wmrjax") or []
+core = sorted(re.match(r"[A-Za-z0-9_.-]+", r).group(0).lower() for r in reqs if "extra ==" not in r)
+extras = sorted(re.search(r'extra == "([^"]+)"', r).group(1) for r in reqs if "extra ==" in r)
+print(json.dumps({"core": core, "extras": sorted(set(extras)), "version": m.version("wmrjax")}))
+"""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr[-3000:]
+    got = json.loads(r.stdout)
+    assert got["core"] == ["jax", "numpy", "optax"], got
+    assert {"cli", "test", "docs"} <= set(got["extras"]), got
+    assert got["version"] == w.__version__, got
 
 
 def test_per_type_facts_live_in_the_tables():
@@ -73,7 +136,7 @@ def test_per_type_facts_live_in_the_tables():
                 re.compile(r"\[\s*[\w.]*\.name\s*\]")]                              # TABLE[ctrl.robot.name]
     allowed = {ROOT / "wmrjax" / "robots.py"}
     table_lookups = {ROOT / "wmrjax" / "controllers" / f for f in ("dynamic.py", "static.py")}
-    for pkg in ("wmrjax", "tuning", "experiments"):
+    for pkg in LAYERS:
         for f in _sources(pkg):
             if f in allowed:
                 continue
@@ -260,17 +323,17 @@ def test_float32_closed_loop_smoke():
 def test_checkpoint_round_trip_and_refusals(tmp_path):
     path = tmp_path / "ck.json"
     trees = {"raw": jnp.arange(3.0), "opt": (jnp.zeros((2, 2)), jnp.asarray(4, dtype=jnp.int32))}
-    io.write_checkpoint(path, fingerprint="abc", config={"lr": 0.1}, step=5, trees=trees, state={"best": 1.5})
-    ck = io.read_checkpoint(path, fingerprint="abc", config={"lr": 0.1}, templates=trees)
+    files.write_checkpoint(path, fingerprint="abc", config={"lr": 0.1}, step=5, trees=trees, state={"best": 1.5})
+    ck = files.read_checkpoint(path, fingerprint="abc", config={"lr": 0.1}, templates=trees)
     assert ck.step == 5 and ck.state == {"best": 1.5}
     np.testing.assert_array_equal(ck.trees["raw"], [0.0, 1.0, 2.0])
     assert ck.trees["opt"][1].dtype == jnp.int32 and int(ck.trees["opt"][1]) == 4
     with pytest.raises(ValueError, match=r"differs in \['lr'\]"):
-        io.read_checkpoint(path, fingerprint="xyz", config={"lr": 0.2}, templates=trees)
+        files.read_checkpoint(path, fingerprint="xyz", config={"lr": 0.2}, templates=trees)
     text = path.read_text().replace("2.0\n", "", 1)                # truncate the raw parameters by hand
     path.write_text(text.replace("1.0,", "1.0", 1))
     with pytest.raises(ValueError, match="raw"):
-        io.read_checkpoint(path, fingerprint="abc", config={"lr": 0.1}, templates=trees)
+        files.read_checkpoint(path, fingerprint="abc", config={"lr": 0.1}, templates=trees)
 
 
 def _calls(path, name):

@@ -249,15 +249,19 @@ BAD = {   # concrete bad values of each kind
 }
 
 
-def _run_cli(name, argv, tmp_path, capsys):
+def _run_cli(name, argv, tmp_path, capsys, code=2):
+    """The error message of a refused command line: exit status 2 with the usage for a bad option,
+    ``code=1`` for an error of the work (no usage: the options were fine)."""
     mod = importlib.import_module(CLIS[name])
     argv = list(argv) + ["--no-compile-cache"]      # never touch the user's cache from the tests
     if "--out" not in argv:
         argv += ["--out", str(tmp_path / "out")]
     with pytest.raises(SystemExit) as exc:
         mod.main(argv)
-    assert exc.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == code
+    text = capsys.readouterr().err
+    assert ("usage: " in text) == (code == 2), text
+    err = text.strip().splitlines()
     assert ": error: " in err[-1], err                        # argparse's "prog: error: message" line
     return err[-1].split(": error: ", 1)[1]                   # the message, not the usage (which names every option)
 
@@ -339,12 +343,14 @@ def test_cli_output_path_checked_first(cli, tmp_path, capsys, no_loops):
 
 
 def test_corrupt_tuning_checkpoint_names_file_and_fresh(tmp_path, capsys):
+    """Found by the work (the options are fine): exit 1 without the usage, naming the file, --fresh
+    and --verbose (which shows the traceback)."""
     out = tmp_path / "out"
     out.mkdir()
     (out / "checkpoint.json").write_text('{"fingerprint": ')
     err = _run_cli("tuning", ["--out", str(out), "--steps", "1", "--n-train", "2", "--n-heldout", "2", "--cma-population", "2",
-                                "--baseline-budget", "2"], tmp_path, capsys)
-    assert str(out / "checkpoint.json") in err and "--fresh" in err
+                                "--baseline-budget", "2"], tmp_path, capsys, code=1)
+    assert str(out / "checkpoint.json") in err and "--fresh" in err and "--verbose" in err
 
 
 def test_every_cli_option_has_help_with_units():
@@ -367,23 +373,23 @@ def test_every_cli_option_has_help_with_units():
 
 def _capture_parser(mod):
     """The parser a command line builds (it raises SystemExit on --help; we take it just before)."""
-    from wmrjax import cli
+    from wmrjax_cli import options
 
     captured = {}
-    original = cli.parser
+    original = options.parser
 
     def spy(*a, **k):
         captured["p"] = original(*a, **k)
         return captured["p"]
 
-    cli.parser, saved = spy, cli.parser
+    options.parser, saved = spy, options.parser
     try:
         try:
             mod.main(["--help"])
         except SystemExit:
             pass
     finally:
-        cli.parser = saved
+        options.parser = saved
     return captured["p"]
 
 

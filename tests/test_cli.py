@@ -1,5 +1,7 @@
-"""The shared command-line layer: the persistent compilation cache (in subprocesses: it is global JAX
-configuration, which the library itself never touches), and one writer per output directory."""
+"""The shared command-line layer (wmrjax_cli): the persistent compilation cache (in subprocesses: it is
+global JAX configuration, which the library itself never touches), how a failed run ends (a bad
+option: exit 2 with the usage; an error of the work: exit 1, its traceback under --verbose), and one
+writer per output directory."""
 
 import json
 import os
@@ -9,12 +11,14 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 SCRIPT = """
 import sys, jax
-from wmrjax import cli
-p = cli.parser("x", None)
+from wmrjax_cli import options
+p = options.parser("x", None)
 a = p.parse_args(sys.argv[1:])
-print(cli.use_compilation_cache(a), jax.config.jax_compilation_cache_dir,
+print(options.use_compilation_cache(a), jax.config.jax_compilation_cache_dir,
       jax.config.jax_persistent_cache_min_compile_time_secs)
 """
 
@@ -36,13 +40,49 @@ def test_library_import_leaves_the_cache_alone():
     assert out == "None"
 
 
+# --- exit statuses ---------------------------------------------------------------------------------
+
+def test_an_error_of_the_work_exits_1_without_the_usage(tmp_path, capsys, monkeypatch):
+    """A ValueError raised inside the work (here section 6.1's run, after its options passed) is an
+    error of the work, not a bad option: exit 1 and ``PROG: error: MESSAGE`` without the usage text,
+    its traceback printed only with --verbose. (It was exit 2 with the usage, as if an option were
+    wrong, and a bug's traceback was lost.)"""
+    from experiments import section_6_1
+
+    def run(*args, **kwargs):
+        raise ValueError("the work went wrong")
+
+    monkeypatch.setattr(section_6_1, "run", run)
+    for verbose in (False, True):
+        with pytest.raises(SystemExit) as exc:
+            section_6_1.main(["--out", str(tmp_path), "--no-compile-cache"] + ["--verbose"] * verbose)
+        assert exc.value.code == 1
+        err = capsys.readouterr().err
+        last = err.strip().splitlines()[-1]
+        assert "usage:" not in err and ": error: the work went wrong" in last, err
+        assert ("Traceback (most recent call last)" in err) == verbose, err
+        assert ('raise ValueError("the work went wrong")' in err) == verbose, err
+        assert ("--verbose" in last) == (not verbose), last
+
+
+def test_a_bad_option_still_exits_2_with_the_usage(tmp_path, capsys):
+    from experiments import section_6_1
+
+    for argv in (["--dt", "0"], ["--dt", "20"]):            # argparse's own check; a cross-option check
+        with pytest.raises(SystemExit) as exc:
+            section_6_1.main(argv + ["--out", str(tmp_path), "--no-compile-cache"])
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert err.startswith("usage: ") and ": error: " in err.strip().splitlines()[-1], err
+
+
 # --- one writer per output directory (real concurrent processes) ------------------------------
 
 ROOT = Path(__file__).resolve().parent.parent
 HOLDER = """
 import sys, time
-from wmrjax import io
-io.acquire_output(sys.argv[1], "holder of the test")
+from wmrjax_cli import files
+files.acquire_output(sys.argv[1], "holder of the test")
 print("locked", flush=True)
 time.sleep(120)
 """
@@ -72,7 +112,7 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
     """A live process holds --out: a sweep into it exits 2 naming that process (pid, command);
     killed with -9, its lock is stale: the next writer names it, takes it over, and removes the
     temporary files a killed atomic write left (in --out and below)."""
-    from wmrjax import io
+    from wmrjax_cli import files
 
     holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(tmp_path)], stdout=subprocess.PIPE, text=True,
                               env=_env())
@@ -92,19 +132,19 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
     torn = [tmp_path / ".runs.parquet.x1.tmp", tmp_path / "blocks" / ".block_000000.npz.x2.tmp"]
     for f in torn:
         f.write_bytes(b"half")
-    taker = subprocess.run([sys.executable, "-c", "import sys; from wmrjax import io; print(io.acquire_output(sys.argv[1], "
+    taker = subprocess.run([sys.executable, "-c", "import sys; from wmrjax_cli import files; print(files.acquire_output(sys.argv[1], "
                             "'taker'))", str(tmp_path)], capture_output=True, text=True, env=_env(), timeout=120)
     assert taker.returncode == 0, taker.stderr
     assert f"removed the stale lock of process {holder.pid} ('holder of the test'" in taker.stderr
     assert not any(f.exists() for f in torn)
-    assert json.loads((tmp_path / io.LOCK_NAME).read_text())["command"] == "taker"
+    assert json.loads((tmp_path / files.LOCK_NAME).read_text())["command"] == "taker"
 
 
 def test_two_sweeps_into_one_directory(tmp_path):
     """Two different sweeps started together into one --out: one runs to the end, the other is
     refused (exit 2) while the first holds the directory; the table is the first's alone and its
     lock is gone afterwards. (Both used to exit 0 with rows of one under the other's labels.)"""
-    from wmrjax import io
+    from wmrjax_cli import files
 
     out = tmp_path / "out"
     specs = []
@@ -115,7 +155,7 @@ def test_two_sweeps_into_one_directory(tmp_path):
     first = subprocess.Popen(cmd + [str(specs[0])], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                              env=_env(), cwd=ROOT)
     for _ in range(600):
-        if (out / io.LOCK_NAME).exists():
+        if (out / files.LOCK_NAME).exists():
             break
         time.sleep(0.1)
     second = subprocess.run(cmd + [str(specs[1])], capture_output=True, text=True, env=_env(), cwd=ROOT, timeout=300)
@@ -124,4 +164,4 @@ def test_two_sweeps_into_one_directory(tmp_path):
     assert second.returncode == 2 and f"process {first.pid}" in second.stderr
     s = json.loads((out / "summary.json").read_text())
     assert s["problem"]["gains"]["poles"] == 1.0
-    assert not (out / io.LOCK_NAME).exists()
+    assert not (out / files.LOCK_NAME).exists()

@@ -16,9 +16,9 @@ from scipy.linalg import expm
 import refpaths
 import wmrjax as w
 from wmrjax import certify as C
-from wmrjax import io
 from wmrjax import references as R
 from wmrjax.controllers import law
+from wmrjax_cli import files
 
 
 def _crossing_state(ctrl, params, t_cross):
@@ -221,8 +221,8 @@ def test_lemma2_refuses_coarse_grids_and_unknown_options(paper61):
 def test_output_files_follow_the_umask(tmp_path):
     old = os.umask(0o022)
     try:
-        io.write_json(tmp_path / "a.json", {"x": 1})
-        io.write_npz(tmp_path / "b.npz", x=np.zeros(2))
+        files.write_json(tmp_path / "a.json", {"x": 1})
+        files.write_npz(tmp_path / "b.npz", x=np.zeros(2))
     finally:
         os.umask(old)
     for f in ("a.json", "b.npz"):
@@ -239,13 +239,13 @@ def test_corrupt_checkpoint_names_the_file(tmp_path, content, msg):
     path = tmp_path / "checkpoint.json"
     path.write_text(content, errors="surrogateescape")
     with pytest.raises(ValueError, match=msg) as exc:
-        io.read_checkpoint(path, fingerprint="abc", config={}, templates={"raw": jnp.zeros(2)})
+        files.read_checkpoint(path, fingerprint="abc", config={}, templates={"raw": jnp.zeros(2)})
     assert str(path) in str(exc.value)
 
 
 def test_edited_checkpoint_is_refused(tmp_path):
     path = tmp_path / "checkpoint.json"
-    io.write_checkpoint(path, fingerprint="abc", config={}, step=3, trees={"raw": jnp.zeros(2)}, state={"a": 1})
+    files.write_checkpoint(path, fingerprint="abc", config={}, step=3, trees={"raw": jnp.zeros(2)}, state={"a": 1})
     good = json.loads(path.read_text())
     for edit, msg in ((lambda d: d["trees"]["raw"][0].pop(), r"has shape \(1,\), expected \(2,\)"),
                       (lambda d: d["trees"]["raw"].__setitem__(0, ["a", "b"]), "not a numeric array"),
@@ -256,7 +256,7 @@ def test_edited_checkpoint_is_refused(tmp_path):
         edit(d)
         path.write_text(json.dumps(d))
         with pytest.raises(ValueError, match=msg):
-            io.read_checkpoint(path, fingerprint="abc", config={}, templates={"raw": jnp.zeros(2)})
+            files.read_checkpoint(path, fingerprint="abc", config={}, templates={"raw": jnp.zeros(2)})
 
 
 def test_hybrid_checks_its_parameters(paper61):
@@ -275,10 +275,10 @@ def test_heartbeat_reports_a_silent_stage():
     import io as _io
     import time
 
-    from wmrjax import cli
+    from wmrjax_cli import options
 
     buf = _io.StringIO()
-    with cli.Heartbeat(every=0.05, stream=buf) as hb:
+    with options.Heartbeat(every=0.05, stream=buf) as hb:
         hb.stage("compiling the rollout")
         time.sleep(0.6)
         hb.stage("writing figures")

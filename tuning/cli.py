@@ -26,15 +26,15 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from wmrjax import io
+from wmrjax_cli import files
 
 
 def parser():
     from tuning.losses import LossWeights
     from tuning.problems import PROBLEMS
-    from wmrjax import cli
+    from wmrjax_cli import options
 
-    p = cli.parser(__doc__.splitlines()[0], "results/tuning")
+    p = options.parser(__doc__.splitlines()[0], "results/tuning")
     p.add_argument("file", type=Path, nargs="?", default=None, help="a problem file (TOML) with a [tune] section")
     p.add_argument("--problem", default=None, choices=sorted(PROBLEMS),
                    help="a shipped problem instead of a file (default: section_6_1)")
@@ -46,50 +46,50 @@ def parser():
     p.add_argument("--reference", default=None,
                    help=f"a reference family (paper_62, circle, figure_eight, line, random_smooth, ...) or a CSV file of "
                         f"samples t, x, y {S}")
-    p.add_argument("--heading-offset", type=cli.finite, default=None, help=f"reference heading offset [rad] {S}")
-    p.add_argument("--geometry", type=cli.finite, nargs=3, default=None, metavar=("L", "E", "DELTA"),
+    p.add_argument("--heading-offset", type=options.finite, default=None, help=f"reference heading offset [rad] {S}")
+    p.add_argument("--geometry", type=options.finite, nargs=3, default=None, metavar=("L", "E", "DELTA"),
                    help=f"nominal geometry the controller uses [m, m, rad] {S}")
-    p.add_argument("--ic-position", type=cli.nonnegative, default=None,
+    p.add_argument("--ic-position", type=options.nonnegative, default=None,
                    help="initial position errors x, y uniform in +-A [m] (sets the [initial] box)")
-    p.add_argument("--ic-velocity", type=cli.nonnegative, default=None,
+    p.add_argument("--ic-velocity", type=options.nonnegative, default=None,
                    help="initial velocity errors vx, vy uniform in +-B [m/s] (output space)")
-    p.add_argument("--n-train", type=cli.count, default=None, help=f"training scenarios per step {S}")
-    p.add_argument("--n-validation", type=cli.count, default=None,
+    p.add_argument("--n-train", type=options.count, default=None, help=f"training scenarios per step {S}")
+    p.add_argument("--n-validation", type=options.count, default=None,
                    help=f"validation scenarios (early stopping, selection) {S}")
-    p.add_argument("--n-heldout", type=cli.count, default=None, help=f"held-out scenarios (reported only) {S}")
-    p.add_argument("--steps", type=cli.count, default=None, help=f"optimizer steps {S}")
-    p.add_argument("--learning-rate", type=cli.positive, default=None,
+    p.add_argument("--n-heldout", type=options.count, default=None, help=f"held-out scenarios (reported only) {S}")
+    p.add_argument("--steps", type=options.count, default=None, help=f"optimizer steps {S}")
+    p.add_argument("--learning-rate", type=options.positive, default=None,
                    help=f"Adam learning rate (on the softplus-unconstrained parameters) {S}")
-    p.add_argument("--poles-init", type=cli.positive, default=None,
+    p.add_argument("--poles-init", type=options.positive, default=None,
                    help=f"initial pole magnitude [1/s] (the paper's: 1; sets [gains] poles) {S}")
     p.add_argument("--per-axis", action="store_true", default=None, help="one set of gains per output")
     p.add_argument("--resample", action=argparse.BooleanOptionalAction, default=None,
                    help=f"fresh training scenarios every gradient step (stochastic gradient) {S}")
-    p.add_argument("--knots", type=cli.nonnegative_int, default=None,
+    p.add_argument("--knots", type=options.nonnegative_int, default=None,
                    help=f"gain schedule with this many knots uniform on [0, t_final] (0: constant gains) {S}")
-    p.add_argument("--knot-times", type=cli.nonnegative, nargs="+", default=None,
+    p.add_argument("--knot-times", type=options.nonnegative, nargs="+", default=None,
                    help="explicit knot times of the gain schedule [s] (overrides --knots)")
-    p.add_argument("--min-damping", type=cli.nonnegative, default=None,
+    p.add_argument("--min-damping", type=options.nonnegative, default=None,
                    help=f"floor of every damping zeta (in [0, 1)) {S}")
     p.add_argument("--parameterization", default=None, choices=["damping", "poles"],
                    help=f"damping: (omega, zeta) factors (real or complex poles); poles: real poles only {S}")
-    p.add_argument("--mismatch", type=cli.fraction, default=None,
+    p.add_argument("--mismatch", type=options.fraction, default=None,
                    help=f"+- relative input-scale/geometry error of the plant per scenario (in [0, 1)) {S}")
-    p.add_argument("--input-limit", type=cli.limit, nargs="*", default=None,
+    p.add_argument("--input-limit", type=options.limit, nargs="*", default=None,
                    help="plant actuator limits per input [m/s, rad/s; per s^2 at torque level] (inf: none; no "
                         f"values: no saturation) {S}")
-    p.add_argument("--noise-std", type=cli.nonnegative, nargs="*", default=None,
+    p.add_argument("--noise-std", type=options.nonnegative, nargs="*", default=None,
                    help=f"measurement noise std of x, y [m] and theta [rad] (and steering angles [rad]) {S}")
-    p.add_argument("--control-dt", type=cli.positive, default=None, help=f"controller period (zero-order hold) [s] {S}")
-    p.add_argument("--t-final", type=cli.positive, default=None, help=f"horizon of every scenario [s] {S}")
+    p.add_argument("--control-dt", type=options.positive, default=None, help=f"controller period (zero-order hold) [s] {S}")
+    p.add_argument("--t-final", type=options.positive, default=None, help=f"horizon of every scenario [s] {S}")
     for f in LossWeights._fields:
-        p.add_argument(f"--w-{f}", type=cli.nonnegative, default=None, help=f"weight of the {f} loss term (>= 0) {S}")
-    p.add_argument("--baseline-seeds", type=cli.count, default=None, help=f"seeds of each baseline {S}")
-    p.add_argument("--baseline-budget", type=cli.positive, default=None,
+        p.add_argument(f"--w-{f}", type=options.nonnegative, default=None, help=f"weight of the {f} loss term (>= 0) {S}")
+    p.add_argument("--baseline-seeds", type=options.count, default=None, help=f"seeds of each baseline {S}")
+    p.add_argument("--baseline-budget", type=options.positive, default=None,
                    help=f"baseline rollouts as a multiple of the gradient's {S}")
-    p.add_argument("--cma-population", type=cli.nonnegative_int, default=None,
+    p.add_argument("--cma-population", type=options.nonnegative_int, default=None,
                    help=f"CMA-ES population (0: 4 + floor(3 ln n)) {S}")
-    p.add_argument("--seed", type=cli.seed, default=None, help=f"PRNG seed of the scenarios (and the baselines) {S}")
+    p.add_argument("--seed", type=options.seed, default=None, help=f"PRNG seed of the scenarios (and the baselines) {S}")
     p.add_argument("--require-radius", type=_required, default=None, metavar="R",
                    help="keep the exact-map radius of initial errors certified >= R throughout [m, m/s]; 'initial': "
                         f"the initial gains', 'box': the [initial] box's half-diagonal (sets [tune.requirement]) {S}")
@@ -105,9 +105,9 @@ def _required(text: str):
     """``--require-radius``: a radius >= 0, ``initial`` or ``box``."""
     if text in ("initial", "box"):
         return text
-    from wmrjax import cli
+    from wmrjax_cli import options
 
-    return cli.nonnegative(text)
+    return options.nonnegative(text)
 
 
 # option -> dotted key of the problem file it sets
@@ -253,15 +253,15 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
     summary = _summary(problem, setting, settings, family, res, paper_raw, tuned_raw, (tr_paper, tr_tuned),
                        (ho_paper, ho_tuned), ho_ok, ho_m, base, match, radius, grad_wall)
     say("writing gains, history, figures and summary")
-    io.write_json(out / "gains.json", gains_file_dict(family.gains(tuned_raw), setting.ctrl))
-    io.write_json(out / "history.json", {"gradient": res.history, **{
+    files.write_json(out / "gains.json", gains_file_dict(family.gains(tuned_raw), setting.ctrl))
+    files.write_json(out / "history.json", {"gradient": res.history, **{
         name: [{"seed": r.seed, "best_so_far": r.best_so_far, "rollouts_per_candidate": r.rollouts_per_candidate}
                for r in rs] for name, rs in runs.items()}})
     _figures(out, problem.title, setting, family, res.history, runs, paper_raw, tuned_raw, programs)
     if "initial" in radius:
         _radii_figure(out, problem.title, radius)
     summary["wall_time_s"] = time.perf_counter() - t0
-    io.write_json(out / "summary.json", summary)
+    files.write_json(out / "summary.json", summary)
     return summary
 
 
@@ -468,7 +468,7 @@ def _preload() -> None:
     on the second thread, while the main one runs the gradient loop."""
     import cmaes  # noqa: F401
 
-    io.headless_pyplot()
+    files.headless_pyplot()
 
 
 def _gains_report(spec, raw):
@@ -497,7 +497,7 @@ def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, progra
     import jax.numpy as jnp
     import numpy as np
 
-    plt = io.headless_pyplot()
+    plt = files.headless_pyplot()
     fig, ax = plt.subplots(figsize=(6.8, 4.3))
     ax.semilogy([h["rollouts"] for h in hist], [h["train_loss"] for h in hist], "C0", label="gradient (train)")
     va = [(h["rollouts"], h["validation_loss"]) for h in hist if "validation_loss" in h]
@@ -512,7 +512,7 @@ def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, progra
     ax.set_title(f"{title}: loss vs rollouts (band: min-max over seeds)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
-    io.write_png(fig, out / "loss.png")
+    files.write_png(fig, out / "loss.png")
     plt.close(fig)
 
     ts = np.linspace(0.0, setting.t_final, 201)
@@ -541,7 +541,7 @@ def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, progra
     axs[0, 0].legend(fontsize=6)
     fig.suptitle(f"{title}: gains over time (grey: knots)" if spec.knots else f"{title}: gains")
     fig.tight_layout()
-    io.write_png(fig, out / "schedule.png")
+    files.write_png(fig, out / "schedule.png")
     plt.close(fig)
 
     sc, t = programs["scenario"], programs["t"]
@@ -565,7 +565,7 @@ def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, progra
         a.grid(alpha=0.3)
         a.legend(fontsize=8)
     fig.tight_layout()
-    io.write_png(fig, out / "trajectories.png")
+    files.write_png(fig, out / "trajectories.png")
     plt.close(fig)
 
 
@@ -574,7 +574,7 @@ def _radii_figure(out, title, radii: dict) -> None:
     falsified ones and the requirement marked."""
     import numpy as np
 
-    plt = io.headless_pyplot()
+    plt = files.headless_pyplot()
     rows = [(f"lemma2_{k}", v["label"]) for k, v in radii["initial"]["lemma2"].items()]
     rows += [(f"exact_map_{b}", f"exact map ({b})") for b in ("full", "position")]
 
@@ -599,12 +599,12 @@ def _radii_figure(out, title, radii: dict) -> None:
     ax.grid(alpha=0.3, axis="x")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    io.write_png(fig, out / "radii.png")
+    files.write_png(fig, out / "radii.png")
     plt.close(fig)
 
 
 def main(argv=None) -> int:
-    from wmrjax import cli
+    from wmrjax_cli import options
 
     p = parser()
     a = p.parse_args(argv)
@@ -626,7 +626,7 @@ def main(argv=None) -> int:
         baseline_budget(settings, family)
     except ValueError as e:
         p.error(str(e))
-    s = cli.work(p, a, lambda progress: run(problem, a.out, a.fresh, log=progress, falsify=a.falsify),
+    s = options.work(p, a, lambda progress: run(problem, a.out, a.fresh, log=progress, falsify=a.falsify),
                  hint=lambda msg: msg + "; or rerun with --fresh to start over" if "checkpoint" in msg else msg)
     b = s["baselines"]
     print(f"{problem.title}: {s['n_parameters']} parameters; held-out loss initial {s['heldout_loss']['paper_gains']:.4g} "

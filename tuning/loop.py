@@ -21,8 +21,8 @@ import numpy as np
 import optax
 
 import wmrjax as w
-from wmrjax import io
 from wmrjax.references import FAMILIES
+from wmrjax_cli import files
 
 from tuning import certified
 from tuning.config import Scenarios, Stopping
@@ -262,14 +262,14 @@ def fingerprint(setting, family: GainSpec, scenarios: Scenarios, loss: LossWeigh
 
 def save_checkpoint(path: Path, fp: str, step, raw, opt_state, state: dict) -> None:
     """Atomic JSON checkpoint of the tuned parameters, the optimizer state and the history."""
-    io.write_checkpoint(path, fingerprint=fp, config={"fingerprint": fp}, step=step,
+    files.write_checkpoint(path, fingerprint=fp, config={"fingerprint": fp}, step=step,
                         trees={"raw": raw, "opt_state": opt_state}, state=state)
 
 
 def load_checkpoint(path: Path, fp: str, steps: int, raw_template, opt_state_template):
     """(step, raw, opt_state, state) from a JSON checkpoint; ValueError if it is another run's or
     does not match this run's parameter shapes."""
-    ck = io.read_checkpoint(path, fingerprint=fp, config={"fingerprint": fp},
+    ck = files.read_checkpoint(path, fingerprint=fp, config={"fingerprint": fp},
                             templates={"raw": raw_template, "opt_state": opt_state_template})
     missing = sorted(set(STATE_KEYS) - set(ck.state))
     if missing:

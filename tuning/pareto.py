@@ -30,7 +30,7 @@ import sys
 import time
 from pathlib import Path
 
-from wmrjax import io
+from wmrjax_cli import files
 
 AGREEMENT = 0.01         # a point is certified when falsified / exact - 1 <= this
 COLUMNS = ("required_radius", "fraction_of_initial", "tuned_radius", "falsified_radius", "falsified_over_exact",
@@ -38,18 +38,18 @@ COLUMNS = ("required_radius", "fraction_of_initial", "tuned_radius", "falsified_
 
 
 def parser():
-    from wmrjax import cli
+    from wmrjax_cli import options
 
-    p = cli.parser(__doc__.splitlines()[0], "results/pareto")
+    p = options.parser(__doc__.splitlines()[0], "results/pareto")
     p.add_argument("file", type=Path, help="a problem file (TOML) with a [tune] section")
     p.add_argument("--slice", default="full", choices=["full", "position"],
                    help="the slice of initial errors whose exact-map radius is required (default: full)")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--fractions", type=cli.nonnegative, nargs="+", default=None,
+    g.add_argument("--fractions", type=options.nonnegative, nargs="+", default=None,
                    help="required radii as multiples of the initial gains' radius (default: 0 0.25 0.5 0.75 1 1.25)")
-    g.add_argument("--radii", type=cli.nonnegative, nargs="+", default=None,
+    g.add_argument("--radii", type=options.nonnegative, nargs="+", default=None,
                    help="required radii [output-error units: m, m/s]")
-    p.add_argument("--eps", type=cli.positive, default=None, help="the margin (default: [certify] eps, else 0.01)")
+    p.add_argument("--eps", type=options.positive, default=None, help="the margin (default: [certify] eps, else 0.01)")
     return p
 
 
@@ -130,7 +130,7 @@ def run(problem, out: Path, slice_: str = "full", fractions=None, radii=None, ep
         log(f"point {i + 1}/{len(radii)}: tuning with the exact-map radius ({slice_}) >= {required:.4g} "
             f"({time.perf_counter() - t0:.0f} s so far)")
         pt = {"id": pid, **tune_point(problem, required, slice_, eps, log), "fraction_of_initial": required / initial}
-        io.write_json(path, pt)
+        files.write_json(path, pt)
         points.append(pt)
     return _write(out, problem, setting, family, raw0, slice_, eps, initial, points, time.perf_counter() - t0)
 
@@ -159,7 +159,7 @@ def _write(out, problem, setting, family, raw0, slice_, eps, initial, points, wa
     wr.writeheader()
     for p in points:
         wr.writerow({k: json.dumps(p[k]) if isinstance(p[k], (dict, list)) else p[k] for k in COLUMNS})
-    io.write_bytes(out / "pareto.csv", buf.getvalue().encode())
+    files.write_bytes(out / "pareto.csv", buf.getvalue().encode())
     _figure(out, problem.title, slice_, eps, base, points)
     summary = {"experiment": "pareto", "problem_name": problem.title, "problem": problem.resolved(),
                "slice": slice_, "eps": eps, "agreement_tolerance": AGREEMENT,
@@ -168,12 +168,12 @@ def _write(out, problem, setting, family, raw0, slice_, eps, initial, points, wa
                "note": "tuned_radius: the exact-map radius of the tuned gains (closed form); falsified_radius: the "
                        "smallest initial error the falsifier drives within eps (rollouts, an upper bound)",
                "wall_time_s": wall}
-    io.write_json(out / "summary.json", summary)
+    files.write_json(out / "summary.json", summary)
     return summary
 
 
 def _figure(out, title, slice_, eps, base, points) -> None:
-    plt = io.headless_pyplot()
+    plt = files.headless_pyplot()
     fig, ax = plt.subplots(figsize=(6.8, 4.4))
     req = [p["required_radius"] for p in points]
     got = [p["tuned_radius"] for p in points]
@@ -194,14 +194,14 @@ def _figure(out, title, slice_, eps, base, points) -> None:
     keep = dict(zip(labels, handles))
     ax.legend(keep.values(), keep.keys(), fontsize=7)
     fig.tight_layout()
-    io.write_png(fig, out / "pareto.png")
+    files.write_png(fig, out / "pareto.png")
     plt.close(fig)
 
 
 def main(argv=None) -> int:
     import jax
 
-    from wmrjax import cli
+    from wmrjax_cli import options
     from wmrjax.problem import Problem
 
     p = parser()
@@ -216,7 +216,7 @@ def main(argv=None) -> int:
         certified.check(setting, settings.gain_spec(setting))
     except ValueError as e:
         p.error(str(e))
-    s = cli.work(p, a, lambda progress: run(problem, a.out, a.slice, a.fractions, a.radii, a.eps, log=progress))
+    s = options.work(p, a, lambda progress: run(problem, a.out, a.slice, a.fractions, a.radii, a.eps, log=progress))
     for pt in s["points"]:
         print(f"required {pt['required_radius']:.4g}: radius {pt['tuned_radius']:.4g} (falsified "
               f"{pt['falsified_radius']}), held-out {pt['heldout_loss']:.4g}, certified {pt['certified']}")

@@ -61,7 +61,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from wmrjax import io
+from wmrjax_cli import files
 
 BASES = ("gradient", "random_search", "cma_es", "optuna_tpe", "optuna_cmaes")
 METHODS = tuple(m + v for m in BASES for v in ("", "_resampled"))
@@ -73,20 +73,20 @@ FIELDS = ("problem", "method", "seed", "point", "compute_fwd", "seconds", "heldo
 
 
 def parser():
-    from wmrjax import cli
+    from wmrjax_cli import options
 
-    p = cli.parser(__doc__.splitlines()[0], "results/tuning_study")
+    p = options.parser(__doc__.splitlines()[0], "results/tuning_study")
     p.add_argument("--problems", nargs="+", default=list(DEFAULT_PROBLEMS),
                    help="shipped problem names (tuning/problems) or problem files (TOML with [tune])")
-    p.add_argument("--seeds", type=cli.count, default=10, help="seeds per problem (scenario sets, streams)")
+    p.add_argument("--seeds", type=options.count, default=10, help="seeds per problem (scenario sets, streams)")
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS, help="methods to run")
-    p.add_argument("--points", type=cli.count, default=8, help="log-spaced compute points up to the budget")
-    p.add_argument("--budget", type=cli.positive, default=1.0,
+    p.add_argument("--points", type=options.count, default=8, help="log-spaced compute points up to the budget")
+    p.add_argument("--budget", type=options.positive, default=1.0,
                    help="every baseline's budget as a multiple of the gradient run's forward-rollout equivalents")
-    p.add_argument("--steps", type=cli.count, default=None, help="override every problem's optimizer steps")
-    p.add_argument("--n-train", type=cli.count, default=None, help="override every problem's training scenarios")
-    p.add_argument("--n-validation", type=cli.count, default=None, help="override the validation scenarios")
-    p.add_argument("--n-heldout", type=cli.count, default=None, help="override the held-out scenarios")
+    p.add_argument("--steps", type=options.count, default=None, help="override every problem's optimizer steps")
+    p.add_argument("--n-train", type=options.count, default=None, help="override every problem's training scenarios")
+    p.add_argument("--n-validation", type=options.count, default=None, help="override the validation scenarios")
+    p.add_argument("--n-heldout", type=options.count, default=None, help="override the held-out scenarios")
     p.add_argument("--require-radius", default=None, metavar="R",
                    help="a certified-region requirement for every problem that can keep one (a radius, 'initial' "
                         "or 'box'; see python -m tuning --help); the others run without and say so")
@@ -437,7 +437,7 @@ def problem_cost(p: Plan, out: Path, say=print) -> dict:
     if cost is None:
         say(f"{p.name}: compiling and timing a gradient step and a forward evaluation")
         cost = {"fingerprint": fp, **measure_cost(p)}
-        io.write_json(out / p.name / "cost.json", cost)
+        files.write_json(out / p.name / "cost.json", cost)
     return cost
 
 
@@ -447,7 +447,7 @@ def study(problems: dict, out, *, seeds: int, methods=METHODS, points: int = 8, 
     into ``out`` and write its three files; returns the summary."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    token = io.acquire_output(out, "tuning.study")      # a second writer is refused (OutputLocked)
+    token = files.acquire_output(out, "tuning.study")      # a second writer is refused (OutputLocked)
     try:
         t0, rows, notes, costs = time.perf_counter(), [], {}, {}
         methods = [m for m in METHODS if m in methods]
@@ -467,14 +467,14 @@ def study(problems: dict, out, *, seeds: int, methods=METHODS, points: int = 8, 
                 if res is None:
                     log(f"{name}, seed {seed} ({done + 1}/{total}, {elapsed:.0f} s so far)")
                     res = {"fingerprint": fp, **run_seed(p, seed, methods, pts, costs[name], budget * b, log)}
-                    io.write_json(path, res)
+                    files.write_json(path, res)
                 else:
                     log(f"{name}, seed {seed}: done earlier, kept")
                 done += 1
                 rows += rows_of(name, seed, res)
         return _write(out, rows, notes, costs, seeds, budget, time.perf_counter() - t0, log)
     finally:
-        io.release_output(out, token)
+        files.release_output(out, token)
 
 
 def _check_budget(p: Plan, budget: float) -> None:
@@ -494,7 +494,7 @@ def _write(out: Path, rows, notes, costs, seeds, budget, wall, log) -> dict:
     wr = csv.DictWriter(buf, fieldnames=list(FIELDS))
     wr.writeheader()
     wr.writerows(rows)
-    io.write_bytes(out / "study.csv", buf.getvalue().encode())
+    files.write_bytes(out / "study.csv", buf.getvalue().encode())
     figure(out / "study.png", rows)
     summary = {"experiment": "tuning study on equal terms", "problems": list(costs), "seeds": seeds,
                "statistic": "median and interquartile range (25th-75th percentile) over seeds",
@@ -502,7 +502,7 @@ def _write(out: Path, rows, notes, costs, seeds, budget, wall, log) -> dict:
                "cost_per_problem": costs, "baseline_budget_multiple": budget, "tolerance": TOLERANCE,
                "requirement_notes": {k: v for k, v in notes.items() if v}, "aggregate": agg,
                "table_markdown": table, "wall_time_s": wall}
-    io.write_json(out / "summary.json", summary)
+    files.write_json(out / "summary.json", summary)
     log(table)
     return summary
 
@@ -510,7 +510,7 @@ def _write(out: Path, rows, notes, costs, seeds, budget, wall, log) -> dict:
 def figure(path: Path, rows: list[dict]) -> None:
     """Held-out loss against compute per problem: median line and IQR band per method (solid:
     fixed training set, dashed: resampled)."""
-    plt = io.headless_pyplot()
+    plt = files.headless_pyplot()
     cur = curves(rows)
     fig, axs = plt.subplots(1, len(cur), figsize=(5.0 * len(cur), 4.2), squeeze=False)
     for ax, (problem, P) in zip(axs[0], cur.items()):
@@ -530,12 +530,22 @@ def figure(path: Path, rows: list[dict]) -> None:
         ax.legend(fontsize=6)
     fig.suptitle("held-out loss of the best-so-far gains vs compute (median, band: IQR over seeds)")
     fig.tight_layout()
-    io.write_png(fig, path)
+    files.write_png(fig, path)
     plt.close(fig)
 
 
 def run(args, log=print) -> dict:
     """The study of the command line's options (``args`` from :func:`parser`)."""
+    return study(problems_of(args), args.out, seeds=args.seeds, methods=args.methods, points=args.points,
+                 budget=args.budget, log=log)
+
+
+def problems_of(args) -> dict:
+    """The problems of the command line's options, overrides applied: name -> (problem, requirement).
+
+    Raises:
+      ValueError: an unknown problem or unreadable file, two problems of one name, a bad override.
+    """
     import jax
 
     jax.config.update("jax_enable_x64", True)     # the tuner runs in float64
@@ -550,8 +560,7 @@ def run(args, log=print) -> dict:
         over = overrides(args)
         problem = Problem.load(path)
         problems[name] = (problem.with_values(over) if over else problem, require)
-    return study(problems, args.out, seeds=args.seeds, methods=args.methods, points=args.points,
-                 budget=args.budget, log=log)
+    return problems
 
 
 def _radius(text: str):
@@ -565,11 +574,16 @@ def _radius(text: str):
 
 
 def main(argv=None) -> int:
-    from wmrjax import cli
+    from wmrjax_cli import options
 
     p = parser()
     a = p.parse_args(argv)
-    s = cli.work(p, a, lambda progress: run(a, log=progress))
+    try:                            # the problems named by the options: a bad one is a bad option
+        problems = problems_of(a)
+    except ValueError as e:
+        options.fail(p, str(e))
+    s = options.work(p, a, lambda progress: study(problems, a.out, seeds=a.seeds, methods=a.methods, points=a.points,
+                                                  budget=a.budget, log=progress))
     print(f"wrote {a.out}/study.csv, summary.json, study.png ({s['wall_time_s']:.0f} s)")
     return 0
 

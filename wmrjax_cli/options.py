@@ -1,11 +1,16 @@
 """What every command line of this project shares: argument types that refuse bad values at
 parse time, cross-argument checks, the output directory made and test-written before any
-work, and progress lines while long stages run.
+work, progress lines while long stages run, and how a failed run ends.
 
 The experiments (``python -m experiments.*``) and the tuner (``python -m tuning``) build
 their parsers with :func:`parser` and declare each option with one of the types below, so a
 bad value stops the program in milliseconds with ``argument --name: ...`` naming the option
-and the expected form, before JAX compiles anything. Nothing here imports JAX.
+and the expected form, before JAX compiles anything. Nothing here imports JAX at module level.
+
+Exit statuses: 2 with the usage text for a bad option (argparse's own errors and the checks
+made with :func:`fail` before the work starts); 1 for an error of the work itself (a
+``ValueError`` raised by it, see :func:`work`): ``PROG: error: MESSAGE`` without the usage,
+its traceback shown with ``--verbose``.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import os
 import sys
 import threading
 import time
+import traceback
 import uuid
 from contextlib import contextmanager
 from pathlib import Path
@@ -108,8 +114,9 @@ def default_cache_dir() -> Path:
 
 
 def parser(description: str, default_out: str | None, compile_cache: bool = True) -> argparse.ArgumentParser:
-    """An ``ArgumentParser`` whose help shows defaults, with ``--out`` when ``default_out`` is given
-    and the persistent compilation cache options (see :func:`use_compilation_cache`)."""
+    """An ``ArgumentParser`` whose help shows defaults, with ``--out`` when ``default_out`` is given,
+    the persistent compilation cache options (see :func:`use_compilation_cache`) and ``--verbose``
+    (see :func:`work`)."""
     p = argparse.ArgumentParser(description=description, formatter_class=_Formatter)
     if default_out is not None:
         p.add_argument("--out", type=Path, default=Path(default_out), help="output directory (created if missing)")
@@ -117,6 +124,8 @@ def parser(description: str, default_out: str | None, compile_cache: bool = True
                    help="directory of JAX's persistent compilation cache: a second run reuses the compiled programs "
                         "of the first (turn it off with --no-compile-cache)")
     p.add_argument("--no-compile-cache", action="store_true", help="do not read or write the compilation cache")
+    p.add_argument("--verbose", action="store_true",
+                   help="when the work fails, print the full traceback of its error (not only its message)")
     return p
 
 
@@ -145,8 +154,21 @@ def use_compilation_cache(args) -> Path | None:
 
 
 def fail(p: argparse.ArgumentParser, message: str):
-    """Exit like argparse does for a bad argument (status 2, usage and message on stderr)."""
+    """Exit like argparse does for a bad argument (status 2, usage and message on stderr): for
+    checks of the options made before the work starts, not for errors of the work (:func:`work`)."""
     p.error(message)
+
+
+def fail_work(p: argparse.ArgumentParser, message: str, verbose: bool = False):
+    """Exit for an error of the work itself: status 1 and ``PROG: error: MESSAGE`` on stderr,
+    without the usage text (the options were fine). With ``verbose``, the traceback of the
+    exception being handled is printed first; without, the line says that ``--verbose`` shows it."""
+    if verbose:
+        traceback.print_exc(file=sys.stderr)
+    else:
+        message += " (rerun with --verbose for the traceback)"
+    sys.stderr.flush()
+    p.exit(1, f"{p.prog}: error: {message}\n")
 
 
 def check_horizon(p, *, t_final: float, dt: float, batch: int = 1, n_state: int = 4, saved_every: int = 1,
@@ -171,13 +193,13 @@ def check_horizon(p, *, t_final: float, dt: float, batch: int = 1, n_state: int 
 
 def prepare_output(p, out: Path, lock: bool = True) -> Path:
     """Create ``out``, prove it writable (write and delete a probe file) and, with ``lock``, make
-    this process its one writer until it exits (:func:`wmrjax.io.acquire_output`: a second run
+    this process its one writer until it exits (:func:`wmrjax_cli.files.acquire_output`: a second run
     into the same directory is refused, naming the first; temporary files of a killed write are
     removed); exits with a usage error if any of this fails. The lock's token is
-    ``os.environ[wmrjax.io.LOCK_ENV]`` afterwards, for worker processes."""
+    ``os.environ[wmrjax_cli.files.LOCK_ENV]`` afterwards, for worker processes."""
     import atexit
 
-    from wmrjax import io
+    from wmrjax_cli import files
 
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -191,26 +213,30 @@ def prepare_output(p, out: Path, lock: bool = True) -> Path:
         fail(p, f"--out {out} is not a writable directory ({exc.strerror or exc})")
     if lock:
         try:
-            token = io.acquire_output(out, " ".join([Path(sys.argv[0]).name] + sys.argv[1:]))
-        except io.OutputLocked as exc:
+            token = files.acquire_output(out, " ".join([Path(sys.argv[0]).name] + sys.argv[1:]))
+        except files.OutputLocked as exc:
             fail(p, str(exc))
         if token is not None:
-            os.environ[io.LOCK_ENV] = token
-            atexit.register(io.release_output, out, token)
+            os.environ[files.LOCK_ENV] = token
+            atexit.register(files.release_output, out, token)
     return out
 
 
 def work(p, args, fn, hint=lambda message: message):
     """Run a command's work: ``--out`` made and test-written, the compilation cache on, a
-    heartbeat, and a ``ValueError`` raised by the work turned into the parser's error exit
-    (``hint`` may add advice to its message). ``fn(progress)`` gets the heartbeat's ``stage``."""
+    heartbeat, and ``fn(progress)`` called with the heartbeat's ``stage``; returns its result.
+
+    A ``ValueError`` raised by the work is an error of the work, not a bad option: it ends the
+    program through :func:`fail_work` (status 1, ``PROG: error: MESSAGE`` without the usage
+    text; its traceback with ``--verbose``); ``hint`` may add advice to the message. Other
+    exceptions propagate with their traceback. Check the options (:func:`fail`) before this."""
     prepare_output(p, args.out)
     use_compilation_cache(args)
     try:
         with heartbeat() as hb:
             return fn(hb.stage)
     except ValueError as exc:
-        fail(p, hint(str(exc)))
+        fail_work(p, hint(str(exc)), verbose=getattr(args, "verbose", False))
 
 
 # --- progress --------------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ A killed sweep resumes from its finished blocks when rerun with the same file an
 
 
 def parser():
-    from wmrjax import cli
+    from wmrjax_cli import options
 
     p = common.parser(DOC, default_out=None)
     p.add_argument("spec", type=Path, help="the sweep file (TOML; see the README and experiments/sweeps/)")
@@ -28,32 +28,32 @@ def parser():
     p.add_argument("--gains", type=Path, nargs="+", default=None,
                    help="tuned-gains files (gains.json of python -m tuning): the sweep runs the file's own gains as case "
                         "'default' and each file as a case of its own ('tuned', or the file's directory name)")
-    p.add_argument("--processes", type=cli.count, default=1,
+    p.add_argument("--processes", type=options.count, default=1,
                    help="local processes joined by jax.distributed, each computing its share of the blocks")
-    p.add_argument("--devices", type=cli.count, default=None,
+    p.add_argument("--devices", type=options.count, default=None,
                    help="JAX host devices per process (default: the cores divided among the processes)")
     p.add_argument("--coordinator", default=None, help="HOST:PORT of process 0, for a run over several hosts")
-    p.add_argument("--process-id", type=cli.nonnegative_int, default=None, help="this process's index (with --coordinator)")
-    p.add_argument("--num-processes", type=cli.count, default=None, help="number of processes (with --coordinator)")
+    p.add_argument("--process-id", type=options.nonnegative_int, default=None, help="this process's index (with --coordinator)")
+    p.add_argument("--num-processes", type=options.count, default=None, help="number of processes (with --coordinator)")
     return p
 
 
 def main(argv=None) -> int:
     p = parser()
     a = p.parse_args(argv)
-    from wmrjax import cli
+    from wmrjax_cli import options
 
     distributed = a.coordinator is not None
     if distributed and (a.process_id is None or a.num_processes is None):
-        cli.fail(p, "--coordinator needs --process-id and --num-processes")
+        options.fail(p, "--coordinator needs --process-id and --num-processes")
     if not distributed and (a.process_id is not None or a.num_processes is not None):
-        cli.fail(p, "--process-id and --num-processes need --coordinator HOST:PORT")
+        options.fail(p, "--process-id and --num-processes need --coordinator HOST:PORT")
     if distributed and a.process_id >= a.num_processes:
-        cli.fail(p, f"--process-id {a.process_id} must be < --num-processes {a.num_processes}")
+        options.fail(p, f"--process-id {a.process_id} must be < --num-processes {a.num_processes}")
     if distributed and a.processes != 1:
-        cli.fail(p, "--processes starts local processes itself; do not combine it with --coordinator")
+        options.fail(p, "--processes starts local processes itself; do not combine it with --coordinator")
     if not a.spec.is_file():
-        cli.fail(p, f"sweep file {str(a.spec)!r} not found")
+        options.fail(p, f"sweep file {str(a.spec)!r} not found")
     if a.out is None:
         a.out = Path("results") / "sweeps" / a.spec.stem
     n_proc = a.num_processes if distributed else a.processes
@@ -61,18 +61,21 @@ def main(argv=None) -> int:
     # more processes or host devices than cores run no faster (--devices 4096 ran 8x slower) and
     # each process holds its own JAX (about 0.6 GB)
     if a.processes > cores:
-        cli.fail(p, f"--processes {a.processes} is more than this machine's {cores} cores")
+        options.fail(p, f"--processes {a.processes} is more than this machine's {cores} cores")
     if a.devices is not None and a.devices > cores:
-        cli.fail(p, f"--devices {a.devices} is more than this machine's {cores} cores (JAX host devices run one per core)")
+        options.fail(p, f"--devices {a.devices} is more than this machine's {cores} cores (JAX host devices run one per core)")
     devices = a.devices or max(1, cores // n_proc)
     flag = f"--xla_force_host_platform_device_count={devices}"
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()   # before JAX starts
     # one writer per --out: the launching process (its workers inherit the lock's token), or
     # process 0 of a run over several hosts
-    cli.prepare_output(p, a.out, lock=not distributed or a.process_id == 0)
+    options.prepare_output(p, a.out, lock=not distributed or a.process_id == 0)
     if a.processes > 1:
         return _launch(p, a, devices)
-    return _run(p, a, a.process_id or 0, a.num_processes or 1)
+    try:
+        return _run(p, a, a.process_id or 0, a.num_processes or 1)
+    except ValueError as err:       # raised by the work (the file and --out were checked before it): exit 1
+        options.fail_work(p, str(err), verbose=a.verbose)
 
 
 def problem_of(a):
@@ -94,7 +97,7 @@ def problem_of(a):
 
 def _launch(p, a, devices: int) -> int:
     """Start ``--processes`` local processes (jax.distributed over 127.0.0.1) and wait for them."""
-    from wmrjax import cli
+    from wmrjax_cli import options
 
     from experiments.sweep import spec as S
     common.enable_x64()
@@ -104,7 +107,7 @@ def _launch(p, a, devices: int) -> int:
         run.check_memory(plan, devices, a.processes)
         run.prepare(plan, a.out, a.fresh)
     except ValueError as err:
-        cli.fail(p, str(err))
+        options.fail(p, str(err))
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -150,7 +153,7 @@ def _wait(procs: list, a) -> int:
 
 
 def _run(p, a, pid: int, n_proc: int) -> int:
-    from wmrjax import cli
+    from wmrjax_cli import options
 
     t_start = time.perf_counter()
     common.enable_x64()
@@ -159,7 +162,7 @@ def _run(p, a, pid: int, n_proc: int) -> int:
     if n_proc > 1:
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
         jax.distributed.initialize(coordinator_address=a.coordinator, num_processes=n_proc, process_id=pid)
-    cli.use_compilation_cache(a)
+    options.use_compilation_cache(a)
     from experiments.sweep import report, run
     from experiments.sweep import spec as S
 
@@ -181,7 +184,7 @@ def _run(p, a, pid: int, n_proc: int) -> int:
             if resumed:
                 say(f"resuming: {resumed} of {len(plan.blocks())} blocks already done in {a.out}")
     except ValueError as err:
-        cli.fail(p, str(err))
+        options.fail(p, str(err))
     barrier("sweep-prepared")
     if pid != 0 and run.read_state(a.out) is None:
         raise RuntimeError(f"{a.out}/{run.STATE_FILE} missing: process 0 did not prepare the output directory "
@@ -189,9 +192,9 @@ def _run(p, a, pid: int, n_proc: int) -> int:
     t0 = time.perf_counter()
     stats = run.compute(plan, a.out, process_id=pid, num_processes=n_proc)
     stats["wall_s"] = time.perf_counter() - t0
-    from wmrjax import io
+    from wmrjax_cli import files
 
-    io.write_json(a.out / "blocks" / f"process_{pid}.json", stats)
+    files.write_json(a.out / "blocks" / f"process_{pid}.json", stats)
     barrier("sweep-computed")
     if pid != 0:
         return 0
@@ -219,7 +222,7 @@ def _run(p, a, pid: int, n_proc: int) -> int:
     }
     summary["figures"] = report.figures(plan, table, certified, a.out)
     summary["wall_time_s"] = time.perf_counter() - t_start
-    io.write_json(a.out / "summary.json", summary)
+    files.write_json(a.out / "summary.json", summary)
     c = summary["counts"]
     print(f"{plan.n_runs} runs: {c['converged']} converged, {c['not_converged']} not converged, {c['singular']} "
           f"singular, {c['failed']} failed; wrote {a.out}/runs.parquet, summary.json and "

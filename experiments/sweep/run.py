@@ -232,7 +232,7 @@ def prepare(plan: S.Plan, out: Path, fresh: bool) -> int:
     Raises:
       ValueError: the directory holds blocks of another sweep (and ``fresh`` is False).
     """
-    from wmrjax import io
+    from wmrjax_cli import files
 
     state = None if fresh else read_state(out)      # --fresh discards even a corrupt state file
     blocks = plan.blocks()
@@ -245,7 +245,7 @@ def prepare(plan: S.Plan, out: Path, fresh: bool) -> int:
                                  f"{state.get('fingerprint')}, this one {plan.fingerprint}); use another --out or --fresh")
         for f in (out / "blocks").glob("block_*.npz") if (out / "blocks").exists() else []:
             f.unlink()
-        io.write_json(out / STATE_FILE, want)
+        files.write_json(out / STATE_FILE, want)
         return 0
     return sum(block_path(out, b).exists() for b in range(len(blocks)))
 
@@ -255,7 +255,7 @@ def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int 
     to process ``b % num_processes``); returns timing figures."""
     import jax
 
-    from wmrjax import io
+    from wmrjax_cli import files
 
     devices = jax.local_devices()
     D = len(devices)
@@ -284,7 +284,7 @@ def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int 
             for b, res in zip(ids, pending):
                 _, start, n = blocks[b]
                 res = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], res)
-                io.write_npz(block_path(out, b), fingerprint=np.str_(plan.fingerprint), block=b, start=start, n=n,
+                files.write_npz(block_path(out, b), fingerprint=np.str_(plan.fingerprint), block=b, start=start, n=n,
                              **{c: res[c] for c in RESULT_COLUMNS})
                 n_run += n
             dt_ = time.perf_counter() - t
@@ -301,7 +301,7 @@ def assemble(plan: S.Plan, out: Path):
     returns the path. Memory: one block at a time."""
     import pyarrow as pa
 
-    from wmrjax import io
+    from wmrjax_cli import files
 
     blocks = plan.blocks()
     missing = [b for b in range(len(blocks)) if not block_path(out, b).exists()]
@@ -335,7 +335,7 @@ def assemble(plan: S.Plan, out: Path):
     def to_batch(d):
         return pa.record_batch({k: pa.array(v, type=pa.string() if k in labels else None) for k, v in d.items()})
 
-    return io.write_parquet(out / "runs.parquet", (to_batch(d) for d in batches()))
+    return files.write_parquet(out / "runs.parquet", (to_batch(d) for d in batches()))
 
 
 def value_columns(plan: S.Plan) -> list:

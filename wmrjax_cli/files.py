@@ -1,0 +1,348 @@
+"""Results on disk: atomic JSON/NPZ/bytes/PNG/Parquet writing, JSON checkpoints of pytrees, and
+one writer per output directory.
+
+The command lines' layer (installed with the ``cli`` extra): the library itself writes no
+files, and reads a user's files with :mod:`wmrjax.io`. Matplotlib and pyarrow are imported
+only by the functions that need them (:func:`headless_pyplot`, :func:`write_png`,
+:func:`write_parquet`).
+
+Every writer goes through :func:`atomic_write` (write a temporary file in the target
+directory, then ``os.replace``), so a killed run leaves either the previous file or the
+new one, never half of one. Nothing here loads a pickle: ``.npz`` files are written with
+plain numeric arrays only, and checkpoints are JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+
+def atomic_write(path, write: Callable) -> Path:
+    """Call ``write(fh)`` on a temporary binary file next to ``path``, then rename it to ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        try:                                  # mkstemp makes 0600; results are as readable as the umask allows
+            os.fchmod(fd, 0o666 & ~_umask())
+        except OSError:                       # file systems without modes: keep what they give
+            pass
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _umask() -> int:
+    """The process umask (reading it means setting it for an instant: to the strictest one)."""
+    mask = os.umask(0o077)
+    os.umask(mask)
+    return mask
+
+
+def jsonable(x):
+    """``x`` with arrays as lists, NamedTuples as dicts, and non-finite floats as None/"inf"/"-inf"."""
+    if hasattr(x, "_asdict"):
+        return jsonable(x._asdict())
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if hasattr(x, "tolist"):
+        return jsonable(np.asarray(x).tolist())
+    if isinstance(x, float) and not np.isfinite(x):
+        return None if np.isnan(x) else ("inf" if x > 0 else "-inf")
+    return x
+
+
+def write_json(path, obj) -> Path:
+    """Write ``obj`` as indented JSON atomically (see :func:`jsonable` for the conversions)."""
+    data = json.dumps(jsonable(obj), indent=2, sort_keys=False).encode()
+    return atomic_write(path, lambda fh: fh.write(data + b"\n"))
+
+
+def write_npz(path, **arrays) -> Path:
+    """Write an ``.npz`` of plain numeric/string arrays atomically.
+
+    Raises:
+      ValueError: for an object array (it would need a pickle to load).
+    """
+    arrays = {k: np.asarray(v) for k, v in arrays.items()}
+    for k, v in arrays.items():
+        if v.dtype == object:
+            raise ValueError(f"refusing to save object array {k!r}: npz files here never hold pickles")
+    return atomic_write(path, lambda fh: np.savez(fh, **arrays))
+
+
+def write_bytes(path, data: bytes) -> Path:
+    """Write raw bytes (e.g. a rendered PNG) atomically."""
+    return atomic_write(path, lambda fh: fh.write(data))
+
+
+# --- checkpoints -----------------------------------------------------------------------------
+
+class Checkpoint(NamedTuple):
+    """A resumable state: ``step`` done, the array pytrees, and a JSON-able ``state`` dict."""
+
+    step: int
+    trees: dict
+    state: dict
+
+
+def write_checkpoint(path, *, fingerprint: str, config: dict, step: int, trees: dict, state: dict) -> Path:
+    """Write a JSON checkpoint atomically.
+
+    Args:
+      fingerprint: identifies the configuration; :func:`read_checkpoint` refuses another.
+      config: the configuration itself (for the refusal message).
+      step: steps completed.
+      trees: name -> pytree of arrays (e.g. parameters, optimizer state), stored as leaf lists.
+      state: any JSON-able dict (histories, counters).
+    """
+    import jax
+
+    leaves = {k: [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(t)] for k, t in trees.items()}
+    return write_json(path, {"fingerprint": fingerprint, "config": config, "step": step, "trees": leaves,
+                             "state": state})
+
+
+def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) -> Checkpoint:
+    """Read a checkpoint written by :func:`write_checkpoint`, restoring each tree's structure.
+
+    Args:
+      templates: name -> a pytree with the expected structure, shapes and dtypes.
+
+    Raises:
+      ValueError: a checkpoint of another configuration (naming the keys that differ), or one
+        whose trees do not match the templates (missing, truncated or reshaped leaves).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    path = Path(path)
+    if path.exists() and not path.is_file():
+        raise ValueError(f"checkpoint {path} is not a regular file; remove it (or start fresh)")
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"checkpoint {path} is corrupt or truncated (not readable JSON: {exc}); "
+                         "delete it (or start fresh) to run from the beginning") from None
+    if not isinstance(d, dict):
+        raise ValueError(f"checkpoint {path} is not a checkpoint (a JSON {type(d).__name__}, expected an object); "
+                         "delete it (or start fresh) to run from the beginning")
+    for key in ("config", "trees", "state"):
+        if key in d and not isinstance(d[key], dict):
+            raise ValueError(f"checkpoint {path}: '{key}' is a JSON {type(d[key]).__name__}, expected an object "
+                             "(an edited or corrupt checkpoint)")
+    if d.get("fingerprint") != fingerprint:
+        old = d.get("config", {}) or {}
+        diff = sorted(k for k, v in config.items() if json.loads(json.dumps(jsonable(old.get(k))))
+                      != json.loads(json.dumps(jsonable(v))))
+        raise ValueError(f"checkpoint {path} belongs to another configuration (differs in {diff}); "
+                         "use another --out directory or delete the checkpoint")
+    trees = {}
+    for name, template in templates.items():
+        got = (d.get("trees") or {}).get(name)
+        tmpl, treedef = jax.tree_util.tree_flatten(template)
+        if got is not None and not isinstance(got, list):
+            raise ValueError(f"checkpoint {path}: tree {name!r} is a JSON {type(got).__name__}, expected a list of leaves")
+        if got is None or len(got) != len(tmpl):
+            raise ValueError(f"checkpoint {path}: tree {name!r} has {None if got is None else len(got)} leaves, "
+                             f"expected {len(tmpl)}")
+        leaves = []
+        for i, (v, t) in enumerate(zip(got, tmpl)):
+            try:
+                a = np.asarray(v, dtype=np.asarray(t).dtype)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"checkpoint {path}: leaf {i} of {name!r} is not a numeric array ({exc}); "
+                                 "an edited or corrupt checkpoint") from None
+            if a.shape != np.shape(t):
+                raise ValueError(f"checkpoint {path}: leaf {i} of {name!r} has shape {a.shape}, expected "
+                                 f"{np.shape(t)} (a truncated or edited checkpoint)")
+            leaves.append(jnp.asarray(a))
+        trees[name] = jax.tree_util.tree_unflatten(treedef, leaves)
+    # bool is an int in Python: "step": true would be taken as step 1
+    if type(d.get("step")) is not int or d["step"] < 0 or not isinstance(d.get("state"), dict):
+        raise ValueError(f"checkpoint {path} lacks an integer 'step' >= 0 or a 'state' object (got step "
+                         f"{d.get('step')!r}); an edited or corrupt checkpoint: delete it (or start fresh)")
+    return Checkpoint(d["step"], trees, d["state"])
+
+
+# --- figures -----------------------------------------------------------------------------------
+
+def headless_pyplot():
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (for writing PNG files)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def write_png(fig, path, dpi: int = 120) -> Path:
+    """Render a matplotlib figure to PNG and write it atomically."""
+    import io as _io
+
+    buf = _io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    return write_bytes(path, buf.getvalue())
+
+
+def write_parquet(path, batches) -> Path:
+    """Stream ``pyarrow.RecordBatch`` es into a Parquet file, one row group each, atomically.
+
+    Memory stays at one batch whatever the number of rows; the file appears (by rename) only
+    when complete. Needs ``pyarrow``.
+
+    Args:
+      path: target ``.parquet`` path.
+      batches: an iterable of record batches sharing one schema (the first batch's).
+    """
+    import pyarrow.parquet as pq
+
+    def write(fh):
+        writer = None
+        try:
+            for batch in batches:
+                if writer is None:
+                    writer = pq.ParquetWriter(fh, batch.schema)
+                writer.write_batch(batch)
+        finally:
+            if writer is not None:
+                writer.close()
+
+    return atomic_write(path, write)
+
+
+# --- one writer per output directory ---------------------------------------------------------
+
+LOCK_NAME = ".wmrjax-writer.lock"
+# a process given this variable (a sweep's --processes workers) writes under its parent's lock
+LOCK_ENV = "WMRJAX_OUTPUT_LOCK"
+
+
+class OutputLocked(ValueError):
+    """Another live process is writing to the output directory."""
+
+
+def _process_start(pid: int) -> str | None:
+    """The start time of process ``pid`` in clock ticks since boot (Linux), None if unknown or dead.
+    With the pid it identifies a process: a reused pid has another start time."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            stat = fh.read().decode(errors="replace")
+        return stat[stat.rindex(")") + 2:].split()[19]          # field 22, after the command name
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _alive(owner: dict) -> bool:
+    """Whether the lock's owner is a live process on this host."""
+    import socket
+
+    if owner.get("host") != socket.gethostname():
+        return True                         # another host's process: cannot tell, assume alive
+    pid = owner.get("pid")
+    if not isinstance(pid, int) or isinstance(pid, bool) or pid <= 0:
+        return False
+    start = _process_start(pid)
+    if start is not None:
+        return start == owner.get("start")
+    try:                                    # no /proc: is the pid in use at all?
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True
+    return True
+
+
+def _read_owner(path: Path) -> dict:
+    try:
+        d = json.loads(path.read_text())
+        return d if isinstance(d, dict) else {}
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return {}
+
+
+def acquire_output(out, command: str) -> str | None:
+    """Make this process the one writer of directory ``out``; returns the lock's token (for
+    :func:`release_output`, and :data:`LOCK_ENV` of workers), None for a worker of its owner.
+
+    The lock is a file created exclusively (``O_EXCL``) in ``out`` holding the owner's host,
+    process id, process start time and command. A lock whose owner is dead (on this host) is
+    stale: it is named on stderr and taken over. A process whose environment carries
+    :data:`LOCK_ENV` equal to the lock's token writes under it (a parent's workers), and so does
+    the owner itself (a command run again in the same process). Once the
+    lock is held, temporary files a killed atomic write left in ``out`` are removed.
+
+    Raises:
+      OutputLocked: a live process (named) holds the lock.
+    """
+    import socket
+    import sys
+    import time
+    import uuid
+
+    out = Path(out)
+    path = out / LOCK_NAME
+    token = uuid.uuid4().hex
+    me = {"host": socket.gethostname(), "pid": os.getpid(), "start": _process_start(os.getpid()),
+          "command": command, "since": time.strftime("%Y-%m-%d %H:%M:%S"), "token": token}
+    for _ in range(100):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            owner = _read_owner(path)
+            if owner.get("token") and owner.get("token") == os.environ.get(LOCK_ENV):
+                return None                              # a worker of the lock's owner
+            if owner.get("pid") == me["pid"] and owner.get("host") == me["host"] and owner.get("start") == me["start"]:
+                return None                              # this process holds it already (a command run again in-process)
+            if not owner and time.time() - path.stat().st_mtime < 5.0:
+                time.sleep(0.05)                         # being written this instant
+                continue
+            if owner and _alive(owner):
+                raise OutputLocked(
+                    f"{out} is being written by another run: process {owner.get('pid')} on {owner.get('host')} "
+                    f"({owner.get('command')!r}, since {owner.get('since')}); wait for it to finish, or choose "
+                    f"another output directory (if that process is gone, delete {path})") from None
+            stale = path.with_name(f"{LOCK_NAME}.stale-{token}")
+            try:                                         # one taker renames it; the others retry
+                os.rename(path, stale)
+            except FileNotFoundError:
+                continue
+            os.unlink(stale)
+            print(f"{out}: removed the stale lock of process {owner.get('pid')} ({owner.get('command')!r}, "
+                  f"since {owner.get('since')}), which is no longer running", file=sys.stderr)
+            continue
+        with os.fdopen(fd, "w") as fh:
+            json.dump(me, fh)
+        _remove_torn_writes(out)
+        return token
+    raise OutputLocked(f"could not take the lock {path}: it changed hands 100 times")
+
+
+def release_output(out, token: str | None) -> None:
+    """Remove the lock of ``out`` if ``token`` holds it (a no-op for None)."""
+    path = Path(out) / LOCK_NAME
+    if token is not None and _read_owner(path).get("token") == token:
+        path.unlink(missing_ok=True)
+
+
+def _remove_torn_writes(out: Path) -> None:
+    """Delete the temporary files of killed atomic writes (``.NAME.*.tmp``, see :func:`atomic_write`)
+    in ``out`` and its subdirectories: only the lock holder writes there."""
+    for tmp in out.rglob(".*.tmp"):
+        if tmp.is_file():
+            tmp.unlink(missing_ok=True)
