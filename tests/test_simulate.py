@@ -198,6 +198,37 @@ def test_nonfinite_run_is_flagged():
     assert not bool(tr.valid[-1])
 
 
+@dataclasses.dataclass(frozen=True)
+class _Overflowing:
+    """x' = 0 except at t = 0.5, where x' = +M below x = 1 and -M above, M near the float max.
+
+    With dt = 0.125 the step ending at t = 0.5 has stages 0, 0, 0, +M: it lands at dt M / 6
+    (finite), where the next step's stages are -M, 0, 0, 0, so the error estimate's difference
+    k4 - k5 = 2M overflows: the estimate is inf while the state, the control and the margin stay
+    finite (the next state too: back to 0)."""
+    n_state: int = 1
+
+    def vector_field(self, t, z, params):
+        big = 0.9 * np.finfo(np.float64).max
+        dz = jnp.where(t == 0.5, jnp.where(z < 1.0, big, -big), 0.0)
+        return dz, Aux(jnp.zeros(1) + 1.0, jnp.array(1.0))
+
+
+@pytest.mark.parametrize("n_steps", [4, 8])
+def test_nonfinite_error_estimate_fails_the_run_in_the_step_and_at_the_end(n_steps):
+    """One failure rule at every step and at the final state: a run ending right after the step
+    whose estimate overflows (judged at the final state) and one going on (judged in the step)
+    both fail there as non-finite (the step used to fail it with no cause flagged, not non-finite,
+    while the final state marked it non-finite)."""
+    tr = w.simulate(_Overflowing(), jnp.array([0.0]), (), dt=0.125, n_steps=n_steps)
+    d = tr.diagnostics
+    assert np.all(np.isfinite(np.asarray(tr.state))) and np.all(np.isfinite(np.asarray(tr.control)))
+    assert bool(d.failed) and bool(d.nonfinite) and not bool(d.singular) and not bool(d.inaccurate)
+    assert float(d.t_failure) == 0.5 and float(d.error_estimate) == 0.0
+    assert np.asarray(tr.valid).tolist() == [True] * 4 + [False] * (n_steps - 3)
+    np.testing.assert_allclose(tr.final_state, [0.125 / 6 * 0.9 * np.finfo(np.float64).max])
+
+
 def test_traced_bad_dt_fails_the_run_at_t0(paper61):
     """Under jit and vmap dt cannot be refused before compiling: a dt <= 0 or NaN fails every run
     at t0 (no sample valid, the state frozen at z0) instead of integrating backwards (it gave

@@ -22,10 +22,12 @@ Five implementation choices matter for speed on CPUs (measured in
   that select the next state, so that the recomputation is the RK4 stages alone, without the
   diagnostics and the error estimate (the section 6.1 gradient 1.4x faster).
 
-A run *fails* when its state becomes non-finite, its singularity margin drops to
+A run *fails* when its state, its control or a step's error estimate becomes non-finite
+(an estimate that overflows leaves the step's accuracy unknown), its singularity margin drops to
 ``margin_floor`` or below, the sign of its regularity function (det K) changes between two
 steps (a crossing of the singular set between samples), or a step's embedded error estimate
-exceeds ``error_tol``. From then on its state is frozen at the last good value and
+exceeds ``error_tol`` (one rule, :func:`_classify`, at every step and at the final state).
+From then on its state is frozen at the last good value and
 its samples are marked invalid (``Trajectory.valid``), so batch statistics can exclude
 it explicitly instead of averaging NaN or a runaway value.
 """
@@ -66,7 +68,7 @@ class Diagnostics(NamedTuple):
     """Per-run summary (scalars; batched under vmap).
 
     Attributes:
-      nonfinite: the state or the control became NaN/Inf.
+      nonfinite: the state, the control, the margin or a step's error estimate became NaN/Inf.
       singular: the margin reached ``margin_floor``, or the signed regularity function
         (``Aux.regularity``, det K for the linearizing laws) changed sign between two
         consecutive steps: the run crossed the singular set between samples.
@@ -452,25 +454,21 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
             z = sample(i // sample_every, t, z, p)
         z_next, aux, est, k4, jumped = _advance(loop, t, z, i, p, parts, k4_prev, est_ok)
         margin = jnp.asarray(aux.margin, dtype)
-        sign = _sign(getattr(aux, "regularity", None), margin)
-        crossed = sign_prev * sign < 0                              # det K changed sign since the last step
-        finite_here = _all_finite((aux.control, margin))
-        regular = (margin > margin_floor) & ~crossed
-        accurate = ~(est > error_tol)
-        sample_ok = alive & finite_here & regular & accurate   # the state z at time t
+        flags = _classify(alive, aux.control, margin, getattr(aux, "regularity", None), sign_prev,
+                          est if estimate else None, margin_floor, error_tol)     # the state z at time t
         finite_next = _all_finite(z_next)
-        ok = sample_ok & finite_next                                # may we go on from z?
+        ok = flags.ok & finite_next                                 # may we go on from z?
         # reverse mode stores these two flags (the step's checkpoint policy, below), so that
         # its recomputation of the step needs neither the diagnostics nor the error estimate
         ok, finite_next = checkpoint_name(ok, _SAVED_FLAGS[0]), checkpoint_name(finite_next, _SAVED_FLAGS[1])
-        diag = _running_update(diag, t, alive, ok, sample_ok, finite_here, finite_next, regular, margin, est)
+        diag = _running_update(diag, t, alive, ok, flags, finite_next, margin, est)
         # double where: no NaN leaks into grads
         z_keep = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, jnp.where(finite_next, a, b), b), z_next, z_in)
         zt_next = _to_scalars(z_keep)
-        sign_next = jnp.where(sign != 0, sign, sign_prev)
+        sign_next = jnp.where(flags.sign != 0, flags.sign, sign_prev)
         carry = (zt_next, ok, diag, sign_next, _continuous(k4) if estimate and sample is None else (),
                  None if est_ok is None else ~jumped)
-        return carry, (z if save_fn is None else save_fn(t, z, aux), aux.control, margin, sample_ok)
+        return carry, (z if save_fn is None else save_fn(t, z, aux), aux.control, margin, flags.ok)
 
     # One step as operations on scalars: under vmap, elementwise on batch vectors, with no
     # array assembled or taken apart inside the loop, forward or transposed.
@@ -533,20 +531,58 @@ def _advance(loop: _Loop, t, z, i, p, parts, k4_prev, est_ok):
     return z_next, aux, est, k4, jumped
 
 
-def _running_update(diag, t, alive, ok, sample_ok, finite_here, finite_next, regular, margin, est):
-    """One step's diagnostics: the failure flags (non-finite, singular, failed and when), the
-    smallest margin of a valid sample and when, the largest error estimate of the live run."""
+class _Flags(NamedTuple):
+    """One sample's classification (see :func:`_classify`)."""
+
+    finite: jnp.ndarray     # its control, margin and error estimate are finite
+    regular: jnp.ndarray    # its margin is above the floor and det K kept its sign
+    ok: jnp.ndarray         # alive, finite, regular and accurate: a valid sample
+    sign: jnp.ndarray       # the sign of its regularity function (0: none)
+
+
+def _classify(alive, control, margin, regularity, sign_prev, est, margin_floor, error_tol) -> _Flags:
+    """The failure rule, for one sample: the state at time t, with the control, margin and signed
+    regularity (det K) of the vector field there, and the error estimate of the step that ended
+    there. The time loop applies it at every step, :func:`_finish` at the final state.
+
+    * finite: the control, the margin and the error estimate are finite. A non-finite estimate
+      (stages whose difference overflows) leaves the step's accuracy unknown: the run is no
+      longer trustworthy, and fails as non-finite (not as inaccurate).
+    * regular: the margin is above ``margin_floor`` and the sign of the regularity function
+      did not change against ``sign_prev``, the last sign seen (0: none yet): a sign change is
+      a crossing of the singular set between two samples.
+    * ok: ``alive & finite & regular`` and the estimate at most ``error_tol``.
+
+    ``est`` None: no error estimate (the loop compiled without it, or a sampled-data loop's
+    final state, whose period estimated its own steps); the sample is then accurate. The time
+    loop also needs the next state finite to go on (see :func:`_running_update`).
+    """
+    sign = _sign(regularity, margin)
+    finite = _all_finite((control, margin))
+    if est is not None:
+        finite = finite & jnp.isfinite(est)
+    regular = (margin > margin_floor) & ~(sign_prev * sign < 0)
+    ok = alive & finite & regular
+    if est is not None:
+        ok = ok & ~(est > error_tol)
+    return _Flags(finite, regular, ok, sign)
+
+
+def _running_update(diag, t, alive, ok, flags: _Flags, finite_next, margin, est):
+    """The diagnostics after one sample at time ``t`` classified as ``flags`` (the run goes on
+    from it if ``ok``; ``finite_next``: the next state is finite): the failure flags (non-finite,
+    singular, failed and when), the smallest margin of a valid sample and when, the largest
+    error estimate of the live run."""
     newly_failed = alive & ~ok
-    better = sample_ok & (margin < diag.min_margin)
+    better = flags.ok & (margin < diag.min_margin)
     return _Running(
-        nonfinite=diag.nonfinite | (alive & ~(finite_here & finite_next)),
-        singular=diag.singular | (alive & finite_here & ~regular),
+        nonfinite=diag.nonfinite | (alive & ~(flags.finite & finite_next)),
+        singular=diag.singular | (alive & flags.finite & ~flags.regular),
         failed=diag.failed | newly_failed,
         t_failure=jnp.where(newly_failed, t, diag.t_failure),
         min_margin=jnp.where(better, margin, diag.min_margin),
         t_min_margin=jnp.where(better, t, diag.t_min_margin),
-        error_estimate=jnp.where(alive & finite_here & jnp.isfinite(est), jnp.maximum(diag.error_estimate, est),
-                                 diag.error_estimate),
+        error_estimate=jnp.where(alive & flags.finite, jnp.maximum(diag.error_estimate, est), diag.error_estimate),
     )
 
 
@@ -626,29 +662,19 @@ def _finish(system, field, carry, recs, z0, params, t0, dt, n_steps, save_every,
     t_final = t0 + n_steps * dt
     k1_f, aux_f = field(t_final, z_final)
     m_f = jnp.asarray(aux_f.margin, dtype)
-    finite_f = _all_finite((aux_f.control, m_f))
-    regular_f = (m_f > margin_floor) & ~(sign_prev * _sign(getattr(aux_f, "regularity", None), m_f) < 0)
-    est_f = jnp.zeros_like(m_f)
-    if estimate_last:     # (a sampled period's steps estimated their own error)
+    est_f = None          # (a sampled period's steps estimated their own error)
+    if estimate_last:
         est_f = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1_f), _continuous(z_final)))
         if est_ok is not None:
             est_f = jnp.where(est_ok, est_f, 0.0)
-        finite_f = finite_f & jnp.isfinite(est_f)
-    accurate_f = ~(est_f > error_tol)
-    final_ok = alive & finite_f & regular_f & accurate_f
-    newly_failed = alive & ~final_ok
-    diag = diag._replace(
-        nonfinite=diag.nonfinite | (alive & ~finite_f),
-        singular=diag.singular | (alive & finite_f & ~regular_f),
-        error_estimate=jnp.where(alive & finite_f, jnp.maximum(diag.error_estimate, est_f), diag.error_estimate),
-        failed=diag.failed | newly_failed,
-        t_failure=jnp.where(newly_failed, t_final, diag.t_failure))
+    flags = _classify(alive, aux_f.control, m_f, getattr(aux_f, "regularity", None), sign_prev, est_f,
+                      margin_floor, error_tol)
+    final_ok = flags.ok
+    diag = _running_update(diag, t_final, alive, final_ok, flags, jnp.array(True),
+                           m_f, jnp.zeros_like(m_f) if est_f is None else est_f)
     # a step was too inaccurate exactly when the largest estimate of the live run exceeds the
     # tolerance (the estimate stops growing at the failure): derived here, not carried
     diag = Diagnostics(*diag[:6], inaccurate=diag.error_estimate > error_tol, error_estimate=diag.error_estimate)
-    better = final_ok & (m_f < diag.min_margin)
-    diag = diag._replace(min_margin=jnp.where(better, m_f, diag.min_margin),
-                         t_min_margin=jnp.where(better, t_final, diag.t_min_margin))
     final_report = getattr(system, "final_report", None)
     if final_report is not None:    # e.g. the internal dynamics of a static law
         diag = diag._replace(internal=final_report(t_final, z_final, params))
