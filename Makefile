@@ -1,12 +1,14 @@
 # Two commands do everything on a fresh machine with Python >= 3.11 and make:
 #   make demo   -- create .venv if missing, install, run section 6.1 and its position-grid sweep into results/
-#   make test   -- create .venv if missing, install with the test, cli and docs extras, run the whole suite
+#   make test   -- create .venv if missing, install with the test, cli and docs extras, then: ruff (lint and
+#                  format), the documentation build (warnings as errors, tutorials executed), the whole suite
+#   make docs   -- the documentation site into docs/_build/html
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test lint docs bench venv clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -22,11 +24,20 @@ demo: $(STAMP)
 	$(PY) -m experiments.section_6_1 --out results/section_6_1
 	$(PY) -m experiments.sweep experiments/sweeps/section_6_1_position_grid.toml --out results/sweeps/section_6_1_position_grid
 
-test: $(STAMP)
+test: lint docs
 	$(PY) -m pytest -q -n auto --dist loadfile
+
+lint: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+
+# -W: a warning fails the build; the tutorials execute in it (two at a time), their outputs
+# cached in docs/_build/.jupyter_cache until their code changes
+docs: $(STAMP)
+	$(PY) -m sphinx -b html -W --keep-going -j 2 -q docs docs/_build/html
 
 bench: $(STAMP)
 	$(PY) -m experiments.benchmark --out results/benchmark
 
 clean:
-	rm -rf results .pytest_cache
+	rm -rf results .pytest_cache docs/_build
