@@ -384,10 +384,10 @@ def numpy_rollout_rhs(t, s):
 
 def _compile_cases():
     """Every row of Tables 4 (dynamic) and 3 (static) at both levels, as 'family/type/level'."""
-    from wmrjax.controllers import TABLE3, TABLE4
+    from wmrjax.controllers import TABLE3, TABLE4, Level
 
     return [f"{family}/{kind}/{level}" for family, table in (("dynamic", TABLE4), ("static", TABLE3))
-            for kind in table for level in ("velocity", "torque")]
+            for kind in table for level in Level]
 
 
 def _first_call(fn, *args):

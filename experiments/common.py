@@ -123,13 +123,15 @@ def tracking_figure(out_dir, kind, per_level, prefix="posture", error_label="pos
     columns are the tracked point), ref, ep."""
     import numpy as np
 
+    from wmrjax import Level
+
     plt = pyplot()
     fig, axs = plt.subplots(2, 2, figsize=(10, 8.5))
     for j, name in enumerate(list(next(iter(per_level.values()))[0])[:2]):     # the two named runs
         ax = axs[0, j]
         tr0 = next(iter(per_level.values()))[0][name]
         ax.plot(tr0["ref"][:, 0], tr0["ref"][:, 1], "k--", lw=1.2, label="reference")
-        for lvl, c in zip(("velocity", "torque"), ("C0", "C3")):
+        for lvl, c in zip(Level, ("C0", "C3")):
             if lvl not in per_level:
                 continue
             st = per_level[lvl][0][name]["state"]
@@ -141,7 +143,7 @@ def tracking_figure(out_dir, kind, per_level, prefix="posture", error_label="pos
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     ax_t, ax_h = axs[1, 0], axs[1, 1]
-    for lvl, c in zip(("velocity", "torque"), ("C0", "C3")):
+    for lvl, c in zip(Level, ("C0", "C3")):
         if lvl not in per_level:
             continue
         traces, (ep_random, _) = per_level[lvl]

@@ -19,7 +19,6 @@ import time
 from experiments import common
 
 KINDS = ("(2,0)", "(2,1)", "(1,1)", "(1,2)")
-LEVELS = ("velocity", "torque")
 
 
 def _posture_error(xi, xi_ref):
@@ -141,8 +140,12 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
 
 
 def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol_pos=1e-2, tol_head=1e-2, kinds=KINDS,
-        levels=LEVELS, progress=None):
+        levels=None, progress=None):
+    """The experiment on ``kinds`` x ``levels`` (None: every :class:`wmrjax.Level`); its summary."""
     common.enable_x64()
+    import wmrjax as w
+
+    levels = tuple(w.Level) if levels is None else levels
     summary = {"experiment": "posture_tracking", "controller": "dynamic feedback linearization (Table 4, Prop 8)",
                "poles": "all at -1", "cases": {}}
     for kind in kinds:

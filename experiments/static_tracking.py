@@ -22,7 +22,6 @@ import time
 from experiments import common
 
 KINDS = ("(3,0)", "(2,0)", "(2,1)", "(1,1)", "(1,2)")
-LEVELS = ("velocity", "torque")
 
 
 def _start(ctrl, posture: bool, params, key):
@@ -164,10 +163,13 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
     return out, traces, (ep[ok], eh[ok])
 
 
-def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol=1e-2, kinds=KINDS, levels=LEVELS,
+def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol=1e-2, kinds=KINDS, levels=None,
         progress=None) -> dict:
+    """The experiment on ``kinds`` x ``levels`` (None: every :class:`wmrjax.Level`); its summary."""
     common.enable_x64()
     import wmrjax as w
+
+    levels = tuple(w.Level) if levels is None else levels
 
     summary = {"experiment": "static_tracking",
                "controller": "static feedback linearization (Prop 3 for (3,0); Table 3, eqs 27-28, Remark 11)",

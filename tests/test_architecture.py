@@ -391,3 +391,42 @@ def test_no_rk4_step_outside_simulate():
             hits = [i + 1 for i, line in enumerate(f.read_text().splitlines()) if pattern.search(line)]
             assert not hits, f"{f.relative_to(ROOT)}:{hits} has an RK4 step of its own"
     assert _calls(ROOT / "wmrjax" / "linearize.py", "rk4_step")       # the transition matrix uses simulate's
+
+
+def _level_literals(tree, names):
+    """Line numbers where ``tree`` compares with one of ``names`` (``x == "torque"``, ``x in
+    ("velocity", ...)``) or spells the whole set again as a tuple, list or set (``LEVELS =
+    ("velocity", "torque")``, ``for lv in ("velocity", "torque")``), a ``choices=`` keyword excepted."""
+    literal = lambda node: isinstance(node, ast.Constant) and node.value in names
+    elements = lambda node: node.elts if isinstance(node, (ast.Tuple, ast.List, ast.Set)) else [node]
+    choices = {id(kw.value) for node in ast.walk(tree) if isinstance(node, ast.Call)
+               for kw in node.keywords if kw.arg == "choices"}
+    hits = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare) and any(literal(e) for o in (node.left, *node.comparators) for e in elements(o)):
+            hits.append(node.lineno)
+        elif (isinstance(node, (ast.Tuple, ast.List, ast.Set)) and id(node) not in choices
+              and names <= {e.value for e in node.elts if literal(e)}):
+            hits.append(node.lineno)
+    return sorted(set(hits))
+
+
+def test_levels_are_one_enumeration():
+    """wmrjax.Level is the one enumeration of the levels: no module of the library, the command
+    lines, the tuner or the experiments compares a level with the literal "velocity" or "torque"
+    or lists the two again (the command lines' ``choices=`` are user-facing names). A StrEnum
+    member equals and hashes as its name, so JSON outputs keep the names."""
+    names = {str(lv) for lv in w.Level}
+    assert names == {"velocity", "torque"} and w.Level is w.controllers.law.Level
+    for pkg in LAYERS:
+        for f in _sources(pkg):
+            hits = _level_literals(ast.parse(f.read_text()), names)
+            assert not hits, f"{f.relative_to(ROOT)}:{hits} compares or lists level names instead of wmrjax.Level"
+    assert _level_literals(ast.parse('ok = level == "torque" or lv in ("velocity",)\nL = ["torque", "velocity"]'),
+                           names) == [1, 2]                          # the scan sees what it forbids
+    summary = {f"(2,0) {lv}": {"level": lv, "levels": list(w.Level)} for lv in w.Level}
+    assert json.dumps(summary) == ('{"(2,0) velocity": {"level": "velocity", "levels": ["velocity", "torque"]}, '
+                                   '"(2,0) torque": {"level": "torque", "levels": ["velocity", "torque"]}}')
+    assert json.dumps({w.Level.TORQUE: 1}) == '{"torque": 1}'
+    assert w.dynamic_linearization("(2,0)", "torque") == w.dynamic_linearization("(2,0)", w.Level.TORQUE)
+    assert w.controller("(2,1)", "torque", "point").level is w.Level.TORQUE

@@ -13,6 +13,7 @@ from wmrjax.controllers import (  # noqa: F401
     DynamicLinearization,
     HybridState,
     InternalDynamics,
+    Level,
     PlantLoop,
     PlantParams,
     SampledLoop,

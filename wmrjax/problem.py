@@ -64,6 +64,7 @@ import jax
 import numpy as np
 
 from wmrjax import io, resources
+from wmrjax.controllers.law import Level
 
 SECTIONS = ("title", "controller", "geometry", "plant", "reference", "initial", "gains", "simulation", "classify",
             "case", "tune", "certify")
@@ -77,13 +78,6 @@ class Law(enum.StrEnum):
 
     DYNAMIC = "dynamic"
     STATIC = "static"
-
-
-class Level(enum.StrEnum):
-    """The model the law commands: velocities (kinematic model 5) or torques (Lemma 1, model 8)."""
-
-    VELOCITY = "velocity"
-    TORQUE = "torque"
 
 
 class Task(enum.StrEnum):
@@ -684,7 +678,7 @@ def _settings(data: dict, base: Path, case) -> list:
     check_keys("controller", c, ("law", "robot", "level", "task"), ("law", "robot"))
     law = choice("controller", "law", c["law"], Law)
     robots_ = c["robot"] if isinstance(c["robot"], list) else [c["robot"]]
-    levels = c.get("level", "velocity")
+    levels = c.get("level", Level.VELOCITY)
     levels = levels if isinstance(levels, list) else [levels]
     if not robots_ or not levels:
         raise ProblemError("[controller] robot and level must not be empty lists")

@@ -25,10 +25,10 @@ from wmrjax.controllers.hybrid import (  # noqa: F401
 )
 from wmrjax.controllers.law import (  # noqa: F401
     DET_FLOOR,
-    LEVELS,
     Aux,
     ClosedLoop,
     Extension,
+    Level,
     LinearizingController,
     LinearizingLaw,
 )

@@ -29,9 +29,9 @@ import numpy as np
 
 from wmrjax import _math, robots
 from wmrjax._validate import check_finite, check_real, check_shape, concrete
-from wmrjax.controllers.law import (DET_FLOOR, LEVELS, Extension, LinearizingController, Requirement,
+from wmrjax.controllers.law import (DET_FLOOR, Extension, Level, LinearizingController, Requirement,
                                     check_reference_type, check_requirements, make_gains, physical_state_names,
-                                    validated_physical)
+                                    check_level, validated_physical)
 from wmrjax.gains import Gains
 from wmrjax.references import Reference, taylor
 from wmrjax.robots import Geometry, RobotType
@@ -373,7 +373,7 @@ class DynamicLinearization(LinearizingController):
     """
 
     row: Table4Row
-    level: str  # "velocity" | "torque"
+    level: Level
 
     _law_name = "dynamic linearizing law"
     _table = "Table 4"
@@ -386,11 +386,11 @@ class DynamicLinearization(LinearizingController):
     @property
     def state_names(self) -> tuple:
         names = physical_state_names(self.robot) + self.row.extension.comp_names
-        return names + tuple(f"U{i + 1}" for i in range(self.m)) if self.level == "torque" else names
+        return names + tuple(f"U{i + 1}" for i in range(self.m)) if self.level == Level.TORQUE else names
 
     @property
     def velocity_level(self) -> "DynamicLinearization":
-        return DynamicLinearization(self.row, "velocity")
+        return DynamicLinearization(self.row, Level.VELOCITY)
 
     def reference_jet(self, t, params: DynamicParams):
         """``Y_ref, Y_ref', ..., Y_ref^{(r)}`` at time t, shape (r + 1, m), by autodiff."""
@@ -446,7 +446,7 @@ class DynamicLinearization(LinearizingController):
           branch: +1 or -1, sign of :meth:`branch_quantity`.
         """
         g = params.geometry
-        if self.level == "velocity":
+        if self.level == Level.VELOCITY:
             return self.row.psi_inverse(zeta, branch, g)
         zv = self.row.psi_inverse(zeta[:-1], branch, g)
         return jnp.concatenate([zv, self.law.velocity_level.solve_top(zv, zeta[-1], g)])
@@ -504,7 +504,7 @@ class DynamicLinearization(LinearizingController):
         velocities enter through U.
         """
         c, U = self.row.from_physical(X, u, params.geometry)
-        return jnp.concatenate([X, c] + ([U] if self.level == "torque" else []))
+        return jnp.concatenate([X, c] + ([U] if self.level == Level.TORQUE else []))
 
     def initial_state_from_physical(self, X, u, params: DynamicParams):
         """Extended state from a physical state: posture and steering X, wheel velocities u.
@@ -550,7 +550,7 @@ def _physical_jit(ctrl, X, u, params):
     return z, ctrl.branch_quantity(z, params)
 
 
-def dynamic_linearization(robot, level: str = "velocity") -> DynamicLinearization:
+def dynamic_linearization(robot, level: Level | str = Level.VELOCITY) -> DynamicLinearization:
     """The dynamic linearizing posture-tracking controller of Table 4 for a robot type.
 
     Args:
@@ -565,6 +565,4 @@ def dynamic_linearization(robot, level: str = "velocity") -> DynamicLinearizatio
     if rt.name not in TABLE4:
         raise ValueError(f"type {rt.name} has no dynamic extension in Table 4; "
                          f"expected one of {sorted(TABLE4)} (type (3,0) is statically linearizable, Prop 3)")
-    if level not in LEVELS:
-        raise ValueError(f"level must be one of {LEVELS}, got {level!r}")
-    return DynamicLinearization(TABLE4[rt.name], level)
+    return DynamicLinearization(TABLE4[rt.name], check_level(level))

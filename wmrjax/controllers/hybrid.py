@@ -45,7 +45,7 @@ import numpy as np
 from wmrjax import _math, robots
 from wmrjax._validate import concrete
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams, dynamic_linearization
-from wmrjax.controllers.law import Aux
+from wmrjax.controllers.law import Aux, Level
 from wmrjax.references import Reference
 from wmrjax.robots import Geometry
 
@@ -156,7 +156,7 @@ class Hybrid:
 
     psi: Callable = identity
     tracking: DynamicLinearization = dataclasses.field(
-        default_factory=lambda: dynamic_linearization("(2,0)", "velocity"))
+        default_factory=lambda: dynamic_linearization("(2,0)", Level.VELOCITY))
 
     n_state = 10
     state_names = ("x", "y", "theta", "chi1", "mode", "t_switch", "x_switch", "y_switch", "theta_switch", "chi1_switch")

@@ -25,6 +25,7 @@ torque level; the plant input is ``u = plant_input(X, c, U)`` (velocity level) o
 from __future__ import annotations
 
 import dataclasses
+import enum
 import functools
 import math
 from typing import Any, Callable, NamedTuple, Protocol, runtime_checkable
@@ -43,7 +44,25 @@ from wmrjax.robots import Geometry, RobotType
 # runs report the true margin so such events are flagged.
 DET_FLOOR = 1e-12
 
-LEVELS = ("velocity", "torque")
+
+
+class Level(enum.StrEnum):
+    """The model the law commands: velocities (kinematic model 5) or torques (Lemma 1, model 8).
+
+    A string enumeration: ``Level.TORQUE == "torque"`` and they hash alike, so problem files,
+    command-line options and JSON outputs keep the plain names; the code compares members.
+    """
+
+    VELOCITY = "velocity"
+    TORQUE = "torque"
+
+
+def check_level(level) -> Level:
+    """``level`` (a :class:`Level` or its name) as a :class:`Level`; ValueError otherwise."""
+    try:
+        return Level(level)
+    except (ValueError, TypeError):
+        raise ValueError(f"level must be one of {tuple(str(lv) for lv in Level)}, got {level!r}") from None
 
 
 class Aux(NamedTuple):
@@ -51,7 +70,7 @@ class Aux(NamedTuple):
 
     Attributes:
       control: plant input: u (velocity level) or v (torque level).
-      margin: singularity margin, >= 0 (|det K| for the linearizing laws; Remark 14).
+      margin: singularity margin, >= 0 (``|det K|`` for the linearizing laws; Remark 14).
       regularity: optional signed regularity function whose zero set is the singular set
         (``det K`` for the linearizing laws), so that ``margin = |regularity|``; a change of
         its sign between two evaluations of a run is a crossing of the singular set
@@ -141,8 +160,8 @@ class Extension:
       compensator: ``(X, c, U, geometry) -> dc/dt``, affine in U.
       angle_outputs: which outputs are angles: their zeroth-order error is wrapped to
         [-pi, pi) (errata: integrate angles unwrapped, wrap only errors).
-      extra_margin: optional ``(z, geometry) -> scalar`` multiplying |det K| in the
-        singularity margin, for a singular set that |det K| alone misses (the (1,1) lever
+      extra_margin: optional ``(z, geometry) -> scalar`` multiplying ``|det K|`` in the
+        singularity margin, for a singular set that ``|det K|`` alone misses (the (1,1) lever
         L sin(beta) + e cos(beta), errata).
     """
 
@@ -166,7 +185,7 @@ class LinearizingLaw:
     """The generic linearizing law of one extension at one level (static, hashable)."""
 
     extension: Extension
-    level: str  # "velocity" | "torque"
+    level: Level
 
     @property
     def robot(self) -> RobotType:
@@ -178,7 +197,7 @@ class LinearizingLaw:
 
     @property
     def relative_degree(self) -> int:
-        return self.extension.relative_degree + (1 if self.level == "torque" else 0)
+        return self.extension.relative_degree + (1 if self.level == Level.TORQUE else 0)
 
     @property
     def n_velocity_state(self) -> int:
@@ -186,11 +205,11 @@ class LinearizingLaw:
 
     @property
     def n_state(self) -> int:
-        return self.n_velocity_state + (self.m if self.level == "torque" else 0)
+        return self.n_velocity_state + (self.m if self.level == Level.TORQUE else 0)
 
     @property
     def velocity_level(self) -> "LinearizingLaw":
-        return LinearizingLaw(self.extension, "velocity")
+        return LinearizingLaw(self.extension, Level.VELOCITY)
 
     def _velocity_field(self, zv, U, g):
         n = self.robot.n_state
@@ -201,7 +220,7 @@ class LinearizingLaw:
 
     def field(self, z, U, g):
         """Extended dynamics ``dz/dt = F(z) + G(z) U`` (U: new inputs of this level)."""
-        if self.level == "velocity":
+        if self.level == Level.VELOCITY:
             return self._velocity_field(z, U, g)
         nv = self.n_velocity_state
         return jnp.concatenate([self._velocity_field(z[:nv], z[nv:], g), U])
@@ -210,7 +229,7 @@ class LinearizingLaw:
         """The physical input: u (velocity level) or v = du/dt (torque level, by jvp)."""
         n, nv = self.robot.n_state, self.n_velocity_state
         pi = lambda X, c, Uv: self.extension.plant_input(X, c, Uv, g)
-        if self.level == "velocity":
+        if self.level == Level.VELOCITY:
             return pi(z[:n], z[n:], U)
         zdot = self.field(z, U, g)
         return jax.jvp(pi, (z[:n], z[n:nv], z[nv:]), (zdot[:n], zdot[n:nv], U))[1]
@@ -228,7 +247,7 @@ class LinearizingLaw:
         Args:
           z: torque-level state ``(X, c, U)``; u_measured: (n_input,) wheel velocities; g: geometry.
         """
-        if self.level != "torque":
+        if self.level != Level.TORQUE:
             raise ValueError("lift_measured is for torque-level laws (their state carries the velocities)")
         n, nv = self.robot.n_state, self.n_velocity_state
         X, w = z[:n], z[n:]
@@ -259,7 +278,7 @@ class LinearizingLaw:
         return det
 
     def margin_from_det(self, z, det, g):
-        """Singularity margin from ``det K``: |det K| (times the extension's extra factor)."""
+        """Singularity margin from ``det K``: ``|det K|`` (times the extension's extra factor)."""
         return jnp.abs(self.regularity_from_det(z, det, g))
 
     def margin(self, z, g):
@@ -373,7 +392,7 @@ _RK4 = np.array([1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0])
 
 
 def rk4_amplification(s):
-    """|R(s)| of classical RK4 at ``s = dt * lambda`` (stable where <= 1)."""
+    """``|R(s)|`` of classical RK4 at ``s = dt * lambda`` (stable where <= 1)."""
     return np.abs(np.polyval(_RK4, np.asarray(s, complex)))
 
 
@@ -552,7 +571,7 @@ class LinearizingController:
         return U, reg, self.law.error(jet, z_true, params.geometry)
 
     def margin(self, z, params):
-        """Singularity margin at ``z``: |det K| (times the row's extra factor, the (1,1) lever of
+        """Singularity margin at ``z``: ``|det K|`` (times the row's extra factor, the (1,1) lever of
         Table 4); 0 on the singular set."""
         return self.law.margin(z, params.geometry)
 

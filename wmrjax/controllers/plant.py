@@ -32,7 +32,7 @@ import numpy as np
 
 from wmrjax import robots
 from wmrjax._validate import concrete
-from wmrjax.controllers.law import Aux
+from wmrjax.controllers.law import Aux, Level
 from wmrjax.robots import Geometry
 
 
@@ -43,7 +43,7 @@ class PlantParams(NamedTuple):
       law: the wrapped controller's parameters (its nominal geometry, gains, reference).
       geometry: the plant's true :class:`wmrjax.Geometry`.
       input_scale: (n_input,) true input = scale * command (1: exact actuators).
-      input_limit: (n_input,) |true input_i| <= limit_i [m/s, rad/s at velocity level;
+      input_limit: (n_input,) ``|true input_i|`` <= limit_i [m/s, rad/s at velocity level;
         their time derivatives at torque level] (inf: no limit).
     """
 
@@ -75,7 +75,7 @@ class PlantLoop:
     @property
     def _plant_velocity_state(self) -> bool:
         """Dynamic torque-level laws: the plant's wheel velocities are an extra state."""
-        return self.ctrl.level == "torque" and self.ctrl.law.extension.n_comp > 0
+        return self.ctrl.level == Level.TORQUE and self.ctrl.law.extension.n_comp > 0
 
     @property
     def n_state(self) -> int:
@@ -147,7 +147,7 @@ class PlantLoop:
         def actuate(cmd):
             return jnp.clip(scale * cmd, -limit, limit)
 
-        if ctrl.level == "velocity":
+        if ctrl.level == Level.VELOCITY:
             u = actuate(law.plant_control(zl, U, g))
             xdot = robots.kinematic(self.robot, zl[:n], u, params.geometry)
             cdot = law.extension.compensator(zl[:n], zl[n:], U, g)

@@ -35,7 +35,7 @@ import numpy as np
 
 from wmrjax import robots
 from wmrjax._validate import check_int, concrete
-from wmrjax.controllers.law import Aux
+from wmrjax.controllers.law import Aux, Level
 from wmrjax.controllers.plant import PlantLoop, PlantParams
 from wmrjax.robots import Geometry
 
@@ -107,7 +107,7 @@ class SampledLoop:
 
     @property
     def _torque(self) -> bool:
-        return self.ctrl.level == "torque"
+        return self.ctrl.level == Level.TORQUE
 
     @property
     def n_controller(self) -> int:
@@ -261,7 +261,7 @@ def sampled(ctrl, steps_per_sample: int) -> SampledLoop:
     """
     if not hasattr(ctrl, "law") or not hasattr(ctrl, "control_and_regularity"):
         raise ValueError(f"sampled wraps a static or dynamic linearizing controller, got {type(ctrl).__name__}")
-    if ctrl.level == "torque" and ctrl.law.extension.n_comp == 0:
+    if ctrl.level == Level.TORQUE and ctrl.law.extension.n_comp == 0:
         raise ValueError("a sampled-data loop at torque level needs a dynamic law (its state carries the measured "
                          "wheel velocities); a static law's torque-level state is the plant's own")
     return SampledLoop(ctrl, check_int("steps_per_sample", steps_per_sample, 1))

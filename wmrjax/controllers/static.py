@@ -26,7 +26,7 @@ bounds them when :math:`\dot z_{1,ref}` is :math:`L^1`. They are reported: every
 error relative to the reference heading and :math:`\|z_3\|`, and flags a robot that tracks
 its point while it has turned round. The steering outputs of (2,1) (beta) and (1,2)
 (beta2) are free channels: a :class:`Steering` reference (default: the angle that
-maximises |det K|) keeps the law away from its singular set.
+maximises ``|det K|``) keeps the law away from its singular set.
 """
 
 from __future__ import annotations
@@ -41,8 +41,9 @@ import numpy as np
 
 from wmrjax import _math, robots
 from wmrjax._validate import concrete
-from wmrjax.controllers.law import (LEVELS, Extension, LinearizingController, Requirement, check_reference_type,
-                                    check_requirements, make_gains, physical_state_names, validated_physical)
+from wmrjax.controllers.law import (Extension, Level, LinearizingController, Requirement, check_reference_type,
+                                    check_level, check_requirements, make_gains, physical_state_names,
+                                    validated_physical)
 from wmrjax.gains import Gains
 from wmrjax.references import Reference, taylor
 from wmrjax.robots import Geometry, RobotType
@@ -137,7 +138,7 @@ class Table3Row:
       regularity: Table 3's last column (errata determinant).
       requires: geometry :class:`Requirement` s of that condition.
       steering_index: which output is a free steering channel (None: none).
-      default_steering: ``geometry -> angle`` maximising |det K| on that channel.
+      default_steering: ``geometry -> angle`` maximising ``|det K|`` on that channel.
       steering_level: ``(beta, delta) -> |.|`` (NumPy) vanishing where the steering
         reference makes K singular; ``steering_condition`` says it in words.
       default_geometry: the geometry used by the examples and experiments.
@@ -182,7 +183,7 @@ TABLE3: dict[str, Table3Row] = {row.robot.name: row for row in (
 
 
 def default_steering(robot, geometry: Geometry) -> Steering | None:
-    """The steering reference maximising |det K|: beta = delta + pi/2 for (2,1), beta2 = pi/2 for (1,2)."""
+    """The steering reference maximising ``|det K|``: beta = delta + pi/2 for (2,1), beta2 = pi/2 for (1,2)."""
     row = TABLE3[robots.robot_type(robot).name]
     return None if row.default_steering is None else steering_constant(row.default_steering(geometry))
 
@@ -203,7 +204,7 @@ class InternalDynamics(NamedTuple):
       heading_error: robot heading minus the reference heading (path tangent in the
         paper's convention, plus the reference's heading offset), wrapped to [-pi, pi) [rad].
       z3_norm: ||z3|| (theta and the non-output steering angle, unwrapped) [rad].
-      turned_round: |heading_error| > pi/2: the point is tracked with the robot facing
+      turned_round: ``|heading_error|`` > pi/2: the point is tracked with the robot facing
         backwards (the law cannot see it; Prop 5 only bounds z3).
     """
 
@@ -236,7 +237,7 @@ class StaticLinearization(LinearizingController):
     @property
     def state_names(self) -> tuple:
         X = physical_state_names(self.robot)
-        if self.level == "velocity":
+        if self.level == Level.VELOCITY:
             return X
         eta = tuple(f"eta{i + 1}" for i in range(self.robot.delta_m))
         zeta = tuple(f"zeta{i + 1}" for i in range(self.robot.delta_s))
@@ -268,7 +269,7 @@ class StaticLinearization(LinearizingController):
         two real poles were given, so the slower one is the reference model's (eq 14) and the
         faster one the inner loop's. NaN for complex poles, which have no real cascade.
         """
-        if self.level == "velocity":
+        if self.level == Level.VELOCITY:
             return jnp.zeros(self.m, z.dtype)
         err = self.error(t, z, params)
         return err[1] + params.gains.cascade_pole() * err[0]
@@ -343,7 +344,7 @@ class StaticLinearization(LinearizingController):
     def physical_state(self, X, u, params):
         """State X (velocity level) or (X, u) (torque level), no checks (pure)."""
         del params
-        return X if self.level == "velocity" else jnp.concatenate([X, u])
+        return X if self.level == Level.VELOCITY else jnp.concatenate([X, u])
 
     def initial_state_from_physical(self, X, u, params: StaticParams):
         """State X (velocity level) or (X, u) (torque level) from posture/steering X and wheel velocities u.
@@ -379,7 +380,7 @@ class StaticLinearization(LinearizingController):
         return self.row.steering_condition or "a regular reference"
 
 
-def static_linearization(robot, level: str = "velocity") -> StaticLinearization:
+def static_linearization(robot, level: Level | str = Level.VELOCITY) -> StaticLinearization:
     """The static linearizing law: Prop 3 posture tracking for (3,0), Table 3 point tracking otherwise.
 
     Args:
@@ -387,15 +388,13 @@ def static_linearization(robot, level: str = "velocity") -> StaticLinearization:
       level: "velocity" (kinematic model 5; Remark 11, eq 14) or "torque" (model 8; eqs 12, 27-28).
     """
     rt = robots.robot_type(robot)
-    if level not in LEVELS:
-        raise ValueError(f"level must be one of {LEVELS}, got {level!r}")
-    return StaticLinearization(TABLE3[rt.name], level)
+    return StaticLinearization(TABLE3[rt.name], check_level(level))
 
 
 TASKS = ("posture", "point")
 
 
-def controller(robot, level: str = "velocity", task: str = "posture"):
+def controller(robot, level: Level | str = Level.VELOCITY, task: str = "posture"):
     """The uniform entry point: a closed loop for (robot type, level, task).
 
     * ``task="posture"``: (3,0) -> static linearization (Prop 3, eqs 12/14); restricted types
@@ -412,8 +411,7 @@ def controller(robot, level: str = "velocity", task: str = "posture"):
     rt = robots.robot_type(robot)
     if task not in TASKS:
         raise ValueError(f"task must be one of {TASKS}, got {task!r}")
-    if level not in LEVELS:
-        raise ValueError(f"level must be one of {LEVELS}, got {level!r}")
+    level = check_level(level)
     if rt.omnidirectional:
         if task == "point":
             raise ValueError("type (3,0) is omnidirectional: use task='posture' (Prop 3), which includes the point")
