@@ -230,7 +230,7 @@ def main(argv=None) -> int:
     except ValueError as e:
         p.error(str(e))
     # the largest batch: the empirical checks, the slice map, or every ray's grid of radii at once
-    # (--n-directions 1000000 aborted with std::bad_alloc after 90 s)
+    # (checked here: a batch too large otherwise aborts the process in the allocator, late)
     batch = max(cfg["n_empirical"], cfg["map_grid"] ** 2, (cfg["n_directions"] + 1) * EMPIRICAL_GRID)
     options.check_horizon(p, t_final=setting.t_final, dt=setting.dt, batch=batch, saved_every=10)
     s = options.work(p, a, lambda progress: run(a.out, problem, a.case, progress=progress))

@@ -464,8 +464,8 @@ def _warm_up(programs, ctx, raw) -> None:
 
 
 def _preload() -> None:
-    """Import what the end of a run needs (cmaes imports scipy.stats, 0.5 s; matplotlib 0.5 s)
-    on the second thread, while the main one runs the gradient loop."""
+    """Import what the end of a run needs (cmaes, which imports scipy.stats, and matplotlib: slow
+    imports) on the second thread, while the main one runs the gradient loop."""
     import cmaes  # noqa: F401
 
     files.headless_pyplot()

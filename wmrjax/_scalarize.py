@@ -7,8 +7,8 @@ fusions around the ``concatenate``, ``slice`` and ``transpose`` operations that 
 take apart those blocks. Reverse mode makes it worse: the transpose of taking an array
 apart (``unstack``) is assembling one (``concatenate``), and XLA:CPU emits a concatenate
 whose operands are long fused expressions as a branchy per-element loop that recomputes
-the operands' shared work (measured on the section 6.1 loss: three such fusions took
-40-90 us per step each, more than all the arithmetic of the step's backward pass).
+the operands' shared work (on the section 6.1 loss a few such fusions cost more than all the
+arithmetic of the step's backward pass).
 
 :func:`scalarize` traces a function once and re-emits its program with every array of at
 most :data:`MAX_ELEMENTS` elements held as its elements: elementwise primitives are bound

@@ -7,16 +7,13 @@ to rounding, tested); they differ in cost:
 * ``"forward"``: forward sensitivities. The P scalar parameters' tangents are pushed through
   the rollout alongside the state (``jax.jvp``, batched over the P unit directions), so the
   time loop stays one primal loop carrying ``(z, dz/dtheta)``: no residual stack, memory of
-  a forward pass, and a cost of roughly ``1.7 + 2 P`` forward passes on XLA:CPU (measured:
-  9.5x a forward pass for the 4 gains of the section 6.1 loop).
+  a forward pass, and a cost that grows linearly with P.
 * ``"reverse"``: ``jax.value_and_grad`` through the rollout's checkpointed scan (one
   recomputation of each step's RK4 stages, then its transpose; the step's two selection
   flags are stored, see :func:`wmrjax.simulate`; two-level checkpointing for long horizons).
-  Its cost does not grow with P: about 4.6x a forward pass through the batch mean of the
-  section 6.1 loop (1 to 64 parameters; the step runs on scalars, see
-  :func:`wmrjax.scalarized`, so that its transpose assembles no arrays). It compiles about
-  1.5x slower than forward mode and stores the carry of every step (of every chunk of steps
-  for long horizons) for the whole batch.
+  Its cost does not grow with P (the step runs on scalars, see :func:`wmrjax.scalarized`, so
+  that its transpose assembles no arrays). It compiles slower than forward mode and stores
+  the carry of every step (of every chunk of steps for long horizons) for the whole batch.
 * ``"auto"`` (default): forward for at most :data:`FORWARD_MAX_PARAMETERS` scalar
   parameters, reverse above.
 
@@ -24,8 +21,7 @@ to rounding, tested); they differ in cost:
 of independent rollouts with shared parameters. Its reverse mode differentiates each
 example on its own and batches the result (``vmap`` of the per-example ``vjp``), which
 XLA:CPU runs faster than the transpose of the batched loop that ``jax.grad`` of the batch
-mean builds (section 6.1 loop, B = 1024: 3.8x a forward pass with 4 parameters, 3.6x with 8,
-against 4.6x), and keeps one chunk's checkpoints at a time; its forward mode is
+mean builds, and keeps one chunk's checkpoints at a time; its forward mode is
 :func:`value_and_grad`'s, used up to :data:`BATCH_FORWARD_MAX_PARAMETERS` parameters.
 """
 
@@ -41,20 +37,19 @@ from wmrjax.simulate import batch_map
 
 MODES = ("auto", "forward", "reverse")
 
-# forward costs ~1.7 + 2 P forward passes, reverse through the batched loop ~4.6 for the section
-# 6.1 loop whatever P (B = 1024, one process: P = 1 forward 4.0x / reverse 4.5x, P = 2 5.3x /
-# 4.6x, P = 4 9.5x / 4.6x, P = 8 17.8x / 4.6x); reverse compiles ~1.5x slower and stores the
-# batch's carry at every step: "auto" keeps forward mode's memory and compile time up to 2
+# forward mode's cost grows with P, reverse mode's through the batched loop does not (the two
+# are close at P = 2); reverse compiles slower and stores the batch's carry at every step:
+# "auto" keeps forward mode's memory and compile time up to 2 parameters (timings: the docs'
+# benchmarks page)
 FORWARD_MAX_PARAMETERS = 2
 
-# batch_value_and_grad: forward sensitivities carried through the batched loop cost
-# ~1.7 + 2 P forward passes, per-example reverse ~3.7 whatever P (section 6.1 loop, B = 1024,
-# one process: P = 1 forward 4.0x / reverse 3.7x; P = 2 5.3x / 3.8x; P = 4 9.5x / 3.8x; P = 8
-# 17.9x / 3.6x); forward for one parameter (as fast, a forward pass's memory and compile time)
+# batch_value_and_grad: forward sensitivities carried through the batched loop cost more with
+# every parameter, per-example reverse the same whatever P; forward for one parameter (as fast
+# there, with a forward pass's memory and compile time)
 BATCH_FORWARD_MAX_PARAMETERS = 1
 # per-example reverse mode: examples per batch_map chunk (its forward pass, residuals and
-# backward pass run chunk by chunk); section 6.1 loop, B = 1024, 2 devices, one process:
-# 79-80 ms with 256, 82-84 with 128, 89-92 with 512, 90-93 with 1024
+# backward pass run chunk by chunk): the fastest of 128, 256, 512 and 1024 on the section 6.1
+# loop
 BATCH_REVERSE_CHUNK = 256
 
 

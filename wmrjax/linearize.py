@@ -45,11 +45,10 @@ def output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: 
     * ``"nested"``: Lie derivatives by nested ``jax.jvp`` and one more jvp per input; the
       program grows like 2^r.
     * ``"auto"`` (default): nested for r <= :data:`NESTED_MAX_DEGREE`, Taylor above.
-      Measured on XLA:CPU: at r = 2 nested runs 1.5x faster (jet multiplies by the zero
-      series of constants, which IEEE arithmetic cannot fold away) and compiles as fast; at
-      r = 4 ((1,1), torque level) Taylor mode compiled the closed loop in 7 s instead of 19 s
-      and its gradient in 37 s instead of 107 s (before ``simplify``; with it
-      the benchmark's compile table gives 4.3 s and 9.8 s).
+      On XLA:CPU, at r = 2 nested runs faster (jet multiplies by the zero series of
+      constants, which IEEE arithmetic cannot fold away) and compiles as fast; at r = 4
+      ((1,1), torque level) Taylor mode compiles the closed loop and its gradient several
+      times faster (the benchmarks page of the docs has the compile times).
 
     Args:
       field: ``(z, U) -> zdot``, affine in U.
@@ -60,7 +59,7 @@ def output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: 
       method: ``"auto"``, ``"taylor"`` or ``"nested"`` (static).
       simplify: trace the construction once and re-emit it with structural zeros folded and
         repeated operations emitted once (:mod:`wmrjax._simplify`): same values, a smaller
-        program (section 6.1's jet: 911 -> 575 equations, its rollout compiles 25 % faster).
+        program (section 6.1's jet: 911 -> 575 equations, a rollout that compiles faster).
 
     Returns:
       ``(zeta, a, K)``: ``zeta`` (r, m) with ``zeta[j] = Y^{(j)}``; ``a`` (m,) and

@@ -199,8 +199,9 @@ def product(named: dict) -> dict:
     names = list(named)
     sizes = [len(named[k]) for k in names]
     runs = math.prod(sizes)
-    # the index grid and the columns: refused before allocating (a 1e8-run grid took 22 s and 6.5 GB
-    # to fail with MemoryError); PRODUCT_COPIES arrays of runs x names numbers are alive at once
+    # the index grid and the columns: refused before allocating (a grid too large otherwise fails
+    # only after a long allocation, with MemoryError); PRODUCT_COPIES arrays of runs x names
+    # numbers are alive at once
     try:
         resources.check_fits(resources.Estimate(0.0, PRODUCT_COPIES * runs * max(1, len(names)) * 8.0),
                              f"a grid of {runs} runs over {names}", "sweep fewer values")
@@ -908,7 +909,7 @@ def _random_references(fam, rs, base, law):
     return refs, {"reference_index": np.arange(count, dtype=float)}
 
 
-# level 1 of XLA's backend optimization: a compile 25 % shorter than the default's, the same bits
+# level 1 of XLA's backend optimization: a shorter compile than the default's, the same bits
 # (level 0 changes the draws' last bits, hence the references)
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3), compiler_options={"xla_backend_optimization_level": 1})
 def _draw_references(make, opts: tuple, seed: int, count: int):

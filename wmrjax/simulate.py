@@ -5,22 +5,23 @@ initial states, references, gains or geometry, and differentiate it with ``jax.g
 It is jitted once at this entry point (the closed-loop object, the step count and the
 saving stride are static).
 
-Five implementation choices matter for speed on CPUs (measured in
-``experiments/benchmark.py``):
+Five implementation choices matter for speed on CPUs (``experiments/benchmark.py`` times
+them; its results are on the benchmarks page of the docs):
 
 * the scan carry is a tuple of scalars, one per state component, so that under
   ``vmap`` each component is a contiguous batch array (structure of arrays) and the
   whole RK4 step fuses into one vectorised loop;
 * the step itself is re-emitted on scalars (:mod:`wmrjax._scalarize`: the law's small
   matrices and jets as their elements) and the parameters enter it as scalars, so that
-  neither the step nor its transpose assembles or takes apart an array: on the section
-  6.1 loop this made the rollout 1.7x and its reverse-mode gradient 2.2x faster;
+  neither the step nor its transpose assembles or takes apart an array (which XLA:CPU
+  compiles into slow per-element loops, see :mod:`wmrjax._scalarize`): the rollout, and
+  its reverse-mode gradient more so, run faster;
 * the large laws (:data:`STAGE_LOOP_MIN_EQUATIONS`) run the four RK stages in a loop over
-  one copy of the field, checkpointed stage by stage: their programs compile 1.8-3.5x faster;
+  one copy of the field, checkpointed stage by stage: their programs compile faster;
 * the vector fields use :func:`wmrjax._math.sincos`, which XLA vectorises;
 * reverse mode recomputes each step from its input carry but stores the step's two flags
   that select the next state, so that the recomputation is the RK4 stages alone, without the
-  diagnostics and the error estimate (the section 6.1 gradient 1.4x faster).
+  diagnostics and the error estimate.
 
 A run *fails* when its state, its control or a step's error estimate becomes non-finite
 (an estimate that overflows leaves the step's accuracy unknown), its singularity margin drops to
@@ -53,12 +54,10 @@ TWO_LEVEL_CHECKPOINT_STEPS = 2000
 # the loop body runs on scalars; laws whose scalarized vector field has at least this many
 # equations run the four RK stages in a loop over one copy of it, checkpointed stage by stage
 # (the six dynamic laws from (1,2) velocity, 303 equations, to (1,1) torque, 949; the largest
-# of the others has 205). Measured (1000 steps, B = 1024 or 256, 2 cores): their programs
-# compile 1.8-3.5x faster (a (1,2) velocity gradient 8.1 -> 2.3 s) and run as fast or faster (its
-# gradient 2.0 -> 1.3 s, (1,2) torque 2.5x faster forward); the unrolled step of the two
-# largest was a fused scalar program that XLA:CPU's loop emitter (JAX 0.10.2) compiled in
-# 40+ s into code 40-1000x slower. Small laws keep the unrolled step: the stage loop made the
-# section 6.1 law (153 equations) 30 % slower.
+# of the others has 205): their programs, and their gradients', compile faster and run as fast
+# or faster, where the unrolled step of the two largest is a fused scalar program that XLA:CPU's
+# loop emitter compiles slowly, into slow code. Small laws keep the unrolled step, which runs
+# faster for them (the section 6.1 law has 153 equations).
 STAGE_LOOP_MIN_EQUATIONS = 250
 # reverse mode stores these flags of every step (see _simulate)
 _SAVED_FLAGS = ("wmrjax_step_ok", "wmrjax_step_finite")
@@ -171,7 +170,7 @@ def _rk4_stage_loop(field, t, z, dt, parts, rebuild):
     loop over one copy of the field, on scalars.
 
     For the largest laws: the loop body holds one copy of the field instead of four, so XLA
-    compiles the step 1.8-3.5x faster (and its fused scalar program stays small enough for
+    compiles the step faster (and its fused scalar program stays small enough for
     XLA:CPU's loop emitter, see :data:`STAGE_LOOP_MIN_EQUATIONS`). The state, the stages and
     the parameters (``parts``, from :func:`scalar_parts`) enter the body as scalars. Each stage
     is checkpointed: reverse mode stores a stage's input (a few scalars), not the residuals of
@@ -476,7 +475,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # Reverse mode: rematerialise each step instead of storing its intermediates (the
     # jet of the linearizing law has hundreds); the backward pass then stays in cache. It
     # stores the step's two flags that select the next state: the recomputation is then the
-    # RK4 stages alone (section 6.1 loop, B = 1024: the gradient 1.4x faster).
+    # RK4 stages alone, a faster gradient.
     step = jax.checkpoint(lambda carry, i: step_on_scalars(carry, i, params_parts), prevent_cse=False,
                           policy=jax.checkpoint_policies.save_only_these_names(*_SAVED_FLAGS))
     if sample is not None:
@@ -800,8 +799,8 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
         or when the sign of its regularity function changes between two steps.
       error_tol: a run fails (``inaccurate``) when a step's local error estimate (relative
         to ``1 + max_i |z_i|``; :attr:`Diagnostics.error_estimate`) exceeds it (> 0). ``None``
-        compiles the loop without the estimate (``error_estimate`` is then 0): about 10 %
-        faster on CPUs, for sweeps whose step is known to be accurate.
+        compiles the loop without the estimate (``error_estimate`` is then 0): a little
+        faster, for sweeps whose step is known to be accurate.
       save_fn: what to save at each saved time instead of the state (static, hashable):
         ``save_fn(t, z, aux) -> pytree`` (e.g. a few loss terms); ``Trajectory.state`` then holds
         its outputs (a leading axis of T); ``final_state`` stays the state. None: the state.

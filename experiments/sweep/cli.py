@@ -58,7 +58,7 @@ def main(argv=None) -> int:
         a.out = Path("results") / "sweeps" / a.spec.stem
     n_proc = a.num_processes if distributed else a.processes
     cores = os.cpu_count() or 1
-    # more processes or host devices than cores run no faster (--devices 4096 ran 8x slower) and
+    # more processes or host devices than cores run no faster (many more run much slower) and
     # each process holds its own JAX (about 0.6 GB)
     if a.processes > cores:
         options.fail(p, f"--processes {a.processes} is more than this machine's {cores} cores")
