@@ -3,7 +3,7 @@ against the machine before anything compiles.
 
 The model counts the arrays that grow with the problem and multiplies them by factors
 measured on this code (growth of the peak resident memory over a warm baseline, float64, CPU;
-the numbers are in the README's "Memory estimates" and ``tests/test_resources.py``):
+the measurements are on the docs' benchmarks page and in ``tests/test_resources.py``):
 
 * a saved sample of one run: the state (n), the control (at most n), the margin, the valid
   flag and the time, and the copy handed back to NumPy: ``(2 n + SAMPLE_EXTRA_FLOATS)``

@@ -132,7 +132,7 @@ def parser(description: str, default_out: str | None, compile_cache: bool = True
 def use_compilation_cache(args) -> Path | None:
     """Turn on JAX's persistent compilation cache in ``args.compile_cache`` (unless
     ``--no-compile-cache``): every program is stored there (the small ones too: a tuning run
-    compiles about 100 programs of 20-70 ms, 2 s in all) and loaded by later runs of any
+    compiles about 100 small programs) and loaded by later runs of any
     command line. Call it after parsing, before any JAX work; the
     library never does this on import. Returns the directory, or None when off."""
     path = None if args.no_compile_cache else args.compile_cache

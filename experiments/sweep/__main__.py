@@ -1,4 +1,4 @@
-"""``python -m experiments.sweep SPEC.toml --out DIR``: run a sweep file (see the README)."""
+"""``python -m experiments.sweep SPEC.toml --out DIR``: run a sweep file (see docs/problem_files.md)."""
 
 import sys
 

@@ -22,7 +22,7 @@ def parser():
     from wmrjax_cli import options
 
     p = common.parser(DOC, default_out=None)
-    p.add_argument("spec", type=Path, help="the sweep file (TOML; see the README and experiments/sweeps/)")
+    p.add_argument("spec", type=Path, help="the sweep file (TOML; see docs/problem_files.md and experiments/sweeps/)")
     p.add_argument("--out", type=Path, default=None, help="output directory (default: results/sweeps/<spec name>)")
     p.add_argument("--fresh", action="store_true", help="discard finished blocks of an earlier run in --out")
     p.add_argument("--gains", type=Path, nargs="+", default=None,

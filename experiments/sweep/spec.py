@@ -3,7 +3,7 @@ key before anything compiles) turned into a :class:`Plan` -- groups of runs, one
 robot type and level, each the Cartesian product of five axes: geometry, plant, reference,
 gains, initial condition -- cut into blocks.
 
-The file format is the problem's (see :mod:`wmrjax.problem` and the README); the sweep reads
+The file format is the problem's (see :mod:`wmrjax.problem` and docs/problem_files.md); the sweep reads
 its ``[simulation]`` keys ``block``, ``error_tol``, ``distance_every`` and its ``[classify]``
 section. ``experiments/sweeps/*.toml`` are complete examples.
 """
