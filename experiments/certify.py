@@ -191,8 +191,8 @@ def problem_from_args(a):
 
 
 def main(argv=None) -> int:
-    from wmrjax_cli import options
     from wmrjax import references as R
+    from wmrjax_cli import options
 
     p = common.parser(__doc__.splitlines()[0], "results/certify")
     p.add_argument("file", type=Path, nargs="?", default=None,

@@ -201,8 +201,8 @@ def _figure(out, title, slice_, eps, base, points) -> None:
 def main(argv=None) -> int:
     import jax
 
-    from wmrjax_cli import options
     from wmrjax.problem import Problem
+    from wmrjax_cli import options
 
     p = parser()
     a = p.parse_args(argv)

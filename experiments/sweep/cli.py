@@ -97,9 +97,8 @@ def problem_of(a):
 
 def _launch(p, a, devices: int) -> int:
     """Start ``--processes`` local processes (jax.distributed over 127.0.0.1) and wait for them."""
-    from wmrjax_cli import options
-
     from experiments.sweep import spec as S
+    from wmrjax_cli import options
     common.enable_x64()
     from experiments.sweep import run
     try:                            # refuse a bad file or another sweep's --out here, before starting anything
