@@ -165,3 +165,13 @@ def test_two_sweeps_into_one_directory(tmp_path):
     s = json.loads((out / "summary.json").read_text())
     assert s["problem"]["gains"]["poles"] == 1.0
     assert not (out / files.LOCK_NAME).exists()
+
+
+def test_the_command_lines_say_which_extra_they_need():
+    """Without the cli extra a command line is refused at import, naming what to install,
+    instead of computing and then failing on an import when it writes its figures."""
+    code = ("import runpy, sys; sys.modules['pyarrow'] = None; sys.argv = ['section_6_1', '--help']; "
+            "runpy.run_module('experiments.section_6_1', run_name='__main__')")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode != 0
+    assert 'pip install "wmrjax[cli]"' in done.stderr and "pyarrow" in done.stderr
