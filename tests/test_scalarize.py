@@ -292,3 +292,56 @@ def test_stage_loop_rule_picks_the_large_laws():
         z = ctrl.reference_state(0.0, params)
         out[kind] = _stage_loops(lambda z: w.simulate(ctrl, z, params, dt=0.01, n_steps=3).final_state, z)
     assert out == {"(2,0)": 0, "(1,2)": 1}
+
+
+def _rollouts(ctrl, params, z0s):
+    """A small batch of short rollouts and the gradient of a loss over them in the gains."""
+
+    def loss(coeffs):
+        p = params._replace(gains=w.Gains(coeffs))
+        tr = jax.vmap(lambda z: w.simulate(ctrl, z, p, dt=0.01, n_steps=40, save_every=10))(z0s)
+        return jnp.sum(tr.state ** 2) + jnp.sum(tr.control ** 2), tr
+
+    (value, tr), grad = jax.value_and_grad(loss, has_aux=True)(params.gains.coeffs)
+    def scan_prims(j):          # the primitives of the time loop's bodies
+        out = []
+        for e in j.eqns:
+            subs = list(jax.extend.core.jaxprs_in_params(e.params))
+            out += [p for sub in subs for p in (_all_prims(sub) if e.primitive.name == "scan" else scan_prims(sub))]
+        return out
+
+    return tr, grad, scan_prims(jax.make_jaxpr(lambda c: loss(c)[0])(params.gains.coeffs).jaxpr)
+
+
+def test_rewrites_can_be_switched_off_with_the_same_values(paper61, monkeypatch):
+    """WMRJAX_JAXPR_REWRITES=0: simulate runs the plain JAX program (its loop assembles the law's
+    arrays, and is larger) with the rewritten program's values (1e-12 relative)
+    and gradient, on the section 6.1 velocity-level loop and a torque-level loop; another value
+    is refused."""
+    from wmrjax import references
+
+    ctrl, params, z0 = paper61[:3]
+    torque = w.dynamic_linearization("(2,1)", "torque")
+    tparams = torque.params(references.circle(radius=2.0, omega=0.4), poles=1.5,
+                            geometry=torque.row.default_geometry)
+    tz0 = torque.reference_state(0.0, tparams)
+    cases = [(ctrl, params, z0 + jnp.array([[0.0], [0.05], [-0.05]]) * jnp.ones_like(z0)),
+             (torque, tparams, tz0 + jnp.array([[0.0], [0.02], [-0.02]]) * jnp.ones_like(tz0))]
+    monkeypatch.delenv(_simplify.REWRITES_ENV, raising=False)
+    rewritten = [_rollouts(*case) for case in cases]
+    jax.clear_caches()
+    monkeypatch.setenv(_simplify.REWRITES_ENV, "0")
+    plain = [_rollouts(*case) for case in cases]
+    for (tr1, g1, p1), (tr2, g2, p2) in zip(rewritten, plain):
+        assert "concatenate" not in p1 and "concatenate" in p2 and len(p2) > len(p1)
+        assert not np.asarray(tr1.diagnostics.failed).any()
+        for a, b in ((tr1.state, tr2.state), (tr1.control, tr2.control), (tr1.margin, tr2.margin)):
+            np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-13)
+        np.testing.assert_array_equal(tr2.valid, tr1.valid)
+        np.testing.assert_allclose(tr2.diagnostics.error_estimate, tr1.diagnostics.error_estimate, rtol=1e-6)
+        np.testing.assert_allclose(g2, g1, rtol=1e-12)
+        assert np.all(np.abs(np.asarray(g1)) > 0)
+    monkeypatch.setenv(_simplify.REWRITES_ENV, "no")
+    with pytest.raises(ValueError, match="WMRJAX_JAXPR_REWRITES must be 0"):
+        w.simulate(ctrl, z0, params, dt=0.01, n_steps=4)
+    jax.clear_caches()

@@ -129,3 +129,22 @@ def test_simulate_program_has_no_per_element_pads_in_reverse_mode():
     assert sum(e.primitive.name == "split" for e in prog) > 40
     assert not per_element, [str(e) for e in per_element[:3]]
     assert len(pads) < 60       # the remaining ones: X[:3] of the (4,) state, one per use
+
+
+def test_zero_folding_ieee_caveat_and_the_switch(monkeypatch):
+    """The documented IEEE caveat: a structural zero times an infinity and a structural zero
+    divided by zero fold to 0 under the simplifier, where the plain program (the switch
+    WMRJAX_JAXPR_REWRITES=0) gives NaN; finite operands give the same values either way."""
+    f = lambda x: (0.0 * x, 0.0 / x, jnp.zeros(2) @ jnp.stack([x, x]))
+    inf, zero, one = jnp.asarray(jnp.inf), jnp.asarray(0.0), jnp.asarray(1.5)
+    monkeypatch.delenv(_simplify.REWRITES_ENV, raising=False)
+    g = _simplify.simplify(f)
+    assert "mul" not in _prims(g, one) and "div" not in _prims(g, one)          # folded at trace time
+    assert [float(v) for v in g(inf)] == [0.0, 0.0, 0.0]                         # 0 * inf, 0 * inf summed
+    assert float(g(zero)[1]) == 0.0                                              # 0 / 0
+    monkeypatch.setenv(_simplify.REWRITES_ENV, "0")
+    g = _simplify.simplify(f)           # a new function: JAX caches the traces of the old one
+    assert _prims(g, one) == _prims(f, one)                                      # the plain program
+    assert np.isnan(float(g(inf)[0])) and np.isnan(float(g(inf)[2])) and np.isnan(float(g(zero)[1]))
+    for x in (zero, one):
+        assert [float(v) for v in g(x)][::2] == [0.0, 0.0]

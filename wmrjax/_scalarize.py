@@ -24,6 +24,11 @@ summed left to right).
 
 Compose with :func:`wmrjax._simplify.simplify`, which then folds the structural zeros and
 repeated operations that scalarization exposes (element by element).
+
+``WMRJAX_JAXPR_REWRITES=0`` in the environment turns :func:`scalarize` (and
+:func:`wmrjax._simplify.simplify`) into plain calls of the function, read when it is traced: the
+plain JAX program, without this module's reliance on JAX's internal jaxpr interfaces (see
+:func:`wmrjax._simplify.rewrites_enabled`).
 """
 
 from __future__ import annotations
@@ -36,6 +41,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.extend import core as jex_core
+
+from wmrjax._simplify import rewrites_enabled
 
 # arrays with at most this many elements are held as elements
 MAX_ELEMENTS = 64
@@ -314,11 +321,14 @@ def scalarize(fun):
 
     Returns:
       A function with ``fun``'s signature and values (up to the order of summation in dot
-      products and reductions).
+      products and reductions); ``fun`` itself when ``WMRJAX_JAXPR_REWRITES=0``
+      (:func:`wmrjax._simplify.rewrites_enabled`).
     """
 
     @functools.wraps(fun)
     def scalarized(*args):
+        if not rewrites_enabled():
+            return fun(*args)
         closed, shapes = jax.make_jaxpr(fun, return_shape=True)(*args)
         jaxpr = closed.jaxpr
         flat = jax.tree_util.tree_leaves(args)

@@ -22,17 +22,47 @@ from 911 to 575 equations; its rollout compiles faster and runs bit for bit the 
 for reverse mode: the transpose of n element slices is n zero-padded vectors summed, that of
 one split a single ``concatenate``, which makes the reverse-mode gradient of the section 6.1
 loss markedly cheaper.
+
+IEEE caveat of (1): a structural zero times anything is folded to zero, and so is a structural
+zero divided by anything, so ``0 * x`` with ``x`` infinite and ``0 / x`` with ``x`` zero give 0
+where the plain program gives NaN (``tests/test_simplify.py`` shows both). The zeros of a jet
+are exact, so the two differ only where an operand is already infinite or a zero is divided by
+zero; there the plain program's NaN reaches the outputs (and :func:`wmrjax.simulate` fails the
+run as non-finite), while the rewritten one can hide it when the infinity reaches the outputs
+no other way. Run with the switch below off to tell the two apart.
+
+Switch: the environment variable ``WMRJAX_JAXPR_REWRITES`` (:data:`REWRITES_ENV`). ``0``
+turns :func:`simplify` and :func:`wmrjax._scalarize.scalarize` into plain calls of the
+function (the program JAX traces, no rewriting, no reliance on JAX's internal jaxpr
+interfaces); unset, empty or ``1`` rewrite (the default). It is read when a function is traced
+(:func:`rewrites_enabled`): :func:`wmrjax.simulate` keys its compiled program on it, other
+compiled functions keep the choice of their first trace (set it before the process uses
+wmrjax, or call ``jax.clear_caches()`` after changing it).
 """
 
 from __future__ import annotations
 
 import functools
+import os
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.extend import core as jex_core
+
+
+REWRITES_ENV = "WMRJAX_JAXPR_REWRITES"
+
+
+def rewrites_enabled() -> bool:
+    """Whether the jaxpr rewriters (:func:`simplify`, :func:`wmrjax._scalarize.scalarize`) rewrite
+    the programs they trace: ``WMRJAX_JAXPR_REWRITES`` unset, empty or ``1`` (yes, the default) or
+    ``0`` (no: the plain JAX program); ValueError for another value."""
+    value = os.environ.get(REWRITES_ENV, "").strip()
+    if value not in ("", "0", "1"):
+        raise ValueError(f"{REWRITES_ENV} must be 0 (plain JAX programs) or 1 (rewritten, the default), got {value!r}")
+    return value != "0"
 
 
 class _Zero:
@@ -260,12 +290,16 @@ def simplify(fun):
       fun: a function of arrays (pytrees in and out), traceable by JAX.
 
     Returns:
-      A function with ``fun``'s signature and values: at each call it traces ``fun`` to a
-      jaxpr (with abstract arguments) and evaluates that jaxpr simplified.
+      A function with ``fun``'s signature and values (but for the IEEE caveat of the module
+      docstring: ``0 * inf`` and ``0 / 0`` fold to 0): at each call it traces ``fun`` to a jaxpr
+      (with abstract arguments) and evaluates that jaxpr simplified; ``fun`` itself when
+      ``WMRJAX_JAXPR_REWRITES=0`` (:func:`rewrites_enabled`).
     """
 
     @functools.wraps(fun)
     def simplified(*args):
+        if not rewrites_enabled():
+            return fun(*args)
         closed, shapes = jax.make_jaxpr(fun, return_shape=True)(*args)
         flat = jax.tree_util.tree_leaves(args)
         outs = _eval(closed.jaxpr, closed.consts, flat)

@@ -23,6 +23,13 @@ them; its results are on the benchmarks page of the docs):
   that select the next state, so that the recomputation is the RK4 stages alone, without the
   diagnostics and the error estimate.
 
+The rewriting of the step (:mod:`wmrjax._scalarize`, :mod:`wmrjax._simplify`) reads JAX's
+internal jaxpr interfaces. ``WMRJAX_JAXPR_REWRITES=0`` in the environment runs the plain JAX
+program instead (same values to rounding, but for the simplifier's IEEE caveat: it folds
+``0 * inf`` and ``0 / 0`` to 0); :func:`simulate` reads it at every call and compiles a program
+for each setting. Use it to rule the rewriters out when a result looks wrong, or when a new
+JAX breaks them.
+
 A run *fails* when its state, its control or a step's error estimate becomes non-finite
 (an estimate that overflows leaves the step's accuracy unknown), its singularity margin drops to
 ``margin_floor`` or below, the sign of its regularity function (det K) changes between two
@@ -301,7 +308,8 @@ def scalarized(fun):
     with no array assembled or taken apart. :func:`simulate` runs its RK4 step this way; use
     it for hand-written loops (the tuner's sampled-data rollout does). Pass the state as
     scalars (a tuple) and close over parameters taken apart into scalars, or the body takes
-    them apart (and its transpose assembles them) at every call.
+    them apart (and its transpose assembles them) at every call. ``WMRJAX_JAXPR_REWRITES=0``
+    in the environment (read when the body is traced) leaves ``fun`` as it is.
 
     Args:
       fun: a function of arrays (pytrees in and out), traceable by JAX.
@@ -422,8 +430,10 @@ def _first_float(z):
     return jnp.reshape(leaves[0], (-1,))[0]
 
 
-@functools.partial(jax.jit, static_argnames=("system", "n_steps", "save_every", "save_fn"))
-def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn=None):
+@functools.partial(jax.jit, static_argnames=("system", "n_steps", "save_every", "save_fn", "rewrites"))
+def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn=None, rewrites=True):
+    # rewrites: WMRJAX_JAXPR_REWRITES, read by the rewriters themselves when this traces; an
+    # argument so that the compiled program is keyed on it
     dtype = jnp.result_type(*[x for x in jax.tree_util.tree_leaves(z0) if _is_continuous(x)])
     dt = jnp.asarray(dt, dtype)
     t0 = jnp.asarray(t0, dtype)
@@ -775,6 +785,10 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
              error_tol=1e-3, save_fn=None) -> Trajectory:
     """Simulate one closed loop with fixed-step RK4.
 
+    The step is re-emitted on scalars and simplified (module docstring);
+    ``WMRJAX_JAXPR_REWRITES=0`` in the environment, read at each call, runs the plain JAX
+    program instead.
+
     Args:
       system: a closed-loop object (static, hashable) with
         ``vector_field(t, z, params) -> (dz/dt, aux)``, ``aux`` an :class:`wmrjax.Aux`
@@ -812,7 +826,8 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
       ValueError: on a non-positive ``dt``, ``n_steps`` or ``save_every``, a non-finite
         ``t0``, a negative or NaN ``margin_floor`` or ``error_tol``, a non-finite, complex or
         wrongly-shaped ``z0``, a run larger than the memory available (:mod:`wmrjax.resources`), or
-        what the system's ``check_run`` refuses (all checked before compilation).
+        what the system's ``check_run`` refuses, or a ``WMRJAX_JAXPR_REWRITES`` other than 0 or 1
+        (all checked before compilation).
     """
     n_steps = check_int("n_steps", n_steps, 1)
     save_every = check_int("save_every", save_every, 1)
@@ -835,7 +850,8 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
         check_run(params, t0=t0, dt=dt, n_steps=n_steps)
     if save_fn is not None and not callable(save_fn):
         raise ValueError(f"save_fn must be a function (t, z, aux) -> pytree, got {type(save_fn).__name__}")
-    return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn)
+    return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn,
+                     _simplify.rewrites_enabled())
 
 
 def _check_scalars(dt, t0, margin_floor, error_tol):
