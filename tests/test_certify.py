@@ -172,6 +172,55 @@ def test_consistency_alarms():
     assert consistency({}, exact, {"full": NS(radius=None), "position": None}) == (True, [])
 
 
+def _small_analyse(paper61, **kw):
+    """The certification pipeline on the section 6.1 loop over 2 s, with few samples and rays."""
+    ctrl, params, _ = paper61
+    return C.analyse(ctrl, params, **({"t_final": 2.0, "dt": 0.02, "n_empirical": 32, "n_directions": 4,
+                                       "n_starts": 0} | kw))
+
+
+def test_a_wrong_k2_raises_the_lemma2_alarm(paper61, monkeypatch):
+    """The pipeline's first alarm, end to end: a deliberately wrong K2 (a quarter of ||e^{At}||,
+    so (53) fails from t = 0 and the certified radius is four times too large) is violated inside
+    its own certificate, which analyse warns about and lists in its alarms."""
+    import importlib
+
+    from wmrjax.certify import pipeline
+
+    L = importlib.import_module("wmrjax.certify.lemma2")      # the module (C.lemma2 is the function)
+    k2 = L.k2_exact
+    wrong = lambda A, ts: 0.25 * k2(A, ts)
+    monkeypatch.setattr(L, "k2_exact", wrong)               # the certificate's K2 (lemma2)
+    monkeypatch.setattr(pipeline, "k2_exact", wrong)        # and the bound (53) checked on the runs
+    with pytest.warns(RuntimeWarning, match="LEMMA 2 VIOLATED inside the exact_norm certificate"):
+        report = _small_analyse(paper61)
+    assert report.empirical["exact_norm"].violations_53_inside > 0
+    assert report.empirical["lyapunov"].violations_53_inside == 0            # the other K2s hold
+    assert [a for a in report.alarms if "LEMMA 2" in a] == [a for a in report.alarms if "exact_norm" in a]
+
+
+def test_a_failure_inside_a_certified_ball_raises_the_falsifier_alarm(paper61, monkeypatch):
+    """The pipeline's second alarm, end to end: a falsifier that finds a confirmed failure at
+    half the largest certified radius (as it would if a certificate were wrong) makes analyse warn
+    that a certified radius exceeds a falsified one and report certified_below_falsified False
+    (and, the exact map being tight, that the exact map and the falsifier disagree)."""
+    from wmrjax.certify import pipeline
+    from wmrjax.certify.falsify import FalsifiedRadius
+
+    def falsifier(ctrl, params, *, r_lo, basis, **kw):
+        return FalsifiedRadius(0.5 * r_lo, None, 0.0, 1, (0.0, 0.5 * r_lo), r_lo, None, 1.0)
+
+    monkeypatch.setattr(pipeline, "falsified_radius", falsifier)
+    with pytest.warns(RuntimeWarning) as caught:
+        report = _small_analyse(paper61, n_empirical=0, n_starts=1)
+    assert not report.certified_below_falsified
+    warned = [str(m.message) for m in caught]
+    exceeded = [m for m in warned if m.startswith("a certified radius exceeds a falsified one")]
+    assert any("Lemma 2 (exact_norm)" in m and "full error space" in m for m in exceeded)
+    assert set(warned) == set(report.alarms)      # the exact maps disagree with it too: their own alarm
+    assert any(m.startswith("the exact-map radius (full)") for m in warned)
+
+
 def test_exact_map_radius_is_tight_and_above_lemma2(paper61, cert61, exact61):
     ctrl, params, _ = paper61
     full, pos = exact61["full"], exact61["position"]
