@@ -34,7 +34,11 @@ def test_section_6_1_outputs(tmp_path):
     assert abs(l2["radius_exact_map"] - 4.99) < 1e-9 and 8.7 < l2["radius_exact_map_position_slice"] < 8.9
     # the rays include the exact map's worst direction: simulation finds the same radius
     assert abs(l2["empirical_radius_position_slice"] - l2["radius_exact_map_position_slice"]) < 1e-2
-    assert l2["falsified_full"]["radius"] is None and l2["certified_below_falsified"]
+    # no falsifier here (n_starts = 0, so no falsified radius: it is checked where it is computed,
+    # tests/test_certify_tightness.py); every Lemma 2 radius lies below the exact map's, which the
+    # simulated rays above confirm
+    assert l2["falsified_full"] == {"radius": None, "skipped": "n_starts = 0"}
+    assert max(l2[f"radius_{n}"] for n in ("paper", "lyapunov", "exact_norm")) <= l2["radius_exact_map"]
     for name in ("paper", "lyapunov", "exact_norm"):
         assert l2["empirical"][name]["violations_53_inside"] == 0 and l2["empirical"][name]["singular_inside"] == 0
     for fig in ["fig7_F.png", "fig8_paths.png", "fig9_errors.png"]:
