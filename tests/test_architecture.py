@@ -430,3 +430,20 @@ def test_levels_are_one_enumeration():
     assert json.dumps({w.Level.TORQUE: 1}) == '{"torque": 1}'
     assert w.dynamic_linearization("(2,0)", "torque") == w.dynamic_linearization("(2,0)", w.Level.TORQUE)
     assert w.controller("(2,1)", "torque", "point").level is w.Level.TORQUE
+
+
+MAX_FUNCTION_LINES = 80
+
+
+def test_no_long_functions_in_the_library():
+    """No function or method of wmrjax/ is longer than MAX_FUNCTION_LINES lines, from its
+    ``def`` to its last line (docstring and nested functions included): a longer one is cut in
+    named pieces."""
+    long = []
+    for f in _sources("wmrjax"):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    long.append(f"{f.relative_to(ROOT)}:{node.lineno} {node.name} ({n} lines)")
+    assert not long, "functions longer than the limit: " + ", ".join(long)
