@@ -432,8 +432,7 @@ def _first_float(z):
 
 @functools.partial(jax.jit, static_argnames=("system", "n_steps", "save_every", "save_fn", "rewrites"))
 def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn=None, rewrites=True):
-    # rewrites: WMRJAX_JAXPR_REWRITES, read by the rewriters themselves when this traces; an
-    # argument so that the compiled program is keyed on it
+    # rewrites (WMRJAX_JAXPR_REWRITES, which the rewriters read as this traces): a key of the compiled program
     dtype = jnp.result_type(*[x for x in jax.tree_util.tree_leaves(z0) if _is_continuous(x)])
     dt = jnp.asarray(dt, dtype)
     t0 = jnp.asarray(t0, dtype)
@@ -785,9 +784,8 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
              error_tol=1e-3, save_fn=None) -> Trajectory:
     """Simulate one closed loop with fixed-step RK4.
 
-    The step is re-emitted on scalars and simplified (module docstring);
-    ``WMRJAX_JAXPR_REWRITES=0`` in the environment, read at each call, runs the plain JAX
-    program instead.
+    ``WMRJAX_JAXPR_REWRITES=0`` in the environment (read at each call) runs the plain JAX
+    program, without the step's rewriting (module docstring).
 
     Args:
       system: a closed-loop object (static, hashable) with
