@@ -51,7 +51,6 @@ import numpy as np
 from jax import lax
 from jax.extend import core as jex_core
 
-
 REWRITES_ENV = "WMRJAX_JAXPR_REWRITES"
 
 

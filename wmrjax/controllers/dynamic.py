@@ -29,9 +29,9 @@ import numpy as np
 
 from wmrjax import _math, robots
 from wmrjax._validate import check_finite, check_real, check_shape, concrete
-from wmrjax.controllers.law import (DET_FLOOR, Extension, Level, LinearizingController, Requirement,
+from wmrjax.controllers.law import (DET_FLOOR, Extension, Level, LinearizingController, Requirement, check_level,
                                     check_reference_type, check_requirements, make_gains, physical_state_names,
-                                    check_level, validated_physical)
+                                    validated_physical)
 from wmrjax.gains import Gains
 from wmrjax.references import Reference, taylor
 from wmrjax.robots import Geometry, RobotType

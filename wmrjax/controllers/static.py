@@ -41,8 +41,8 @@ import numpy as np
 
 from wmrjax import _math, robots
 from wmrjax._validate import concrete
-from wmrjax.controllers.law import (Extension, Level, LinearizingController, Requirement, check_reference_type,
-                                    check_level, check_requirements, make_gains, physical_state_names,
+from wmrjax.controllers.law import (Extension, Level, LinearizingController, Requirement, check_level,
+                                    check_reference_type, check_requirements, make_gains, physical_state_names,
                                     validated_physical)
 from wmrjax.gains import Gains
 from wmrjax.references import Reference, taylor
