@@ -42,8 +42,15 @@ def initial_states_numpy(batch):
     b = np.arange(batch)
     p = A62 * 1000.0 + 5 * S2 / 6
     pd = -6 * A62 * 100.0 - S2 / 2
-    return np.stack([p - 0.54 + 0.1 * ((b % 97) / 97.0 - 0.5), np.full(batch, p + 0.54),
-                     np.full(batch, 3 * np.pi / 4), np.full(batch, S2 * (-pd))], axis=1)
+    return np.stack(
+        [
+            p - 0.54 + 0.1 * ((b % 97) / 97.0 - 0.5),
+            np.full(batch, p + 0.54),
+            np.full(batch, 3 * np.pi / 4),
+            np.full(batch, S2 * (-pd)),
+        ],
+        axis=1,
+    )
 
 
 def numpy_rollout(S):
@@ -59,7 +66,9 @@ def numpy_rollout(S):
         k2 = f(t + DT / 2, *(a + DT / 2 * k for a, k in zip((x, y, th, c), k1)))
         k3 = f(t + DT / 2, *(a + DT / 2 * k for a, k in zip((x, y, th, c), k2)))
         k4 = f(t + DT, *(a + DT * k for a, k in zip((x, y, th, c), k3)))
-        x, y, th, c = (a + DT / 6 * (q1 + 2 * q2 + 2 * q3 + q4) for a, q1, q2, q3, q4 in zip((x, y, th, c), k1, k2, k3, k4))
+        x, y, th, c = (
+            a + DT / 6 * (q1 + 2 * q2 + 2 * q3 + q4) for a, q1, q2, q3, q4 in zip((x, y, th, c), k1, k2, k3, k4)
+        )
     return np.stack([x, y, th, c], axis=1)
 
 
@@ -97,7 +106,7 @@ def c_ceiling(batches, source: Path):
         return res, " ".join(cmd)
 
 
-N_GROUPS = 16        # gradient_many: 16 groups x 4 pole parameters = 64 parameters
+N_GROUPS = 16  # gradient_many: 16 groups x 4 pole parameters = 64 parameters
 
 
 def section_6_1_per_example(ctrl, params, n_steps, groups=None):
@@ -185,25 +194,31 @@ def gradient_ratios(loss, batch_vg, theta, z0s, reps, modes, compiled: dict, rou
     n = int(np.size(theta))
     fwd = compiled.setdefault((loss, "value"), jax.jit(loss))
     bvg = compiled.setdefault((loss, "batch"), jax.jit(batch_vg))
-    fns = {"forward": lambda: fwd(theta, z0s).block_until_ready(),
-           "headline": lambda: jax.block_until_ready(bvg(theta, z0s))}
+    fns = {
+        "forward": lambda: fwd(theta, z0s).block_until_ready(),
+        "headline": lambda: jax.block_until_ready(bvg(theta, z0s)),
+    }
     keys = {}
     for mode in modes:
         resolved = w.autodiff.choose_mode(n, mode)
         vg = compiled.setdefault((loss, resolved), jax.jit(w.value_and_grad(loss, mode=resolved)))
         keys[mode] = f"value_and_grad_{mode}" + (f"_{resolved}" if mode == "auto" else "")
         fns[keys[mode]] = lambda vg=vg: jax.block_until_ready(vg(theta, z0s))
-    for fn in fns.values():     # compile (and warm) everything before timing anything
+    for fn in fns.values():  # compile (and warm) everything before timing anything
         fn()
     best, outs = _best_times(fns, reps, rounds)
     tf, val = best["forward"], outs["forward"]
     out = {"n_parameters": n, "forward_s": tf, "loss_value": float(val)}
     tg, (v, g_head) = best["headline"], outs["headline"]
     g_head = np.asarray(g_head)
-    out.update(method="wmrjax.batch_value_and_grad",
-               mode=w.autodiff.choose_mode(n, "auto", w.autodiff.BATCH_FORWARD_MAX_PARAMETERS),
-               value_and_grad_s=tg, ratio_grad_over_forward=tg / tf, grad_finite=bool(np.all(np.isfinite(g_head))),
-               abs_diff_value_vs_forward_pass=abs(float(v) - float(val)))
+    out.update(
+        method="wmrjax.batch_value_and_grad",
+        mode=w.autodiff.choose_mode(n, "auto", w.autodiff.BATCH_FORWARD_MAX_PARAMETERS),
+        value_and_grad_s=tg,
+        ratio_grad_over_forward=tg / tf,
+        grad_finite=bool(np.all(np.isfinite(g_head))),
+        abs_diff_value_vs_forward_pass=abs(float(v) - float(val)),
+    )
     diffs = {}
     for key in keys.values():
         out[f"{key}_mode_s"] = best[key]
@@ -214,8 +229,16 @@ def gradient_ratios(loss, batch_vg, theta, z0s, reps, modes, compiled: dict, rou
     return out
 
 
-def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_trajs: int, source: Path,
-        many_forward: bool = True) -> dict:
+def run(
+    out: Path,
+    batches,
+    reps: int,
+    grad_batch: int,
+    grad_batches,
+    scipy_trajs: int,
+    source: Path,
+    many_forward: bool = True,
+) -> dict:
     common.enable_x64()
     import jax
 
@@ -227,17 +250,27 @@ def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_traj
         "experiment": "benchmark",
         "closed_loop": "section 6.1: (2,0) robot, e = 0, dynamic FL (eq 39), poles -1, reference (62)",
         "integration": {"method": "RK4", "dt": DT, "steps": N_STEPS, "dtype": "float64"},
-        "machine": {"cpu_count": os.cpu_count(), "jax_devices": len(jax.devices()), "platform": platform.platform(),
-                    "jax_version": jax.__version__, "backend": jax.default_backend()},
+        "machine": {
+            "cpu_count": os.cpu_count(),
+            "jax_devices": len(jax.devices()),
+            "platform": platform.platform(),
+            "jax_version": jax.__version__,
+            "backend": jax.default_backend(),
+        },
         "units": "trajectory-steps per second (batch size x 1000 steps / wall time, best of reps, compile excluded)",
         "gradient_timing": "seconds, best of reps x rounds: the forward pass and the gradients timed alternately, "
-                           "reps calls each per round (3 rounds; gradient_by_batch above 10000 trajectories: "
-                           "2 rounds of reps // 2 calls)",
+        "reps calls each per round (3 rounds; gradient_by_batch above 10000 trajectories: "
+        "2 rounds of reps // 2 calls)",
         "rollout": rows,
         "c_ceiling_note": c_note,
-        "scipy_solve_ivp_one_at_a_time": {"method": "RK45", "rtol": 1e-8, "atol": 1e-10, "trajectories": scipy_trajs,
-                                          "mean_rhs_evaluations": nfev / scipy_trajs,
-                                          "equivalent_traj_steps_per_s": scipy_rate},
+        "scipy_solve_ivp_one_at_a_time": {
+            "method": "RK45",
+            "rtol": 1e-8,
+            "atol": 1e-10,
+            "trajectories": scipy_trajs,
+            "mean_rhs_evaluations": nfev / scipy_trajs,
+            "equivalent_traj_steps_per_s": scipy_rate,
+        },
         "gradient": gradient,
         "gradient_many": gradient_many,
         "gradient_by_batch": by_batch,
@@ -246,8 +279,6 @@ def run(out: Path, batches, reps: int, grad_batch: int, grad_batches, scipy_traj
         row["ratio_wmrjax_over_scipy"] = row["wmrjax_batch_map"] / scipy_rate
     common.write_json(out / "summary.json", summary)
     return summary
-
-
 
 
 def _rollout_rows(ctrl, params, batches, reps: int, source: Path):
@@ -263,8 +294,9 @@ def _rollout_rows(ctrl, params, batches, reps: int, source: Path):
     sim_final = lambda z: w.simulate(ctrl, z, params, dt=DT, n_steps=N_STEPS, save_every=N_STEPS).final_state
     fast = jax.jit(lambda z: w.batch_map(sim_final, z, chunk=512))
     # the same loop without the per-step error estimate (error_tol=None): what the guard costs
-    sim_bare = lambda z: w.simulate(ctrl, z, params, dt=DT, n_steps=N_STEPS, save_every=N_STEPS,
-                                    error_tol=None).final_state
+    sim_bare = lambda z: (
+        w.simulate(ctrl, z, params, dt=DT, n_steps=N_STEPS, save_every=N_STEPS, error_tol=None).final_state
+    )
     bare = jax.jit(lambda z: w.batch_map(sim_bare, z, chunk=512))
     plain = jax.jit(jax.vmap(sim_final))
     rows = {}
@@ -295,10 +327,13 @@ def _rollout_rows(ctrl, params, batches, reps: int, source: Path):
             row["ratio_numpy_over_c"] = row["numpy_vectorised"] / c_res[b]
             row["ratio_jit_vmap_1_device_over_c"] = row["wmrjax_jit_vmap_1_device"] / c_res[b]
         rows[str(b)] = row
-        print(f"B={b}: wmrjax {row['wmrjax_batch_map'] / 1e6:.2f} M/s (without the error estimate "
-              f"{row['wmrjax_batch_map_no_error_estimate'] / 1e6:.2f}; jit(vmap) 1 device "
-              f"{row['wmrjax_jit_vmap_1_device'] / 1e6:.2f}), numpy {row['numpy_vectorised'] / 1e6:.2f}"
-              + (f", C {c_res[b] / 1e6:.2f} -> ratio {row['ratio_wmrjax_over_c']:.2f}" if c_res else ""), flush=True)
+        print(
+            f"B={b}: wmrjax {row['wmrjax_batch_map'] / 1e6:.2f} M/s (without the error estimate "
+            f"{row['wmrjax_batch_map_no_error_estimate'] / 1e6:.2f}; jit(vmap) 1 device "
+            f"{row['wmrjax_jit_vmap_1_device'] / 1e6:.2f}), numpy {row['numpy_vectorised'] / 1e6:.2f}"
+            + (f", C {c_res[b] / 1e6:.2f} -> ratio {row['ratio_wmrjax_over_c']:.2f}" if c_res else ""),
+            flush=True,
+        )
 
     return rows, c_note
 
@@ -336,32 +371,68 @@ def _gradients(ctrl, params, reps: int, grad_batch: int, grad_batches, many_forw
     poles = jnp.ones((2, 2))
     compiled = {}
     gradient = gradient_ratios(loss, loss_vg, poles, zg, reps, ("forward", "reverse"), compiled)
-    gradient.update(batch=grad_batch, loss="mean squared position error, saved every 10 steps",
-                    parameters="real closed-loop poles (2 outputs x 2), shared by the batch")
-    print(f"gradient (B = {grad_batch}, {gradient['n_parameters']} parameters): "
-          f"{gradient['ratio_grad_over_forward']:.2f}x forward (batch_value_and_grad, {gradient['mode']}); "
-          f"value_and_grad forward {gradient['ratio_value_and_grad_forward_mode']:.2f}x, "
-          f"reverse {gradient['ratio_value_and_grad_reverse_mode']:.2f}x", flush=True)
+    gradient.update(
+        batch=grad_batch,
+        loss="mean squared position error, saved every 10 steps",
+        parameters="real closed-loop poles (2 outputs x 2), shared by the batch",
+    )
+    print(
+        f"gradient (B = {grad_batch}, {gradient['n_parameters']} parameters): "
+        f"{gradient['ratio_grad_over_forward']:.2f}x forward (batch_value_and_grad, {gradient['mode']}); "
+        f"value_and_grad forward {gradient['ratio_value_and_grad_forward_mode']:.2f}x, "
+        f"reverse {gradient['ratio_value_and_grad_reverse_mode']:.2f}x",
+        flush=True,
+    )
     many_poles = jnp.ones((N_GROUPS, 2, 2))
-    gradient_many = gradient_ratios(section_6_1_loss(ctrl, params, N_STEPS, groups=N_GROUPS),
-                                    section_6_1_batch_value_and_grad(ctrl, params, N_STEPS, groups=N_GROUPS),
-                                    many_poles, zg, reps, ("auto", "forward") if many_forward else ("auto",), compiled)
+    gradient_many = gradient_ratios(
+        section_6_1_loss(ctrl, params, N_STEPS, groups=N_GROUPS),
+        section_6_1_batch_value_and_grad(ctrl, params, N_STEPS, groups=N_GROUPS),
+        many_poles,
+        zg,
+        reps,
+        ("auto", "forward") if many_forward else ("auto",),
+        compiled,
+    )
     gradient_many.update(batch=grad_batch, parameters=f"per-group poles: {N_GROUPS} groups of trajectories x 2 x 2")
-    print(f"gradient_many ({gradient_many['n_parameters']} parameters): {gradient_many['ratio_grad_over_forward']:.2f}x "
-          f"(batch_value_and_grad, {gradient_many['mode']}); value_and_grad "
-          f"{gradient_many['ratio_value_and_grad_auto_reverse_mode']:.2f}x (reverse)"
-          + (f", forward sensitivities {gradient_many['ratio_value_and_grad_forward_mode']:.2f}x" if many_forward else ""),
-          flush=True)
+    print(
+        f"gradient_many ({gradient_many['n_parameters']} parameters): {gradient_many['ratio_grad_over_forward']:.2f}x "
+        f"(batch_value_and_grad, {gradient_many['mode']}); value_and_grad "
+        f"{gradient_many['ratio_value_and_grad_auto_reverse_mode']:.2f}x (reverse)"
+        + (
+            f", forward sensitivities {gradient_many['ratio_value_and_grad_forward_mode']:.2f}x" if many_forward else ""
+        ),
+        flush=True,
+    )
     by_batch = {}
     for b in grad_batches:
-        r = gradient_ratios(loss, loss_vg, poles, jnp.asarray(initial_states_numpy(b)),
-                            max(1, reps // 2 if b > 10000 else reps), ("forward",), compiled,
-                            rounds=2 if b > 10000 else 3)
+        r = gradient_ratios(
+            loss,
+            loss_vg,
+            poles,
+            jnp.asarray(initial_states_numpy(b)),
+            max(1, reps // 2 if b > 10000 else reps),
+            ("forward",),
+            compiled,
+            rounds=2 if b > 10000 else 3,
+        )
         # beside it, forward sensitivities through the batched loop (the memory of a forward pass)
-        by_batch[str(b)] = {k: r[k] for k in ("method", "mode", "forward_s", "value_and_grad_s", "ratio_grad_over_forward",
-                                              "value_and_grad_forward_mode_s", "ratio_value_and_grad_forward_mode")}
-        print(f"gradient_by_batch B = {b}: {r['ratio_grad_over_forward']:.2f}x (batch_value_and_grad, {r['mode']}); "
-              f"value_and_grad {r['ratio_value_and_grad_forward_mode']:.2f}x (forward)", flush=True)
+        by_batch[str(b)] = {
+            k: r[k]
+            for k in (
+                "method",
+                "mode",
+                "forward_s",
+                "value_and_grad_s",
+                "ratio_grad_over_forward",
+                "value_and_grad_forward_mode_s",
+                "ratio_value_and_grad_forward_mode",
+            )
+        }
+        print(
+            f"gradient_by_batch B = {b}: {r['ratio_grad_over_forward']:.2f}x (batch_value_and_grad, {r['mode']}); "
+            f"value_and_grad {r['ratio_value_and_grad_forward_mode']:.2f}x (forward)",
+            flush=True,
+        )
 
     return gradient, gradient_many, by_batch
 
@@ -386,8 +457,12 @@ def _compile_cases():
     """Every row of Tables 4 (dynamic) and 3 (static) at both levels, as 'family/type/level'."""
     from wmrjax.controllers import TABLE3, TABLE4, Level
 
-    return [f"{family}/{kind}/{level}" for family, table in (("dynamic", TABLE4), ("static", TABLE3))
-            for kind in table for level in Level]
+    return [
+        f"{family}/{kind}/{level}"
+        for family, table in (("dynamic", TABLE4), ("static", TABLE3))
+        for kind in table
+        for level in Level
+    ]
 
 
 def _first_call(fn, *args):
@@ -417,13 +492,13 @@ def compile_worker(case: str, batch: int) -> dict:
     if case == "section_6_1":
         ctrl, params, _, _ = common.section_6_1_setup()
         loss, theta = section_6_1_loss(ctrl, params, N_STEPS), jnp.ones((2, 2))
-        vg = section_6_1_batch_value_and_grad(ctrl, params, N_STEPS)         # the gradient block's path
+        vg = section_6_1_batch_value_and_grad(ctrl, params, N_STEPS)  # the gradient block's path
         mode = w.autodiff.choose_mode(int(np.size(theta)), "auto", w.autodiff.BATCH_FORWARD_MAX_PARAMETERS)
         z0s = jnp.asarray(initial_states_numpy(batch))
     else:
         family, kind, level = case.split("/")
         ctrl = (w.dynamic_linearization if family == "dynamic" else w.static_linearization)(kind, level)
-        offset = getattr(ctrl.row, "default_heading_offset", 0.0)       # the table row's example set-up
+        offset = getattr(ctrl.row, "default_heading_offset", 0.0)  # the table row's example set-up
         ref = references.circle(radius=2.0, omega=0.4, heading_offset=offset)
         params = ctrl.params(ref, poles=1.5, geometry=ctrl.row.default_geometry)
         if family == "dynamic":
@@ -458,22 +533,34 @@ def memory_worker(n_steps: int, batch: int) -> dict:
     import wmrjax as w
 
     ctrl, params, _, _ = common.section_6_1_setup()
-    vg = section_6_1_batch_value_and_grad(ctrl, params, n_steps)            # the gradient block's path
+    vg = section_6_1_batch_value_and_grad(ctrl, params, n_steps)  # the gradient block's path
     poles = jnp.ones((2, 2))
     t0 = time.perf_counter()
     v, g = jax.block_until_ready(jax.jit(vg)(poles, jnp.asarray(initial_states_numpy(batch))))
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024          # Linux: kilobytes
-    return {"steps": n_steps, "batch": batch, "method": "wmrjax.batch_value_and_grad",
-            "mode": w.autodiff.choose_mode(4, "auto", w.autodiff.BATCH_FORWARD_MAX_PARAMETERS), "peak_rss_bytes": int(peak),
-            "peak_rss_gb": peak / 1e9, "wall_s": time.perf_counter() - t0, "loss_value": float(v),
-            "grad_finite": bool(jnp.all(jnp.isfinite(g)))}
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux: kilobytes
+    return {
+        "steps": n_steps,
+        "batch": batch,
+        "method": "wmrjax.batch_value_and_grad",
+        "mode": w.autodiff.choose_mode(4, "auto", w.autodiff.BATCH_FORWARD_MAX_PARAMETERS),
+        "peak_rss_bytes": int(peak),
+        "peak_rss_gb": peak / 1e9,
+        "wall_s": time.perf_counter() - t0,
+        "loss_value": float(v),
+        "grad_finite": bool(jnp.all(jnp.isfinite(g))),
+    }
 
 
 def _worker(args: list, env: dict) -> dict:
     import json
 
-    r = subprocess.run([sys.executable, "-m", "experiments.benchmark", *args], capture_output=True, text=True, env=env,
-                       cwd=Path(__file__).resolve().parent.parent)
+    r = subprocess.run(
+        [sys.executable, "-m", "experiments.benchmark", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=Path(__file__).resolve().parent.parent,
+    )
     if r.returncode:
         raise RuntimeError(f"benchmark worker {args} failed: {r.stderr[-2000:]}")
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -487,13 +574,21 @@ def compile_table(cases, batch: int, devices: int, progress=print) -> dict:
     out = {}
     with tempfile.TemporaryDirectory() as cache:
         for case in cases:
-            first = _worker(["--worker", "compile", "--case", case, "--worker-batch", str(batch), "--no-compile-cache"], env)
-            _worker(["--worker", "compile", "--case", case, "--worker-batch", str(batch), "--compile-cache", cache], env)
-            cached = _worker(["--worker", "compile", "--case", case, "--worker-batch", str(batch), "--compile-cache", cache],
-                             env)
+            first = _worker(
+                ["--worker", "compile", "--case", case, "--worker-batch", str(batch), "--no-compile-cache"], env
+            )
+            _worker(
+                ["--worker", "compile", "--case", case, "--worker-batch", str(batch), "--compile-cache", cache], env
+            )
+            cached = _worker(
+                ["--worker", "compile", "--case", case, "--worker-batch", str(batch), "--compile-cache", cache], env
+            )
             out[case] = dict(first, forward_cached_s=cached["forward_s"], gradient_cached_s=cached["gradient_s"])
-            progress(f"compile {case}: rollout {first['forward_s']:.1f} s, gradient {first['gradient_s']:.1f} s "
-                     f"({first['mode']}); cached {cached['forward_s']:.2f} s / {cached['gradient_s']:.2f} s", flush=True)
+            progress(
+                f"compile {case}: rollout {first['forward_s']:.1f} s, gradient {first['gradient_s']:.1f} s "
+                f"({first['mode']}); cached {cached['forward_s']:.2f} s / {cached['gradient_s']:.2f} s",
+                flush=True,
+            )
     return out
 
 
@@ -554,20 +649,29 @@ def tuner_times(problems, baseline: Path | None, rounds: int = 3, progress=print
         for name in problems:
             for label, tree in trees.items():
                 env = dict(os.environ, PYTHONPATH=str(tree), JAX_ENABLE_COMPILATION_CACHE="false")
-                run = subprocess.run([sys.executable, "-c", TUNER_WORKER, name], capture_output=True, text=True,
-                                     env=env, cwd=tree)
+                run = subprocess.run(
+                    [sys.executable, "-c", TUNER_WORKER, name], capture_output=True, text=True, env=env, cwd=tree
+                )
                 if run.returncode:
                     raise RuntimeError(f"tuner timing of {name} in {tree} failed: {run.stderr[-2000:]}")
                 res = json.loads(run.stdout.strip().splitlines()[-1])
                 key = (name, label)
-                best[key] = res if key not in best else {k: (min(v, res[k]) if k.endswith("_s") else v)
-                                                         for k, v in best[key].items()}
-                progress(f"tuner {name} ({label}, round {r + 1}): trace {res['trace_s']:.2f} s, compile "
-                         f"{res['compile_s']:.2f} s, step {1e3 * res['step_s']:.1f} ms", flush=True)
-    out = {"what": "the tuning loop's gradient program (tuning.loop._gradient_step) on the problem's training set, "
-                   "in a fresh process with no persistent cache: trace, XLA compile, and the step (best of 3 x 5 "
-                   f"calls); best of {rounds} rounds, the checkouts alternating",
-           "baseline": str(baseline) if baseline else None}
+                best[key] = (
+                    res
+                    if key not in best
+                    else {k: (min(v, res[k]) if k.endswith("_s") else v) for k, v in best[key].items()}
+                )
+                progress(
+                    f"tuner {name} ({label}, round {r + 1}): trace {res['trace_s']:.2f} s, compile "
+                    f"{res['compile_s']:.2f} s, step {1e3 * res['step_s']:.1f} ms",
+                    flush=True,
+                )
+    out = {
+        "what": "the tuning loop's gradient program (tuning.loop._gradient_step) on the problem's training set, "
+        "in a fresh process with no persistent cache: trace, XLA compile, and the step (best of 3 x 5 "
+        f"calls); best of {rounds} rounds, the checkouts alternating",
+        "baseline": str(baseline) if baseline else None,
+    }
     for name in problems:
         out[name] = {label: best[(name, label)] for label in trees}
         if baseline:
@@ -581,73 +685,140 @@ def main(argv=None) -> int:
 
     from wmrjax_cli import options
 
-    p = common.parser(__doc__.splitlines()[0], "results/benchmark", compile_cache=False)   # it times compilation
-    p.add_argument("--batches", type=options.count, nargs="+", default=[1024, 16384, 65536],
-                   help="batch sizes of the rollout comparison [trajectories]")
+    p = common.parser(__doc__.splitlines()[0], "results/benchmark", compile_cache=False)  # it times compilation
+    p.add_argument(
+        "--batches",
+        type=options.count,
+        nargs="+",
+        default=[1024, 16384, 65536],
+        help="batch sizes of the rollout comparison [trajectories]",
+    )
     p.add_argument("--reps", type=options.count, default=5, help="timed repetitions (best kept)")
     p.add_argument("--grad-batch", type=options.count, default=1024, help="batch of the gradient timing [trajectories]")
-    p.add_argument("--grad-batches", type=options.count, nargs="*", default=[1024, 8192, 65536],
-                   help="batches of gradient_by_batch [trajectories]")
-    p.add_argument("--compile-types", choices=("all", "section_6_1", "none"), default="all",
-                   help="compile times in fresh processes: the section 6.1 loss and every type x level (several "
-                        "minutes), the section 6.1 loss only, or none")
-    p.add_argument("--memory-steps", type=options.count, default=20000, help="horizon of the gradient memory measurement")
-    p.add_argument("--memory-batch", type=int, default=4096,
-                   help="trajectories of the gradient memory measurement (0: skip it)")
-    p.add_argument("--scipy-trajectories", type=options.count, default=8, help="trajectories integrated one by one by SciPy")
-    p.add_argument("--devices", type=options.count, default=os.cpu_count() or 1,
-                   help="JAX host devices (one per core; sets XLA_FLAGS for this process before JAX starts its backend)")
+    p.add_argument(
+        "--grad-batches",
+        type=options.count,
+        nargs="*",
+        default=[1024, 8192, 65536],
+        help="batches of gradient_by_batch [trajectories]",
+    )
+    p.add_argument(
+        "--compile-types",
+        choices=("all", "section_6_1", "none"),
+        default="all",
+        help="compile times in fresh processes: the section 6.1 loss and every type x level (several "
+        "minutes), the section 6.1 loss only, or none",
+    )
+    p.add_argument(
+        "--memory-steps", type=options.count, default=20000, help="horizon of the gradient memory measurement"
+    )
+    p.add_argument(
+        "--memory-batch", type=int, default=4096, help="trajectories of the gradient memory measurement (0: skip it)"
+    )
+    p.add_argument(
+        "--scipy-trajectories", type=options.count, default=8, help="trajectories integrated one by one by SciPy"
+    )
+    p.add_argument(
+        "--devices",
+        type=options.count,
+        default=os.cpu_count() or 1,
+        help="JAX host devices (one per core; sets XLA_FLAGS for this process before JAX starts its backend)",
+    )
     here = Path(__file__).resolve().parent.parent
-    p.add_argument("--c-source", type=Path, default=here / "experiments" / "bench" / "closed_loop_simd.c",
-                   help="the hand-vectorised C loop (the ceiling; skipped if missing)")
-    p.add_argument("--tuner-problems", nargs="*", default=["section_6_1", "car_schedule"],
-                   help="shipped tuning problems whose gradient program is timed (none: skip)")
-    p.add_argument("--tuner-rounds", type=options.count, default=3, help="alternating rounds of the tuner timing (best kept)")
-    p.add_argument("--tuner-baseline", type=Path, default=None,
-                   help="a checkout of another commit: its tuner is timed side by side with this one's")
+    p.add_argument(
+        "--c-source",
+        type=Path,
+        default=here / "experiments" / "bench" / "closed_loop_simd.c",
+        help="the hand-vectorised C loop (the ceiling; skipped if missing)",
+    )
+    p.add_argument(
+        "--tuner-problems",
+        nargs="*",
+        default=["section_6_1", "car_schedule"],
+        help="shipped tuning problems whose gradient program is timed (none: skip)",
+    )
+    p.add_argument(
+        "--tuner-rounds", type=options.count, default=3, help="alternating rounds of the tuner timing (best kept)"
+    )
+    p.add_argument(
+        "--tuner-baseline",
+        type=Path,
+        default=None,
+        help="a checkout of another commit: its tuner is timed side by side with this one's",
+    )
     p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
     p.add_argument("--case", help=argparse.SUPPRESS)
     p.add_argument("--worker-batch", type=options.count, default=256, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.worker:
         options.use_compilation_cache(a)
-        res = compile_worker(a.case, a.worker_batch) if a.worker == "compile" else memory_worker(a.memory_steps,
-                                                                                                  a.memory_batch)
+        res = (
+            compile_worker(a.case, a.worker_batch)
+            if a.worker == "compile"
+            else memory_worker(a.memory_steps, a.memory_batch)
+        )
         print(json.dumps(res))
         return 0
     options.prepare_output(p, a.out)
     options.use_compilation_cache(a)
     flag = f"--xla_force_host_platform_device_count={a.devices}"
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()   # read when the backend starts
-    s = run(a.out, a.batches, a.reps, a.grad_batch, a.grad_batches, a.scipy_trajectories, a.c_source,
-            many_forward=a.compile_types != "none")
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()  # read when the backend starts
+    s = run(
+        a.out,
+        a.batches,
+        a.reps,
+        a.grad_batch,
+        a.grad_batches,
+        a.scipy_trajectories,
+        a.c_source,
+        many_forward=a.compile_types != "none",
+    )
     # compile times and memory in fresh processes (nothing compiled or cached beforehand)
     env = dict(os.environ)
     if a.compile_types != "none":
         sec = compile_table(["section_6_1"], a.grad_batch, a.devices)["section_6_1"]
-        s["compile"] = {"what": "first call (trace + compile) in a fresh process with an empty persistent cache; "
-                                "cached: a later process reading JAX's persistent compilation cache",
-                        "forward_s": sec["forward_s"], "gradient_s": sec["gradient_s"],
-                        "forward_cached_s": sec["forward_cached_s"], "gradient_cached_s": sec["gradient_cached_s"],
-                        "gradient_mode": sec["mode"], "gradient_method": "wmrjax.batch_value_and_grad (section 6.1); "
-                                                                       "wmrjax.value_and_grad (by_type)",
-                        "by_type_loss": f"mean squared output error of a vmapped {N_STEPS}-step rollout (dt 0.01) on "
-                                        "a circle, gradient with respect to the Hurwitz coefficients (m x r)",
-                        "by_type": compile_table(_compile_cases(), 64, a.devices) if a.compile_types == "all" else {}}
+        s["compile"] = {
+            "what": "first call (trace + compile) in a fresh process with an empty persistent cache; "
+            "cached: a later process reading JAX's persistent compilation cache",
+            "forward_s": sec["forward_s"],
+            "gradient_s": sec["gradient_s"],
+            "forward_cached_s": sec["forward_cached_s"],
+            "gradient_cached_s": sec["gradient_cached_s"],
+            "gradient_mode": sec["mode"],
+            "gradient_method": "wmrjax.batch_value_and_grad (section 6.1); wmrjax.value_and_grad (by_type)",
+            "by_type_loss": f"mean squared output error of a vmapped {N_STEPS}-step rollout (dt 0.01) on "
+            "a circle, gradient with respect to the Hurwitz coefficients (m x r)",
+            "by_type": compile_table(_compile_cases(), 64, a.devices) if a.compile_types == "all" else {},
+        }
     if a.memory_batch > 0:
-        m = _worker(["--worker", "memory", "--memory-steps", str(a.memory_steps), "--memory-batch", str(a.memory_batch),
-                     "--no-compile-cache"], dict(env))
+        m = _worker(
+            [
+                "--worker",
+                "memory",
+                "--memory-steps",
+                str(a.memory_steps),
+                "--memory-batch",
+                str(a.memory_batch),
+                "--no-compile-cache",
+            ],
+            dict(env),
+        )
         s["memory"] = m
-        print(f"memory: gradient of {a.memory_steps} steps x {a.memory_batch} trajectories: peak RSS "
-              f"{m['peak_rss_gb']:.2f} GB ({m['mode']}, {m['wall_s']:.1f} s)", flush=True)
+        print(
+            f"memory: gradient of {a.memory_steps} steps x {a.memory_batch} trajectories: peak RSS "
+            f"{m['peak_rss_gb']:.2f} GB ({m['mode']}, {m['wall_s']:.1f} s)",
+            flush=True,
+        )
     if a.tuner_problems:
         s["tuner"] = tuner_times(a.tuner_problems, a.tuner_baseline, a.tuner_rounds)
     common.write_json(a.out / "summary.json", s)
     g = s["gradient"]
-    print(f"scipy solve_ivp: {s['scipy_solve_ivp_one_at_a_time']['equivalent_traj_steps_per_s'] / 1e6:.4f} M/s; "
-          f"gradient/forward = {g['ratio_grad_over_forward']:.2f} ({g['mode']}; B = {g['batch']}, "
-          f"{g['n_parameters']} parameters), {s['gradient_many']['ratio_grad_over_forward']:.2f} with "
-          f"{s['gradient_many']['n_parameters']} ({s['gradient_many']['mode']})")
+    print(
+        f"scipy solve_ivp: {s['scipy_solve_ivp_one_at_a_time']['equivalent_traj_steps_per_s'] / 1e6:.4f} M/s; "
+        f"gradient/forward = {g['ratio_grad_over_forward']:.2f} ({g['mode']}; B = {g['batch']}, "
+        f"{g['n_parameters']} parameters), {s['gradient_many']['ratio_grad_over_forward']:.2f} with "
+        f"{s['gradient_many']['n_parameters']} ({s['gradient_many']['mode']})"
+    )
     print(f"wrote {a.out}/summary.json")
     return 0
 

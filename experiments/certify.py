@@ -40,7 +40,7 @@ from pathlib import Path
 from experiments import common
 
 DEFAULT_PROBLEM = Path(__file__).resolve().parent / "problems" / "section_6_1.toml"
-EMPIRICAL_GRID = 48          # radii per ray of certify.empirical_radius (its n_grid)
+EMPIRICAL_GRID = 48  # radii per ray of certify.empirical_radius (its n_grid)
 CERTIFY_KEYS = {"eps": 1e-2, "n_empirical": 4096, "n_directions": 128, "n_starts": 16, "map_grid": 81, "seed": 0}
 
 
@@ -65,8 +65,10 @@ def setup(problem, case=None):
 
     setting = problem.setting("certification", case=case)
     if setting.law != Law.DYNAMIC:
-        raise ProblemError("certification needs a dynamic linearizing law ([controller] law = \"dynamic\"): Lemma 2 "
-                           "and the exact map are about Table 4's closed loops")
+        raise ProblemError(
+            'certification needs a dynamic linearizing law ([controller] law = "dynamic"): Lemma 2 '
+            "and the exact map are about Table 4's closed loops"
+        )
     setting.check_single("certification", keep=("initial",))
     return setting, setting.ctrl, setting.params()
 
@@ -88,20 +90,36 @@ def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title="
     plt = common.pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 5.6))
     im = ax.pcolormesh(X, Y, np.log10(np.maximum(d, 1e-6)), cmap="viridis", shading="auto")
-    fig.colorbar(im, ax=ax, label="log10 min_t dist(zeta(t), singular set)" if C.singular_rows(ctrl) else
-                 "log10 min_t dist(zeta(t), singular set) (capped at 1)")
+    fig.colorbar(
+        im,
+        ax=ax,
+        label="log10 min_t dist(zeta(t), singular set)"
+        if C.singular_rows(ctrl)
+        else "log10 min_t dist(zeta(t), singular set) (capped at 1)",
+    )
     bad = d < eps
     if bad.any():
         ax.plot(X[bad], Y[bad], "rs", ms=2.5, label=f"unsafe: comes within eps = {eps}")
     th = np.linspace(0, 2 * np.pi, 200)
-    for i, (k, lab) in enumerate([("radius_paper", "Lemma 2, K2 of (64)"), ("radius_lyapunov", "Lemma 2, Lyapunov K2"),
-                                  ("radius_exact_norm", "Lemma 2, K2 = ||exp(At)||"),
-                                  ("radius_exact_map_position_slice", "exact map (position slice)"),
-                                  ("empirical_radius_position_slice", "empirical (position slice)")]):
+    for i, (k, lab) in enumerate(
+        [
+            ("radius_paper", "Lemma 2, K2 of (64)"),
+            ("radius_lyapunov", "Lemma 2, Lyapunov K2"),
+            ("radius_exact_norm", "Lemma 2, K2 = ||exp(At)||"),
+            ("radius_exact_map_position_slice", "exact map (position slice)"),
+            ("empirical_radius_position_slice", "empirical (position slice)"),
+        ]
+    ):
         r = block.get(k)
         if r is not None:
-            ax.plot(r * np.cos(th), r * np.sin(th), color=f"C{i + 1}", lw=1.4, ls="--" if "empirical" in k else "-",
-                    label=f"{lab}: {r:.3g}")
+            ax.plot(
+                r * np.cos(th),
+                r * np.sin(th),
+                color=f"C{i + 1}",
+                lw=1.4,
+                ls="--" if "empirical" in k else "-",
+                label=f"{lab}: {r:.3g}",
+            )
     ax.set_xlabel("initial error in x_P [m]")
     ax.set_ylabel("initial error in y_P [m]")
     ax.set_title(title or "initial position errors (velocities = reference's)")
@@ -123,35 +141,71 @@ def run(out, problem, case=None, progress=None) -> dict:
     say(f"certify {ctrl.robot.name} ({ctrl.level}) along {setting.reference.name}, T = {t_final} s, eps = {cfg['eps']}")
     from wmrjax import certify as C
 
-    report = C.analyse(ctrl, params, t_final=t_final, eps=cfg["eps"], dt=dt, n_empirical=cfg["n_empirical"],
-                       n_directions=cfg["n_directions"], n_starts=cfg["n_starts"], seed=cfg["seed"], log=say)
+    report = C.analyse(
+        ctrl,
+        params,
+        t_final=t_final,
+        eps=cfg["eps"],
+        dt=dt,
+        n_empirical=cfg["n_empirical"],
+        n_directions=cfg["n_directions"],
+        n_starts=cfg["n_starts"],
+        seed=cfg["seed"],
+        log=say,
+    )
     say(f"slice map ({cfg['map_grid']} x {cfg['map_grid']} runs)")
     block = report.summary()
     out.mkdir(parents=True, exist_ok=True)
     gains = params.gains
-    summary = {"experiment": "certify", "problem_name": problem.title, "case": case, "problem": problem.resolved(),
-               "certify": cfg, "robot": ctrl.robot.name, "level": str(ctrl.level), "reference": setting.reference.name,
-               "heading_offset": float(params.reference.heading_offset),
-               "geometry": {k: float(v) for k, v in params.geometry._asdict().items()},
-               "gains": C.plain({"coefficients": gains.coeffs} if not gains.time_varying else
-                                {"schedule_knots": gains.times}),
-               "closed_loop_poles_re_im": None if gains.time_varying else
-               [[float(p.real), float(p.imag)] for p in ctrl.error_poles(gains)],
-               "plant": ("not used: the certificates are those of the nominal continuous closed loop"
-                         if setting.plant else None),
-               "dt": dt, **block}
-    summary["slice_map"] = slice_map(ctrl, params, block, out / "slice_map.png", t_final=t_final, dt=dt,
-                                     eps=cfg["eps"], n_grid=cfg["map_grid"],
-                                     title=f"{ctrl.robot.name} along {setting.reference.name}: initial position errors")
+    summary = {
+        "experiment": "certify",
+        "problem_name": problem.title,
+        "case": case,
+        "problem": problem.resolved(),
+        "certify": cfg,
+        "robot": ctrl.robot.name,
+        "level": str(ctrl.level),
+        "reference": setting.reference.name,
+        "heading_offset": float(params.reference.heading_offset),
+        "geometry": {k: float(v) for k, v in params.geometry._asdict().items()},
+        "gains": C.plain({"coefficients": gains.coeffs} if not gains.time_varying else {"schedule_knots": gains.times}),
+        "closed_loop_poles_re_im": None
+        if gains.time_varying
+        else [[float(p.real), float(p.imag)] for p in ctrl.error_poles(gains)],
+        "plant": (
+            "not used: the certificates are those of the nominal continuous closed loop" if setting.plant else None
+        ),
+        "dt": dt,
+        **block,
+    }
+    summary["slice_map"] = slice_map(
+        ctrl,
+        params,
+        block,
+        out / "slice_map.png",
+        t_final=t_final,
+        dt=dt,
+        eps=cfg["eps"],
+        n_grid=cfg["map_grid"],
+        title=f"{ctrl.robot.name} along {setting.reference.name}: initial position errors",
+    )
     summary["wall_time_s"] = time.time() - t0
     common.write_json(out / "summary.json", summary)
     return summary
 
 
 # option -> dotted key of the problem file it sets
-_KEYS = {"level": "controller.level", "t_final": "simulation.t_final", "dt": "simulation.dt", "eps": "certify.eps",
-         "n_empirical": "certify.n_empirical", "n_directions": "certify.n_directions", "n_starts": "certify.n_starts",
-         "map_grid": "certify.map_grid", "heading_offset": "reference.heading_offset"}
+_KEYS = {
+    "level": "controller.level",
+    "t_final": "simulation.t_final",
+    "dt": "simulation.dt",
+    "eps": "certify.eps",
+    "n_empirical": "certify.n_empirical",
+    "n_directions": "certify.n_directions",
+    "n_starts": "certify.n_starts",
+    "map_grid": "certify.map_grid",
+    "heading_offset": "reference.heading_offset",
+}
 
 
 def problem_from_args(a):
@@ -195,33 +249,66 @@ def main(argv=None) -> int:
     from wmrjax_cli import options
 
     p = common.parser(__doc__.splitlines()[0], "results/certify")
-    p.add_argument("file", type=Path, nargs="?", default=None,
-                   help="a problem file (TOML; default: experiments/problems/section_6_1.toml)")
+    p.add_argument(
+        "file",
+        type=Path,
+        nargs="?",
+        default=None,
+        help="a problem file (TOML; default: experiments/problems/section_6_1.toml)",
+    )
     p.add_argument("--case", default=None, help="the [[case]] to certify, when the problem has several")
     p.add_argument("--robot", default=None, help="robot type: (2,0), (2,1), (1,1) or (1,2)")
     p.add_argument("--reference", default=None, choices=sorted(R.REFERENCES), help="a named reference")
     p.add_argument("--level", default=None, choices=["velocity", "torque"], help="velocity or torque level")
-    p.add_argument("--poles", type=options.positive, default=None, help="closed-loop poles at -POLES [1/s] (1: the paper's)")
-    p.add_argument("--gains", type=Path, default=None,
-                   help="a tuned-gains file (gains.json of python -m tuning): complex poles, schedules")
+    p.add_argument(
+        "--poles", type=options.positive, default=None, help="closed-loop poles at -POLES [1/s] (1: the paper's)"
+    )
+    p.add_argument(
+        "--gains",
+        type=Path,
+        default=None,
+        help="a tuned-gains file (gains.json of python -m tuning): complex poles, schedules",
+    )
     p.add_argument("--t-final", type=options.positive, default=None, help="horizon [s]")
     p.add_argument("--eps", type=options.positive, default=None, help="Lemma 2's margin eps [zeta units: m, m/s]")
     p.add_argument("--dt", type=options.positive, default=None, help="RK4 step of the empirical checks [s]")
-    p.add_argument("--n-empirical", type=options.count, default=None, help="sampled initial errors (every K2 checked on them)")
-    p.add_argument("--n-directions", type=options.count, default=None, help="rays of the position-slice empirical radius")
-    p.add_argument("--n-starts", type=options.nonnegative_int, default=None,
-                   help="falsifier gradient starts per radius (0: no falsifier)")
-    p.add_argument("--heading-offset", type=options.finite, default=None,
-                   help="reference heading offset [rad] (crab angle; default: the file's, else the type's)")
+    p.add_argument(
+        "--n-empirical", type=options.count, default=None, help="sampled initial errors (every K2 checked on them)"
+    )
+    p.add_argument(
+        "--n-directions", type=options.count, default=None, help="rays of the position-slice empirical radius"
+    )
+    p.add_argument(
+        "--n-starts",
+        type=options.nonnegative_int,
+        default=None,
+        help="falsifier gradient starts per radius (0: no falsifier)",
+    )
+    p.add_argument(
+        "--heading-offset",
+        type=options.finite,
+        default=None,
+        help="reference heading offset [rad] (crab angle; default: the file's, else the type's)",
+    )
     p.add_argument("--map-grid", type=options.grid_size, default=None, help="slice map resolution (N x N runs)")
-    p.add_argument("--geometry", type=options.finite, nargs=3, default=None, metavar=("L", "E", "DELTA"),
-                   help="robot geometry [m, m, rad]")
-    p.add_argument("--devices", type=options.count, default=os.cpu_count() or 1,
-                   help="JAX host devices the batch simulations are spread over (one per core; sets XLA_FLAGS "
-                        "before JAX starts its backend)")
+    p.add_argument(
+        "--geometry",
+        type=options.finite,
+        nargs=3,
+        default=None,
+        metavar=("L", "E", "DELTA"),
+        help="robot geometry [m, m, rad]",
+    )
+    p.add_argument(
+        "--devices",
+        type=options.count,
+        default=os.cpu_count() or 1,
+        help="JAX host devices the batch simulations are spread over (one per core; sets XLA_FLAGS "
+        "before JAX starts its backend)",
+    )
     a = p.parse_args(argv)
     flag = f"--xla_force_host_platform_device_count={a.devices}"
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()   # read when the backend starts
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()  # read when the backend starts
     try:
         common.enable_x64()
         problem = problem_from_args(a)
@@ -234,12 +321,20 @@ def main(argv=None) -> int:
     batch = max(cfg["n_empirical"], cfg["map_grid"] ** 2, (cfg["n_directions"] + 1) * EMPIRICAL_GRID)
     options.check_horizon(p, t_final=setting.t_final, dt=setting.dt, batch=batch, saved_every=10)
     s = options.work(p, a, lambda progress: run(a.out, problem, a.case, progress=progress))
-    keys = ["radius_paper", "radius_lyapunov", "radius_exact_norm", "radius_exact_map", "radius_exact_map_position_slice",
-            "empirical_radius_position_slice"]
+    keys = [
+        "radius_paper",
+        "radius_lyapunov",
+        "radius_exact_norm",
+        "radius_exact_map",
+        "radius_exact_map_position_slice",
+        "empirical_radius_position_slice",
+    ]
     print("  ".join(f"{k} {s[k]:.4f}" for k in keys if s.get(k) is not None))
-    print(f"falsified full {s['falsified_full']['radius']}, position slice {s['falsified_position_slice']['radius']}; "
-          f"wrote {a.out}/summary.json and slice_map.png in {s['wall_time_s']:.0f} s")
-    for msg in s["alarms"]:     # a result that contradicts the theory is an error, not a certificate
+    print(
+        f"falsified full {s['falsified_full']['radius']}, position slice {s['falsified_position_slice']['radius']}; "
+        f"wrote {a.out}/summary.json and slice_map.png in {s['wall_time_s']:.0f} s"
+    )
+    for msg in s["alarms"]:  # a result that contradicts the theory is an error, not a certificate
         print(f"error: {msg}", file=sys.stderr)
     return 1 if s["alarms"] else 0
 

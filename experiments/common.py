@@ -79,6 +79,7 @@ def section_6_1_setup():
 
 # --- the tracking experiments (posture_tracking, static_tracking) ------------------------------
 
+
 def tracking_cli(argv, doc, default_out, kinds, run_fn) -> int:
     """The command line shared by the tracking experiments."""
     from wmrjax_cli import options
@@ -101,7 +102,9 @@ def tracking_cli(argv, doc, default_out, kinds, run_fn) -> int:
     if bad:
         p.error(f"argument --types: {bad} not among this experiment's types {list(kinds)}")
     t0 = time.perf_counter()
-    options.work(p, a, lambda progress: run_fn(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=chosen, progress=progress))
+    options.work(
+        p, a, lambda progress: run_fn(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=chosen, progress=progress)
+    )
     print(f"wrote {a.out}/summary.json and one PNG per type ({time.perf_counter() - t0:.0f} s)", file=sys.stdout)
     return 0
 
@@ -127,7 +130,7 @@ def tracking_figure(out_dir, kind, per_level, prefix="posture", error_label="pos
 
     plt = pyplot()
     fig, axs = plt.subplots(2, 2, figsize=(10, 8.5))
-    for j, name in enumerate(list(next(iter(per_level.values()))[0])[:2]):     # the two named runs
+    for j, name in enumerate(list(next(iter(per_level.values()))[0])[:2]):  # the two named runs
         ax = axs[0, j]
         tr0 = next(iter(per_level.values()))[0][name]
         ax.plot(tr0["ref"][:, 0], tr0["ref"][:, 1], "k--", lw=1.2, label="reference")

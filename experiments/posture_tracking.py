@@ -37,12 +37,17 @@ def _named_references(ctrl, g, free_heading: bool, t_final: float, dt: float, n_
     import numpy as np
 
     import wmrjax as w
-    from wmrjax.problem import Space, Task, place
     from wmrjax import references as R
+    from wmrjax.problem import Space, Task, place
 
-    named = {r.name: r for r in (R.circle(radius=3.0, omega=0.4, heading_offset=0.3 if free_heading else 0.0),
-                                       R.figure_eight(size=4.0, omega=0.25, heading_offset=0.3 if free_heading else 0.0))}
-    pert = jnp.zeros(ctrl.robot.n_state).at[:3].set(jnp.array([0.3, -0.2, 0.1]))       # x, y [m], theta [rad]
+    named = {
+        r.name: r
+        for r in (
+            R.circle(radius=3.0, omega=0.4, heading_offset=0.3 if free_heading else 0.0),
+            R.figure_eight(size=4.0, omega=0.25, heading_offset=0.3 if free_heading else 0.0),
+        )
+    }
+    pert = jnp.zeros(ctrl.robot.n_state).at[:3].set(jnp.array([0.3, -0.2, 0.1]))  # x, y [m], theta [rad]
     traces = {}
     for name, ref in named.items():
         params = ctrl.params(ref, poles=1.0, geometry=g)
@@ -53,8 +58,12 @@ def _named_references(ctrl, g, free_heading: bool, t_final: float, dt: float, n_
         post = jax.vmap(ref.posture)(tr.t)
         ep, eh = _posture_error(tr.state, post)
         traces[name] = dict(t=np.asarray(tr.t), state=np.asarray(tr.state), ref=np.asarray(post), ep=ep, eh=eh)
-        out[name] = {"final_position_error": float(ep[-1]), "final_heading_error": float(eh[-1]),
-                     "min_margin": float(tr.diagnostics.min_margin), "failed": bool(tr.diagnostics.failed)}
+        out[name] = {
+            "final_position_error": float(ep[-1]),
+            "final_heading_error": float(eh[-1]),
+            "min_margin": float(tr.diagnostics.min_margin),
+            "failed": bool(tr.diagnostics.failed),
+        }
     return traces
 
 
@@ -65,8 +74,8 @@ def _random_runs(ctrl, g, free_heading: bool, n_random: int, t_final: float, dt:
     import jax.numpy as jnp
 
     import wmrjax as w
-    from wmrjax.problem import Space, Task, place
     from wmrjax import references as R
+    from wmrjax.problem import Space, Task, place
 
     k_ref, k_ic, k_off = jax.random.split(jax.random.PRNGKey(seed), 3)
     n_post = ctrl.robot.n_state
@@ -81,11 +90,13 @@ def _random_runs(ctrl, g, free_heading: bool, n_random: int, t_final: float, dt:
         params = ctrl.params_unchecked(ref, 1.0, g)
         dp = jax.random.uniform(ki, (n_post,), minval=-1.0, maxval=1.0)
         scale = jnp.array([0.3, 0.3, 0.15] + [0.1] * ctrl.robot.delta_s)
-        return params, place(ctrl, params, dp * scale, Space.PHYSICAL, Task.POSTURE,
-                             float(ctrl.reference_branch(params)))
+        return params, place(
+            ctrl, params, dp * scale, Space.PHYSICAL, Task.POSTURE, float(ctrl.reference_branch(params))
+        )
 
-    params_b, z0_b = jax.vmap(draw)(jax.random.split(k_ref, n_random), jax.random.split(k_ic, n_random),
-                                    jax.random.split(k_off, n_random))
+    params_b, z0_b = jax.vmap(draw)(
+        jax.random.split(k_ref, n_random), jax.random.split(k_ic, n_random), jax.random.split(k_off, n_random)
+    )
 
     def one(params, z0):
         tr = w.simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=n_steps)
@@ -106,7 +117,7 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
 
     ctrl = w.dynamic_linearization(kind, level)
     g = ctrl.row.default_geometry
-    free_heading = bool(ctrl.row.extension.angle_outputs)   # theta is an output: a crab angle is possible
+    free_heading = bool(ctrl.row.extension.angle_outputs)  # theta is an output: a crab angle is possible
     n_steps = int(round(t_final / dt))
     out = {"geometry": g._asdict(), "poles": 1.0, "relative_degree": ctrl.relative_degree}
     traces = _named_references(ctrl, g, free_heading, t_final, dt, n_steps, out)
@@ -118,9 +129,12 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
     conv = ok & (ep < tol_pos) & (eh < tol_head)
     q = common.quantiles
     out["random"] = {
-        "n_runs": int(n_random), "t_final": t_final, "dt": dt,
+        "n_runs": int(n_random),
+        "t_final": t_final,
+        "dt": dt,
         "initial_perturbation": "uniform: +-0.3 m in x, y; +-0.15 rad in theta; +-0.1 rad in steering angles",
-        "final_position_error_m": q(ep[ok]), "final_heading_error_rad": q(eh[ok]),
+        "final_position_error_m": q(ep[ok]),
+        "final_heading_error_rad": q(eh[ok]),
         "fraction_references_regular": float(ref_ok.mean()),
         "reference_regularity_definition": "margin of (X_e)_ref(t) > 1e-3 on a 151-point grid of [0, t_final], one branch",
         "fraction_converged": float(conv.mean()),
@@ -128,9 +142,9 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
         "fraction_flagged_singular": float(failed.mean()),
         "fraction_flagged_inaccurate": float(np.asarray(diag.inaccurate).mean()),
         "flagged_definition": "failed in simulate: singular (margin floor, or det K changed sign between steps), "
-                              "inaccurate (a step's error estimate above 1e-3, often on the way to the singular "
-                              "set) or non-finite; fraction_flagged_singular counts every failed run, whatever the "
-                              "cause, fraction_flagged_inaccurate the inaccurate ones",
+        "inaccurate (a step's error estimate above 1e-3, often on the way to the singular "
+        "set) or non-finite; fraction_flagged_singular counts every failed run, whatever the "
+        "cause, fraction_flagged_inaccurate the inaccurate ones",
         "fraction_flagged_singular_on_regular_references": float(failed[ref_ok].mean()) if ref_ok.any() else None,
         "min_margin_over_runs": float(np.min(np.asarray(diag.min_margin))),
         "min_initial_margin": float(np.min(np.asarray(m0))),
@@ -140,15 +154,29 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol_pos, tol_head):
     return out, traces, (ep[ok], eh[ok])
 
 
-def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol_pos=1e-2, tol_head=1e-2, kinds=KINDS,
-        levels=None, progress=None):
+def run(
+    out_dir,
+    n_random=1024,
+    t_final=15.0,
+    dt=0.01,
+    seed=0,
+    tol_pos=1e-2,
+    tol_head=1e-2,
+    kinds=KINDS,
+    levels=None,
+    progress=None,
+):
     """The experiment on ``kinds`` x ``levels`` (None: every :class:`wmrjax.Level`); its summary."""
     common.enable_x64()
     import wmrjax as w
 
     levels = tuple(w.Level) if levels is None else levels
-    summary = {"experiment": "posture_tracking", "controller": "dynamic feedback linearization (Table 4, Prop 8)",
-               "poles": "all at -1", "cases": {}}
+    summary = {
+        "experiment": "posture_tracking",
+        "controller": "dynamic feedback linearization (Table 4, Prop 8)",
+        "poles": "all at -1",
+        "cases": {},
+    }
     for kind in kinds:
         per_level = {}
         for level in levels:
@@ -159,10 +187,13 @@ def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol_pos=1e-2, tol
             per_level[level] = (traces, errs)
             summary["cases"][f"{kind} {level}"] = res
             r = res["random"]
-            print(f"{kind} {level}: references regular {r['fraction_references_regular']:.3f}, "
-                  f"converged {r['fraction_converged']:.3f}, singular {r['fraction_flagged_singular']:.3f}, "
-                  f"median final position error {r['final_position_error_m'].get('q50', float('nan')):.2e} m "
-                  f"({time.perf_counter() - t0:.1f} s)", flush=True)
+            print(
+                f"{kind} {level}: references regular {r['fraction_references_regular']:.3f}, "
+                f"converged {r['fraction_converged']:.3f}, singular {r['fraction_flagged_singular']:.3f}, "
+                f"median final position error {r['final_position_error_m'].get('q50', float('nan')):.2e} m "
+                f"({time.perf_counter() - t0:.1f} s)",
+                flush=True,
+            )
         common.tracking_figure(out_dir, kind, per_level)
         common.write_json(out_dir / "summary.json", summary)  # progress: rewritten after each type
     return summary

@@ -17,8 +17,15 @@ import sys
 from experiments import common
 
 
-def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096, n_directions: int = 128,
-        n_starts: int = 16, progress=None) -> dict:
+def run(
+    out,
+    dt: float = 0.01,
+    t_final: float = 10.0,
+    n_empirical: int = 4096,
+    n_directions: int = 128,
+    n_starts: int = 16,
+    progress=None,
+) -> dict:
     say = progress or (lambda msg: print(msg, flush=True))
     common.enable_x64()
     import jax
@@ -49,36 +56,55 @@ def run(out, dt: float = 0.01, t_final: float = 10.0, n_empirical: int = 4096, n
     summary = {
         "experiment": "section_6_1",
         "paper": "d'Andrea-Novel, Campion & Bastin, IJRR 14(6) 1995, section 6.1",
-        "robot": "(2,0)", "controller": "dynamic feedback linearization, velocity level (Table 4, eq 39)",
+        "robot": "(2,0)",
+        "controller": "dynamic feedback linearization, velocity level (Table 4, eq 39)",
         "geometry": {"e": 0.0},
         "reference": "eq (62): x_ref = y_ref = sqrt(2) 1e-2 / 3 (10 - 2t)^3 - sqrt(2)/2 t + 5 sqrt(2)/6",
         "gains": {"poles_per_axis": [-1.0, -1.0], "k1": 2.0, "k0": 1.0},
         "initial_state": {
-            "x": float(z0[0]), "y": float(z0[1]), "theta": float(z0[2]), "chi1": float(z0[3]),
-            "xdot": float(zeta0[1, 0]), "ydot": float(zeta0[1, 1]),
+            "x": float(z0[0]),
+            "y": float(z0[1]),
+            "theta": float(z0[2]),
+            "chi1": float(z0[3]),
+            "xdot": float(zeta0[1, 0]),
+            "ydot": float(zeta0[1, 1]),
         },
-        "reference_initial_state": {"x": float(ref_post[0, 0]), "y": float(ref_post[0, 1]),
-                                    "theta": float(ref_post[0, 2]), "chi1": float(zref[0, 3])},
+        "reference_initial_state": {
+            "x": float(ref_post[0, 0]),
+            "y": float(ref_post[0, 1]),
+            "theta": float(ref_post[0, 2]),
+            "chi1": float(zref[0, 3]),
+        },
         "simulation": {
             "integrator": "RK4, fixed step",
-            "dt": dt, "t_final": float(t[-1]),
-            "min_eta1": float(eta1[i_min]), "t_min_eta1": float(t[i_min]),
+            "dt": dt,
+            "t_final": float(t[-1]),
+            "min_eta1": float(eta1[i_min]),
+            "t_min_eta1": float(t[i_min]),
             "max_position_error": float(pos_err.max()),
             "final_position_error": float(pos_err[-1]),
             "final_heading_error": float(np.angle(np.exp(1j * (state[-1, 2] - ref_post[-1, 2])))),
             "max_linear_error_residual": resid,
-            "max_linear_error_residual_definition":
-                "max over t and components of |zeta_err(t) - expm(A t) zeta_err(0)|, zeta_err = Psi(X_e) - zeta_ref",
-            "min_margin_abs_det_K": float(d.min_margin), "failed": bool(d.failed),
+            "max_linear_error_residual_definition": "max over t and components of |zeta_err(t) - expm(A t) zeta_err(0)|, zeta_err = Psi(X_e) - zeta_ref",
+            "min_margin_abs_det_K": float(d.min_margin),
+            "failed": bool(d.failed),
         },
     }
-    summary["lemma2"], cert = _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, n_directions=n_directions,
-                                            n_starts=n_starts, log=say)
+    summary["lemma2"], cert = _lemma2_block(
+        ctrl, params, z0, t_final, dt, n_empirical, n_directions=n_directions, n_starts=n_starts, log=say
+    )
     say("writing figures")
     out.mkdir(parents=True, exist_ok=True)
     _fig7(out, cert, summary["lemma2"])
-    common.write_npz(out / "trajectories.npz", t=t, state=state, control=control, reference=ref_post,
-                      state_names=np.array(ctrl.state_names), control_names=np.array(["eta1", "eta2"]))
+    common.write_npz(
+        out / "trajectories.npz",
+        t=t,
+        state=state,
+        control=control,
+        reference=ref_post,
+        state_names=np.array(ctrl.state_names),
+        control_names=np.array(["eta1", "eta2"]),
+    )
     _figures(out, t, state, ref_post, eta1, eta1_ref)
     common.write_json(out / "summary.json", summary)
     return summary
@@ -92,9 +118,18 @@ def _lemma2_block(ctrl, params, z0, t_final, dt, n_empirical, eps=1e-2, n_direct
     from wmrjax import certify as C
 
     e0 = float(jnp.linalg.norm(ctrl.error(0.0, z0, params)))
-    report = C.analyse(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_empirical=n_empirical,
-                       n_directions=n_directions, n_starts=n_starts, zeta0_norm=e0,
-                       log=log)
+    report = C.analyse(
+        ctrl,
+        params,
+        t_final=t_final,
+        eps=eps,
+        dt=dt,
+        n_empirical=n_empirical,
+        n_directions=n_directions,
+        n_starts=n_starts,
+        zeta0_norm=e0,
+        log=log,
+    )
     block = report.summary()
     block["k2_paper"] = "eq (64)"
     block["lyapunov_K1_r1"] = [float(x) for x in C.lyapunov_bound(ctrl.error_matrix(params.gains))[:2]]
@@ -106,14 +141,19 @@ def _fig7(out, cert, block):
 
     plt = common.pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    for name, lab, c in [("paper", "F(t), K2 of eq (64)", "k"), ("lyapunov", "F(t), Lyapunov K2", "C0"),
-                         ("exact_norm", "F(t), K2 = ||exp(At)||", "C3")]:
+    for name, lab, c in [
+        ("paper", "F(t), K2 of eq (64)", "k"),
+        ("lyapunov", "F(t), Lyapunov K2", "C0"),
+        ("exact_norm", "F(t), K2 = ||exp(At)||", "C3"),
+    ]:
         cc = cert[name]
         ax.plot(np.asarray(cc.ts), np.asarray(cc.F), color=c, lw=1.6 if name == "paper" else 1.2, label=lab)
         ax.plot(float(cc.argmin), float(cc.radius), "o", color=c, ms=4)
     ax.axhline(block["zeta0_norm"], color="C2", ls="--", lw=1.0, label="||zeta_err(0)|| of (63)")
-    for key, lab, c in [("radius_exact_map", "exact-map radius (full)", "C4"),
-                        ("radius_exact_map_position_slice", "exact-map radius (position slice)", "C5")]:
+    for key, lab, c in [
+        ("radius_exact_map", "exact-map radius (full)", "C4"),
+        ("radius_exact_map_position_slice", "exact-map radius (position slice)", "C5"),
+    ]:
         if block.get(key) is not None:
             ax.axhline(block[key], color=c, ls=":", lw=1.2, label=f"{lab}: {block[key]:.3g}")
     ax.set_yscale("log")
@@ -143,8 +183,11 @@ def _figures(out, t, state, ref, eta1, eta1_ref):
     plt.close(fig)
 
     fig, axs = plt.subplots(3, 1, figsize=(6.5, 6.5), sharex=True)
-    for a, y, lab in zip(axs, [state[:, 0] - ref[:, 0], state[:, 1] - ref[:, 1], eta1 - eta1_ref],
-                         ["x - x_ref [m]", "y - y_ref [m]", "eta1 - eta1_ref [m/s]"]):
+    for a, y, lab in zip(
+        axs,
+        [state[:, 0] - ref[:, 0], state[:, 1] - ref[:, 1], eta1 - eta1_ref],
+        ["x - x_ref [m]", "y - y_ref [m]", "eta1 - eta1_ref [m/s]"],
+    ):
         a.plot(t, y)
         a.axhline(0.0, color="k", lw=0.6)
         a.set_ylabel(lab)
@@ -165,15 +208,19 @@ def main(argv=None) -> int:
     options.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=4096)
     s = options.work(p, a, lambda progress: run(a.out, a.dt, a.t_final, progress=progress))
     sim = s["simulation"]
-    print(f"section 6.1: min eta1 = {sim['min_eta1']:.4f} m/s at t = {sim['t_min_eta1']:.2f} s; "
-          f"position error max {sim['max_position_error']:.4f} m, final {sim['final_position_error']:.2e} m; "
-          f"linear-error residual {sim['max_linear_error_residual']:.2e}")
+    print(
+        f"section 6.1: min eta1 = {sim['min_eta1']:.4f} m/s at t = {sim['t_min_eta1']:.2f} s; "
+        f"position error max {sim['max_position_error']:.4f} m, final {sim['final_position_error']:.2e} m; "
+        f"linear-error residual {sim['max_linear_error_residual']:.2e}"
+    )
     l2 = s["lemma2"]
-    print(f"lemma 2 (eps = {l2['eps']}): |zeta_err(0)| = {l2['zeta0_norm']:.4f}; certified radius paper {l2['radius_paper']:.4f} "
-          f"(condition 52: {l2['condition_52']}), Lyapunov {l2['radius_lyapunov']:.4f}, exact norm {l2['radius_exact_norm']:.4f}; "
-          f"exact map {l2['radius_exact_map']:.4f} (position slice {l2['radius_exact_map_position_slice']:.4f}, "
-          f"empirical {l2['empirical_radius_position_slice']}); falsified full {l2['falsified_full']['radius']}, "
-          f"position slice {l2['falsified_position_slice']['radius']}")
+    print(
+        f"lemma 2 (eps = {l2['eps']}): |zeta_err(0)| = {l2['zeta0_norm']:.4f}; certified radius paper {l2['radius_paper']:.4f} "
+        f"(condition 52: {l2['condition_52']}), Lyapunov {l2['radius_lyapunov']:.4f}, exact norm {l2['radius_exact_norm']:.4f}; "
+        f"exact map {l2['radius_exact_map']:.4f} (position slice {l2['radius_exact_map_position_slice']:.4f}, "
+        f"empirical {l2['empirical_radius_position_slice']}); falsified full {l2['falsified_full']['radius']}, "
+        f"position slice {l2['falsified_position_slice']['radius']}"
+    )
     print(f"wrote {a.out}/summary.json, trajectories.npz, fig7_F.png, fig8_paths.png, fig9_errors.png")
     return 0
 

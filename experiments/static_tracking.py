@@ -38,7 +38,7 @@ def _start(ctrl, posture: bool, params, key):
     d_steer = jnp.zeros(ctrl.robot.delta_s)
     if ctrl.row.steering_index is not None:
         d_steer = d_steer.at[-1].set(jax.random.uniform(k3, (), minval=-0.3, maxval=0.3))
-    if ctrl.robot.delta_m == 1:       # the steering wheel that is not an output: random angle
+    if ctrl.robot.delta_m == 1:  # the steering wheel that is not an output: random angle
         d_steer = d_steer.at[0].set(jax.random.uniform(k3, (), minval=-1.0, maxval=1.0))
     dp = jax.random.uniform(k1, (2,), minval=-0.5, maxval=0.5)
     error = jnp.concatenate([dp, d_th[None], d_steer])
@@ -68,17 +68,23 @@ def _named_references(ctrl, g, posture: bool, dt: float, n_steps: int, out: dict
         z0 = _start(ctrl, posture, params, jax.random.PRNGKey(1))
         ctrl.check_regular(z0, params)
         tr = w.simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=max(1, n_steps // 300))
-        ep, eh = (np.asarray(a) for a in jax.vmap(lambda t, z: _point_error(ctrl, posture, t, z, params))(
-            tr.t, tr.state))
+        ep, eh = (
+            np.asarray(a) for a in jax.vmap(lambda t, z: _point_error(ctrl, posture, t, z, params))(tr.t, tr.state)
+        )
         pts = np.asarray(jax.vmap(lambda z: ctrl.outputs(z, params))(tr.state))
         refp = np.asarray(jax.vmap(ref.position)(tr.t))
         traces[name] = dict(t=np.asarray(tr.t), state=pts, ref=refp, ep=ep)
-        out[name] = {"final_point_error_m": float(ep[-1]), "final_heading_error_rad": float(eh[-1]),
-                     "min_abs_det_K": float(tr.diagnostics.min_margin), "failed": bool(tr.diagnostics.failed),
-                     "max_norm_z3": float(np.max(np.linalg.norm(np.asarray(jax.vmap(ctrl.z3)(tr.state)), axis=-1)))
-                     if ctrl.row.z3 else None,
-                     "final_heading_error_vs_reference_rad": float(tr.diagnostics.internal.heading_error),
-                     "turned_round": bool(tr.diagnostics.internal.turned_round)}
+        out[name] = {
+            "final_point_error_m": float(ep[-1]),
+            "final_heading_error_rad": float(eh[-1]),
+            "min_abs_det_K": float(tr.diagnostics.min_margin),
+            "failed": bool(tr.diagnostics.failed),
+            "max_norm_z3": float(np.max(np.linalg.norm(np.asarray(jax.vmap(ctrl.z3)(tr.state)), axis=-1)))
+            if ctrl.row.z3
+            else None,
+            "final_heading_error_vs_reference_rad": float(tr.diagnostics.internal.heading_error),
+            "turned_round": bool(tr.diagnostics.internal.turned_round),
+        }
     return traces
 
 
@@ -118,7 +124,7 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
 
     task = "posture" if w.robot_type(kind).omnidirectional else "point"
     ctrl = w.controller(kind, level, task)
-    posture = ctrl.task == "posture"      # (3,0): the heading is an output too
+    posture = ctrl.task == "posture"  # (3,0): the heading is an output too
     g = ctrl.row.default_geometry
     n_steps = int(round(t_final / dt))
     out = {"task": task, "geometry": g._asdict(), "poles": 1.0, "outputs": ctrl.row.regularity}
@@ -130,52 +136,58 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
     conv = ok & (ep < tol) & (eh < tol) & ~turned
     q = common.quantiles
     out["random"] = {
-        "n_runs": int(n_random), "t_final": t_final, "dt": dt,
+        "n_runs": int(n_random),
+        "t_final": t_final,
+        "dt": dt,
         "initial_conditions": "tracked point uniform within +-0.5 m of the reference's start, any heading "
-                              "((3,0): +-0.3 rad), steering within +-0.3 rad of its reference, at rest",
+        "((3,0): +-0.3 rad), steering within +-0.3 rad of its reference, at rest",
         "final_point_error_m": q(ep[ok]),
         **({"final_heading_error_rad": q(eh[ok])} if posture else {}),
         "fraction_converged": float(conv.mean()),
         "converged_definition": f"not flagged singular, final point error < {tol} m"
-                                + (f" and heading error < {tol} rad" if posture else "")
-                                + ", not turned round",
+        + (f" and heading error < {tol} rad" if posture else "")
+        + ", not turned round",
         "fraction_point_tracked": float((ok & (ep < tol) & (eh < tol)).mean()),
         "point_tracked_definition": f"not flagged singular, final point error < {tol} m"
-                                    + (f" and heading error < {tol} rad" if posture else "")
-                                    + ", whatever the heading (converged, or turned round)",
+        + (f" and heading error < {tol} rad" if posture else "")
+        + ", whatever the heading (converged, or turned round)",
         "fraction_turned_round": float(turned.mean()),
         "fraction_point_tracked_but_turned_round": float((ok & (ep < tol) & turned).mean()),
         "turned_round_definition": "final heading more than pi/2 away from the reference heading (path tangent, "
-                                   "forward axis x2): the point is tracked with the robot facing backwards",
+        "forward axis x2): the point is tracked with the robot facing backwards",
         "final_abs_heading_error_vs_reference_rad": q(np.abs(np.asarray(diag.internal.heading_error))[ok]),
         "fraction_flagged_singular": float(failed.mean()),
         "fraction_flagged_inaccurate": float(np.asarray(diag.inaccurate).mean()),
         "flagged_definition": "failed in simulate: singular (margin floor, or det K changed sign between steps), "
-                              "inaccurate (a step's error estimate above 1e-3, often on the way to the singular "
-                              "set) or non-finite; fraction_flagged_singular counts every failed run, whatever the "
-                              "cause, fraction_flagged_inaccurate the inaccurate ones",
+        "inaccurate (a step's error estimate above 1e-3, often on the way to the singular "
+        "set) or non-finite; fraction_flagged_singular counts every failed run, whatever the "
+        "cause, fraction_flagged_inaccurate the inaccurate ones",
         "min_abs_det_K_over_runs": float(np.min(np.asarray(diag.min_margin))),
         "min_initial_abs_det_K": float(np.min(np.asarray(m0))),
         "max_norm_z3": q(z3n[ok]) if ctrl.row.z3 else None,
         "z3_note": "z3 = theta (and a steering angle) integrated unwrapped: on references whose speed is "
-                   "not L1 (these never stop) theta keeps turning, so ||z3|| grows with the horizon; Prop 5 "
-                   "bounds it for L1 speeds",
+        "not L1 (these never stop) theta keeps turning, so ||z3|| grows with the horizon; Prop 5 "
+        "bounds it for L1 speeds",
         "wall_time_s_including_compile": wall,
     }
     return out, traces, (ep[ok], eh[ok])
 
 
-def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol=1e-2, kinds=KINDS, levels=None,
-        progress=None) -> dict:
+def run(
+    out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol=1e-2, kinds=KINDS, levels=None, progress=None
+) -> dict:
     """The experiment on ``kinds`` x ``levels`` (None: every :class:`wmrjax.Level`); its summary."""
     common.enable_x64()
     import wmrjax as w
 
     levels = tuple(w.Level) if levels is None else levels
 
-    summary = {"experiment": "static_tracking",
-               "controller": "static feedback linearization (Prop 3 for (3,0); Table 3, eqs 27-28, Remark 11)",
-               "poles": "all at -1", "cases": {}}
+    summary = {
+        "experiment": "static_tracking",
+        "controller": "static feedback linearization (Prop 3 for (3,0); Table 3, eqs 27-28, Remark 11)",
+        "poles": "all at -1",
+        "cases": {},
+    }
     for kind in kinds:
         per_level = {}
         for level in levels:
@@ -186,10 +198,13 @@ def run(out_dir, n_random=1024, t_final=15.0, dt=0.01, seed=0, tol=1e-2, kinds=K
             per_level[level] = (traces, errs)
             summary["cases"][f"{kind} {level}"] = res
             r = res["random"]
-            print(f"{kind} {level}: converged {r['fraction_converged']:.3f}, turned round "
-                  f"{r['fraction_turned_round']:.3f}, singular {r['fraction_flagged_singular']:.3f}, "
-                  f"median final point error {r['final_point_error_m'].get('q50', float('nan')):.2e} m, "
-                  f"min |det K| {r['min_abs_det_K_over_runs']:.3g} ({time.perf_counter() - t0:.1f} s)", flush=True)
+            print(
+                f"{kind} {level}: converged {r['fraction_converged']:.3f}, turned round "
+                f"{r['fraction_turned_round']:.3f}, singular {r['fraction_flagged_singular']:.3f}, "
+                f"median final point error {r['final_point_error_m'].get('q50', float('nan')):.2e} m, "
+                f"min |det K| {r['min_abs_det_K_over_runs']:.3g} ({time.perf_counter() - t0:.1f} s)",
+                flush=True,
+            )
         label = "position error [m]" if w.robot_type(kind).omnidirectional else "point error |h(X) - p_ref| [m]"
         common.tracking_figure(out_dir, kind, per_level, prefix="static", error_label=label)
         common.write_json(out_dir / "summary.json", summary)  # progress: rewritten after each type

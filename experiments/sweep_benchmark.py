@@ -45,9 +45,11 @@ block = {block}
 
 
 # a fresh parent per sweep, so that getrusage(RUSAGE_CHILDREN) is this sweep's process tree alone
-_WRAP = ("import resource, subprocess, sys; r = subprocess.run(sys.argv[2:]); "
-         "open(sys.argv[1], 'w').write(str(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)); "
-         "sys.exit(r.returncode)")
+_WRAP = (
+    "import resource, subprocess, sys; r = subprocess.run(sys.argv[2:]); "
+    "open(sys.argv[1], 'w').write(str(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)); "
+    "sys.exit(r.returncode)"
+)
 
 
 def _sweep(spec: Path, out: Path, extra=(), kill_at: float | None = None, n_blocks: int = 0) -> dict:
@@ -55,14 +57,15 @@ def _sweep(spec: Path, out: Path, extra=(), kill_at: float | None = None, n_bloc
     rss = out.parent / f".{out.name}.maxrss"
     cmd = [sys.executable, "-m", "experiments.sweep", str(spec), "--out", str(out), *extra]
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-c", _WRAP, str(rss), *cmd], stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _WRAP, str(rss), *cmd], stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
     killed = False
     if kill_at is not None:
         while proc.poll() is None:
             done = len(list((out / "blocks").glob("block_*.npz"))) if (out / "blocks").exists() else 0
             if done >= kill_at * n_blocks:
-                os.killpg(proc.pid, signal.SIGKILL)        # the whole tree, as a kill -9 would
+                os.killpg(proc.pid, signal.SIGKILL)  # the whole tree, as a kill -9 would
                 killed = True
                 break
             time.sleep(0.2)
@@ -70,7 +73,7 @@ def _sweep(spec: Path, out: Path, extra=(), kill_at: float | None = None, n_bloc
     wall = time.perf_counter() - t0
     if proc.returncode and not killed:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{err[-3000:]}")
-    peak = int(rss.read_text()) * 1024 if rss.exists() and not killed else None    # Linux: ru_maxrss in KiB
+    peak = int(rss.read_text()) * 1024 if rss.exists() and not killed else None  # Linux: ru_maxrss in KiB
     return {"wall_s": wall, "peak_rss_bytes": peak, "killed": killed}
 
 
@@ -88,10 +91,13 @@ def run(out: Path, runs: int, block: int, progress=print) -> dict:
         progress(f"{label}: {total} runs")
         r = _sweep(spec, out / label, ("--fresh", *extra))
         s = json.loads((out / label / "summary.json").read_text())
-        r |= {"throughput_runs_per_s": total / r["wall_s"], "throughput_trajectory_steps_per_s": steps / r["wall_s"],
-              "compute_wall_s": s["execution"]["compute_wall_s"],
-              "compute_throughput_trajectory_steps_per_s": s["execution"]["throughput_trajectory_steps_per_s"],
-              "counts": s["counts"]}
+        r |= {
+            "throughput_runs_per_s": total / r["wall_s"],
+            "throughput_trajectory_steps_per_s": steps / r["wall_s"],
+            "compute_wall_s": s["execution"]["compute_wall_s"],
+            "compute_throughput_trajectory_steps_per_s": s["execution"]["throughput_trajectory_steps_per_s"],
+            "counts": s["counts"],
+        }
         res[label] = r
     progress("killed at 50 %, then resumed")
     killed = _sweep(spec, out / "resumed", ("--fresh",), kill_at=0.5, n_blocks=n_blocks)
@@ -100,10 +106,18 @@ def run(out: Path, runs: int, block: int, progress=print) -> dict:
     import pyarrow.parquet as pq
 
     same = pq.read_table(out / "resumed" / "runs.parquet").equals(pq.read_table(out / "one_process" / "runs.parquet"))
-    res["resume"] = {"killed_after_s": killed["wall_s"], "blocks_done_at_kill": done, "blocks": n_blocks,
-                     "resume_wall_s": resumed["wall_s"], "same_table_as_uninterrupted": bool(same)}
+    res["resume"] = {
+        "killed_after_s": killed["wall_s"],
+        "blocks_done_at_kill": done,
+        "blocks": n_blocks,
+        "resume_wall_s": resumed["wall_s"],
+        "same_table_as_uninterrupted": bool(same),
+    }
     res["same_table_one_and_two_processes"] = bool(
-        pq.read_table(out / "two_processes" / "runs.parquet").equals(pq.read_table(out / "one_process" / "runs.parquet")))
+        pq.read_table(out / "two_processes" / "runs.parquet").equals(
+            pq.read_table(out / "one_process" / "runs.parquet")
+        )
+    )
     common.write_json(out / "summary.json", res)
     return res
 
@@ -112,15 +126,19 @@ def main(argv=None) -> int:
     from wmrjax_cli import options
 
     p = common.parser(__doc__.splitlines()[0], "results/sweep_benchmark")
-    p.add_argument("--runs", type=options.count, default=1_000_000, help="runs per sweep (rounded down to a square grid)")
+    p.add_argument(
+        "--runs", type=options.count, default=1_000_000, help="runs per sweep (rounded down to a square grid)"
+    )
     p.add_argument("--block", type=options.count, default=1024, help="runs per block")
     a = p.parse_args(argv)
     options.prepare_output(p, a.out)
     res = run(a.out, a.runs, a.block)
     one, two = res["one_process"], res["two_processes"]
-    print(f"{res['runs']} runs: 1 process {one['wall_s']:.0f} s ({one['throughput_runs_per_s']:.0f} runs/s, peak "
-          f"{(one['peak_rss_bytes'] or 0) / 1e9:.2f} GB); 2 processes {two['wall_s']:.0f} s; resume after a kill at "
-          f"{res['resume']['blocks_done_at_kill']}/{res['resume']['blocks']} blocks: {res['resume']['resume_wall_s']:.0f} s")
+    print(
+        f"{res['runs']} runs: 1 process {one['wall_s']:.0f} s ({one['throughput_runs_per_s']:.0f} runs/s, peak "
+        f"{(one['peak_rss_bytes'] or 0) / 1e9:.2f} GB); 2 processes {two['wall_s']:.0f} s; resume after a kill at "
+        f"{res['resume']['blocks_done_at_kill']}/{res['resume']['blocks']} blocks: {res['resume']['resume_wall_s']:.0f} s"
+    )
     return 0
 
 

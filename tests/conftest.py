@@ -33,4 +33,3 @@ def paper61():
     zeta0 = jnp.array([[zref[0] - 0.54, zref[1] + 0.54], [vel, vel]])
     z0 = ctrl.initial_state(zeta0, params)
     return ctrl, params, z0
-

@@ -41,14 +41,17 @@ def _imports(path):
     return mods, names
 
 
-LAYERS = ("wmrjax", "wmrjax_cli", "tuning", "experiments")     # bottom to top
+LAYERS = ("wmrjax", "wmrjax_cli", "tuning", "experiments")  # bottom to top
 
 
 def test_layers_never_point_up():
     """wmrjax (the library) imports none of the others; wmrjax_cli (the command lines' options
     and files) the library only; tuning the library and wmrjax_cli; experiments anything."""
-    forbidden = {"wmrjax": ("wmrjax_cli", "tuning", "experiments"), "wmrjax_cli": ("tuning", "experiments"),
-                 "tuning": ("experiments",)}
+    forbidden = {
+        "wmrjax": ("wmrjax_cli", "tuning", "experiments"),
+        "wmrjax_cli": ("tuning", "experiments"),
+        "tuning": ("experiments",),
+    }
     for pkg, above in forbidden.items():
         for f in _sources(pkg):
             mods, _ = _imports(f)
@@ -57,16 +60,27 @@ def test_layers_never_point_up():
     for f in _sources("experiments"):
         mods, names = _imports(f)
         # an experiment that is a package (experiments/sweep/) imports its own modules
-        own = f"experiments.{f.relative_to(ROOT / 'experiments').parts[0]}" if f.parent != ROOT / "experiments" else None
-        others = [m for m in mods if m.startswith("experiments.") and m != "experiments.common"
-                  and not (own and (m == own or m.startswith(own + ".")))]
+        own = (
+            f"experiments.{f.relative_to(ROOT / 'experiments').parts[0]}" if f.parent != ROOT / "experiments" else None
+        )
+        others = [
+            m
+            for m in mods
+            if m.startswith("experiments.")
+            and m != "experiments.common"
+            and not (own and (m == own or m.startswith(own + ".")))
+        ]
         others += [n for m, n in names if m == "experiments" and n != "common"]
         assert not others, f"{f.relative_to(ROOT)} imports another experiment: {others}"
     for pkg in LAYERS:
         for f in _sources(pkg):
             _, names = _imports(f)
             # private names stay in their module (the package's private helper modules excepted)
-            private = [(m, n) for m, n in names if n.startswith("_") and n not in ("_math", "_scalarize", "_simplify", "_validate")]
+            private = [
+                (m, n)
+                for m, n in names
+                if n.startswith("_") and n not in ("_math", "_scalarize", "_simplify", "_validate")
+            ]
             assert not private, f"{f.relative_to(ROOT)} imports private names {private}"
 
 
@@ -129,11 +143,14 @@ def test_per_type_facts_live_in_the_tables():
     """No dispatch on a robot's name outside robots.py and the two table definitions: no comparison
     with a type-name string, no membership test in a list of them, no dict keyed by them."""
     type_name = r"""["']\(\d,\d\)["']"""
-    patterns = [re.compile(r"\.name\s*(==|!=|in)\s*[(\[{\"']"),                  # robot.name == "(2,0)"
-                re.compile(r"(==|!=)\s*" + type_name), re.compile(type_name + r"\s*(==|!=)"),
-                re.compile(r"\bin\s*[(\[{]\s*" + type_name),                       # kind in ("(2,1)", ...)
-                re.compile(r"[{,]\s*" + type_name + r"\s*:"),                        # {"(2,0)": ...}
-                re.compile(r"\[\s*[\w.]*\.name\s*\]")]                              # TABLE[ctrl.robot.name]
+    patterns = [
+        re.compile(r"\.name\s*(==|!=|in)\s*[(\[{\"']"),  # robot.name == "(2,0)"
+        re.compile(r"(==|!=)\s*" + type_name),
+        re.compile(type_name + r"\s*(==|!=)"),
+        re.compile(r"\bin\s*[(\[{]\s*" + type_name),  # kind in ("(2,1)", ...)
+        re.compile(r"[{,]\s*" + type_name + r"\s*:"),  # {"(2,0)": ...}
+        re.compile(r"\[\s*[\w.]*\.name\s*\]"),
+    ]  # TABLE[ctrl.robot.name]
     allowed = {ROOT / "wmrjax" / "robots.py"}
     table_lookups = {ROOT / "wmrjax" / "controllers" / f for f in ("dynamic.py", "static.py")}
     for pkg in LAYERS:
@@ -150,19 +167,35 @@ def test_signatures_are_uniform():
     """Certification: the closed loop first, then t_final and eps keyword-only; controllers: the
     same argument kinds in the same order for both siblings."""
     P = inspect.Parameter
-    for fn, keys in [(C.lemma2, ("t_final", "eps")), (C.exact_map_radius, ("t_final", "eps")),
-                     (C.empirical_radius, ("t_final", "eps")), (C.falsified_radius, ("t_final", "eps")),
-                     (C.analyse, ("t_final", "eps")), (C.verify, ("t_final",)), (C.min_distance, ("t_final",)),
-                     (C.falsify, ("t_final",))]:
+    for fn, keys in [
+        (C.lemma2, ("t_final", "eps")),
+        (C.exact_map_radius, ("t_final", "eps")),
+        (C.empirical_radius, ("t_final", "eps")),
+        (C.falsified_radius, ("t_final", "eps")),
+        (C.analyse, ("t_final", "eps")),
+        (C.verify, ("t_final",)),
+        (C.min_distance, ("t_final",)),
+        (C.falsify, ("t_final",)),
+    ]:
         ps = inspect.signature(fn).parameters
         assert list(ps)[:2] == ["ctrl", "params"], fn.__name__
         assert all(p.kind == P.KEYWORD_ONLY for p in list(ps.values())[2:]), fn.__name__
         assert all(k in ps for k in keys), fn.__name__
-    methods = {"vector_field": ["t", "z", "params"], "control": ["t", "z", "params"], "error": ["t", "z", "params"],
-               "reference_jet": ["t", "params"], "margin": ["z", "params"], "psi": ["z", "params"],
-               "outputs": ["z", "params"], "jet": ["z", "params"], "physical_state": ["X", "u", "params"],
-               "initial_state_from_physical": ["X", "u", "params"], "check_regular": ["z", "params", "name"],
-               "check_reference": ["params", "t_final", "t0", "floor"], "error_matrix": ["gains"]}
+    methods = {
+        "vector_field": ["t", "z", "params"],
+        "control": ["t", "z", "params"],
+        "error": ["t", "z", "params"],
+        "reference_jet": ["t", "params"],
+        "margin": ["z", "params"],
+        "psi": ["z", "params"],
+        "outputs": ["z", "params"],
+        "jet": ["z", "params"],
+        "physical_state": ["X", "u", "params"],
+        "initial_state_from_physical": ["X", "u", "params"],
+        "check_regular": ["z", "params", "name"],
+        "check_reference": ["params", "t_final", "t0", "floor"],
+        "error_matrix": ["gains"],
+    }
     for cls in (w.DynamicLinearization, w.StaticLinearization):
         for name, args in methods.items():
             got = list(inspect.signature(getattr(cls, name)).parameters)[1:]
@@ -171,6 +204,7 @@ def test_signatures_are_uniform():
 
 # --- one gain representation --------------------------------------------------------------------
 
+
 def test_gains_constructors_agree_and_read_back_their_poles():
     np.testing.assert_array_equal(w.Gains.from_poles(1.0, 2, 2).coeffs, [[1.0, 2.0], [1.0, 2.0]])
     np.testing.assert_array_equal(w.Gains.from_damping(1.0, 1.0, m=2).coeffs, [[1.0, 2.0], [1.0, 2.0]])
@@ -178,10 +212,10 @@ def test_gains_constructors_agree_and_read_back_their_poles():
     g = w.Gains.from_damping(3.76, 0.47, m=2)
     re_, im = -0.47 * 3.76, 3.76 * math.sqrt(1 - 0.47**2)
     np.testing.assert_allclose(g.poles(), [[re_ - 1j * im, re_ + 1j * im]] * 2, rtol=1e-12)
-    g3 = w.Gains.from_damping([2.0], [0.5], lam=3.0, m=1)          # r = 3: (s^2 + 2 s + 4)(s + 3)
+    g3 = w.Gains.from_damping([2.0], [0.5], lam=3.0, m=1)  # r = 3: (s^2 + 2 s + 4)(s + 3)
     np.testing.assert_allclose(g3.coeffs, [[12.0, 10.0, 5.0]], rtol=1e-15)
     np.testing.assert_allclose(w.Gains(jnp.array([[1.6, 2.8]])).cascade_pole(), [0.8], rtol=1e-12)
-    assert np.isnan(float(g.cascade_pole()[0]))                      # complex poles: no real cascade
+    assert np.isnan(float(g.cascade_pole()[0]))  # complex poles: no real cascade
     with pytest.raises(ValueError, match="poles"):
         w.Gains.from_poles(-1.0, 2, 2)
     with pytest.raises(ValueError, match="not Hurwitz"):
@@ -210,7 +244,7 @@ def test_lemma2_gives_eq64_only_for_the_double_pole_whatever_the_representation(
     by_damping = C.lemma2(ctrl, params._replace(gains=w.Gains.from_damping(1.0, 1.0, m=2)), **kw)
     assert by_poles.paper is not None and by_damping.paper is not None
     assert float(by_damping.paper.radius) == float(by_poles.paper.radius)
-    np.testing.assert_allclose(float(by_poles.paper.radius), 0.7681795, atol=1e-7)    # §6.1 (summary.json)
+    np.testing.assert_allclose(float(by_poles.paper.radius), 0.7681795, atol=1e-7)  # §6.1 (summary.json)
 
     tuned = params._replace(gains=w.Gains.from_damping(3.76, 0.47, m=2))
     rep = C.lemma2(ctrl, tuned, **kw)
@@ -220,7 +254,7 @@ def test_lemma2_gives_eq64_only_for_the_double_pole_whatever_the_representation(
     assert C.lemma2(ctrl, params._replace(gains=light), **kw).paper is None
     ts = np.linspace(0.0, 10.0, 201)
     exact = np.array([np.linalg.norm(expm(np.asarray(ctrl.error_matrix(light)) * t), 2) for t in ts])
-    np.testing.assert_allclose(np.max(exact / np.asarray(C.k2_paper(ts))), 1.49896, rtol=1e-4)   # > 1: not a bound
+    np.testing.assert_allclose(np.max(exact / np.asarray(C.k2_paper(ts))), 1.49896, rtol=1e-4)  # > 1: not a bound
     A = np.asarray(ctrl.error_matrix(tuned.gains))
     # the Lyapunov certificate for the tuned gains, against SciPy's Lyapunov solver
     P = solve_continuous_lyapunov(A.T, -np.eye(4))
@@ -253,26 +287,35 @@ def test_sigma_tilde_reads_the_coefficients():
 
 # --- controllers are siblings; certification refuses a static law ------------------------------
 
+
 def test_static_and_dynamic_laws_are_siblings_and_certify_refuses_static():
     stat = w.controller("(2,0)", "velocity", "point")
     dyn = w.controller("(2,0)", "velocity", "posture")
     assert not isinstance(stat, w.DynamicLinearization) and not isinstance(dyn, w.StaticLinearization)
-    assert isinstance(stat, w.ClosedLoop) and isinstance(dyn, w.ClosedLoop) and isinstance(w.hybrid_parking(), w.ClosedLoop)
+    assert (
+        isinstance(stat, w.ClosedLoop)
+        and isinstance(dyn, w.ClosedLoop)
+        and isinstance(w.hybrid_parking(), w.ClosedLoop)
+    )
     # siblings: neither is a kind of the other (a static law used to pass for a dynamic one)
     assert not issubclass(w.StaticLinearization, w.DynamicLinearization)
     assert not issubclass(w.DynamicLinearization, w.StaticLinearization)
     sp = stat.params(R.circle(), geometry=stat.row.default_geometry)
-    for fn in (lambda: C.lemma2(stat, sp, t_final=5.0, eps=1e-2),
-               lambda: C.exact_map_radius(stat, sp, t_final=5.0, eps=1e-2),
-               lambda: C.min_distance(stat, sp, t_final=5.0, initial_errors=jnp.zeros((1, 2)), dt=0.1)):
+    for fn in (
+        lambda: C.lemma2(stat, sp, t_final=5.0, eps=1e-2),
+        lambda: C.exact_map_radius(stat, sp, t_final=5.0, eps=1e-2),
+        lambda: C.min_distance(stat, sp, t_final=5.0, initial_errors=jnp.zeros((1, 2)), dt=0.1),
+    ):
         with pytest.raises(ValueError, match="static law"):
             fn()
 
 
 # --- static laws report their internal dynamics ---------------------------------------------------
 
-@pytest.mark.parametrize("delta, heading_offset, turned", [(0.5 * math.pi, math.pi - 0.3, False),
-                                                           (-0.5 * math.pi, 0.3, True)])
+
+@pytest.mark.parametrize(
+    "delta, heading_offset, turned", [(0.5 * math.pi, math.pi - 0.3, False), (-0.5 * math.pi, 0.3, True)]
+)
 def test_static_law_flags_a_robot_that_turned_round(delta, heading_offset, turned):
     """(2,0) on a line, e = 0.3. With the point ahead of the axle (delta = pi/2) the heading
     (z3 = theta, uncontrolled) settles facing forward, even from a start nearly reversed; with
@@ -297,6 +340,7 @@ def test_static_law_flags_a_robot_that_turned_round(delta, heading_offset, turne
 
 # --- float32 ---------------------------------------------------------------------------------------
 
+
 def test_float32_closed_loop_smoke():
     """The §6.1 loop runs in float32 (x64 off, in a fresh process) and agrees with float64 to 1e-3."""
     code = (
@@ -312,13 +356,15 @@ def test_float32_closed_loop_smoke():
         "z32 = run()\n"
         "jax.config.update('jax_enable_x64', True)\n"
         "z64 = run()\n"
-        "print(z32.dtype, z64.dtype, float(np.max(np.abs(np.asarray(z32, float) - np.asarray(z64)))))\n")
+        "print(z32.dtype, z64.dtype, float(np.max(np.abs(np.asarray(z32, float) - np.asarray(z64)))))\n"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
     d32, d64, diff = out.stdout.split()
     assert (d32, d64) == ("float32", "float64") and float(diff) < 1e-3
 
 
 # --- checkpoints -------------------------------------------------------------------------------------
+
 
 def test_checkpoint_round_trip_and_refusals(tmp_path):
     path = tmp_path / "ck.json"
@@ -330,7 +376,7 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
     assert ck.trees["opt"][1].dtype == jnp.int32 and int(ck.trees["opt"][1]) == 4
     with pytest.raises(ValueError, match=r"differs in \['lr'\]"):
         files.read_checkpoint(path, fingerprint="xyz", config={"lr": 0.2}, templates=trees)
-    text = path.read_text().replace("2.0\n", "", 1)                # truncate the raw parameters by hand
+    text = path.read_text().replace("2.0\n", "", 1)  # truncate the raw parameters by hand
     path.write_text(text.replace("1.0,", "1.0", 1))
     with pytest.raises(ValueError, match="raw"):
         files.read_checkpoint(path, fingerprint="abc", config={"lr": 0.1}, templates=trees)
@@ -351,7 +397,7 @@ def test_one_registry_of_reference_families():
     """Only wmrjax.references names the families: no other module holds a collection (tuple,
     list, set or dict keys) of two or more family names, and every family a problem file may
     name is in the registry."""
-    names = set(R.FAMILIES) | {"random"}     # (the tuner once called random_smooth "random")
+    names = set(R.FAMILIES) | {"random"}  # (the tuner once called random_smooth "random")
     for pkg in ("wmrjax", "tuning", "experiments"):
         for f in _sources(pkg):
             if f == ROOT / "wmrjax" / "references.py":
@@ -373,10 +419,19 @@ def test_one_initial_state_placement():
         for f in _sources(pkg):
             if f not in allowed:
                 assert not _calls(f, "inverse_psi"), f"{f.relative_to(ROOT)} places states itself (inverse_psi)"
-    users = [f.relative_to(ROOT).as_posix() for pkg in ("wmrjax", "tuning", "experiments") for f in _sources(pkg)
-             if _calls(f, "place")]
-    assert {"wmrjax/problem.py", "wmrjax/certify/empirical.py", "tuning/scenarios.py",
-            "experiments/posture_tracking.py", "experiments/static_tracking.py"} <= set(users)
+    users = [
+        f.relative_to(ROOT).as_posix()
+        for pkg in ("wmrjax", "tuning", "experiments")
+        for f in _sources(pkg)
+        if _calls(f, "place")
+    ]
+    assert {
+        "wmrjax/problem.py",
+        "wmrjax/certify/empirical.py",
+        "tuning/scenarios.py",
+        "experiments/posture_tracking.py",
+        "experiments/static_tracking.py",
+    } <= set(users)
 
 
 def test_no_rk4_step_outside_simulate():
@@ -390,7 +445,7 @@ def test_no_rk4_step_outside_simulate():
                 continue
             hits = [i + 1 for i, line in enumerate(f.read_text().splitlines()) if pattern.search(line)]
             assert not hits, f"{f.relative_to(ROOT)}:{hits} has an RK4 step of its own"
-    assert _calls(ROOT / "wmrjax" / "linearize.py", "rk4_step")       # the transition matrix uses simulate's
+    assert _calls(ROOT / "wmrjax" / "linearize.py", "rk4_step")  # the transition matrix uses simulate's
 
 
 def _level_literals(tree, names):
@@ -399,14 +454,24 @@ def _level_literals(tree, names):
     ("velocity", "torque")``, ``for lv in ("velocity", "torque")``), a ``choices=`` keyword excepted."""
     literal = lambda node: isinstance(node, ast.Constant) and node.value in names
     elements = lambda node: node.elts if isinstance(node, (ast.Tuple, ast.List, ast.Set)) else [node]
-    choices = {id(kw.value) for node in ast.walk(tree) if isinstance(node, ast.Call)
-               for kw in node.keywords if kw.arg == "choices"}
+    choices = {
+        id(kw.value)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Call)
+        for kw in node.keywords
+        if kw.arg == "choices"
+    }
     hits = []
     for node in ast.walk(tree):
-        if isinstance(node, ast.Compare) and any(literal(e) for o in (node.left, *node.comparators) for e in elements(o)):
+        if isinstance(node, ast.Compare) and any(
+            literal(e) for o in (node.left, *node.comparators) for e in elements(o)
+        ):
             hits.append(node.lineno)
-        elif (isinstance(node, (ast.Tuple, ast.List, ast.Set)) and id(node) not in choices
-              and names <= {e.value for e in node.elts if literal(e)}):
+        elif (
+            isinstance(node, (ast.Tuple, ast.List, ast.Set))
+            and id(node) not in choices
+            and names <= {e.value for e in node.elts if literal(e)}
+        ):
             hits.append(node.lineno)
     return sorted(set(hits))
 
@@ -422,11 +487,14 @@ def test_levels_are_one_enumeration():
         for f in _sources(pkg):
             hits = _level_literals(ast.parse(f.read_text()), names)
             assert not hits, f"{f.relative_to(ROOT)}:{hits} compares or lists level names instead of wmrjax.Level"
-    assert _level_literals(ast.parse('ok = level == "torque" or lv in ("velocity",)\nL = ["torque", "velocity"]'),
-                           names) == [1, 2]                          # the scan sees what it forbids
+    assert _level_literals(
+        ast.parse('ok = level == "torque" or lv in ("velocity",)\nL = ["torque", "velocity"]'), names
+    ) == [1, 2]  # the scan sees what it forbids
     summary = {f"(2,0) {lv}": {"level": lv, "levels": list(w.Level)} for lv in w.Level}
-    assert json.dumps(summary) == ('{"(2,0) velocity": {"level": "velocity", "levels": ["velocity", "torque"]}, '
-                                   '"(2,0) torque": {"level": "torque", "levels": ["velocity", "torque"]}}')
+    assert json.dumps(summary) == (
+        '{"(2,0) velocity": {"level": "velocity", "levels": ["velocity", "torque"]}, '
+        '"(2,0) torque": {"level": "torque", "levels": ["velocity", "torque"]}}'
+    )
     assert json.dumps({w.Level.TORQUE: 1}) == '{"torque": 1}'
     assert w.dynamic_linearization("(2,0)", "torque") == w.dynamic_linearization("(2,0)", w.Level.TORQUE)
     assert w.controller("(2,1)", "torque", "point").level is w.Level.TORQUE

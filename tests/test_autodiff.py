@@ -14,11 +14,17 @@ from wmrjax import autodiff
 from wmrjax import references as R
 from wmrjax.controllers import hybrid as H
 
-GEOM = {"(3,0)": w.Geometry(), "(2,0)": w.Geometry(e=0.3, delta=0.5), "(2,1)": w.Geometry(e=0.3, L=0.8),
-        "(1,1)": w.Geometry(L=1.0, e=0.3), "(1,2)": w.Geometry(L=0.8, e=0.3, delta=0.4)}
+GEOM = {
+    "(3,0)": w.Geometry(),
+    "(2,0)": w.Geometry(e=0.3, delta=0.5),
+    "(2,1)": w.Geometry(e=0.3, L=0.8),
+    "(1,1)": w.Geometry(L=1.0, e=0.3),
+    "(1,2)": w.Geometry(L=0.8, e=0.3, delta=0.4),
+}
 DYNAMIC = ("(2,0)", "(2,1)", "(1,1)", "(1,2)")
-ALL_CASES = ([("dynamic", k, lv) for k in DYNAMIC for lv in ("velocity", "torque")]
-             + [("static", k, lv) for k in GEOM for lv in ("velocity", "torque")])
+ALL_CASES = [("dynamic", k, lv) for k in DYNAMIC for lv in ("velocity", "torque")] + [
+    ("static", k, lv) for k in GEOM for lv in ("velocity", "torque")
+]
 # make test runs the section 6.1 type at both levels, which covers both engines (nested jvp at
 # r = 2, Taylor mode at r = 3); all 18 closed loops take about 9 CPU-minutes of compilation, more
 # than the suite's 12-minute budget: WMRJAX_ALL_GRADIENT_CASES=1 pytest tests/test_autodiff.py
@@ -42,10 +48,10 @@ def _check(loss, theta, direction, h=1e-4):
     forward = jax.jit(w.value_and_grad(loss, has_aux=True, mode="forward"))
     ((v1, ok), g1), ((v2, _), g2) = forward(theta), jax.jit(w.value_and_grad(loss, has_aux=True, mode="reverse"))(theta)
     assert bool(ok)
-    assert float(jnp.max(jnp.abs(g1))) > 1e-6 * abs(float(v1))       # the parameters matter
+    assert float(jnp.max(jnp.abs(g1))) > 1e-6 * abs(float(v1))  # the parameters matter
     np.testing.assert_allclose(v1, v2, rtol=1e-13)
     np.testing.assert_allclose(g1, g2, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(g2))))
-    value = lambda th: forward(th)[0][0]        # the same compiled program (values are mode-independent)
+    value = lambda th: forward(th)[0][0]  # the same compiled program (values are mode-independent)
     fd = (value(theta + h * direction) - value(theta - h * direction)) / (2 * h)
     np.testing.assert_allclose(float(jnp.vdot(g1, direction)), float(fd), rtol=2e-6)
     return g1
@@ -56,7 +62,7 @@ def test_forward_and_reverse_modes_agree_and_match_differences(family, kind, lev
     """The closed loop's gains (Hurwitz coefficients, m x r) through a short RK4 rollout."""
     make = w.dynamic_linearization if family == "dynamic" else w.static_linearization
     ctrl = make(kind, level)
-    offset = 0.3 if kind in ("(2,1)", "(1,2)") else 0.0           # a steering angle away from the singular one
+    offset = 0.3 if kind in ("(2,1)", "(1,2)") else 0.0  # a steering angle away from the singular one
     params = ctrl.params(R.circle(radius=2.0, omega=0.4, heading_offset=offset), poles=1.5, geometry=GEOM[kind])
     z0 = _start(family, ctrl, params)
 
@@ -79,13 +85,18 @@ def test_through_the_tuners_sampled_data_loop():
     from wmrjax.problem import Problem
 
     box = {"low": -0.5, "high": 0.5}
-    problem = Problem.from_dict({
-        "controller": {"law": "dynamic", "robot": "(2,0)"}, "geometry": {"e": 0.0},
-        "plant": {"input_limit": [5.5, 1.0], "control_period": 0.1, "noise_std": [0.01, 0.01, 0.005]},
-        "reference": {"family": "paper_62"}, "gains": {"poles": 1.0},
-        "initial": {"space": "output", "random": {"count": 3}, "x": box, "y": box, "vx": box, "vy": box},
-        "simulation": {"t_final": 1.0, "dt": 0.05},
-        "tune": {"scenarios": {"train": 3, "validation": 2, "heldout": 2}}})
+    problem = Problem.from_dict(
+        {
+            "controller": {"law": "dynamic", "robot": "(2,0)"},
+            "geometry": {"e": 0.0},
+            "plant": {"input_limit": [5.5, 1.0], "control_period": 0.1, "noise_std": [0.01, 0.01, 0.005]},
+            "reference": {"family": "paper_62"},
+            "gains": {"poles": 1.0},
+            "initial": {"space": "output", "random": {"count": 3}, "x": box, "y": box, "vx": box, "vy": box},
+            "simulation": {"t_final": 1.0, "dt": 0.05},
+            "tune": {"scenarios": {"train": 3, "validation": 2, "heldout": 2}},
+        }
+    )
     setting = problem.setting("test")
     ts = config.read(problem.section("tune"))
     spec = ts.gain_spec(setting)
@@ -108,10 +119,12 @@ def test_through_the_hybrid_switch():
     z0 = hy.initial_state(jnp.array([[10 * math.sqrt(2) / 6, 2.54], [-0.5, -0.5]]), params)
 
     def loss(theta):
-        p = params._replace(lam=params.lam * theta[0], tracking=params.tracking._replace(
-            gains=w.Gains.from_poles(jnp.ones((2, 2)) * theta[1])))
+        p = params._replace(
+            lam=params.lam * theta[0],
+            tracking=params.tracking._replace(gains=w.Gains.from_poles(jnp.ones((2, 2)) * theta[1])),
+        )
         tr = w.simulate(hy, z0, p, dt=0.05, n_steps=120, save_every=120)
-        return jnp.sum(tr.final_state.tracking[:3] ** 2), tr.final_state.mode == 1     # it did switch
+        return jnp.sum(tr.final_state.tracking[:3] ** 2), tr.final_state.mode == 1  # it did switch
 
     theta = jnp.array([1.1, 0.9])
     _check(loss, theta, jnp.array([0.6, 0.8]), h=1e-6)
@@ -142,7 +155,7 @@ def failing_run():
         return w.simulate(ctrl, z0, p, dt=0.02, n_steps=12, save_every=1, margin_floor=floor)
 
     margins = np.asarray(run(params.gains.coeffs, 0.0).margin)
-    assert np.all(np.diff(margins) < 0)          # the margin falls along this run
+    assert np.all(np.diff(margins) < 0)  # the margin falls along this run
     return run, params.gains.coeffs, 0.5 * (margins[6] + margins[7])
 
 
@@ -167,7 +180,7 @@ def test_gradient_through_a_run_that_fails(failing_run):
 
     def loss(c):
         tr = run(c, floor)
-        return jnp.sum(tr.state ** 2), tr.diagnostics.t_failure
+        return jnp.sum(tr.state**2), tr.diagnostics.t_failure
 
     direction = jnp.asarray(np.random.default_rng(2).normal(size=coeffs.shape))
     fwd = jax.jit(w.value_and_grad(loss, has_aux=True, mode="forward"))
@@ -175,11 +188,13 @@ def test_gradient_through_a_run_that_fails(failing_run):
     assert float(t1) == float(t2) == float(tr.diagnostics.t_failure)
     np.testing.assert_allclose(v1, v2, rtol=1e-13)
     np.testing.assert_allclose(g1, g2, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(g2))))
-    h = 1e-5                                      # small enough that the failure stays at step 7
+    h = 1e-5  # small enough that the failure stays at step 7
     fd = (fwd(coeffs + h * direction)[0][0] - fwd(coeffs - h * direction)[0][0]) / (2 * h)
     np.testing.assert_allclose(float(jnp.vdot(g2, direction)), float(fd), rtol=1e-6)
     # from the failure on, the state stays at its last good value
-    np.testing.assert_array_equal(np.asarray(tr.state[8:]), np.broadcast_to(np.asarray(tr.state[7]), tr.state[8:].shape))
+    np.testing.assert_array_equal(
+        np.asarray(tr.state[8:]), np.broadcast_to(np.asarray(tr.state[7]), tr.state[8:].shape)
+    )
 
 
 def test_stored_flags_under_two_level_checkpointing(failing_run, monkeypatch):
@@ -195,16 +210,17 @@ def test_stored_flags_under_two_level_checkpointing(failing_run, monkeypatch):
     z0 = _start("dynamic", ctrl, params).at[3].add(0.4)
 
     def loss(c):
-        tr = w.simulate(ctrl, z0, params._replace(gains=w.Gains(c)), dt=0.02, n_steps=24, save_every=3,
-                        margin_floor=floor)
-        return jnp.sum(tr.state ** 2), tr.diagnostics.t_failure
+        tr = w.simulate(
+            ctrl, z0, params._replace(gains=w.Gains(c)), dt=0.02, n_steps=24, save_every=3, margin_floor=floor
+        )
+        return jnp.sum(tr.state**2), tr.diagnostics.t_failure
 
     (v1, t1), g1 = jax.jit(w.value_and_grad(loss, has_aux=True, mode="forward"))(coeffs)
     assert float(t1) == pytest.approx(7 * 0.02, abs=1e-12)
-    one_level = _count(jax.make_jaxpr(loss)(coeffs).jaxpr, "remat2")       # the step's
+    one_level = _count(jax.make_jaxpr(loss)(coeffs).jaxpr, "remat2")  # the step's
     jax.clear_caches()
     monkeypatch.setattr(simulate_module, "TWO_LEVEL_CHECKPOINT_STEPS", 10)
-    assert _count(jax.make_jaxpr(loss)(coeffs).jaxpr, "remat2") == one_level + 1    # and the chunks'
+    assert _count(jax.make_jaxpr(loss)(coeffs).jaxpr, "remat2") == one_level + 1  # and the chunks'
 
     (v2, _), g2 = jax.jit(w.value_and_grad(loss, has_aux=True, mode="reverse"))(coeffs)
     np.testing.assert_allclose(v2, v1, rtol=1e-13)
@@ -246,7 +262,7 @@ def batch_problem():
     def per_example(poles, shift, z0, weight):
         p = params._replace(gains=w.Gains.from_poles(poles))
         tr = w.simulate(ctrl, z0.at[2].add(shift), p, dt=0.02, n_steps=12, save_every=3, error_tol=None)
-        return weight * (jnp.sum(tr.state ** 2) + jnp.sum(tr.control ** 2)), tr.final_state
+        return weight * (jnp.sum(tr.state**2) + jnp.sum(tr.control**2)), tr.final_state
 
     poles = jnp.array([[1.2, 1.6], [1.4, 1.9]])
     return per_example, poles, jnp.asarray(0.1), z0s, weights

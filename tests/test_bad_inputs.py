@@ -19,16 +19,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import refpaths
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import refpaths
 import wmrjax as w
 from wmrjax import certify as C
 from wmrjax import references as R
 
-SETTINGS = settings(max_examples=25, deadline=None, derandomize=True, database=None,
-                    suppress_health_check=[HealthCheck.function_scoped_fixture])
+SETTINGS = settings(
+    max_examples=25,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
 
 
 @pytest.fixture
@@ -40,6 +45,7 @@ def no_loops(monkeypatch):
         def wrapped(*a, **k):
             calls.append(name)
             return fn(*a, **k)
+
         return wrapped
 
     monkeypatch.setattr(jax.lax, "scan", spy("scan", jax.lax.scan))
@@ -56,6 +62,7 @@ def loop61():
 
 
 # --- the public API: concrete cases --------------------------------------------------------------
+
 
 def _api_cases():
     """(id, function of the §6.1 loop, the regex the ValueError must match)."""
@@ -77,63 +84,122 @@ def _api_cases():
         add(f"simulate-margin_floor-{v!r}", lambda c, p, z, v=v: sim(c, p, z, margin_floor=v), "margin_floor must be")
     for v in (0.0, -1.0, math.nan, 1j):
         add(f"simulate-error_tol-{v!r}", lambda c, p, z, v=v: sim(c, p, z, error_tol=v), "error_tol must be")
-    for name, z in (("nan", lambda z: z.at[0].set(jnp.nan)), ("inf", lambda z: z.at[1].set(jnp.inf)),
-                    ("complex", lambda z: z.astype(jnp.complex128)), ("2d", lambda z: z[None]),
-                    ("short", lambda z: z[:3]), ("long", lambda z: jnp.concatenate([z, z])),
-                    ("empty", lambda z: ()), ("scalar", lambda z: z[0])):
+    for name, z in (
+        ("nan", lambda z: z.at[0].set(jnp.nan)),
+        ("inf", lambda z: z.at[1].set(jnp.inf)),
+        ("complex", lambda z: z.astype(jnp.complex128)),
+        ("2d", lambda z: z[None]),
+        ("short", lambda z: z[:3]),
+        ("long", lambda z: jnp.concatenate([z, z])),
+        ("empty", lambda z: ()),
+        ("scalar", lambda z: z[0]),
+    ):
         add(f"simulate-z0-{name}", lambda c, p, zz, f=z: sim(c, p, zz, z0=f(zz)), "z0 must be")
     add("simulate-unstable-dt", lambda c, p, z: sim(c, p, z, dt=3.0), "outside RK4's stability region")
     add("simulate-memory", lambda c, p, z: sim(c, p, z, dt=1e-10, n_steps=10**11), "of memory available now")
-    add("simulate-other-controller-params",
-        lambda c, p, z: sim(c, p, z, params=w.dynamic_linearization("(1,1)").params(
-            R.circle(), poles=1.0, geometry=w.Geometry(L=1.0, e=0.3))), r"coeffs must have shape \(2, 2\)")
-    add("simulate-static-params",
-        lambda c, p, z: sim(c, p, z, params=w.static_linearization("(2,0)").params(
-            R.circle(), geometry=w.Geometry(e=0.3, delta=1.0))), "params must be the DynamicParams")
-    add("simulate-reference-stops",
-        lambda c, p, z: sim(c, p, z, params=p._replace(reference=R.paper_66()), n_steps=1500), "singular set")
-    add("simulate-reference-kink",
+    add(
+        "simulate-other-controller-params",
+        lambda c, p, z: sim(
+            c,
+            p,
+            z,
+            params=w.dynamic_linearization("(1,1)").params(R.circle(), poles=1.0, geometry=w.Geometry(L=1.0, e=0.3)),
+        ),
+        r"coeffs must have shape \(2, 2\)",
+    )
+    add(
+        "simulate-static-params",
+        lambda c, p, z: sim(
+            c, p, z, params=w.static_linearization("(2,0)").params(R.circle(), geometry=w.Geometry(e=0.3, delta=1.0))
+        ),
+        "params must be the DynamicParams",
+    )
+    add(
+        "simulate-reference-stops",
+        lambda c, p, z: sim(c, p, z, params=p._replace(reference=R.paper_66()), n_steps=1500),
+        "singular set",
+    )
+    add(
+        "simulate-reference-kink",
         lambda c, p, z: sim(c, p, z, params=p._replace(reference=R.from_function(refpaths.kink)), n_steps=500),
-        "not smooth")
+        "not smooth",
+    )
 
     # parameters and references
     g0 = w.Geometry(e=0.0)
     for v in (0.0, -1.0, math.nan, math.inf, 1j, np.ones((3, 2)), np.ones(3)):
         add(f"params-poles-{v!r}", lambda c, p, z, v=v: c.params(R.paper_62(), poles=v, geometry=g0), "poles")
-    add("params-gains-shape", lambda c, p, z: c.params(R.paper_62(), gains=w.Gains(jnp.ones((2, 3))), geometry=g0),
-        "coeffs")
-    add("params-gains-type", lambda c, p, z: c.params(R.paper_62(), gains=np.ones((2, 2)), geometry=g0),
-        "gains must be a wmrjax.Gains")
-    add("params-gains-not-hurwitz", lambda c, p, z: c.params(R.paper_62(), gains=w.Gains(-jnp.ones((2, 2))), geometry=g0),
-        "Hurwitz")
-    for name, ref in (("function", lambda t: t), ("string", "paper_62"), ("stopped", R.line(velocity=(0.0, 0.0))),
-                      ("shape3", R.from_function(refpaths.three)), ("numpy", R.from_function(refpaths.numpy_path))):
+    add(
+        "params-gains-shape",
+        lambda c, p, z: c.params(R.paper_62(), gains=w.Gains(jnp.ones((2, 3))), geometry=g0),
+        "coeffs",
+    )
+    add(
+        "params-gains-type",
+        lambda c, p, z: c.params(R.paper_62(), gains=np.ones((2, 2)), geometry=g0),
+        "gains must be a wmrjax.Gains",
+    )
+    add(
+        "params-gains-not-hurwitz",
+        lambda c, p, z: c.params(R.paper_62(), gains=w.Gains(-jnp.ones((2, 2))), geometry=g0),
+        "Hurwitz",
+    )
+    for name, ref in (
+        ("function", lambda t: t),
+        ("string", "paper_62"),
+        ("stopped", R.line(velocity=(0.0, 0.0))),
+        ("shape3", R.from_function(refpaths.three)),
+        ("numpy", R.from_function(refpaths.numpy_path)),
+    ):
         add(f"params-reference-{name}", lambda c, p, z, ref=ref: c.params(ref, poles=1.0, geometry=g0), "reference")
     for name, g in (("nan-e", w.Geometry(e=math.nan)), ("inf-L", w.Geometry(L=math.inf))):
         add(f"params-geometry-{name}", lambda c, p, z, g=g: c.params(R.paper_62(), geometry=g), "geometry")
-    add("static-params-e0", lambda c, p, z: w.static_linearization("(2,0)").params(R.circle(), geometry=w.Geometry(e=0.0)),
-        "e")
-    add("dynamic-12-L0", lambda c, p, z: w.dynamic_linearization("(1,2)").params(R.circle(), geometry=w.Geometry(L=0.0)),
-        "L")
+    add(
+        "static-params-e0",
+        lambda c, p, z: w.static_linearization("(2,0)").params(R.circle(), geometry=w.Geometry(e=0.0)),
+        "e",
+    )
+    add(
+        "dynamic-12-L0",
+        lambda c, p, z: w.dynamic_linearization("(1,2)").params(R.circle(), geometry=w.Geometry(L=0.0)),
+        "L",
+    )
     # a negative L was accepted as a mirrored robot; an integer key raised a raw TypeError
-    add("dynamic-11-L-negative", lambda c, p, z: w.dynamic_linearization("(1,1)").params(
-        R.circle(), poles=1.0, geometry=w.Geometry(L=-1.0, e=0.3)), r"geometry.L is a length .* must be >= 0")
+    add(
+        "dynamic-11-L-negative",
+        lambda c, p, z: w.dynamic_linearization("(1,1)").params(
+            R.circle(), poles=1.0, geometry=w.Geometry(L=-1.0, e=0.3)
+        ),
+        r"geometry.L is a length .* must be >= 0",
+    )
     add("random-smooth-int-key", lambda c, p, z: R.random_smooth(3), "key must be a jax.random key")
     # a complex path lost its imaginary part with a ComplexWarning; lemma2 under jit raised a raw
     # TracerArrayConversionError
-    ts, circ = np.linspace(0.0, 6.0, 13), np.stack([np.cos(np.linspace(0.0, 6.0, 13)), np.sin(np.linspace(0.0, 6.0, 13))], 1)
+    ts, circ = (
+        np.linspace(0.0, 6.0, 13),
+        np.stack([np.cos(np.linspace(0.0, 6.0, 13)), np.sin(np.linspace(0.0, 6.0, 13))], 1),
+    )
     add("from-samples-complex", lambda c, p, z: R.from_samples(ts, circ.astype(complex)), "xy must be real")
     add("from-waypoints-complex", lambda c, p, z: R.from_waypoints(circ * (1 + 0j)), "points must be real")
-    add("lemma2-under-jit", lambda c, p, z: jax.jit(lambda q: C.lemma2(c, q, t_final=10.0, eps=0.01).exact_norm.radius)(p),
-        "lemma2 runs eagerly")
+    add(
+        "lemma2-under-jit",
+        lambda c, p, z: jax.jit(lambda q: C.lemma2(c, q, t_final=10.0, eps=0.01).exact_norm.radius)(p),
+        "lemma2 runs eagerly",
+    )
     for v in ("(4,0)", "(2,2)", "abc", None):
         add(f"robot-type-{v!r}", lambda c, p, z, v=v: w.dynamic_linearization(v), "type")
     add("level", lambda c, p, z: w.dynamic_linearization("(2,0)", "acceleration"), "level must be one of")
     add("controller-task", lambda c, p, z: w.controller("(2,0)", "velocity", "parking"), "task")
-    add("initial-state-singular", lambda c, p, z: c.initial_state(jnp.array([[5.0, 6.0], [0.0, 0.0]]), p),
-        "singular set")
-    add("initial-state-branch", lambda c, p, z: c.initial_state(jnp.array([[5.0, 6.0], [-3.5, -3.5]]), p, branch=-1),
-        "Remark 17")
+    add(
+        "initial-state-singular",
+        lambda c, p, z: c.initial_state(jnp.array([[5.0, 6.0], [0.0, 0.0]]), p),
+        "singular set",
+    )
+    add(
+        "initial-state-branch",
+        lambda c, p, z: c.initial_state(jnp.array([[5.0, 6.0], [-3.5, -3.5]]), p, branch=-1),
+        "Remark 17",
+    )
     add("initial-state-shape", lambda c, p, z: c.initial_state(jnp.zeros(4), p), "zeta0 must have shape")
     add("check-reference-nan-horizon", lambda c, p, z: c.check_reference(p, math.nan), "t_final must be a finite time")
     add("check-reference-reversed-horizon", lambda c, p, z: c.check_reference(p, 1.0, t0=2.0), "must end after")
@@ -142,8 +208,11 @@ def _api_cases():
     for v in (-1.0, 0.0, math.nan):
         add(f"gains-from_poles-{v!r}", lambda c, p, z, v=v: w.Gains.from_poles(v, 2, 2), "pole")
     for om, ze in ((-1.0, 1.0), (1.0, 0.0), (1.0, -0.5), (math.nan, 1.0)):
-        add(f"gains-from_damping-{om}-{ze}", lambda c, p, z, om=om, ze=ze: w.Gains.from_damping(om, ze, m=2),
-            "omega|zeta")
+        add(
+            f"gains-from_damping-{om}-{ze}",
+            lambda c, p, z, om=om, ze=ze: w.Gains.from_damping(om, ze, m=2),
+            "omega|zeta",
+        )
 
     # certificates
     cert = lambda c, p, **k: C.lemma2(c, p, **({"t_final": 10.0, "eps": 0.01} | k))
@@ -159,8 +228,13 @@ def _api_cases():
     add("lemma2-reference-stops", lambda c, p, z: cert(c, p._replace(reference=R.paper_66()), t_final=12.0), "eps")
     e4 = np.ones((3, 4))
     md = lambda c, p, **k: C.min_distance(c, p, **({"t_final": 1.0, "initial_errors": e4, "dt": 0.01} | k))
-    for name, v in (("shape", np.ones((3, 3))), ("1d", np.ones(4)), ("empty", np.ones((0, 4))),
-                    ("nan", np.full((2, 4), np.nan)), ("complex", np.ones((2, 4)) * 1j)):
+    for name, v in (
+        ("shape", np.ones((3, 3))),
+        ("1d", np.ones(4)),
+        ("empty", np.ones((0, 4))),
+        ("nan", np.full((2, 4), np.nan)),
+        ("complex", np.ones((2, 4)) * 1j),
+    ):
         add(f"min_distance-errors-{name}", lambda c, p, z, v=v: md(c, p, initial_errors=v), "initial_errors")
     for v in (0.0, -0.01, math.nan, 2.0, 1j):
         add(f"min_distance-dt-{v!r}", lambda c, p, z, v=v: md(c, p, dt=v), "dt")
@@ -170,33 +244,54 @@ def _api_cases():
     add("verify-tol", lambda c, p, z: ver(c, p, tol=-1.0), "tol must be")
     add("verify-errors", lambda c, p, z: ver(c, p, initial_errors=np.ones((2, 5))), "initial_errors")
     fal = lambda c, p, **k: C.falsify(c, p, **({"t_final": 1.0, "radius": 1.0, "starts": e4, "dt": 0.02} | k))
-    for name, k in (("radius-0", dict(radius=0.0)), ("radius-nan", dict(radius=math.nan)),
-                    ("starts-shape", dict(starts=np.ones((2, 3)))), ("starts-zero", dict(starts=np.zeros((2, 4)))),
-                    ("steps-0", dict(steps=0)), ("lr-0", dict(learning_rate=0.0)), ("windows-0", dict(n_windows=0)),
-                    ("basis", dict(basis="diagonal"))):
-        add(f"falsify-{name}", lambda c, p, z, k=k: fal(c, p, **k),
-            "slice" if "basis" in k else next(iter(k)))
+    for name, k in (
+        ("radius-0", dict(radius=0.0)),
+        ("radius-nan", dict(radius=math.nan)),
+        ("starts-shape", dict(starts=np.ones((2, 3)))),
+        ("starts-zero", dict(starts=np.zeros((2, 4)))),
+        ("steps-0", dict(steps=0)),
+        ("lr-0", dict(learning_rate=0.0)),
+        ("windows-0", dict(n_windows=0)),
+        ("basis", dict(basis="diagonal")),
+    ):
+        add(f"falsify-{name}", lambda c, p, z, k=k: fal(c, p, **k), "slice" if "basis" in k else next(iter(k)))
     key = jax.random.PRNGKey(0)
-    fr = lambda c, p, **k: C.falsified_radius(c, p, **({"t_final": 1.0, "eps": 0.01, "r_hi": 1.0, "key": key,
-                                                         "dt": 0.02} | k))
-    for name, k in (("r_hi-0", dict(r_hi=0.0)), ("r_lo", dict(r_lo=2.0)), ("n_starts-0", dict(n_starts=0)),
-                    ("n_bisect", dict(n_bisect=-1)), ("dt", dict(dt=5.0))):
-        add(f"falsified_radius-{name}", lambda c, p, z, k=k: fr(c, p, **k),
-            "slice" if "basis" in k else next(iter(k)))
-    er = lambda c, p, **k: C.empirical_radius(c, p, **({"t_final": 1.0, "eps": 0.01, "directions": e4, "r_max": 1.0,
-                                                         "dt": 0.01} | k))
-    for name, k in (("r_max", dict(r_max=-1.0)), ("n_grid", dict(n_grid=1)), ("directions", dict(directions=np.ones(4))),
-                    ("n_bisect", dict(n_bisect=0))):
-        add(f"empirical_radius-{name}", lambda c, p, z, k=k: er(c, p, **k),
-            "slice" if "basis" in k else next(iter(k)))
+    fr = lambda c, p, **k: C.falsified_radius(
+        c, p, **({"t_final": 1.0, "eps": 0.01, "r_hi": 1.0, "key": key, "dt": 0.02} | k)
+    )
+    for name, k in (
+        ("r_hi-0", dict(r_hi=0.0)),
+        ("r_lo", dict(r_lo=2.0)),
+        ("n_starts-0", dict(n_starts=0)),
+        ("n_bisect", dict(n_bisect=-1)),
+        ("dt", dict(dt=5.0)),
+    ):
+        add(f"falsified_radius-{name}", lambda c, p, z, k=k: fr(c, p, **k), "slice" if "basis" in k else next(iter(k)))
+    er = lambda c, p, **k: C.empirical_radius(
+        c, p, **({"t_final": 1.0, "eps": 0.01, "directions": e4, "r_max": 1.0, "dt": 0.01} | k)
+    )
+    for name, k in (
+        ("r_max", dict(r_max=-1.0)),
+        ("n_grid", dict(n_grid=1)),
+        ("directions", dict(directions=np.ones(4))),
+        ("n_bisect", dict(n_bisect=0)),
+    ):
+        add(f"empirical_radius-{name}", lambda c, p, z, k=k: er(c, p, **k), "slice" if "basis" in k else next(iter(k)))
     an = lambda c, p, **k: C.analyse(c, p, **({"t_final": 1.0} | k))
-    for name, k in (("n_directions", dict(n_directions=0)), ("n_empirical", dict(n_empirical=-5)),
-                    ("n_starts", dict(n_starts=-1)), ("falsifier_dt", dict(falsifier_dt=0.0)), ("log", dict(log=3)),
-                    ("seed", dict(seed=-1))):
-        add(f"analyse-{name}", lambda c, p, z, k=k: an(c, p, **k),
-            "slice" if "basis" in k else next(iter(k)))
-    add("curved_exact_map-linear", lambda c, p, z: C.curved_exact_map_radius(c, p, t_final=1.0, eps=0.01),
-        "linear singular set")
+    for name, k in (
+        ("n_directions", dict(n_directions=0)),
+        ("n_empirical", dict(n_empirical=-5)),
+        ("n_starts", dict(n_starts=-1)),
+        ("falsifier_dt", dict(falsifier_dt=0.0)),
+        ("log", dict(log=3)),
+        ("seed", dict(seed=-1)),
+    ):
+        add(f"analyse-{name}", lambda c, p, z, k=k: an(c, p, **k), "slice" if "basis" in k else next(iter(k)))
+    add(
+        "curved_exact_map-linear",
+        lambda c, p, z: C.curved_exact_map_radius(c, p, t_final=1.0, eps=0.01),
+        "linear singular set",
+    )
     add("batch_map-sizes", lambda c, p, z: w.batch_map(lambda a, b: a + b, jnp.ones(3), jnp.ones(4)), "leading batch")
     return cases
 
@@ -214,30 +309,68 @@ def test_api_refuses_bad_input_before_any_work(loop61, no_loops, call, match):
 
 # --- the command lines: concrete cases -----------------------------------------------------------
 
-CLIS = {"section_6_1": "experiments.section_6_1", "section_6_2": "experiments.section_6_2",
-        "posture_tracking": "experiments.posture_tracking", "static_tracking": "experiments.static_tracking",
-        "certify": "experiments.certify", "benchmark": "experiments.benchmark", "tuning": "tuning.cli"}
+CLIS = {
+    "section_6_1": "experiments.section_6_1",
+    "section_6_2": "experiments.section_6_2",
+    "posture_tracking": "experiments.posture_tracking",
+    "static_tracking": "experiments.static_tracking",
+    "certify": "experiments.certify",
+    "benchmark": "experiments.benchmark",
+    "tuning": "tuning.cli",
+}
 
 # every numeric option of every command line and the kind of value it takes
 OPTIONS = {
     "section_6_1": {"--dt": "positive", "--t-final": "positive"},
-    "section_6_2": {"--dt": "positive", "--t-final": "positive", "--n-batch": "count", "--tol-distance": "positive",
-                    "--tol-heading": "positive", "--r-switch": "positive", "--lam": "positive"},
+    "section_6_2": {
+        "--dt": "positive",
+        "--t-final": "positive",
+        "--n-batch": "count",
+        "--tol-distance": "positive",
+        "--tol-heading": "positive",
+        "--r-switch": "positive",
+        "--lam": "positive",
+    },
     "posture_tracking": {"--n-random": "count", "--t-final": "positive", "--dt": "positive", "--seed": "seed"},
     "static_tracking": {"--n-random": "count", "--t-final": "positive", "--dt": "positive", "--seed": "seed"},
-    "certify": {"--poles": "positive", "--t-final": "positive", "--eps": "positive", "--dt": "positive",
-                "--n-empirical": "count", "--n-directions": "count", "--n-starts": "nonnegative_int",
-                "--heading-offset": "finite", "--map-grid": "grid"},
-    "benchmark": {"--batches": "count", "--reps": "count", "--grad-batch": "count", "--scipy-trajectories": "count",
-                  "--devices": "count"},
-    "tuning": {"--n-train": "count", "--n-heldout": "count", "--steps": "count", "--learning-rate": "positive",
-               "--poles-init": "positive", "--mismatch": "fraction", "--control-dt": "positive", "--t-final": "positive",
-               "--w-tracking": "nonnegative", "--w-effort": "nonnegative", "--w-saturation": "nonnegative",
-               "--w-barrier": "nonnegative", "--w-certificate": "nonnegative", "--seed": "seed"},
+    "certify": {
+        "--poles": "positive",
+        "--t-final": "positive",
+        "--eps": "positive",
+        "--dt": "positive",
+        "--n-empirical": "count",
+        "--n-directions": "count",
+        "--n-starts": "nonnegative_int",
+        "--heading-offset": "finite",
+        "--map-grid": "grid",
+    },
+    "benchmark": {
+        "--batches": "count",
+        "--reps": "count",
+        "--grad-batch": "count",
+        "--scipy-trajectories": "count",
+        "--devices": "count",
+    },
+    "tuning": {
+        "--n-train": "count",
+        "--n-heldout": "count",
+        "--steps": "count",
+        "--learning-rate": "positive",
+        "--poles-init": "positive",
+        "--mismatch": "fraction",
+        "--control-dt": "positive",
+        "--t-final": "positive",
+        "--w-tracking": "nonnegative",
+        "--w-effort": "nonnegative",
+        "--w-saturation": "nonnegative",
+        "--w-barrier": "nonnegative",
+        "--w-certificate": "nonnegative",
+        "--seed": "seed",
+    },
 }
 NARGS = {("certify", "--geometry"): 3, ("tuning", "--geometry"): 3}
 
-BAD = {   # concrete bad values of each kind
+BAD = {  # concrete bad values of each kind
     "positive": ["0", "-1", "nan", "inf", "-inf", "abc", "", "1e999"],
     "count": ["0", "-3", "1.5", "abc", "nan", ""],
     "nonnegative_int": ["-1", "2.5", "x"],
@@ -253,7 +386,7 @@ def _run_cli(name, argv, tmp_path, capsys, code=2):
     """The error message of a refused command line: exit status 2 with the usage for a bad option,
     ``code=1`` for an error of the work (no usage: the options were fine)."""
     mod = importlib.import_module(CLIS[name])
-    argv = list(argv) + ["--no-compile-cache"]      # never touch the user's cache from the tests
+    argv = list(argv) + ["--no-compile-cache"]  # never touch the user's cache from the tests
     if "--out" not in argv:
         argv += ["--out", str(tmp_path / "out")]
     with pytest.raises(SystemExit) as exc:
@@ -262,8 +395,8 @@ def _run_cli(name, argv, tmp_path, capsys, code=2):
     text = capsys.readouterr().err
     assert ("usage: " in text) == (code == 2), text
     err = text.strip().splitlines()
-    assert ": error: " in err[-1], err                        # argparse's "prog: error: message" line
-    return err[-1].split(": error: ", 1)[1]                   # the message, not the usage (which names every option)
+    assert ": error: " in err[-1], err  # argparse's "prog: error: message" line
+    return err[-1].split(": error: ", 1)[1]  # the message, not the usage (which names every option)
 
 
 def _option_cases():
@@ -278,7 +411,7 @@ def _option_cases():
     return cases
 
 
-CROSS_CASES = [   # (cli, argv, what the message must say)
+CROSS_CASES = [  # (cli, argv, what the message must say)
     ("section_6_1", ["--dt", "20"], "longer than the horizon"),
     ("section_6_1", ["--dt", "0.03"], "not a whole number of steps"),
     ("section_6_1", ["--dt", "1e-9"], "GB of memory available now"),
@@ -291,7 +424,7 @@ CROSS_CASES = [   # (cli, argv, what the message must say)
     ("certify", ["--dt", "20"], "not a whole number of steps dt = 20.0 s"),
     ("certify", ["--robot", "(3,0)"], "no dynamic linearizing law (Table 4) for type(s) ['(3,0)']"),
     ("certify", ["--robot", "(7,7)"], "unknown robot type"),
-    ("certify", ["--n-directions", "1000000"], "48000048 runs needs about"),   # was std::bad_alloc after 90 s
+    ("certify", ["--n-directions", "1000000"], "48000048 runs needs about"),  # was std::bad_alloc after 90 s
     ("certify", ["--reference", "spiral"], "argument --reference: invalid choice"),
     ("certify", ["--level", "jerk"], "argument --level: invalid choice"),
     ("certify", ["--robot", "(1,2)", "--geometry", "0", "0.3", "0"], "geometry.L must be != 0"),
@@ -299,8 +432,11 @@ CROSS_CASES = [   # (cli, argv, what the message must say)
     ("tuning", ["--control-dt", "100"], "[plant] control_period = 100.0 s does not divide t_final"),
     ("tuning", ["--t-final", "0.01"], "[plant] control_period = 0.05 s does not divide t_final = 0.01 s"),
     ("tuning", ["--robot", "(2,0)", "--task", "point", "--geometry", "1", "0", "1.57"], "geometry.e must be != 0"),
-    ("tuning", ["--robot", "(1,2)", "--geometry", "0", "0.3", "0", "--input-limit", "1", "1", "1"],
-     "geometry.L must be != 0"),
+    (
+        "tuning",
+        ["--robot", "(1,2)", "--geometry", "0", "0.3", "0", "--input-limit", "1", "1", "1"],
+        "geometry.L must be != 0",
+    ),
     ("tuning", ["--input-limit", "-1", "-1"], "argument --input-limit: must be > 0"),
     ("tuning", ["--input-limit", "0", "1"], "argument --input-limit: must be > 0"),
     ("tuning", ["--input-limit", "1", "2", "3"], "[plant] input_limit: expected a list of 2 numbers"),
@@ -337,7 +473,7 @@ def test_cli_output_path_checked_first(cli, tmp_path, capsys, no_loops):
     f.write_text("x")
     err = _run_cli(cli, ["--out", str(f)], tmp_path, capsys)
     assert "exists and is not a directory" in err
-    err = _run_cli(cli, ["--out", str(f / "sub")], tmp_path, capsys)    # under a file: cannot be created
+    err = _run_cli(cli, ["--out", str(f / "sub")], tmp_path, capsys)  # under a file: cannot be created
     assert "not a writable directory" in err
     assert not no_loops
 
@@ -348,15 +484,47 @@ def test_corrupt_tuning_checkpoint_names_file_and_fresh(tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
     (out / "checkpoint.json").write_text('{"fingerprint": ')
-    err = _run_cli("tuning", ["--out", str(out), "--steps", "1", "--n-train", "2", "--n-heldout", "2", "--cma-population", "2",
-                                "--baseline-budget", "2"], tmp_path, capsys, code=1)
+    err = _run_cli(
+        "tuning",
+        [
+            "--out",
+            str(out),
+            "--steps",
+            "1",
+            "--n-train",
+            "2",
+            "--n-heldout",
+            "2",
+            "--cma-population",
+            "2",
+            "--baseline-budget",
+            "2",
+        ],
+        tmp_path,
+        capsys,
+        code=1,
+    )
     assert str(out / "checkpoint.json") in err and "--fresh" in err and "--verbose" in err
 
 
 def test_every_cli_option_has_help_with_units():
     """Every option documents itself; physical quantities carry their unit in brackets."""
-    physical = ("dt", "t-final", "eps", "tol-distance", "tol-heading", "r-switch", "lam", "geometry", "poles",
-                "heading-offset", "input-limit", "noise-std", "control-dt", "poles-init")
+    physical = (
+        "dt",
+        "t-final",
+        "eps",
+        "tol-distance",
+        "tol-heading",
+        "r-switch",
+        "lam",
+        "geometry",
+        "poles",
+        "heading-offset",
+        "input-limit",
+        "noise-std",
+        "control-dt",
+        "poles-init",
+    )
     for cli in CLIS:
         mod = importlib.import_module(CLIS[cli])
         p = mod.parser() if cli == "tuning" else _capture_parser(mod)
@@ -395,6 +563,7 @@ def _capture_parser(mod):
 
 # --- property-based: random bad values --------------------------------------------------------------
 
+
 def _bad_text(kind):
     finite_bad = {
         "positive": st.floats(max_value=0.0, allow_nan=False, allow_infinity=False),
@@ -403,12 +572,16 @@ def _bad_text(kind):
         "seed": st.one_of(st.integers(max_value=-1), st.integers(min_value=2**32, max_value=2**70)),
         "finite": st.nothing(),
         "grid": st.integers(max_value=1),
-        "fraction": st.one_of(st.floats(max_value=-1e-12, allow_nan=False, allow_infinity=False),
-                              st.floats(min_value=1.0, allow_nan=False, allow_infinity=False)),
+        "fraction": st.one_of(
+            st.floats(max_value=-1e-12, allow_nan=False, allow_infinity=False),
+            st.floats(min_value=1.0, allow_nan=False, allow_infinity=False),
+        ),
         "nonnegative": st.floats(max_value=-1e-300, allow_nan=False, allow_infinity=False),
     }[kind]
-    junk = st.sampled_from(["nan", "inf", "-inf", "", "1,5", "one", "0x10"] + (["2.5"] if "int" in kind or kind in
-                                                                                ("count", "seed", "grid") else []))
+    junk = st.sampled_from(
+        ["nan", "inf", "-inf", "", "1,5", "one", "0x10"]
+        + (["2.5"] if "int" in kind or kind in ("count", "seed", "grid") else [])
+    )
     return st.one_of(finite_bad.map(repr), junk)
 
 
@@ -430,23 +603,32 @@ def test_property_cli_bad_numbers(case, tmp_path, capsys, monkeypatch):
     assert not traced
 
 
-_bad_scalar = st.one_of(st.floats(max_value=0.0), st.just(math.inf), st.just(math.nan),
-                        st.complex_numbers(min_magnitude=1e-3, allow_nan=False, allow_infinity=False).filter(
-                            lambda c: c.imag != 0))
+_bad_scalar = st.one_of(
+    st.floats(max_value=0.0),
+    st.just(math.inf),
+    st.just(math.nan),
+    st.complex_numbers(min_magnitude=1e-3, allow_nan=False, allow_infinity=False).filter(lambda c: c.imag != 0),
+)
 
 
 @SETTINGS
-@given(kw=st.one_of(
-    st.builds(lambda v: {"dt": v}, _bad_scalar),
-    st.builds(lambda v: {"t0": v}, st.one_of(st.just(math.nan), st.just(math.inf), st.just(-math.inf))),
-    st.builds(lambda v: {"margin_floor": v}, st.one_of(st.floats(max_value=-1e-300), st.just(math.nan),
-                                                       st.just(math.inf))),
-    st.builds(lambda v: {"error_tol": v}, st.one_of(st.floats(max_value=0.0), st.just(math.nan))),
-    st.builds(lambda v: {"n_steps": v}, st.one_of(st.integers(max_value=0), st.floats(), st.text(max_size=3))),
-    st.builds(lambda v: {"save_every": v}, st.one_of(st.integers(max_value=0), st.integers(min_value=11,
-                                                                                              max_value=10**6))),
-    st.builds(lambda i, v: {"z0_entry": (i, v)}, st.integers(0, 3), st.sampled_from([math.nan, math.inf, -math.inf])),
-))
+@given(
+    kw=st.one_of(
+        st.builds(lambda v: {"dt": v}, _bad_scalar),
+        st.builds(lambda v: {"t0": v}, st.one_of(st.just(math.nan), st.just(math.inf), st.just(-math.inf))),
+        st.builds(
+            lambda v: {"margin_floor": v}, st.one_of(st.floats(max_value=-1e-300), st.just(math.nan), st.just(math.inf))
+        ),
+        st.builds(lambda v: {"error_tol": v}, st.one_of(st.floats(max_value=0.0), st.just(math.nan))),
+        st.builds(lambda v: {"n_steps": v}, st.one_of(st.integers(max_value=0), st.floats(), st.text(max_size=3))),
+        st.builds(
+            lambda v: {"save_every": v}, st.one_of(st.integers(max_value=0), st.integers(min_value=11, max_value=10**6))
+        ),
+        st.builds(
+            lambda i, v: {"z0_entry": (i, v)}, st.integers(0, 3), st.sampled_from([math.nan, math.inf, -math.inf])
+        ),
+    )
+)
 def test_property_simulate_bad_arguments(loop61, kw, monkeypatch):
     ctrl, params, z0 = loop61
     traced = []
@@ -462,12 +644,14 @@ def test_property_simulate_bad_arguments(loop61, kw, monkeypatch):
 
 
 @SETTINGS
-@given(kw=st.one_of(
-    st.builds(lambda v: {"n_t": v}, st.one_of(st.integers(max_value=2), st.floats(), st.booleans())),
-    st.builds(lambda v: {"eps": v}, st.one_of(st.floats(max_value=0.0), st.just(math.nan), st.just(math.inf))),
-    st.builds(lambda v: {"t_final": v}, st.one_of(st.floats(max_value=0.0), st.just(math.nan), st.just(math.inf))),
-    st.builds(lambda v: {"m1": v}, st.text(max_size=12).filter(lambda s: s not in ("closed", "numerical"))),
-))
+@given(
+    kw=st.one_of(
+        st.builds(lambda v: {"n_t": v}, st.one_of(st.integers(max_value=2), st.floats(), st.booleans())),
+        st.builds(lambda v: {"eps": v}, st.one_of(st.floats(max_value=0.0), st.just(math.nan), st.just(math.inf))),
+        st.builds(lambda v: {"t_final": v}, st.one_of(st.floats(max_value=0.0), st.just(math.nan), st.just(math.inf))),
+        st.builds(lambda v: {"m1": v}, st.text(max_size=12).filter(lambda s: s not in ("closed", "numerical"))),
+    )
+)
 def test_property_lemma2_bad_arguments(loop61, kw):
     ctrl, params, _ = loop61
     with pytest.raises(ValueError, match="must be|n_t"):

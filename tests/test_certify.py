@@ -24,17 +24,17 @@ def test_m1_lemma3_equals_eq65_and_numerical(paper61):
     ctrl, params, _ = paper61
     ts = jnp.linspace(0.0, 10.0, 11)
     closed = np.asarray(C.m1_closed_form(ctrl, params, ts))
-    np.testing.assert_allclose(closed, 0.04 * (10 - 2 * np.asarray(ts)) ** 2 + 1.0, rtol=1e-12)   # eq (65)
-    np.testing.assert_allclose(C.m1_numerical(ctrl, params, ts), closed, rtol=1e-6)                # Remark 16
+    np.testing.assert_allclose(closed, 0.04 * (10 - 2 * np.asarray(ts)) ** 2 + 1.0, rtol=1e-12)  # eq (65)
+    np.testing.assert_allclose(C.m1_numerical(ctrl, params, ts), closed, rtol=1e-6)  # Remark 16
 
 
 def test_k2_bounds_hold(rng):
     ts = jnp.linspace(0.0, 20.0, 401)
     A = companion(monic_coefficients(jnp.ones((2, 2))))
     exact = np.asarray(C.k2_exact(A, ts))
-    assert np.all(np.asarray(C.k2_paper(ts)) >= exact - 1e-12)          # eq (64) is valid, and conservative
+    assert np.all(np.asarray(C.k2_paper(ts)) >= exact - 1e-12)  # eq (64) is valid, and conservative
     assert np.all(np.asarray(C.k2_lyapunov(A, ts)) >= exact - 1e-12)
-    for _ in range(20):                                                # random Hurwitz gains, r = 2 or 3
+    for _ in range(20):  # random Hurwitz gains, r = 2 or 3
         r = int(rng.integers(2, 4))
         A = companion(monic_coefficients(jnp.asarray(rng.uniform(0.2, 4.0, size=(2, r)))))
         b = C.lyapunov_bound(A)
@@ -60,7 +60,9 @@ def test_inside_certified_ball_no_violations(paper61, cert61):
     rad = float(cert61.exact_norm.radius)
     dirs = C.sample_sphere(jax.random.PRNGKey(1), 32, 4)
     errs = dirs * jnp.linspace(0.2, 1.0, 32)[:, None] * rad
-    res = C.verify(ctrl, params, t_final=10.0, initial_errors=errs, k2=lambda ts: C.k2_exact(A, ts), dt=0.02, save_every=10)
+    res = C.verify(
+        ctrl, params, t_final=10.0, initial_errors=errs, k2=lambda ts: C.k2_exact(A, ts), dt=0.02, save_every=10
+    )
     assert not np.any(np.asarray(res.singular))
     assert not np.any(np.asarray(res.violation_53))
     assert float(np.max(res.max_ratio)) <= 1.0 + 1e-6
@@ -72,7 +74,9 @@ def test_far_outside_becomes_singular(paper61):
     A = ctrl.error_matrix(params.gains)
     href = ctrl.reference_jet(jnp.asarray(0.0), params)
     e0 = jnp.concatenate([jnp.zeros(2), -0.999 * href[1]])[None]
-    res = C.verify(ctrl, params, t_final=10.0, initial_errors=e0, k2=lambda ts: C.k2_exact(A, ts), dt=0.02, save_every=10)
+    res = C.verify(
+        ctrl, params, t_final=10.0, initial_errors=e0, k2=lambda ts: C.k2_exact(A, ts), dt=0.02, save_every=10
+    )
     assert float(res.min_margin[0]) < 0.01 or bool(res.singular[0])
 
 
@@ -91,6 +95,7 @@ def test_bad_lemma2_arguments(paper61):
 
 # --- beyond Lemma 2: exact map, empirical radius, falsifier --------------------------------
 
+
 @pytest.fixture(scope="module")
 def exact61(paper61):
     ctrl, params, _ = paper61
@@ -108,8 +113,8 @@ def testmin_norm_to_ball_matches_boundary_search(rng):
         brute = np.min(np.linalg.norm(Y @ np.linalg.pinv(M).T, axis=1))
         rho, x = C.min_norm_to_ball(jnp.asarray(M), jnp.asarray(a), eps)
         np.testing.assert_allclose(float(rho), brute, rtol=1e-6)
-        np.testing.assert_allclose(np.linalg.norm(a + M @ np.asarray(x)), eps, rtol=1e-8)   # on the boundary
-    rho, _ = C.min_norm_to_ball(jnp.zeros((2, 2)), jnp.array([1.0, 0.0]), 0.1)            # unreachable
+        np.testing.assert_allclose(np.linalg.norm(a + M @ np.asarray(x)), eps, rtol=1e-8)  # on the boundary
+    rho, _ = C.min_norm_to_ball(jnp.zeros((2, 2)), jnp.array([1.0, 0.0]), 0.1)  # unreachable
     assert float(rho) == np.inf
 
 
@@ -127,10 +132,11 @@ def test_min_norm_to_ball_at_any_scale(scale):
     brute = np.min(np.linalg.norm(Y @ np.linalg.inv(M).T, axis=1))
     rho, x = C.min_norm_to_ball(jnp.asarray(scale * M), jnp.asarray(a), 1e-2)
     np.testing.assert_allclose(float(rho) * scale, brute, rtol=1e-9)
-    np.testing.assert_allclose(np.asarray(x) * scale, -np.linalg.solve(M, a) * brute / np.linalg.norm(
-        np.linalg.solve(M, a)), rtol=2e-2)        # near the unconstrained solution's direction
+    np.testing.assert_allclose(
+        np.asarray(x) * scale, -np.linalg.solve(M, a) * brute / np.linalg.norm(np.linalg.solve(M, a)), rtol=2e-2
+    )  # near the unconstrained solution's direction
     np.testing.assert_allclose(np.linalg.norm(a + M @ (np.asarray(x) * scale)), 1e-2, rtol=1e-8)
-    rho0, x0 = C.min_norm_to_ball(jnp.asarray(1e-320 * M), jnp.asarray(a), 1e-2)   # beyond float range
+    rho0, x0 = C.min_norm_to_ball(jnp.asarray(1e-320 * M), jnp.asarray(a), 1e-2)  # beyond float range
     assert float(rho0) == np.inf and np.all(np.asarray(x0) == 0.0)
 
 
@@ -163,9 +169,9 @@ def test_consistency_alarms():
     exact = {"full": NS(radius=4.99, lower_bound=None), "position": NS(radius=8.789566, lower_bound=None)}
     fals = {"full": NS(radius=4.990007), "position": NS(radius=8.789575)}
     assert consistency({"lyapunov": 1.5}, exact, fals) == (True, [])
-    below, msgs = consistency({"lyapunov": 5.2}, exact, fals)          # a Lemma 2 radius above the falsifier's
+    below, msgs = consistency({"lyapunov": 5.2}, exact, fals)  # a Lemma 2 radius above the falsifier's
     assert not below and len(msgs) == 1 and "Lemma 2 (lyapunov) 5.2 > falsified 4.99001" in msgs[0]
-    collapsed = {**exact, "full": NS(radius=7.2e-5, lower_bound=None)}   # the old long-horizon collapse
+    collapsed = {**exact, "full": NS(radius=7.2e-5, lower_bound=None)}  # the old long-horizon collapse
     below, msgs = consistency({"lyapunov": 1e-5}, collapsed, {"full": NS(radius=5.34), "position": None})
     assert below and len(msgs) == 1 and "exact-map radius (full) 7.2e-05 and the falsified radius 5.34" in msgs[0]
     assert consistency({}, {"full": NS(radius=1.0, lower_bound=0.9)}, {"full": NS(radius=1.5)}) == (True, [])
@@ -175,8 +181,9 @@ def test_consistency_alarms():
 def _small_analyse(paper61, **kw):
     """The certification pipeline on the section 6.1 loop over 2 s, with few samples and rays."""
     ctrl, params, _ = paper61
-    return C.analyse(ctrl, params, **({"t_final": 2.0, "dt": 0.02, "n_empirical": 32, "n_directions": 4,
-                                       "n_starts": 0} | kw))
+    return C.analyse(
+        ctrl, params, **({"t_final": 2.0, "dt": 0.02, "n_empirical": 32, "n_directions": 4, "n_starts": 0} | kw)
+    )
 
 
 def test_a_wrong_k2_raises_the_lemma2_alarm(paper61, monkeypatch):
@@ -187,15 +194,15 @@ def test_a_wrong_k2_raises_the_lemma2_alarm(paper61, monkeypatch):
 
     from wmrjax.certify import pipeline
 
-    L = importlib.import_module("wmrjax.certify.lemma2")      # the module (C.lemma2 is the function)
+    L = importlib.import_module("wmrjax.certify.lemma2")  # the module (C.lemma2 is the function)
     k2 = L.k2_exact
     wrong = lambda A, ts: 0.25 * k2(A, ts)
-    monkeypatch.setattr(L, "k2_exact", wrong)               # the certificate's K2 (lemma2)
-    monkeypatch.setattr(pipeline, "k2_exact", wrong)        # and the bound (53) checked on the runs
+    monkeypatch.setattr(L, "k2_exact", wrong)  # the certificate's K2 (lemma2)
+    monkeypatch.setattr(pipeline, "k2_exact", wrong)  # and the bound (53) checked on the runs
     with pytest.warns(RuntimeWarning, match="LEMMA 2 VIOLATED inside the exact_norm certificate"):
         report = _small_analyse(paper61)
     assert report.empirical["exact_norm"].violations_53_inside > 0
-    assert report.empirical["lyapunov"].violations_53_inside == 0            # the other K2s hold
+    assert report.empirical["lyapunov"].violations_53_inside == 0  # the other K2s hold
     assert [a for a in report.alarms if "LEMMA 2" in a] == [a for a in report.alarms if "exact_norm" in a]
 
 
@@ -217,7 +224,7 @@ def test_a_failure_inside_a_certified_ball_raises_the_falsifier_alarm(paper61, m
     warned = [str(m.message) for m in caught]
     exceeded = [m for m in warned if m.startswith("a certified radius exceeds a falsified one")]
     assert any("Lemma 2 (exact_norm)" in m and "full error space" in m for m in exceeded)
-    assert set(warned) == set(report.alarms)      # the exact maps disagree with it too: their own alarm
+    assert set(warned) == set(report.alarms)  # the exact maps disagree with it too: their own alarm
     assert any(m.startswith("the exact-map radius (full)") for m in warned)
 
 
@@ -239,8 +246,18 @@ def test_empirical_radius_finds_the_exact_one(paper61, exact61):
     ctrl, params, _ = paper61
     pos = exact61["position"]
     wd = pos.worst_error / jnp.linalg.norm(pos.worst_error)
-    er = C.empirical_radius(ctrl, params, t_final=10.0, eps=1e-2, directions=jnp.stack([wd, -wd]), r_max=12.0, dt=0.01, n_grid=16,
-                            n_golden=20, n_bisect=16)
+    er = C.empirical_radius(
+        ctrl,
+        params,
+        t_final=10.0,
+        eps=1e-2,
+        directions=jnp.stack([wd, -wd]),
+        r_max=12.0,
+        dt=0.01,
+        n_grid=16,
+        n_golden=20,
+        n_bisect=16,
+    )
     np.testing.assert_allclose(er.per_direction[0], float(pos.radius), rtol=1e-3)
     assert er.per_direction[1] == np.inf and er.radius == er.per_direction[0]
 
@@ -251,15 +268,17 @@ def test_falsifier_finds_planted_failure_and_respects_certificates(paper61, cert
     every certified radius lies below the radius at which it found a failure."""
     ctrl, params, _ = paper61
     rad = float(exact61["position"].radius)
-    ang = jnp.linspace(0.0, 2 * np.pi, 16, endpoint=False) + 0.1      # none of them on the unsafe diagonal
+    ang = jnp.linspace(0.0, 2 * np.pi, 16, endpoint=False) + 0.1  # none of them on the unsafe diagonal
     starts = jnp.stack([jnp.cos(ang), jnp.sin(ang)], 1)
-    out = C.falsify(ctrl, params, t_final=10.0, radius=1.03 * rad, starts=starts, dt=0.02, basis="position", steps=40,
-                    n_windows=2)
+    out = C.falsify(
+        ctrl, params, t_final=10.0, radius=1.03 * rad, starts=starts, dt=0.02, basis="position", steps=40, n_windows=2
+    )
     assert float(jnp.min(out.distance)) < 1e-2
     e = out.initial_errors[int(out.best)]
     assert abs(float(jnp.linalg.norm(e)) - 1.03 * rad) < 1e-9 and np.allclose(np.asarray(e)[2:], 0.0)
-    inside = C.falsify(ctrl, params, t_final=10.0, radius=0.97 * rad, starts=starts, dt=0.02, basis="position", steps=40,
-                       n_windows=2)
+    inside = C.falsify(
+        ctrl, params, t_final=10.0, radius=0.97 * rad, starts=starts, dt=0.02, basis="position", steps=40, n_windows=2
+    )
     assert float(jnp.min(inside.distance)) > 1e-2
     for name in ("paper", "lyapunov", "exact_norm"):
         assert float(getattr(cert61, name).radius) <= 1.03 * rad
@@ -289,7 +308,7 @@ def test_m1_closed_form_12_is_the_distance_to_its_singular_set(rng):
     for t, m in zip(np.asarray(ts), m1):
         jet = np.asarray(c12.reference_jet(jnp.asarray(t), params)[:2])
 
-        def on_set(dth, vel):        # project a velocity row onto sigma = 0 at heading theta_ref + dth
+        def on_set(dth, vel):  # project a velocity row onto sigma = 0 at heading theta_ref + dth
             th = jet[0, 2] + dth
             n = np.array([np.cos(th), np.sin(th), es])
             return vel - (n @ vel) * n / (n @ n), th
@@ -300,7 +319,9 @@ def test_m1_closed_form_12_is_the_distance_to_its_singular_set(rng):
             d.append(np.sqrt(dth**2 + np.sum((v - jet[1]) ** 2)))
         assert min(d) >= m - 1e-9
         ths = np.linspace(-np.pi, np.pi, 200001)
-        vals = ths**2 + (np.cos(jet[0, 2] + ths) * jet[1, 0] + np.sin(jet[0, 2] + ths) * jet[1, 1] + es * jet[1, 2]) ** 2 / (1 + es**2)
+        vals = ths**2 + (
+            np.cos(jet[0, 2] + ths) * jet[1, 0] + np.sin(jet[0, 2] + ths) * jet[1, 1] + es * jet[1, 2]
+        ) ** 2 / (1 + es**2)
         best = ths[np.argmin(vals)]
         np.testing.assert_allclose(np.sqrt(vals.min()), m, rtol=1e-6)
         v, th = on_set(best, jet[1])
@@ -312,6 +333,7 @@ def test_m1_closed_form_12_is_the_distance_to_its_singular_set(rng):
 # --- the differentiable exact-map radius (issue 32): value against exact_map_radius, gradient
 # against central differences of exact_map_radius itself (an independent computation: no
 # envelope theorem, only the grid, the golden section and the bisection)
+
 
 def _radius_of(ctrl, params, gains, basis, differentiable, t_final=5.0):
     fn = C.differentiable_exact_map_radius if differentiable else lambda *a, **k: C.exact_map_radius(*a, **k).radius
@@ -332,13 +354,14 @@ def _central_differences(f, x, h):
 def test_differentiable_exact_map_radius_value_and_gradient(basis):
     ctrl = w.dynamic_linearization("(2,0)", "velocity")
     params = ctrl.params(R.paper_62(), poles=1.0, geometry=w.Geometry(e=0.15))
-    gains = w.Gains.from_damping([[2.0], [1.6]], [[0.5], [0.6]])     # minimum at t* = 0.84 s (full), 0.79 s
+    gains = w.Gains.from_damping([[2.0], [1.6]], [[0.5], [0.6]])  # minimum at t* = 0.84 s (full), 0.79 s
     value, grad = jax.jit(jax.value_and_grad(lambda k: _radius_of(ctrl, params, w.Gains(k), basis, True)))(gains.coeffs)
     exact = float(_radius_of(ctrl, params, gains, basis, False))
     assert abs(float(value) - exact) <= 1e-10 * exact
-    fd = _central_differences(lambda k: _radius_of(ctrl, params, w.Gains(jnp.asarray(k)), basis, False), gains.coeffs,
-                              1e-6)
-    assert np.all(np.abs(np.asarray(grad)) > 1e-3)          # every coefficient moves the radius here
+    fd = _central_differences(
+        lambda k: _radius_of(ctrl, params, w.Gains(jnp.asarray(k)), basis, False), gains.coeffs, 1e-6
+    )
+    assert np.all(np.abs(np.asarray(grad)) > 1e-3)  # every coefficient moves the radius here
     np.testing.assert_allclose(np.asarray(grad), fd, rtol=1e-6, atol=1e-8)
 
 
@@ -347,8 +370,9 @@ def test_differentiable_exact_map_radius_of_a_gain_schedule():
     differences of exact_map_radius (the transition-matrix version)."""
     ctrl = w.dynamic_linearization("(2,0)", "velocity")
     params = ctrl.params(R.paper_62(), poles=1.0, geometry=w.Geometry(e=0.15))
-    sched = w.GainSchedule.from_damping([0.0, 2.0, 4.0], np.full((3, 2, 1), 1.5) * [[[1.0]], [[1.3]], [[0.8]]],
-                                        np.full((3, 2, 1), 0.7))
+    sched = w.GainSchedule.from_damping(
+        [0.0, 2.0, 4.0], np.full((3, 2, 1), 1.5) * [[[1.0]], [[1.3]], [[0.8]]], np.full((3, 2, 1), 0.7)
+    )
     rad = lambda om: _radius_of(ctrl, params, sched._replace(omega=om), "position", True, t_final=4.0)
     value, grad = jax.value_and_grad(rad)(sched.omega)
     exact = float(_radius_of(ctrl, params, sched, "position", False, t_final=4.0))
@@ -357,8 +381,10 @@ def test_differentiable_exact_map_radius_of_a_gain_schedule():
     # integrates Phi on the grid: the other four entries would double the test's time)
     for idx in ((1, 0, 0), (1, 1, 0)):
         bump = lambda h: sched._replace(omega=sched.omega.at[idx].add(h))
-        fd = (float(_radius_of(ctrl, params, bump(1e-6), "position", False, t_final=4.0))
-              - float(_radius_of(ctrl, params, bump(-1e-6), "position", False, t_final=4.0))) / 2e-6
+        fd = (
+            float(_radius_of(ctrl, params, bump(1e-6), "position", False, t_final=4.0))
+            - float(_radius_of(ctrl, params, bump(-1e-6), "position", False, t_final=4.0))
+        ) / 2e-6
         assert abs(fd) > 1e-2
         np.testing.assert_allclose(float(grad[idx]), fd, rtol=1e-5, atol=1e-7)
 

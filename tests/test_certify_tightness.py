@@ -34,11 +34,21 @@ def test_falsifier_finds_the_full_ball_radius_without_the_exact_map(paper61):
     cert = C.lemma2(ctrl, params, t_final=3.0, eps=1e-2, n_t=301)
     exact = C.exact_map_radius(ctrl, params, t_final=3.0, eps=1e-2)
     np.testing.assert_allclose(float(exact.radius), 4.99, rtol=1e-9)
-    f = C.falsified_radius(ctrl, params, t_final=3.0, eps=1e-2, key=jax.random.PRNGKey(0), dt=0.02,
-                           r_lo=float(cert.exact_norm.radius), n_starts=4, steps=6, n_samples=64)
+    f = C.falsified_radius(
+        ctrl,
+        params,
+        t_final=3.0,
+        eps=1e-2,
+        key=jax.random.PRNGKey(0),
+        dt=0.02,
+        r_lo=float(cert.exact_norm.radius),
+        n_starts=4,
+        steps=6,
+        n_samples=64,
+    )
     assert 4.99 - 1e-6 <= f.radius <= 1.01 * 4.99
     assert f.distance < 1e-2 and abs(float(np.linalg.norm(f.initial_error)) - f.radius) < 1e-9
-    assert f.t_failure == 0.0                                    # found where it happens: at the initial state
+    assert f.t_failure == 0.0  # found where it happens: at the initial state
     assert set(f.rollouts_by_stage) == {"instantaneous", "sampling", "gradient", "confirmation"}
     assert f.rollouts == sum(v for k, v in f.rollouts_by_stage.items() if k != "instantaneous")
     for c in cert.certificates().values():
@@ -80,8 +90,15 @@ def test_curved_exact_map_12_is_bracketed_by_a_proved_lower_bound(curved12):
         zeta = jets[None] + np.einsum("tij,nj->nti", E, s)
         assert float(np.min(dist(jnp.asarray(zeta)))) >= 1e-2
         t_star = float(em.argmin)
-        z_star = np.asarray(c12.reference_jet(t_star, params)[:r]).reshape(-1) + expm(A * t_star) @ np.asarray(em.worst_error)
+        z_star = np.asarray(c12.reference_jet(t_star, params)[:r]).reshape(-1) + expm(A * t_star) @ np.asarray(
+            em.worst_error
+        )
         assert float(c12.singular_distance(jnp.asarray(z_star.reshape(r, c12.m)), params)) <= 1e-2 + 1e-9
-        d, sing = C.min_distance(c12, params, t_final=3.0, initial_errors=jnp.asarray(
-            [0.999 * np.asarray(em.worst_error), 1.001 * np.asarray(em.worst_error)]), dt=0.002)
+        d, sing = C.min_distance(
+            c12,
+            params,
+            t_final=3.0,
+            initial_errors=jnp.asarray([0.999 * np.asarray(em.worst_error), 1.001 * np.asarray(em.worst_error)]),
+            dt=0.002,
+        )
         assert float(d[0]) > 1e-2 and not bool(sing[0]) and (float(d[1]) < 1e-2 or bool(sing[1]))

@@ -24,7 +24,9 @@ print(options.use_compilation_cache(a), jax.config.jax_compilation_cache_dir,
 
 
 def _run(*argv):
-    return subprocess.run([sys.executable, "-c", SCRIPT, *argv], capture_output=True, text=True, check=True).stdout.split()
+    return subprocess.run(
+        [sys.executable, "-c", SCRIPT, *argv], capture_output=True, text=True, check=True
+    ).stdout.split()
 
 
 def test_compilation_cache_on_by_default_off_on_request(tmp_path):
@@ -35,12 +37,17 @@ def test_compilation_cache_on_by_default_off_on_request(tmp_path):
 
 
 def test_library_import_leaves_the_cache_alone():
-    out = subprocess.run([sys.executable, "-c", "import jax, wmrjax; print(jax.config.jax_compilation_cache_dir)"],
-                         capture_output=True, text=True, check=True).stdout.strip()
+    out = subprocess.run(
+        [sys.executable, "-c", "import jax, wmrjax; print(jax.config.jax_compilation_cache_dir)"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
     assert out == "None"
 
 
 # --- exit statuses ---------------------------------------------------------------------------------
+
 
 def test_an_error_of_the_work_exits_1_without_the_usage(tmp_path, capsys, monkeypatch):
     """A ValueError raised inside the work (here section 6.1's run, after its options passed) is an
@@ -68,7 +75,7 @@ def test_an_error_of_the_work_exits_1_without_the_usage(tmp_path, capsys, monkey
 def test_a_bad_option_still_exits_2_with_the_usage(tmp_path, capsys):
     from experiments import section_6_1
 
-    for argv in (["--dt", "0"], ["--dt", "20"]):            # argparse's own check; a cross-option check
+    for argv in (["--dt", "0"], ["--dt", "20"]):  # argparse's own check; a cross-option check
         with pytest.raises(SystemExit) as exc:
             section_6_1.main(argv + ["--out", str(tmp_path), "--no-compile-cache"])
         assert exc.value.code == 2
@@ -114,14 +121,21 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
     temporary files a killed atomic write left (in --out and below)."""
     from wmrjax_cli import files
 
-    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(tmp_path)], stdout=subprocess.PIPE, text=True,
-                              env=_env())
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLDER, str(tmp_path)], stdout=subprocess.PIPE, text=True, env=_env()
+    )
     try:
         assert holder.stdout.readline().strip() == "locked"
         spec = tmp_path / "s.toml"
         spec.write_text(SWEEP)
-        r = subprocess.run([sys.executable, "-m", "experiments.sweep", str(spec), "--out", str(tmp_path)],
-                           capture_output=True, text=True, env=_env(), cwd=ROOT, timeout=300)
+        r = subprocess.run(
+            [sys.executable, "-m", "experiments.sweep", str(spec), "--out", str(tmp_path)],
+            capture_output=True,
+            text=True,
+            env=_env(),
+            cwd=ROOT,
+            timeout=300,
+        )
         assert r.returncode == 2
         assert f"being written by another run: process {holder.pid}" in r.stderr and "holder of the test" in r.stderr
         assert not (tmp_path / "runs.parquet").exists()
@@ -132,8 +146,18 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
     torn = [tmp_path / ".runs.parquet.x1.tmp", tmp_path / "blocks" / ".block_000000.npz.x2.tmp"]
     for f in torn:
         f.write_bytes(b"half")
-    taker = subprocess.run([sys.executable, "-c", "import sys; from wmrjax_cli import files; print(files.acquire_output(sys.argv[1], "
-                            "'taker'))", str(tmp_path)], capture_output=True, text=True, env=_env(), timeout=120)
+    taker = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from wmrjax_cli import files; print(files.acquire_output(sys.argv[1], 'taker'))",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=120,
+    )
     assert taker.returncode == 0, taker.stderr
     assert f"removed the stale lock of process {holder.pid} ('holder of the test'" in taker.stderr
     assert not any(f.exists() for f in torn)
@@ -152,8 +176,9 @@ def test_two_sweeps_into_one_directory(tmp_path):
         specs.append(tmp_path / f"s{poles}.toml")
         specs[-1].write_text(SWEEP + f"[gains]\npoles = {poles}\n")
     cmd = [sys.executable, "-m", "experiments.sweep", "--out", str(out), "--no-compile-cache"]
-    first = subprocess.Popen(cmd + [str(specs[0])], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                             env=_env(), cwd=ROOT)
+    first = subprocess.Popen(
+        cmd + [str(specs[0])], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT
+    )
     for _ in range(600):
         if (out / files.LOCK_NAME).exists():
             break
@@ -170,8 +195,10 @@ def test_two_sweeps_into_one_directory(tmp_path):
 def test_the_command_lines_say_which_extra_they_need():
     """Without the cli extra a command line is refused at import, naming what to install,
     instead of computing and then failing on an import when it writes its figures."""
-    code = ("import runpy, sys; sys.modules['pyarrow'] = None; sys.argv = ['section_6_1', '--help']; "
-            "runpy.run_module('experiments.section_6_1', run_name='__main__')")
+    code = (
+        "import runpy, sys; sys.modules['pyarrow'] = None; sys.argv = ['section_6_1', '--help']; "
+        "runpy.run_module('experiments.section_6_1', run_name='__main__')"
+    )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert done.returncode != 0
     assert 'pip install "wmrjax[cli]"' in done.stderr and "pyarrow" in done.stderr

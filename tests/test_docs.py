@@ -47,8 +47,13 @@ def test_readme_example_runs(tmp_path):
     assert len(blocks) == 1, "the README has one Python example"
     script = tmp_path / "readme_example.py"
     script.write_text(blocks[0])
-    done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True,
-                          env={"PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu", "HOME": str(tmp_path)})
+    done = subprocess.run(
+        [sys.executable, str(script)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env={"PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu", "HOME": str(tmp_path)},
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     # the two radii the example prints: eq (64)'s 0.768 (the paper's §6.1) and the exact map's
     # 8.79 m of the position slice (tests/test_certify*.py check both against their oracles)

@@ -67,14 +67,15 @@ def test_psi_inverse_round_trip_both_branches(kind, level, rng):
         errs = []
         for c in _equivalents(kind, z):
             d = b - c
-            d[2:2 + n_angles] = np.angle(np.exp(1j * d[2:2 + n_angles]))
+            d[2 : 2 + n_angles] = np.angle(np.exp(1j * d[2 : 2 + n_angles]))
             errs.append(np.max(np.abs(d)))
         assert min(errs) < 1e-9, (z, b)
     np.testing.assert_array_equal(np.sign(q_back[keep]), np.sign(q[keep]))
 
 
-@pytest.fixture(scope="module", params=[(k, lv) for k in KINDS for lv in ("velocity", "torque")],
-                ids=lambda p: f"{p[0]}-{p[1]}")
+@pytest.fixture(
+    scope="module", params=[(k, lv) for k in KINDS for lv in ("velocity", "torque")], ids=lambda p: f"{p[0]}-{p[1]}"
+)
 def runs(request):
     """Per (type, level): a run from a perturbed start and one from the reference itself."""
     kind, level = request.param
@@ -117,8 +118,10 @@ def test_posture_converges_and_reference_is_invariant(runs):
 
 # (2,0): tests/test_autodiff.py; (1,1) alone costs 50 s of compilation; (1,2) 38 s, so it runs with
 # WMRJAX_ALL_GRADIENT_CASES=1 (test_autodiff's forward-vs-reverse-vs-differences matrix covers all 18 then)
-@pytest.mark.skipif(os.environ.get("WMRJAX_ALL_GRADIENT_CASES") != "1",
-                    reason="the make-test budget: WMRJAX_ALL_GRADIENT_CASES=1 runs it")
+@pytest.mark.skipif(
+    os.environ.get("WMRJAX_ALL_GRADIENT_CASES") != "1",
+    reason="the make-test budget: WMRJAX_ALL_GRADIENT_CASES=1 runs it",
+)
 @pytest.mark.parametrize("kind", ["(1,2)"])
 def test_gradients_through_closed_loop(kind, rng):
     """Reverse-mode gradient w.r.t. poles and initial state vs central differences."""
@@ -197,12 +200,12 @@ def test_singular_initial_conditions_raise():
 def test_reference_reaching_singular_set_raises():
     ctrl = w.dynamic_linearization("(2,0)")
     params = ctrl.params(R.paper_66(), poles=1.0)
-    ctrl.check_reference(params, 9.0)          # moving until t = 10 s
+    ctrl.check_reference(params, 9.0)  # moving until t = 10 s
     with pytest.raises(ValueError, match="reaches the singular set"):
-        ctrl.check_reference(params, 10.0)     # it stops at the origin at t = 10 s
+        ctrl.check_reference(params, 10.0)  # it stops at the origin at t = 10 s
     for kind in ("(2,1)", "(1,2)"):
         c = w.dynamic_linearization(kind)
-        with pytest.raises(ValueError, match="is at rest at t = 0"):       # refused when the params are built
+        with pytest.raises(ValueError, match="is at rest at t = 0"):  # refused when the params are built
             c.params(R.line(velocity=(0.0, 0.0)), poles=1.0, geometry=GEOM)
         p = c.params(R.paper_66(), poles=1.0, geometry=GEOM)
         with pytest.raises(ValueError, match="reaches the singular set"):

@@ -42,20 +42,24 @@ def test_section_6_1_outputs(tmp_path):
     for name in ("paper", "lyapunov", "exact_norm"):
         assert l2["empirical"][name]["violations_53_inside"] == 0 and l2["empirical"][name]["singular_inside"] == 0
     for fig in ["fig7_F.png", "fig8_paths.png", "fig9_errors.png"]:
-        assert (tmp_path / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"       # and the numbers above are the figures' data
+        assert (tmp_path / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"  # and the numbers above are the figures' data
     assert s["simulation"] == on_disk["simulation"]
 
 
 def test_certify_cli(tmp_path):
     """The CLI writes every key and the map; (1,2)'s curved singular set is covered in test_certify."""
     from experiments import certify
-
     from wmrjax.problem import Problem
 
-    problem = Problem.from_dict({
-        "controller": {"law": "dynamic", "robot": "(2,1)"}, "reference": {"family": "circle"},
-        "initial": {"space": "output"}, "simulation": {"t_final": 3.0, "dt": 0.02},
-        "certify": {"n_empirical": 16, "n_directions": 4, "n_starts": 0, "map_grid": 5}})
+    problem = Problem.from_dict(
+        {
+            "controller": {"law": "dynamic", "robot": "(2,1)"},
+            "reference": {"family": "circle"},
+            "initial": {"space": "output"},
+            "simulation": {"t_final": 3.0, "dt": 0.02},
+            "certify": {"n_empirical": 16, "n_directions": 4, "n_starts": 0, "map_grid": 5},
+        }
+    )
     s = certify.run(tmp_path, problem)
     on_disk = json.loads((tmp_path / "summary.json").read_text())
     assert on_disk["m1"].startswith("closed form")
@@ -64,7 +68,7 @@ def test_certify_cli(tmp_path):
     for k in ("lyapunov", "exact_norm"):
         assert on_disk["empirical"][k]["violations_53_inside"] == 0 and on_disk["empirical"][k]["singular_inside"] == 0
     assert (tmp_path / "slice_map.png").read_bytes()[:4] == b"\x89PNG" and s["slice_map"]["n_grid"] == 5
-    json.dumps(s)           # the summary is plain JSON as returned (it held arrays: TypeError)
+    json.dumps(s)  # the summary is plain JSON as returned (it held arrays: TypeError)
     assert on_disk["alarms"] == []
     assert Problem.from_dict(on_disk["problem"]).resolved() == problem.resolved()
     assert on_disk["geometry"] == {"L": 1.0, "e": 0.0, "delta": 0.0} and on_disk["heading_offset"] == 0.3

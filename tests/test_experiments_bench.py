@@ -5,18 +5,46 @@ import os
 import subprocess
 import sys
 
-
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_benchmark_cli_smoke(tmp_path):
     env = dict(os.environ, PYTHONPATH=ROOT)
     env.pop("XLA_FLAGS", None)
-    r = subprocess.run([sys.executable, "-m", "experiments.benchmark", "--out", str(tmp_path), "--batches", "64",
-                        "--reps", "1", "--grad-batch", "8", "--grad-batches", "8", "--compile-types", "none",
-                        "--memory-batch", "0", "--scipy-trajectories", "1", "--devices", "2",
-                        "--tuner-problems", "section_6_1", "--tuner-rounds", "1"],
-                       cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "experiments.benchmark",
+            "--out",
+            str(tmp_path),
+            "--batches",
+            "64",
+            "--reps",
+            "1",
+            "--grad-batch",
+            "8",
+            "--grad-batches",
+            "8",
+            "--compile-types",
+            "none",
+            "--memory-batch",
+            "0",
+            "--scipy-trajectories",
+            "1",
+            "--devices",
+            "2",
+            "--tuner-problems",
+            "section_6_1",
+            "--tuner-rounds",
+            "1",
+        ],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     s = json.loads((tmp_path / "summary.json").read_text())
     row = s["rollout"]["64"]
@@ -32,5 +60,5 @@ def test_benchmark_cli_smoke(tmp_path):
     assert g["abs_diff_value_vs_forward_pass"] < 1e-15
     assert (g["mode"], g["n_parameters"], many["mode"], many["n_parameters"]) == ("reverse", 4, "reverse", 64)
     assert many["grad_finite"] and set(s["gradient_by_batch"]) == {"8"} and "compile" not in s and "memory" not in s
-    tuner = s["tuner"]["section_6_1"]["this"]         # the tuner's gradient program, timed in a fresh process
+    tuner = s["tuner"]["section_6_1"]["this"]  # the tuner's gradient program, timed in a fresh process
     assert tuner["compile_s"] > 0 and tuner["step_s"] > 0 and abs(tuner["loss"] - 0.0793064690573937) < 1e-12

@@ -12,7 +12,7 @@ def test_section_6_2_outputs(tmp_path):
     s = section_6_2.run(tmp_path, dt=0.02, t_final=15.0, n_batch=8)
     d = json.loads((tmp_path / "summary.json").read_text())
     assert d["switched"] and d["t_switch"] == s["t_switch"]
-    np.testing.assert_allclose(d["t_switch"], 5.24, atol=1e-9)                # the first step inside the disk
+    np.testing.assert_allclose(d["t_switch"], 5.24, atol=1e-9)  # the first step inside the disk
     np.testing.assert_allclose(d["final_distance"], 0.011397245977841761, rtol=1e-6)
     np.testing.assert_allclose(d["eta1_at_switch"], 0.2367789264297342, rtol=1e-9)
     assert set(d["state_at_switch"]) == {"x", "y", "theta", "chi1"}

@@ -26,8 +26,8 @@ def test_static_tracking_smoke(tmp_path):
     s = static_tracking.run(tmp_path, n_random=8, t_final=6.0, dt=0.02, kinds=("(2,0)",), levels=("velocity",))
     r = s["cases"]["(2,0) velocity"]["random"]
     assert r["n_runs"] == 8 and r["fraction_flagged_singular"] == 0.0 and r["fraction_converged"] == 1.0
-    assert abs(r["min_abs_det_K_over_runs"] - 0.3) < 1e-9          # e sin(delta), delta = pi/2
-    assert r["fraction_turned_round"] == 0.0                        # the point ahead of the axle leads: forward
+    assert abs(r["min_abs_det_K_over_runs"] - 0.3) < 1e-9  # e sin(delta), delta = pi/2
+    assert r["fraction_turned_round"] == 0.0  # the point ahead of the axle leads: forward
     np.testing.assert_allclose(r["final_point_error_m"]["q50"], 8.76573923426569e-4, rtol=1e-6)
     np.testing.assert_allclose(r["final_abs_heading_error_vs_reference_rad"]["q50"], 0.011089377245084409, rtol=1e-6)
     np.testing.assert_allclose(r["max_norm_z3"]["max"], 4.488537575567307, rtol=1e-6)

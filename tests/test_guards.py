@@ -11,9 +11,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import refpaths
 from scipy.linalg import expm
 
-import refpaths
 import wmrjax as w
 from wmrjax import certify as C
 from wmrjax import references as R
@@ -26,8 +26,8 @@ def _crossing_state(ctrl, params, t_cross):
     ``t_cross``: chi1 passes through zero there, linearly, between two samples."""
     A = np.asarray(ctrl.error_matrix(params.gains))
     jet = np.asarray(ctrl.reference_jet(t_cross, params))
-    E = expm(A * t_cross)[2:4]                          # velocity error rows of exp(A t)
-    x0 = np.linalg.lstsq(E, -jet[1], rcond=None)[0]     # velocity error cancels the reference's at t_cross
+    E = expm(A * t_cross)[2:4]  # velocity error rows of exp(A t)
+    x0 = np.linalg.lstsq(E, -jet[1], rcond=None)[0]  # velocity error cancels the reference's at t_cross
     zeta = np.asarray(ctrl.reference_jet(0.0, params))[:2] + x0.reshape(2, 2)
     return ctrl.initial_state(jnp.asarray(zeta), params)
 
@@ -35,7 +35,7 @@ def _crossing_state(ctrl, params, t_cross):
 @pytest.mark.parametrize("dt", [0.01, 0.02, 0.05, 0.1])
 def test_crossing_between_samples_is_flagged(paper61, dt):
     ctrl, params, _ = paper61
-    t_cross = 2.0 + dt / 3.0                            # never on the sampling grid
+    t_cross = 2.0 + dt / 3.0  # never on the sampling grid
     z0 = _crossing_state(ctrl, params, t_cross)
     floor = 1e-9
     tr = w.simulate(ctrl, z0, params, dt=dt, n_steps=int(round(10 / dt)), margin_floor=floor)
@@ -76,13 +76,13 @@ def test_error_estimate_is_third_order_and_matches_the_true_local_error(paper61)
 
 def test_inaccurate_step_is_flagged_with_a_user_tolerance(paper61):
     ctrl, params, z0 = paper61
-    d = w.simulate(ctrl, z0, params, dt=1.0, n_steps=10).diagnostics     # default error_tol = 1e-3
+    d = w.simulate(ctrl, z0, params, dt=1.0, n_steps=10).diagnostics  # default error_tol = 1e-3
     assert bool(d.inaccurate) and bool(d.failed) and float(d.error_estimate) > 1e-3
-    np.testing.assert_allclose(float(d.t_failure), 1.0, atol=1e-12)   # the first step already: frozen there
+    np.testing.assert_allclose(float(d.t_failure), 1.0, atol=1e-12)  # the first step already: frozen there
     loose = w.simulate(ctrl, z0, params, dt=1.0, n_steps=10, error_tol=0.1).diagnostics
     assert not bool(loose.inaccurate) and not bool(loose.failed)
     np.testing.assert_allclose(float(loose.error_estimate), 0.017373646906762193, rtol=1e-6)
-    ok = w.simulate(ctrl, z0, params, dt=0.5, n_steps=20).diagnostics      # 7.7e-4: accepted
+    ok = w.simulate(ctrl, z0, params, dt=0.5, n_steps=20).diagnostics  # 7.7e-4: accepted
     assert not bool(ok.failed)
     np.testing.assert_allclose(float(ok.error_estimate), 7.682745873583789e-4, rtol=1e-6)
 
@@ -120,11 +120,13 @@ def test_mismatched_parameters_are_refused(paper61):
 
 def test_simulation_scalars_are_checked(paper61):
     ctrl, params, z0 = paper61
-    for kw, msg in ((dict(t0=np.nan), "t0 must be a finite real scalar"),
-                    (dict(margin_floor=np.nan), "margin_floor must be a finite real scalar >= 0"),
-                    (dict(margin_floor=-1.0), "margin_floor must be"),
-                    (dict(error_tol=0.0), "error_tol must be a real scalar > 0"),
-                    (dict(dt=1j), "dt must be a finite real scalar")):
+    for kw, msg in (
+        (dict(t0=np.nan), "t0 must be a finite real scalar"),
+        (dict(margin_floor=np.nan), "margin_floor must be a finite real scalar >= 0"),
+        (dict(margin_floor=-1.0), "margin_floor must be"),
+        (dict(error_tol=0.0), "error_tol must be a real scalar > 0"),
+        (dict(dt=1j), "dt must be a finite real scalar"),
+    ):
         with pytest.raises(ValueError, match=msg):
             w.simulate(ctrl, z0, params, **({"dt": 0.01, "n_steps": 10} | kw))
     with pytest.raises(ValueError, match="z0 must be real, got a complex state"):
@@ -156,7 +158,7 @@ def test_reference_stop_is_caught_on_any_horizon(ctrl61):
         with pytest.raises(ValueError, match=r"reaches the singular set .* at t = (9\.99|10)"):
             ctrl61.check_reference(p66, t_final)
     z0 = ctrl61.reference_state(0.0, p66)
-    with pytest.raises(ValueError, match="reaches the singular set"):     # simulate checks its own horizon
+    with pytest.raises(ValueError, match="reaches the singular set"):  # simulate checks its own horizon
         w.simulate(ctrl61, z0, p66, dt=0.01, n_steps=1500)
 
 
@@ -164,7 +166,7 @@ def test_reference_stop_is_caught_on_any_horizon(ctrl61):
 def test_reference_kink_is_caught(ctrl61, path, order, where):
     ref = R.from_function(path, name="kinked")
     params = ctrl61.params(ref, poles=1.0, geometry=w.Geometry(e=0.0))
-    ctrl61.check_reference(params, 1.9)          # smooth before the kink
+    ctrl61.check_reference(params, 1.9)  # smooth before the kink
     with pytest.raises(ValueError, match=rf"derivative of order {order} jumps between t = .* and {where} s"):
         ctrl61.check_reference(params, 5.0)
     z0 = ctrl61.reference_state(0.0, params)
@@ -176,7 +178,7 @@ def test_kink_check_accepts_smooth_references_and_angle_wraps():
     d21 = w.dynamic_linearization("(2,1)")
     g = d21.row.default_geometry
     for ref in (R.circle(radius=1.0, omega=2.0, heading_offset=0.3), R.figure_eight(heading_offset=0.3), R.paper_62()):
-        d21.check_reference(d21.params(ref, poles=1.0, geometry=g), 30.0)   # theta wraps past +-pi on the circle
+        d21.check_reference(d21.params(ref, poles=1.0, geometry=g), 30.0)  # theta wraps past +-pi on the circle
 
 
 def test_stopped_or_malformed_references_are_refused(ctrl61):
@@ -193,6 +195,7 @@ def test_stopped_or_malformed_references_are_refused(ctrl61):
 
 # --- certificates ---------------------------------------------------------------------------
 
+
 def test_lemma2_refuses_coarse_grids_and_unknown_options(paper61):
     ctrl, params, _ = paper61
     for n_t in (0, 1, 2):
@@ -201,7 +204,7 @@ def test_lemma2_refuses_coarse_grids_and_unknown_options(paper61):
     # n_t = 3: min F on the grid is 0.8868, 15 % above the true 0.76818: refused
     with pytest.raises(ValueError, match=r"n_t = 3 is too coarse to bound min F.*0\.886827 on the grid"):
         C.lemma2(ctrl, params, t_final=10.0, eps=0.01, n_t=3)
-    fine = C.lemma2(ctrl, params, t_final=10.0, eps=0.01, n_t=1001)     # equal to n_t = 4001's within 2e-10
+    fine = C.lemma2(ctrl, params, t_final=10.0, eps=0.01, n_t=1001)  # equal to n_t = 4001's within 2e-10
     for n_t in (11, 101):
         # a grid minimum alone over-certifies (0.768599 at n_t = 11, and the exact-norm radius by
         # 1.4e-4 relative at n_t = 101); the refinement between points brings every radius to the
@@ -218,6 +221,7 @@ def test_lemma2_refuses_coarse_grids_and_unknown_options(paper61):
 
 # --- files ---------------------------------------------------------------------------------
 
+
 def test_output_files_follow_the_umask(tmp_path):
     old = os.umask(0o022)
     try:
@@ -229,12 +233,15 @@ def test_output_files_follow_the_umask(tmp_path):
         assert stat.S_IMODE(os.stat(tmp_path / f).st_mode) == 0o644
 
 
-@pytest.mark.parametrize("content, msg", [
-    ("", "corrupt or truncated"),
-    ('{"fingerprint": "abc", "step": 3, "trees": {"raw": [[1.0, 2.0', "corrupt or truncated"),
-    ("[1, 2, 3]", "is not a checkpoint"),
-    ("\udcff", "corrupt or truncated"),
-])
+@pytest.mark.parametrize(
+    "content, msg",
+    [
+        ("", "corrupt or truncated"),
+        ('{"fingerprint": "abc", "step": 3, "trees": {"raw": [[1.0, 2.0', "corrupt or truncated"),
+        ("[1, 2, 3]", "is not a checkpoint"),
+        ("\udcff", "corrupt or truncated"),
+    ],
+)
 def test_corrupt_checkpoint_names_the_file(tmp_path, content, msg):
     path = tmp_path / "checkpoint.json"
     path.write_text(content, errors="surrogateescape")
@@ -247,11 +254,13 @@ def test_edited_checkpoint_is_refused(tmp_path):
     path = tmp_path / "checkpoint.json"
     files.write_checkpoint(path, fingerprint="abc", config={}, step=3, trees={"raw": jnp.zeros(2)}, state={"a": 1})
     good = json.loads(path.read_text())
-    for edit, msg in ((lambda d: d["trees"]["raw"][0].pop(), r"has shape \(1,\), expected \(2,\)"),
-                      (lambda d: d["trees"]["raw"].__setitem__(0, ["a", "b"]), "not a numeric array"),
-                      (lambda d: d["trees"]["raw"].__setitem__(0, [[1.0], 2.0]), "not a numeric array"),
-                      (lambda d: d["trees"].pop("raw"), "has None leaves"),
-                      (lambda d: d.pop("step"), "lacks an integer 'step'")):
+    for edit, msg in (
+        (lambda d: d["trees"]["raw"][0].pop(), r"has shape \(1,\), expected \(2,\)"),
+        (lambda d: d["trees"]["raw"].__setitem__(0, ["a", "b"]), "not a numeric array"),
+        (lambda d: d["trees"]["raw"].__setitem__(0, [[1.0], 2.0]), "not a numeric array"),
+        (lambda d: d["trees"].pop("raw"), "has None leaves"),
+        (lambda d: d.pop("step"), "lacks an integer 'step'"),
+    ):
         d = json.loads(json.dumps(good))
         edit(d)
         path.write_text(json.dumps(d))

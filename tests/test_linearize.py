@@ -23,14 +23,24 @@ def test_20_velocity_K_is_eq39(e, rng):
         x, y, th, chi1 = np.asarray(z)
         zeta, a, K = ctrl.law.jet(z, g)
         # Psi (eq 38): h = (x + e cos, y + e sin), hdot = chi1 (-sin, cos)
-        np.testing.assert_allclose(zeta, [[x + e * np.cos(th), y + e * np.sin(th)],
-                                          [-chi1 * np.sin(th), chi1 * np.cos(th)]], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(
+            zeta,
+            [[x + e * np.cos(th), y + e * np.sin(th)], [-chi1 * np.sin(th), chi1 * np.cos(th)]],
+            rtol=1e-12,
+            atol=1e-12,
+        )
         # eq (39): h1'' = -chi1 cos(th) eta2 - sin(th) U1, h2'' = -chi1 sin(th) eta2 + cos(th) U1; U = (U1, eta2)
-        np.testing.assert_allclose(K, [[-np.sin(th), -chi1 * np.cos(th)], [np.cos(th), -chi1 * np.sin(th)]],
-                                   rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(
+            K, [[-np.sin(th), -chi1 * np.cos(th)], [np.cos(th), -chi1 * np.sin(th)]], rtol=1e-12, atol=1e-12
+        )
         np.testing.assert_allclose(a, [0.0, 0.0], atol=1e-12)
         np.testing.assert_allclose(np.linalg.det(np.asarray(K)), chi1, rtol=1e-12)
-        assert float(linearize.input_leakage(lambda q, U: ctrl.law.field(q, U, g), lambda q: ctrl.law.outputs(q, g), z, 2, 2)) < 1e-14
+        assert (
+            float(
+                linearize.input_leakage(lambda q, U: ctrl.law.field(q, U, g), lambda q: ctrl.law.outputs(q, g), z, 2, 2)
+            )
+            < 1e-14
+        )
 
 
 @pytest.mark.parametrize("e", [0.0, 0.4])
@@ -46,8 +56,12 @@ def test_20_torque_reproduces_eq43(e, rng):
         zeta, a, K = ctrl.law.jet(z, g)
         s, c = np.sin(th), np.cos(th)
         # eq (43) with V = (U2, v2): h1''' = -U2 s - v2 c chi1 - 2 eta2 c chi2 + eta2^2 s chi1
-        np.testing.assert_allclose(a, [-2 * eta2 * c * chi2 + eta2**2 * s * chi1,
-                                       -2 * eta2 * s * chi2 - eta2**2 * c * chi1], rtol=1e-11, atol=1e-11)
+        np.testing.assert_allclose(
+            a,
+            [-2 * eta2 * c * chi2 + eta2**2 * s * chi1, -2 * eta2 * s * chi2 - eta2**2 * c * chi1],
+            rtol=1e-11,
+            atol=1e-11,
+        )
         np.testing.assert_allclose(K, [[-s, -c * chi1], [c, -s * chi1]], rtol=1e-12, atol=1e-12)
         # plant input v = d/dt (eta1, eta2) with eta1 = chi1 - e eta2: v = (U1 - e v2, v2)
         U = jnp.asarray(rng.normal(size=2))
@@ -81,8 +95,9 @@ def test_det_K_matches_errata(kind, level, rng):
         # in body axes, whose rotation has det 1; (1,2): 4 L^2 eta1^2 sin b1 sin b2
         exp = _det_closed(kind, np.asarray(z), g)
         np.testing.assert_allclose(det, exp, rtol=1e-10, atol=1e-12)
-        leak = linearize.input_leakage(lambda q, U: ctrl.law.field(q, U, g), lambda q: ctrl.law.outputs(q, g), z, ctrl.m,
-                                       ctrl.relative_degree)
+        leak = linearize.input_leakage(
+            lambda q, U: ctrl.law.field(q, U, g), lambda q: ctrl.law.outputs(q, g), z, ctrl.m, ctrl.relative_degree
+        )
         assert float(leak) < 1e-12
 
 
@@ -126,9 +141,21 @@ def _nested_output_jet(field, h, z, n_inputs, r):
     return jnp.stack([fn(z) for fn in fns]), top(zero), jax.jacfwd(top)(zero)
 
 
-@pytest.mark.parametrize("family,kind,level", [("dynamic", "(2,0)", "velocity")] + [
-    (f, k, "torque") for f, k in [("dynamic", "(2,0)"), ("dynamic", "(2,1)"), ("dynamic", "(1,1)"), ("dynamic", "(1,2)"),
-                                  ("static", "(3,0)"), ("static", "(1,1)")]])
+@pytest.mark.parametrize(
+    "family,kind,level",
+    [("dynamic", "(2,0)", "velocity")]
+    + [
+        (f, k, "torque")
+        for f, k in [
+            ("dynamic", "(2,0)"),
+            ("dynamic", "(2,1)"),
+            ("dynamic", "(1,1)"),
+            ("dynamic", "(1,2)"),
+            ("static", "(3,0)"),
+            ("static", "(1,1)"),
+        ]
+    ],
+)
 def test_taylor_mode_engine_equals_nested_jvp(family, kind, level, rng):
     """Taylor mode along the flow = nested jvp Lie derivatives (the engine's two methods)."""
     import jax

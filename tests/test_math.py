@@ -9,7 +9,9 @@ from wmrjax.references import taylor_nested
 
 
 def test_sincos_matches_libm_to_an_ulp():
-    x = np.concatenate([np.linspace(-1e4, 1e4, 400_001), np.linspace(-7, 7, 100_001), [0.0, np.pi / 4, np.pi / 2, -np.pi]])
+    x = np.concatenate(
+        [np.linspace(-1e4, 1e4, 400_001), np.linspace(-7, 7, 100_001), [0.0, np.pi / 4, np.pi / 2, -np.pi]]
+    )
     s, c = _math.sincos(jnp.asarray(x))
     big = np.abs(np.sin(x)) > 0.5  # relative accuracy where the value is O(1)
     np.testing.assert_array_max_ulp(np.asarray(s)[big], np.sin(x)[big], maxulp=2)
@@ -59,5 +61,9 @@ def test_taylor_rules_of_sincos_and_atan2_match_nested_jvp(t):
     t = jnp.asarray(t)
     y, terms = jet.jet(curve, (t,), ([jnp.ones_like(t)] + [jnp.zeros_like(t)] * 4,))
     np.testing.assert_allclose(jnp.stack([y] + terms), taylor_nested(curve, t, 5), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(_math.atan2(jnp.asarray([1.0, -2.0, 0.5]), jnp.asarray([0.0, -1.0, 3.0])),
-                               np.arctan2([1.0, -2.0, 0.5], [0.0, -1.0, 3.0]), rtol=0, atol=0)
+    np.testing.assert_allclose(
+        _math.atan2(jnp.asarray([1.0, -2.0, 0.5]), jnp.asarray([0.0, -1.0, 3.0])),
+        np.arctan2([1.0, -2.0, 0.5], [0.0, -1.0, 3.0]),
+        rtol=0,
+        atol=0,
+    )

@@ -85,9 +85,12 @@ def test_dynamic_torque_level_plant_velocities_are_a_separate_state():
         commanded = ctrl.law.extension.plant_input(z[:3], z[3:4], z[4:6], p.geometry)
         if feedback == "internal":
             assert float(jnp.max(jnp.abs(commanded - z[6:]))) > 1e-3
-        lifted = ctrl.law.lift_measured(z[:6], z[6:], p.geometry)       # the lift matches the plant exactly
-        np.testing.assert_allclose(np.asarray(ctrl.law.extension.plant_input(lifted[:3], lifted[3:4], lifted[4:6],
-                                                                             p.geometry)), np.asarray(z[6:]), atol=1e-13)
+        lifted = ctrl.law.lift_measured(z[:6], z[6:], p.geometry)  # the lift matches the plant exactly
+        np.testing.assert_allclose(
+            np.asarray(ctrl.law.extension.plant_input(lifted[:3], lifted[3:4], lifted[4:6], p.geometry)),
+            np.asarray(z[6:]),
+            atol=1e-13,
+        )
         final_error[feedback] = float(jnp.linalg.norm(z[:2] - p.reference.position(tr.t[-1])))
     np.testing.assert_allclose([final_error["internal"], final_error["measured"]], [1.3462, 0.2606], atol=2e-3)
 

@@ -15,15 +15,19 @@ from wmrjax.problem import Problem, ProblemError, Space, Task, gains_file_dict, 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 S_PATH = ROOT / "experiments" / "problems" / "s_path.toml"
 
-BASE = {"controller": {"law": "dynamic", "robot": "(2,0)"}, "geometry": {"e": 0.15},
-        "reference": {"family": "circle", "options": {"radius": 3.0}}, "initial": {"space": "output", "x": 0.1},
-        "simulation": {"t_final": 2.0, "dt": 0.01}}
+BASE = {
+    "controller": {"law": "dynamic", "robot": "(2,0)"},
+    "geometry": {"e": 0.15},
+    "reference": {"family": "circle", "options": {"radius": 3.0}},
+    "initial": {"space": "output", "x": 0.1},
+    "simulation": {"t_final": 2.0, "dt": 0.01},
+}
 
 
 def test_the_example_round_trips_through_its_resolved_form():
     """The resolved problem (files inlined) builds the same settings as the file, from anywhere."""
     p = Problem.load(S_PATH)
-    data = json.loads(json.dumps(p.resolved()))            # plain JSON
+    data = json.loads(json.dumps(p.resolved()))  # plain JSON
     assert "file" not in data["reference"] and len(data["reference"]["t"]) == 401
     assert data["reference"]["source_file"]["path"].endswith("s_path.csv")
     q = Problem.from_dict(data, base="/")
@@ -37,15 +41,25 @@ def test_the_example_round_trips_through_its_resolved_form():
 def test_samples_from_arrays_equal_samples_from_the_file(tmp_path):
     t = np.linspace(0.0, 5.0, 26)
     xy = np.stack([t, np.sin(t)], axis=1)
-    (tmp_path / "p.csv").write_text("\ufeff# a BOM and a comment\nt,x,y\n" + "".join(f"{a},{b},{c}\n" for a, (b, c) in zip(t, xy)))
+    (tmp_path / "p.csv").write_text(
+        "\ufeff# a BOM and a comment\nt,x,y\n" + "".join(f"{a},{b},{c}\n" for a, (b, c) in zip(t, xy))
+    )
     f = Problem.from_dict({**BASE, "reference": {"family": "samples", "file": "p.csv"}}, base=tmp_path)
-    a = Problem.from_dict({**BASE, "reference": {"family": "samples", "t": t.tolist(), "x": xy[:, 0].tolist(),
-                                                 "y": xy[:, 1].tolist()}})
-    for x, y in zip(jax.tree_util.tree_leaves(f.setting("t").reference.params),
-                    jax.tree_util.tree_leaves(a.setting("t").reference.params)):
+    a = Problem.from_dict(
+        {**BASE, "reference": {"family": "samples", "t": t.tolist(), "x": xy[:, 0].tolist(), "y": xy[:, 1].tolist()}}
+    )
+    for x, y in zip(
+        jax.tree_util.tree_leaves(f.setting("t").reference.params),
+        jax.tree_util.tree_leaves(a.setting("t").reference.params),
+    ):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    wp = Problem.from_dict({**BASE, "reference": {"family": "waypoints", "x": xy[:, 0].tolist(), "y": xy[:, 1].tolist(),
-                                                  "speed": 1.2}}).setting("t").reference
+    wp = (
+        Problem.from_dict(
+            {**BASE, "reference": {"family": "waypoints", "x": xy[:, 0].tolist(), "y": xy[:, 1].tolist(), "speed": 1.2}}
+        )
+        .setting("t")
+        .reference
+    )
     np.testing.assert_allclose(np.asarray(wp.position(0.0)), [0.0, 0.0], atol=1e-12)
     (tmp_path / "dup.csv").write_text("t,x,y,x\n" + "".join(f"{a},{b},{c},0\n" for a, (b, c) in zip(t, xy)))
     with pytest.raises(ProblemError, match=r"column\(s\) \['x'\] appear more than once"):
@@ -60,8 +74,12 @@ def test_gains_in_every_form_and_files_of_another_controller(tmp_path):
     (tmp_path / "tuned.json").write_text(json.dumps(gains_file_dict(tuned, ctrl)))
     other = w.dynamic_linearization("(2,0)", "torque")
     (tmp_path / "torque.json").write_text(json.dumps(gains_file_dict(w.Gains.from_poles(1.0, 2, 3), other)))
-    forms = {"poles": {"poles": [1.0, 2.0]}, "damping": {"omega": 2.0, "zeta": 0.5},
-             "coefficients": {"coefficients": [4.0, 2.0]}, "file": {"file": ["tuned.json"]}}
+    forms = {
+        "poles": {"poles": [1.0, 2.0]},
+        "damping": {"omega": 2.0, "zeta": 0.5},
+        "coefficients": {"coefficients": [4.0, 2.0]},
+        "file": {"file": ["tuned.json"]},
+    }
     coeffs = {}
     for name, g in forms.items():
         s = Problem.from_dict({**BASE, "gains": g}, base=tmp_path).settings()[0]
@@ -71,22 +89,31 @@ def test_gains_in_every_form_and_files_of_another_controller(tmp_path):
     np.testing.assert_array_equal(coeffs["coefficients"], coeffs["damping"])
     np.testing.assert_array_equal(coeffs["file"], coeffs["damping"])
     assert read_gains_file(tmp_path / "tuned.json").robot == "(2,0)"
-    with pytest.raises(ProblemError, match="gains tuned for type \\(2,0\\) at torque level \\(dynamic law\\), this controller is type "
-                                           "\\(2,0\\) at velocity level"):
+    with pytest.raises(
+        ProblemError,
+        match="gains tuned for type \\(2,0\\) at torque level \\(dynamic law\\), this controller is type "
+        "\\(2,0\\) at velocity level",
+    ):
         Problem.from_dict({**BASE, "gains": {"file": "torque.json"}}, base=tmp_path)
     # the same shape, another robot: (1,1) at velocity level has gains of (2,0)'s shape
     same_shape = gains_file_dict(tuned, w.dynamic_linearization("(1,1)", "velocity"))
     (tmp_path / "t11.json").write_text(json.dumps(same_shape))
-    with pytest.raises(ProblemError, match="gains tuned for type \\(1,1\\) at velocity level \\(dynamic law\\), "
-                                           "this controller is type \\(2,0\\)"):
+    with pytest.raises(
+        ProblemError,
+        match="gains tuned for type \\(1,1\\) at velocity level \\(dynamic law\\), this controller is type \\(2,0\\)",
+    ):
         Problem.from_dict({**BASE, "gains": {"file": "t11.json"}}, base=tmp_path)
     # a tuning summary says whose gains they are in its resolved problem (it was not read: accepted)
-    summary = {"problem": {"controller": {"law": "dynamic", "robot": "(1,1)", "level": "velocity"}},
-               "tuned_gains": {"coefficients_k0_to_kr-1": np.asarray(tuned.coeffs).tolist()}}
+    summary = {
+        "problem": {"controller": {"law": "dynamic", "robot": "(1,1)", "level": "velocity"}},
+        "tuned_gains": {"coefficients_k0_to_kr-1": np.asarray(tuned.coeffs).tolist()},
+    }
     (tmp_path / "summary.json").write_text(json.dumps(summary))
     with pytest.raises(ProblemError, match="gains tuned for type \\(1,1\\)"):
         Problem.from_dict({**BASE, "gains": {"file": "summary.json"}}, base=tmp_path)
-    (tmp_path / "anon.json").write_text(json.dumps({k: v for k, v in same_shape.items() if k not in ("robot", "level")}))
+    (tmp_path / "anon.json").write_text(
+        json.dumps({k: v for k, v in same_shape.items() if k not in ("robot", "level")})
+    )
     with pytest.raises(ProblemError, match="does not say which robot type and level"):
         Problem.from_dict({**BASE, "gains": {"file": "anon.json"}}, base=tmp_path)
     with pytest.raises(ProblemError, match="not a regular file"):
@@ -136,8 +163,9 @@ def test_place_puts_the_error_where_it_says():
     st = w.controller("(2,0)", level="velocity", task="point")
     sp = st.params(w.references.circle(radius=3.0), geometry=st.row.default_geometry)
     X = place(st, sp, jnp.array([0.3, -0.2, 0.4]), Space.PHYSICAL, Task.POINT, 1.0)
-    np.testing.assert_allclose(np.asarray(st.law.outputs(X, sp.geometry)[:2] - sp.reference.position(0.0)),
-                               [0.3, -0.2], atol=1e-13)
+    np.testing.assert_allclose(
+        np.asarray(st.law.outputs(X, sp.geometry)[:2] - sp.reference.position(0.0)), [0.3, -0.2], atol=1e-13
+    )
     assert abs(float(X[2]) - float(sp.reference.posture(0.0)[2]) - 0.4) < 1e-14
 
 
@@ -147,17 +175,30 @@ def test_one_run_is_the_sweeps_run():
     from experiments.sweep import run as sweep_run
     from experiments.sweep import spec as S
 
-    p = Problem.from_dict({**BASE, "plant": {"input_limit": [2.0, 1.0], "control_period": 0.05,
-                                             "noise_std": [0.01, 0.01, 0.005], "noise_seed": 3},
-                           "initial": {"space": "output", "x": [0.1, -0.2], "y": 0.3}})
+    p = Problem.from_dict(
+        {
+            **BASE,
+            "plant": {
+                "input_limit": [2.0, 1.0],
+                "control_period": 0.05,
+                "noise_std": [0.01, 0.01, 0.005],
+                "noise_seed": 3,
+            },
+            "initial": {"space": "output", "x": [0.1, -0.2], "y": 0.3},
+        }
+    )
     plan = S.plan(p)
     g = plan.groups[0]
     one = jax.jit(sweep_run.rollout_fn(plan, g))
     _, constant, _ = sweep_run.split(g)
     leaves = sweep_run.payload(g, 1, 1, 1, constant)
     got = one([x[0] for x in leaves])
-    tr, _ = g.run(g.run_inputs(1), save_every=plan.save_every, error_tol=plan.error_tol,
-                  noise_key=jax.random.fold_in(jax.random.PRNGKey(3), 1))
+    tr, _ = g.run(
+        g.run_inputs(1),
+        save_every=plan.save_every,
+        error_tol=plan.error_tol,
+        noise_key=jax.random.fold_in(jax.random.PRNGKey(3), 1),
+    )
     # (to rounding: the sweep compiles the run's fixed inputs in as constants, which XLA folds)
     np.testing.assert_allclose(float(got["min_margin"]), float(tr.diagnostics.min_margin), rtol=1e-13)
     assert bool(got["failed"]) == bool(tr.diagnostics.failed) is False

@@ -96,8 +96,12 @@ def test_taylor_mode_jet_equals_nested_jvp_and_falls_back_for_loops():
         ref = R.from_function(path)
         for t in (0.0, 1.3):
             t = jnp.asarray(t)
-            np.testing.assert_allclose(R.taylor(ref.posture, t, 4), R.taylor_nested(ref.posture, t, 4),
-                                       rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(
+                R.taylor(ref.posture, t, 4), R.taylor_nested(ref.posture, t, 4), rtol=1e-12, atol=1e-12
+            )
     # heading theta = atan2(-x', y') at t = 0: -pi/2, theta' = 0, theta'' = x' y''' / |p'|^2
-    np.testing.assert_allclose(R.taylor(R.from_function(lane).posture, jnp.asarray(0.0), 2)[:, 2],
-                               [-np.pi / 2, 0.0, 2.0 * (3.5 * 60 / 8**3) / 4.0], rtol=1e-14)
+    np.testing.assert_allclose(
+        R.taylor(R.from_function(lane).posture, jnp.asarray(0.0), 2)[:, 2],
+        [-np.pi / 2, 0.0, 2.0 * (3.5 * 60 / 8**3) / 4.0],
+        rtol=1e-14,
+    )

@@ -19,12 +19,16 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # the peak resident memory of this process image (VmHWM): ru_maxrss would carry the parent's peak
 # over fork and exec (a pytest worker's 2 GB hid the child's growth)
-PEAK = ("def peak():\n"
-        "    for line in open('/proc/self/status'):\n"
-        "        if line.startswith('VmHWM:'):\n"
-        "            return int(line.split()[1]) * 1024\n")
+PEAK = (
+    "def peak():\n"
+    "    for line in open('/proc/self/status'):\n"
+    "        if line.startswith('VmHWM:'):\n"
+    "            return int(line.split()[1]) * 1024\n"
+)
 
-SIMULATE = PEAK + """
+SIMULATE = (
+    PEAK
+    + """
 import sys, json, jax
 jax.config.update("jax_enable_x64", True)
 import numpy as np
@@ -41,8 +45,11 @@ jax.block_until_ready(w.simulate(ctrl, z0, p, dt=dt, n_steps=n))
 est = resources.run_estimate(ctrl, n_steps=n, save_every=1, n_state=4, itemsize=8, horizon=n * dt)
 print(json.dumps({"measured": peak() - base, "predicted": est.total}))
 """
+)
 
-TUNE = PEAK + """
+TUNE = (
+    PEAK
+    + """
 import sys, json, jax
 jax.config.update("jax_enable_x64", True)
 from wmrjax import resources
@@ -62,23 +69,32 @@ n_state = setting.system().n_state
 pred = resources.gradient_bytes(2048, setting.n_steps, n_state) - resources.gradient_bytes(64, setting.n_steps, n_state)
 print(json.dumps({"measured": out[1] - out[0], "predicted": pred}))
 """
+)
 
 
 def _measure(script, *args):
-    r = subprocess.run([sys.executable, "-c", script, *map(str, args)], cwd=ROOT, capture_output=True, text=True,
-                       timeout=600)
+    r = subprocess.run(
+        [sys.executable, "-c", script, *map(str, args)], cwd=ROOT, capture_output=True, text=True, timeout=600
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
 def _within(m, factor=resources.ESTIMATE_FACTOR):
-    print(f"predicted {m['predicted'] / 1e6:.1f} MB, measured {m['measured'] / 1e6:.1f} MB, "
-          f"ratio {m['predicted'] / m['measured']:.2f}")
+    print(
+        f"predicted {m['predicted'] / 1e6:.1f} MB, measured {m['measured'] / 1e6:.1f} MB, "
+        f"ratio {m['predicted'] / m['measured']:.2f}"
+    )
     assert m["measured"] <= m["predicted"] <= factor * m["measured"], m
 
 
-@pytest.mark.parametrize("n, dt", [(500_000, 0.02),        # the reference check dominates (1e4 s)
-                                   (2_000_000, 1e-4)])     # the saved samples dominate
+@pytest.mark.parametrize(
+    "n, dt",
+    [
+        (500_000, 0.02),  # the reference check dominates (1e4 s)
+        (2_000_000, 1e-4),
+    ],
+)  # the saved samples dominate
 def test_simulate_estimate_bounds_the_measured_peak(n, dt):
     """Before: the estimate counted the samples only, 0.96 GB against a 3.46 GB peak at 1e7 steps."""
     _within(_measure(SIMULATE, n, dt))
@@ -94,7 +110,9 @@ def test_sweep_block_estimate_bounds_the_measured_peak(tmp_path):
     process's peak against the estimate with the process itself."""
     spec = tmp_path / "s.toml"
     spec.write_text((ROOT / "tests" / "data" / "memory_sweep.toml").read_text())
-    script = PEAK + """
+    script = (
+        PEAK
+        + """
 import sys
 from experiments.sweep import cli
 rc = cli.main([sys.argv[1], "--out", sys.argv[2], "--devices", "1", "--no-compile-cache"])
@@ -103,6 +121,7 @@ from experiments.sweep import spec as S, run
 est = run.estimate(S.load(sys.argv[1]), 1)
 print(json.dumps({"measured": peak(), "predicted": est.total, "rc": rc}))
 """
+    )
     m = _measure(script, spec, tmp_path / "out")
     assert m["rc"] == 0
     _within(m)
@@ -136,8 +155,11 @@ def test_oversized_tuning_and_sweeps_are_refused_before_compiling(monkeypatch):
     setting = prob.setting("tuning")
     sc = config.read(prob.section("tune")).scenarios
     loop.check_memory(setting, sc)
-    with pytest.raises(ValueError, match=r"a gradient step over 1000000 training scenarios of 1000 steps needs about "
-                                         r"130 GB .* lower the training scenarios \(--n-train\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"a gradient step over 1000000 training scenarios of 1000 steps needs about "
+        r"130 GB .* lower the training scenarios \(--n-train\)",
+    ):
         loop.check_memory(setting, sc._replace(train=10**6))
     plan = S.load(ROOT / "tests" / "data" / "memory_sweep.toml")
     sweep_run.check_memory(plan, 1)

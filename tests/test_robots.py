@@ -25,9 +25,15 @@ def table1(kind, X, u, L):
         return np.array([-L * s * np.sin(b) * u[0], L * c * np.sin(b) * u[0], np.cos(b) * u[0], u[1]])
     if kind == "(1,2)":
         b1, b2 = X[3], X[4]
-        return np.array([(-2 * L * c * np.sin(b1) * np.sin(b2) - L * s * np.sin(b1 + b2)) * u[0],
-                         (-2 * L * s * np.sin(b1) * np.sin(b2) + L * c * np.sin(b1 + b2)) * u[0],
-                         np.sin(b2 - b1) * u[0], u[1], u[2]])
+        return np.array(
+            [
+                (-2 * L * c * np.sin(b1) * np.sin(b2) - L * s * np.sin(b1 + b2)) * u[0],
+                (-2 * L * s * np.sin(b1) * np.sin(b2) + L * c * np.sin(b1 + b2)) * u[0],
+                np.sin(b2 - b1) * u[0],
+                u[1],
+                u[2],
+            ]
+        )
     raise AssertionError(kind)
 
 
@@ -42,8 +48,9 @@ def test_kinematic_equals_table1(kind, rng):
         u = rng.normal(size=rt.n_input)
         L = rng.uniform(0.2, 2.0)
         g = w.Geometry(L=L)
-        np.testing.assert_allclose(robots.kinematic(rt, jnp.asarray(X), jnp.asarray(u), g), table1(kind, X, u, L),
-                                   rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(
+            robots.kinematic(rt, jnp.asarray(X), jnp.asarray(u), g), table1(kind, X, u, L), rtol=1e-12, atol=1e-12
+        )
         B = robots.input_matrix(rt, jnp.asarray(X), g)
         assert B.shape == (rt.n_state, rt.n_input)
         assert np.linalg.matrix_rank(np.asarray(B)) == rt.n_input  # rank delta_m + delta_s (Remark 6)
@@ -99,8 +106,8 @@ def test_car_model_conversion_11(L_w, rng):
         X = jnp.array([x_r, y_r, psi + np.pi / 2, phi - np.pi / 2])
         u = jnp.array([v / (L_w * np.cos(phi)), phi_dot])
         Xdot = np.asarray(robots.kinematic(robots.robot_type("(1,1)"), X, u, w.Geometry(L=L_w)))
-        car = [v * np.cos(psi), v * np.sin(psi), v * np.tan(phi) / L_w, phi_dot]   # the car model
+        car = [v * np.cos(psi), v * np.sin(psi), v * np.tan(phi) / L_w, phi_dot]  # the car model
         np.testing.assert_allclose(Xdot, car, rtol=1e-12, atol=1e-12)
-        back_v = -L_w * np.sin(float(X[3])) * float(u[0])                             # the inverse map
+        back_v = -L_w * np.sin(float(X[3])) * float(u[0])  # the inverse map
         back_phi = np.arctan(-np.cos(float(X[3])) / np.sin(float(X[3])))
         np.testing.assert_allclose([back_v, back_phi], [v, phi], rtol=1e-12, atol=1e-12)

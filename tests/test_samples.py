@@ -29,11 +29,11 @@ def test_circle_position_and_third_derivative(circle):
     exact, xy, ref = circle
     ts = np.linspace(0.013, 19.99, 777)
     got, want = _jets(ref, ts, 4), _jets(exact, ts, 4)
-    assert np.abs(got[:, 0] - want[:, 0]).max() < 1e-6                  # the bound: 1e-6 m
+    assert np.abs(got[:, 0] - want[:, 0]).max() < 1e-6  # the bound: 1e-6 m
     rel3 = np.linalg.norm(got[:, 3] - want[:, 3], axis=1) / np.linalg.norm(want[:, 3], axis=1)
-    assert rel3.max() < 1e-2                                              # and 1 % on the third derivative
-    assert np.abs(got[:, 0] - want[:, 0]).max() < 1e-10                  # measured: 6e-12
-    assert rel3.max() < 1e-4                                              # measured: 1.4e-5
+    assert rel3.max() < 1e-2  # and 1 % on the third derivative
+    assert np.abs(got[:, 0] - want[:, 0]).max() < 1e-10  # measured: 6e-12
+    assert rel3.max() < 1e-4  # measured: 1.4e-5
     # the fourth derivative (torque-level dynamic laws) is continuous across the knots
     knots = T[3:-3]
     left = _jets(ref, knots - 1e-9, 4)[:, 4]
@@ -69,18 +69,24 @@ def test_gradient_wrt_samples_and_times_matches_finite_differences():
         fd = (f(jnp.asarray(t), jnp.asarray(xy + dx)) - f(jnp.asarray(t), jnp.asarray(xy - dx))) / (2 * h)
         np.testing.assert_allclose(gx[i, 1], fd, rtol=1e-6, atol=1e-8)
     # the spline is linear in the samples: the weights of one evaluation sum to one
-    np.testing.assert_allclose(float(jnp.sum(jax.grad(lambda v: R.from_samples(t, v).position(2.2)[1])(jnp.asarray(xy))[:, 1])),
-                               1.0, rtol=1e-12)
+    np.testing.assert_allclose(
+        float(jnp.sum(jax.grad(lambda v: R.from_samples(t, v).position(2.2)[1])(jnp.asarray(xy))[:, 1])),
+        1.0,
+        rtol=1e-12,
+    )
 
 
-@pytest.mark.parametrize("t, xy, match", [
-    ([0.0, 1.0, 1.0, 2.0, 3.0, 4.0], np.zeros((6, 2)), "strictly increasing"),
-    ([0.0, 1.0, 2.0, 3.0, 4.0], np.zeros((5, 2)), "at least 6 samples"),
-    (np.arange(6.0), np.zeros((6, 3)), r"shape \(6, 2\)"),
-    (np.arange(6.0), np.zeros((7, 2)), r"shape \(6, 2\)"),
-    (np.arange(6.0)[:, None], np.zeros((6, 2)), "1-D"),
-    ([0.0, 1.0, np.nan, 3.0, 4.0, 5.0], np.zeros((6, 2)), "non-finite"),
-])
+@pytest.mark.parametrize(
+    "t, xy, match",
+    [
+        ([0.0, 1.0, 1.0, 2.0, 3.0, 4.0], np.zeros((6, 2)), "strictly increasing"),
+        ([0.0, 1.0, 2.0, 3.0, 4.0], np.zeros((5, 2)), "at least 6 samples"),
+        (np.arange(6.0), np.zeros((6, 3)), r"shape \(6, 2\)"),
+        (np.arange(6.0), np.zeros((7, 2)), r"shape \(6, 2\)"),
+        (np.arange(6.0)[:, None], np.zeros((6, 2)), "1-D"),
+        ([0.0, 1.0, np.nan, 3.0, 4.0, 5.0], np.zeros((6, 2)), "non-finite"),
+    ],
+)
 def test_bad_samples(t, xy, match):
     with pytest.raises(ValueError, match=match):
         R.from_samples(np.asarray(t), xy)
@@ -88,10 +94,10 @@ def test_bad_samples(t, xy, match):
 
 def test_a_path_that_stops_is_refused_with_min_speed():
     t = np.linspace(0.0, 6.0, 31)
-    xy = np.stack([(t - 3.0) ** 3 / 9.0, np.zeros_like(t)], axis=1)     # speed (t - 3)^2 / 3: stops at 3 s
+    xy = np.stack([(t - 3.0) ** 3 / 9.0, np.zeros_like(t)], axis=1)  # speed (t - 3)^2 / 3: stops at 3 s
     with pytest.raises(ValueError, match=r"slows to .* at t = 3 s, below min_speed = 0.05"):
         R.from_samples(t, xy, min_speed=0.05)
-    R.from_samples(t, xy)                     # without a floor it is a valid point-tracking path
+    R.from_samples(t, xy)  # without a floor it is a valid point-tracking path
 
 
 def test_waypoints_and_csv(tmp_path):
@@ -102,15 +108,16 @@ def test_waypoints_and_csv(tmp_path):
     tv = np.arange(40) * chord / 1.5
     np.testing.assert_allclose(np.asarray(jax.vmap(ref.position)(jnp.asarray(tv))), pts, atol=1e-12)
     speeds = np.asarray(jax.vmap(ref.speed)(jnp.linspace(0.5, tv[-1] - 0.5, 50)))
-    np.testing.assert_allclose(speeds, 1.5 * (np.pi / 39 * 3) / chord, rtol=1e-4)   # arc speed of the chord timing
+    np.testing.assert_allclose(speeds, 1.5 * (np.pi / 39 * 3) / chord, rtol=1e-4)  # arc speed of the chord timing
     with pytest.raises(ValueError, match="waypoints 3 and 4 coincide"):
         R.from_waypoints(np.concatenate([pts[:4], pts[3:]]))
     path = tmp_path / "plan.csv"
     path.write_text("# a plan\nt,x,y,vx\n" + "\n".join(f"{a},{b},{c},0" for a, (b, c) in zip(tv, pts)))
     loaded = R.load_samples(path)
     assert loaded.name == "plan"
-    np.testing.assert_allclose(np.asarray(loaded.position(jnp.asarray(1.234))), np.asarray(ref.position(jnp.asarray(1.234))),
-                               atol=1e-13)
+    np.testing.assert_allclose(
+        np.asarray(loaded.position(jnp.asarray(1.234))), np.asarray(ref.position(jnp.asarray(1.234))), atol=1e-13
+    )
     (tmp_path / "bad.csv").write_text("time,x,y\n0,0,0\n")
     with pytest.raises(ValueError, match=r"missing column\(s\) \['t'\]"):
         R.load_samples(tmp_path / "bad.csv")
@@ -121,8 +128,12 @@ def test_waypoints_and_csv(tmp_path):
     with pytest.raises(ValueError, match="'/dev/zero': not a regular file"):
         R.load_samples("/dev/zero")
     (tmp_path / "bom.csv").write_bytes("\ufeff# a plan\nt,x,y,vx\n".encode() + path.read_bytes().split(b"vx\n", 1)[1])
-    np.testing.assert_allclose(np.asarray(R.load_samples(tmp_path / "bom.csv").position(jnp.asarray(1.234))),
-                               np.asarray(loaded.position(jnp.asarray(1.234))), rtol=0, atol=0)
+    np.testing.assert_allclose(
+        np.asarray(R.load_samples(tmp_path / "bom.csv").position(jnp.asarray(1.234))),
+        np.asarray(loaded.position(jnp.asarray(1.234))),
+        rtol=0,
+        atol=0,
+    )
 
 
 def _lane_change(t, params):
@@ -164,7 +175,9 @@ def test_a_horizon_outside_the_samples_is_refused_unless_extrapolated(tmp_path):
     z0 = ctrl.reference_state(0.0, p)
     lo, hi = p.reference.domain()
     assert float(lo) == 0.0 and float(hi) == 4.0 and circ.domain() is None
-    with pytest.raises(ValueError, match=r"defined by its samples on \[0, 4\] s, and the horizon \[0, 8\] s goes past its last"):
+    with pytest.raises(
+        ValueError, match=r"defined by its samples on \[0, 4\] s, and the horizon \[0, 8\] s goes past its last"
+    ):
         w.simulate(ctrl, z0, p, dt=0.01, n_steps=800)
     with pytest.raises(ValueError, match=r"goes before its first sample"):
         w.simulate(ctrl, z0, p, dt=0.01, n_steps=100, t0=-1.0)
@@ -172,7 +185,7 @@ def test_a_horizon_outside_the_samples_is_refused_unless_extrapolated(tmp_path):
         ctrl.check_reference(p, 8.0)
     with pytest.raises(ValueError, match="past its last sample"):
         C.lemma2(ctrl, p, t_final=8.0, eps=1e-2)
-    assert not bool(w.simulate(ctrl, z0, p, dt=0.01, n_steps=400).diagnostics.failed)    # [0, 4] s: inside
+    assert not bool(w.simulate(ctrl, z0, p, dt=0.01, n_steps=400).diagnostics.failed)  # [0, 4] s: inside
     pe = ctrl.params(R.from_samples(ts, xy, extrapolate=True), poles=1.0, geometry=w.Geometry())
     assert pe.reference.domain() is None
     tr = w.simulate(ctrl, z0, pe, dt=0.01, n_steps=800, save_every=800)
@@ -183,9 +196,12 @@ def test_a_horizon_outside_the_samples_is_refused_unless_extrapolated(tmp_path):
         ctrl.check_reference(ctrl.params(late, poles=1.0, geometry=w.Geometry()), 10.0)
     with pytest.raises(ValueError, match="extrapolate must be True or False"):
         R.from_samples(ts, xy, extrapolate="yes")
-    data = {"controller": {"law": "dynamic", "robot": "(2,0)"},
-            "reference": {"family": "samples", "t": ts.tolist(), "x": xy[:, 0].tolist(), "y": xy[:, 1].tolist()},
-            "initial": {"space": "output"}, "simulation": {"t_final": 8.0, "dt": 0.01}}
+    data = {
+        "controller": {"law": "dynamic", "robot": "(2,0)"},
+        "reference": {"family": "samples", "t": ts.tolist(), "x": xy[:, 0].tolist(), "y": xy[:, 1].tolist()},
+        "initial": {"space": "output"},
+        "simulation": {"t_final": 8.0, "dt": 0.01},
+    }
     with pytest.raises(ProblemError, match="past its last sample"):
         Problem.from_dict(data)
     data["reference"]["extrapolate"] = True
@@ -219,5 +235,6 @@ def test_min_speed_on_traced_samples_warns():
     f = jax.jit(lambda xy: R.from_samples(t, xy, min_speed=0.5).position(jnp.asarray(1.0)))
     with pytest.warns(UserWarning, match="min_speed = 0.5 m/s is not checked on traced samples"):
         got = f(xy)
-    np.testing.assert_allclose(np.asarray(got), np.asarray(R.from_samples(t, xy).position(jnp.asarray(1.0))),
-                               rtol=1e-13)
+    np.testing.assert_allclose(
+        np.asarray(got), np.asarray(R.from_samples(t, xy).position(jnp.asarray(1.0))), rtol=1e-13
+    )

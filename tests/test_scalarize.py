@@ -9,8 +9,24 @@ from jax import lax
 import wmrjax as w
 from wmrjax import _math, _scalarize, _simplify
 
-STRUCTURAL = {"concatenate", "stack", "unstack", "split", "slice", "transpose", "reshape", "broadcast_in_dim",
-              "dot_general", "pad", "rev", "squeeze", "reduce_sum", "reduce_max", "scatter", "iota"}
+STRUCTURAL = {
+    "concatenate",
+    "stack",
+    "unstack",
+    "split",
+    "slice",
+    "transpose",
+    "reshape",
+    "broadcast_in_dim",
+    "dot_general",
+    "pad",
+    "rev",
+    "squeeze",
+    "reduce_sum",
+    "reduce_max",
+    "scatter",
+    "iota",
+}
 
 
 def _prims(fun, *args):
@@ -29,16 +45,16 @@ def _all_prims(jaxpr):
 
 def _mixed(x, m, v):
     """Every structural rule: x (3,), m (2, 3), v (2,)."""
-    b = jnp.broadcast_to(x, (2, 3)) * m                          # broadcast_in_dim
-    t = b.T.reshape(6)[::2]                                      # transpose, reshape, strided slice
-    c = jnp.concatenate([t, v, jnp.stack([x[0], m[1, 2]])])      # concatenate, stack, squeeze
-    p = lax.pad(c, 0.5, [(-1, 2, 1)])                            # negative low, high, interior padding
-    r = jnp.flip(p)[1:4] + jnp.arange(3.0)                       # rev, iota
-    a, rest = jnp.split(m, [1], axis=0)                          # split
-    rows = jnp.unstack(m, axis=1)                                # unstack
-    d = m @ x + jnp.einsum("ij,ij->i", m, m) + a[0, :2] @ rest[0, :2]   # dot_general, batch dims
+    b = jnp.broadcast_to(x, (2, 3)) * m  # broadcast_in_dim
+    t = b.T.reshape(6)[::2]  # transpose, reshape, strided slice
+    c = jnp.concatenate([t, v, jnp.stack([x[0], m[1, 2]])])  # concatenate, stack, squeeze
+    p = lax.pad(c, 0.5, [(-1, 2, 1)])  # negative low, high, interior padding
+    r = jnp.flip(p)[1:4] + jnp.arange(3.0)  # rev, iota
+    a, rest = jnp.split(m, [1], axis=0)  # split
+    rows = jnp.unstack(m, axis=1)  # unstack
+    d = m @ x + jnp.einsum("ij,ij->i", m, m) + a[0, :2] @ rest[0, :2]  # dot_general, batch dims
     s = jnp.sum(b, axis=(0, 1)) - jnp.max(m, axis=0).sum() * jnp.prod(v) + jnp.min(m)
-    k = jnp.zeros(3).at[1].set(x[2])                             # scatter at static indices
+    k = jnp.zeros(3).at[1].set(x[2])  # scatter at static indices
     sc, cc = _math.sincos(x)
     e = jnp.where(x > 0.1, jnp.clip(x, -0.2, 0.3) ** 3, _math.atan2(x, 1.0 + x**2))
     return r, d, s + rows[2][1], k + sc * cc, e, jnp.expand_dims(v, 0)
@@ -62,7 +78,7 @@ def test_no_array_operation_is_left(args):
     """Only the inputs' unstack and the outputs' stacks remain: everything else is scalar."""
     prims = _prims(_scalarize.scalarize(_mixed), *args)
     assert set(prims) & STRUCTURAL <= {"unstack", "stack", "reshape"}
-    assert prims.count("unstack") == 3                          # x, m and v, each taken apart once
+    assert prims.count("unstack") == 3  # x, m and v, each taken apart once
     assert "dot_general" not in prims and "concatenate" not in prims and "scatter" not in prims
 
 
@@ -91,7 +107,7 @@ def test_vmap_batches_elements_as_vectors(args):
 
 def test_constants_are_folded_at_trace_time():
     def f(x):
-        c = jnp.exp(lax.lgamma(jnp.asarray([3.0, 4.0])))      # (2, 6)
+        c = jnp.exp(lax.lgamma(jnp.asarray([3.0, 4.0])))  # (2, 6)
         return x * c[0] + c[1]
 
     prims = _prims(_scalarize.scalarize(f), 1.5)
@@ -100,7 +116,7 @@ def test_constants_are_folded_at_trace_time():
 
 
 def test_large_arrays_and_primitives_without_rules_stay_whole():
-    n = 9                                          # 81 elements > MAX_ELEMENTS
+    n = 9  # 81 elements > MAX_ELEMENTS
     assert n * n > _scalarize.MAX_ELEMENTS
 
     @jax.custom_jvp
@@ -110,7 +126,7 @@ def test_large_arrays_and_primitives_without_rules_stay_whole():
     halved_slope.defjvp(lambda p, t: (halved_slope(p[0]), 0.5 * t[0]))
 
     def f(a, x):
-        y = jnp.cumsum(x)                                          # no rule
+        y = jnp.cumsum(x)  # no rule
         z = lax.cond(x[0] > 0, lambda u: u * 2.0, lambda u: -u, y)  # control flow
         return a @ jnp.tile(z, 3) + halved_slope(x).sum()
 
@@ -119,7 +135,7 @@ def test_large_arrays_and_primitives_without_rules_stay_whole():
     prims = _prims(_scalarize.scalarize(f), a, x)
     assert {"dot_general", "cumsum", "cond", "custom_jvp_call"} <= set(prims)
     np.testing.assert_allclose(_scalarize.scalarize(f)(a, x), f(a, x), rtol=1e-14)
-    gx = jax.grad(lambda x: _scalarize.scalarize(f)(a, x).sum())(x)   # the custom rule is kept
+    gx = jax.grad(lambda x: _scalarize.scalarize(f)(a, x).sum())(x)  # the custom rule is kept
     np.testing.assert_allclose(gx, jax.grad(lambda x: f(a, x).sum())(x), rtol=1e-13)
 
 
@@ -152,7 +168,7 @@ def test_simulate_loop_body_assembles_no_arrays(paper61):
                 yield from scans(sub)
 
     bodies = list(scans(jaxpr))
-    assert len(bodies) == 4                         # outer and inner loops, forward and backward
+    assert len(bodies) == 4  # outer and inner loops, forward and backward
     for body in bodies:
         p = _all_prims(body)
         # the forward body assembles the saved sample (state and control), the backward one
@@ -162,10 +178,14 @@ def test_simulate_loop_body_assembles_no_arrays(paper61):
 
 
 def test_scalar_parts_take_apart_small_float_leaves_only():
-    tree = {"k": jnp.arange(4.0).reshape(2, 2), "big": jnp.linspace(0.0, 1.0, 100), "n": jnp.arange(3),
-            "s": jnp.asarray(2.5)}
+    tree = {
+        "k": jnp.arange(4.0).reshape(2, 2),
+        "big": jnp.linspace(0.0, 1.0, 100),
+        "n": jnp.arange(3),
+        "s": jnp.asarray(2.5),
+    }
     parts, rebuild = w.scalar_parts(tree)
-    by_name = dict(zip(sorted(tree), parts))                   # dict leaves flatten in key order
+    by_name = dict(zip(sorted(tree), parts))  # dict leaves flatten in key order
     assert isinstance(by_name["k"], tuple) and len(by_name["k"]) == 4 and by_name["k"][3].shape == ()
     assert by_name["big"] is tree["big"] and by_name["n"] is tree["n"] and by_name["s"] is tree["s"]
     back = rebuild(parts)
@@ -183,8 +203,11 @@ def test_scalarized_loop_body_with_scalar_parts_matches_the_array_loop():
 
     def scalar_loop(a, x0):
         parts, rebuild = w.scalar_parts(a)
-        body = w.scalarized(lambda xs: tuple(jnp.unstack(jnp.stack(xs) + 0.01 * (rebuild(parts) @ jnp.stack(xs)
-                                                                                + jnp.sin(jnp.stack(xs))))))
+        body = w.scalarized(
+            lambda xs: tuple(
+                jnp.unstack(jnp.stack(xs) + 0.01 * (rebuild(parts) @ jnp.stack(xs) + jnp.sin(jnp.stack(xs))))
+            )
+        )
         return jnp.stack(jax.lax.scan(lambda xs, _: (body(xs), None), tuple(jnp.unstack(x0)), None, length=50)[0])
 
     x0 = jnp.asarray([1.0, -0.5])
@@ -194,12 +217,14 @@ def test_scalarized_loop_body_with_scalar_parts_matches_the_array_loop():
     np.testing.assert_allclose(gs, ga, rtol=1e-12)
     jaxpr = jax.make_jaxpr(jax.grad(lambda a: jnp.sum(scalar_loop(a, x0) ** 2)))(a).jaxpr
     bodies = [e.params["jaxpr"].jaxpr for e in jaxpr.eqns if e.primitive.name == "scan"]
-    assert len(bodies) == 2 and all({"stack", "unstack", "dot_general"}.isdisjoint(
-        q.primitive.name for q in b.eqns) for b in bodies)
+    assert len(bodies) == 2 and all(
+        {"stack", "unstack", "dot_general"}.isdisjoint(q.primitive.name for q in b.eqns) for b in bodies
+    )
 
 
 def _stage_loops(fun, *args):
     """How many RK stage loops (scans of length 4 over a checkpointed body) the program of ``fun`` holds."""
+
     def count(jaxpr):
         n = 0
         for e in jaxpr.eqns:
@@ -216,7 +241,7 @@ def test_stage_loop_equals_the_unrolled_step(paper61, monkeypatch):
     diagnostics and gradient (reverse and forward mode) to rounding."""
     import importlib
 
-    simulate_module = importlib.import_module("wmrjax.simulate")   # the module (wmrjax.simulate is also the function)
+    simulate_module = importlib.import_module("wmrjax.simulate")  # the module (wmrjax.simulate is also the function)
 
     ctrl, params, z0 = paper61[:3]
 
@@ -230,7 +255,7 @@ def test_stage_loop_equals_the_unrolled_step(paper61, monkeypatch):
         return tr, g, jax.jacfwd(lambda c: run(c)[0])(params.gains.coeffs)
 
     tr1, g1, f1 = derivatives()
-    assert _stage_loops(lambda g: run(g)[0], params.gains.coeffs) == 0      # 153 equations: unrolled
+    assert _stage_loops(lambda g: run(g)[0], params.gains.coeffs) == 0  # 153 equations: unrolled
     jax.clear_caches()
     monkeypatch.setattr(simulate_module, "STAGE_LOOP_MIN_EQUATIONS", 0)
     tr2, g2, f2 = derivatives()
@@ -240,7 +265,7 @@ def test_stage_loop_equals_the_unrolled_step(paper61, monkeypatch):
     np.testing.assert_array_equal(tr2.valid, tr1.valid)
     for f in ("min_margin", "t_min_margin", "error_estimate"):
         np.testing.assert_allclose(getattr(tr2.diagnostics, f), getattr(tr1.diagnostics, f), rtol=1e-9)
-    assert tr1.diagnostics.error_estimate > 1e-12          # the estimate (k1, k4 of the loop) is compared, not zeros
+    assert tr1.diagnostics.error_estimate > 1e-12  # the estimate (k1, k4 of the loop) is compared, not zeros
     np.testing.assert_allclose(g2, g1, rtol=1e-11)
     np.testing.assert_allclose(f2, f1, rtol=1e-11)
     np.testing.assert_allclose(f1, g1, rtol=1e-11)
@@ -270,7 +295,7 @@ def test_stage_loop_with_a_discrete_state_and_a_switch(monkeypatch):
     monkeypatch.setattr(simulate_module, "STAGE_LOOP_MIN_EQUATIONS", 0)
     (d2, tr2), g2 = jax.value_and_grad(final_distance, has_aux=True)(params.lam)
     assert _stage_loops(lambda lam: final_distance(lam)[0], params.lam) == 1
-    assert np.any(np.asarray(tr1.state.mode) == H.PARKING)          # the run switches
+    assert np.any(np.asarray(tr1.state.mode) == H.PARKING)  # the run switches
     np.testing.assert_array_equal(tr2.state.mode, tr1.state.mode)
     np.testing.assert_allclose(tr2.state.tracking, tr1.state.tracking, rtol=1e-12, atol=1e-13)
     np.testing.assert_allclose(tr2.control, tr1.control, rtol=1e-12, atol=1e-13)
@@ -300,10 +325,11 @@ def _rollouts(ctrl, params, z0s):
     def loss(coeffs):
         p = params._replace(gains=w.Gains(coeffs))
         tr = jax.vmap(lambda z: w.simulate(ctrl, z, p, dt=0.01, n_steps=40, save_every=10))(z0s)
-        return jnp.sum(tr.state ** 2) + jnp.sum(tr.control ** 2), tr
+        return jnp.sum(tr.state**2) + jnp.sum(tr.control**2), tr
 
     (value, tr), grad = jax.value_and_grad(loss, has_aux=True)(params.gains.coeffs)
-    def scan_prims(j):          # the primitives of the time loop's bodies
+
+    def scan_prims(j):  # the primitives of the time loop's bodies
         out = []
         for e in j.eqns:
             subs = list(jax.extend.core.jaxprs_in_params(e.params))
@@ -322,11 +348,12 @@ def test_rewrites_can_be_switched_off_with_the_same_values(paper61, monkeypatch)
 
     ctrl, params, z0 = paper61[:3]
     torque = w.dynamic_linearization("(2,1)", "torque")
-    tparams = torque.params(references.circle(radius=2.0, omega=0.4), poles=1.5,
-                            geometry=torque.row.default_geometry)
+    tparams = torque.params(references.circle(radius=2.0, omega=0.4), poles=1.5, geometry=torque.row.default_geometry)
     tz0 = torque.reference_state(0.0, tparams)
-    cases = [(ctrl, params, z0 + jnp.array([[0.0], [0.05], [-0.05]]) * jnp.ones_like(z0)),
-             (torque, tparams, tz0 + jnp.array([[0.0], [0.02], [-0.02]]) * jnp.ones_like(tz0))]
+    cases = [
+        (ctrl, params, z0 + jnp.array([[0.0], [0.05], [-0.05]]) * jnp.ones_like(z0)),
+        (torque, tparams, tz0 + jnp.array([[0.0], [0.02], [-0.02]]) * jnp.ones_like(tz0)),
+    ]
     monkeypatch.delenv(_simplify.REWRITES_ENV, raising=False)
     rewritten = [_rollouts(*case) for case in cases]
     jax.clear_caches()

@@ -24,10 +24,10 @@ def test_zeros_fold_and_repeats_are_emitted_once():
     for a, b in zip(jax.tree_util.tree_leaves(f(x)), jax.tree_util.tree_leaves(g(x))):
         np.testing.assert_array_equal(a, b)
     prims = _prims(g, x)
-    assert prims.count("sin") == 1           # sin(x) twice in f
-    assert "cos" not in prims                # only ever multiplied by zero
-    assert prims.count("mul") == 1           # sin(x) * 2; the products with zeros are gone
-    assert prims.count("add") == 1           # the added zero is dropped
+    assert prims.count("sin") == 1  # sin(x) twice in f
+    assert "cos" not in prims  # only ever multiplied by zero
+    assert prims.count("mul") == 1  # sin(x) * 2; the products with zeros are gone
+    assert prims.count("add") == 1  # the added zero is dropped
     assert "sub" not in prims
 
 
@@ -54,8 +54,14 @@ def test_simplified_jet_transforms_like_the_original():
 
     def jet_of(L, z, simplify):
         g = params.geometry._replace(L=L)
-        zeta, a, K = linearize.output_jet(lambda x, U: law.field(x, U, g), lambda x: law.outputs(x, g), z, law.m,
-                                          law.relative_degree, simplify=simplify)
+        zeta, a, K = linearize.output_jet(
+            lambda x, U: law.field(x, U, g),
+            lambda x: law.outputs(x, g),
+            z,
+            law.m,
+            law.relative_degree,
+            simplify=simplify,
+        )
         return jnp.sum(zeta**2) + jnp.sum(a * jnp.sin(a)) + jnp.linalg.det(K)
 
     L0 = params.geometry.L
@@ -78,15 +84,29 @@ def test_every_rows_jet_program_is_smaller():
                 law, g = ctrl.law, ctrl.row.default_geometry
                 z = jnp.asarray(rng.uniform(0.2, 0.9, size=law.n_state))
                 for method in ("nested", "taylor"):
-                    counts = [len(jax.make_jaxpr(lambda x: linearize.output_jet(
-                        lambda y, U: law.field(y, U, g), lambda y: law.outputs(y, g), x, law.m, law.relative_degree,
-                        method=method, simplify=s))(z).jaxpr.eqns) for s in (False, True)]
+                    counts = [
+                        len(
+                            jax.make_jaxpr(
+                                lambda x: linearize.output_jet(
+                                    lambda y, U: law.field(y, U, g),
+                                    lambda y: law.outputs(y, g),
+                                    x,
+                                    law.m,
+                                    law.relative_degree,
+                                    method=method,
+                                    simplify=s,
+                                )
+                            )(z).jaxpr.eqns
+                        )
+                        for s in (False, True)
+                    ]
                     assert counts[1] < 0.9 * counts[0], (kind, level, method, counts)
 
 
 def test_element_slices_become_one_split_and_transpose_to_one_concatenate():
     """x[0], x[1], ... of a vector (and k[i, j] of a matrix) are pieces of one split per axis:
     same values and gradients, and the gradient program has no zero-padded vector per element."""
+
     def f(x, k):
         return x[0] * x[3] + jnp.sin(x[1]) * x[2] + k[0, 0] * k[1, 1] - k[0, 1] * k[1, 0] + x[1:3].sum()
 
@@ -96,8 +116,8 @@ def test_element_slices_become_one_split_and_transpose_to_one_concatenate():
     for a, b in zip(jax.grad(f, argnums=(0, 1))(x, k), jax.grad(g, argnums=(0, 1))(x, k)):
         np.testing.assert_allclose(b, a, rtol=1e-15, atol=0)
     prims = _prims(g, x, k)
-    assert prims.count("split") == 4         # x along axis 0; k along axis 0, then each of its rows
-    assert prims.count("slice") == 1         # x[1:3] is not one element wide: kept
+    assert prims.count("split") == 4  # x along axis 0; k along axis 0, then each of its rows
+    assert prims.count("slice") == 1  # x[1:3] is not one element wide: kept
     back = _prims(jax.grad(g, argnums=(0, 1)), x, k)
     assert back.count("pad") == 1 and back.count("concatenate") == 4, back
     assert _prims(jax.grad(f, argnums=(0, 1)), x, k).count("pad") == 9
@@ -124,11 +144,16 @@ def test_simulate_program_has_no_per_element_pads_in_reverse_mode():
 
     prog = list(eqns(jax.make_jaxpr(jax.grad(loss))(params.gains.coeffs).jaxpr))
     pads = [e for e in prog if e.primitive.name == "pad"]
-    per_element = [e for e in pads if any(n == 1 and (lo, hi) != (0, 0) for n, (lo, hi, _) in
-                                          zip(e.invars[0].aval.shape, e.params["padding_config"]))]
+    per_element = [
+        e
+        for e in pads
+        if any(
+            n == 1 and (lo, hi) != (0, 0) for n, (lo, hi, _) in zip(e.invars[0].aval.shape, e.params["padding_config"])
+        )
+    ]
     assert sum(e.primitive.name == "split" for e in prog) > 40
     assert not per_element, [str(e) for e in per_element[:3]]
-    assert len(pads) < 60       # the remaining ones: X[:3] of the (4,) state, one per use
+    assert len(pads) < 60  # the remaining ones: X[:3] of the (4,) state, one per use
 
 
 def test_zero_folding_ieee_caveat_and_the_switch(monkeypatch):
@@ -139,12 +164,12 @@ def test_zero_folding_ieee_caveat_and_the_switch(monkeypatch):
     inf, zero, one = jnp.asarray(jnp.inf), jnp.asarray(0.0), jnp.asarray(1.5)
     monkeypatch.delenv(_simplify.REWRITES_ENV, raising=False)
     g = _simplify.simplify(f)
-    assert "mul" not in _prims(g, one) and "div" not in _prims(g, one)          # folded at trace time
-    assert [float(v) for v in g(inf)] == [0.0, 0.0, 0.0]                         # 0 * inf, 0 * inf summed
-    assert float(g(zero)[1]) == 0.0                                              # 0 / 0
+    assert "mul" not in _prims(g, one) and "div" not in _prims(g, one)  # folded at trace time
+    assert [float(v) for v in g(inf)] == [0.0, 0.0, 0.0]  # 0 * inf, 0 * inf summed
+    assert float(g(zero)[1]) == 0.0  # 0 / 0
     monkeypatch.setenv(_simplify.REWRITES_ENV, "0")
-    g = _simplify.simplify(f)           # a new function: JAX caches the traces of the old one
-    assert _prims(g, one) == _prims(f, one)                                      # the plain program
+    g = _simplify.simplify(f)  # a new function: JAX caches the traces of the old one
+    assert _prims(g, one) == _prims(f, one)  # the plain program
     assert np.isnan(float(g(inf)[0])) and np.isnan(float(g(inf)[2])) and np.isnan(float(g(zero)[1]))
     for x in (zero, one):
         assert [float(v) for v in g(x)][::2] == [0.0, 0.0]

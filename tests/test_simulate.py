@@ -19,7 +19,6 @@ from wmrjax import references as R
 from wmrjax.controllers.law import Aux
 
 
-
 def numpy_closed_loop(t, s):
     """§6.1 closed loop written by hand from eq (39) in NumPy (independent of the engine);
     the same law the benchmark's NumPy baseline runs."""
@@ -85,7 +84,7 @@ def test_run61_diagnostics(run61):
     d = run61.diagnostics
     assert not bool(d.failed) and not bool(d.nonfinite) and not bool(d.singular)
     assert bool(jnp.all(run61.valid))
-    np.testing.assert_allclose(float(d.min_margin), 1.0003309108119178, rtol=1e-12)   # min chi1, at t = 5 s (eq 65)
+    np.testing.assert_allclose(float(d.min_margin), 1.0003309108119178, rtol=1e-12)  # min chi1, at t = 5 s (eq 65)
     np.testing.assert_allclose(float(d.t_min_margin), 5.0, atol=1e-12)
     assert run61.state.shape == (1001, 4) and run61.control.shape == (1001, 2)
 
@@ -107,11 +106,27 @@ def test_vmap_equals_python_loop_and_jit_equals_nojit(paper61):
 def test_vmap_over_references_and_gains(paper61):
     ctrl, params, z0 = paper61
     poles = jnp.array([1.0, 2.0])
-    batched = jax.vmap(lambda p: w.simulate(ctrl, z0, params._replace(gains=w.Gains.from_poles(jnp.full((2, 2), p))),
-                                            dt=0.02, n_steps=50, save_every=50).final_state)(poles)
+    batched = jax.vmap(
+        lambda p: (
+            w.simulate(
+                ctrl,
+                z0,
+                params._replace(gains=w.Gains.from_poles(jnp.full((2, 2), p))),
+                dt=0.02,
+                n_steps=50,
+                save_every=50,
+            ).final_state
+        )
+    )(poles)
     for i, p in enumerate([1.0, 2.0]):
-        one = w.simulate(ctrl, z0, ctrl.params(params.reference, poles=p, geometry=params.geometry),
-                         dt=0.02, n_steps=50, save_every=50).final_state
+        one = w.simulate(
+            ctrl,
+            z0,
+            ctrl.params(params.reference, poles=p, geometry=params.geometry),
+            dt=0.02,
+            n_steps=50,
+            save_every=50,
+        ).final_state
         assert float(jnp.abs(one - z0).max()) > 0.1
         np.testing.assert_allclose(batched[i], one, rtol=1e-13)
 
@@ -143,6 +158,7 @@ def test_several_devices_agree_with_one():
         np.save("out.npy", np.concatenate([np.asarray(a), np.asarray(b)]))
     """)
     import tempfile
+
     with tempfile.TemporaryDirectory() as tmp:
         env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
         root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -169,9 +185,11 @@ def test_on_reference_stays_on_reference(paper61):
 
 # --- failure handling -------------------------------------------------------------
 
+
 @dataclasses.dataclass(frozen=True)
 class _Falling:
     """z' = -1 from z = 1: margin |z| hits zero at t = 1; control log(z) is NaN after."""
+
     n_state: int = 1
 
     def vector_field(self, t, z, params):
@@ -182,7 +200,7 @@ def test_singular_run_is_flagged_and_frozen():
     tr = w.simulate(_Falling(), jnp.array([1.0]), (), dt=0.1, n_steps=20, margin_floor=0.25)
     d = tr.diagnostics
     assert bool(d.singular) and bool(d.failed) and not bool(d.nonfinite)
-    np.testing.assert_allclose(d.t_failure, 0.8, atol=1e-12)   # z(0.7) = 0.3 > 0.25, z(0.8) = 0.2
+    np.testing.assert_allclose(d.t_failure, 0.8, atol=1e-12)  # z(0.7) = 0.3 > 0.25, z(0.8) = 0.2
     valid = np.asarray(tr.valid)
     assert valid[:8].all() and not valid[8:].any()
     np.testing.assert_allclose(d.min_margin, 0.3, atol=1e-12)
@@ -206,6 +224,7 @@ class _Overflowing:
     (finite), where the next step's stages are -M, 0, 0, 0, so the error estimate's difference
     k4 - k5 = 2M overflows: the estimate is inf while the state, the control and the margin stay
     finite (the next state too: back to 0)."""
+
     n_state: int = 1
 
     def vector_field(self, t, z, params):
@@ -247,6 +266,7 @@ def test_traced_bad_dt_fails_the_run_at_t0(paper61):
 
 
 # --- bad input --------------------------------------------------------------------
+
 
 def test_bad_simulate_arguments(paper61):
     ctrl, params, z0 = paper61

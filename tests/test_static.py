@@ -11,8 +11,13 @@ import wmrjax as w
 from wmrjax import references as R
 from wmrjax.controllers import static as S
 
-GEOM = {"(3,0)": w.Geometry(), "(2,0)": w.Geometry(e=0.3, delta=0.7), "(2,1)": w.Geometry(e=0.3, delta=0.4),
-        "(1,1)": w.Geometry(L=1.0, e=0.3), "(1,2)": w.Geometry(L=0.5, e=0.3, delta=0.5)}
+GEOM = {
+    "(3,0)": w.Geometry(),
+    "(2,0)": w.Geometry(e=0.3, delta=0.7),
+    "(2,1)": w.Geometry(e=0.3, delta=0.4),
+    "(1,1)": w.Geometry(L=1.0, e=0.3),
+    "(1,2)": w.Geometry(L=0.5, e=0.3, delta=0.5),
+}
 
 
 def _task(kind):
@@ -33,8 +38,13 @@ def _closed_form_K(kind, X, g):
         return np.array([[-np.sin(th), -g.e * np.sin(th + g.delta)], [np.cos(th), g.e * np.cos(th + g.delta)]])
     if kind == "(2,1)":
         b = X[3]
-        return np.array([[-np.sin(th + b), -g.e * np.sin(th + g.delta), 0.0],
-                         [np.cos(th + b), g.e * np.cos(th + g.delta), 0.0], [0.0, 0.0, 1.0]])
+        return np.array(
+            [
+                [-np.sin(th + b), -g.e * np.sin(th + g.delta), 0.0],
+                [np.cos(th + b), g.e * np.cos(th + g.delta), 0.0],
+                [0.0, 0.0, 1.0],
+            ]
+        )
     if kind == "(1,1)":
         b = X[3]
         s, c = np.sin(th + b), np.cos(th + b)
@@ -51,9 +61,13 @@ def _closed_form_K(kind, X, g):
     return np.array([[np.cos(th), -np.sin(th), 0.0], [np.sin(th), np.cos(th), 0.0], [0.0, 0.0, 1.0]])  # (3,0)
 
 
-ERRATA_DET = {"(3,0)": lambda X, g: 1.0, "(2,0)": lambda X, g: g.e * np.sin(g.delta),
-              "(2,1)": lambda X, g: -g.e * np.sin(X[3] - g.delta), "(1,1)": lambda X, g: g.e * g.L,
-              "(1,2)": lambda X, g: 2 * g.e * g.L * np.sin(X[4])}
+ERRATA_DET = {
+    "(3,0)": lambda X, g: 1.0,
+    "(2,0)": lambda X, g: g.e * np.sin(g.delta),
+    "(2,1)": lambda X, g: -g.e * np.sin(X[3] - g.delta),
+    "(1,1)": lambda X, g: g.e * g.L,
+    "(1,2)": lambda X, g: 2 * g.e * g.L * np.sin(X[4]),
+}
 
 
 @pytest.mark.parametrize("kind", list(GEOM))
@@ -68,7 +82,7 @@ def test_engine_K_equals_table3_closed_form_and_errata_det(kind, rng):
             np.testing.assert_allclose(K, _closed_form_K(kind, X, g), atol=1e-12)
             np.testing.assert_allclose(np.linalg.det(K), ERRATA_DET[kind](X, g), atol=1e-12)
             if level == "velocity":
-                np.testing.assert_allclose(ctrl.law.jet(z, g)[1], 0.0, atol=1e-14)     # no drift: z1' = K u
+                np.testing.assert_allclose(ctrl.law.jet(z, g)[1], 0.0, atol=1e-14)  # no drift: z1' = K u
 
 
 @pytest.mark.parametrize("kind", list(GEOM))
@@ -82,7 +96,7 @@ def test_error_dynamics_exactly_linear(kind):
         err = jax.vmap(lambda t, z: ctrl.error(t, z, p).reshape(-1))(tr.t, tr.state)
         exact = jax.vmap(lambda t: jax.scipy.linalg.expm(ctrl.error_matrix(p.gains) * t) @ err[0])(tr.t)
         assert float(jnp.max(jnp.abs(err[0]))) > 0.1
-        np.testing.assert_allclose(err, exact, rtol=0, atol=1e-5)   # RK4, dt = 0.02: ~1e-6
+        np.testing.assert_allclose(err, exact, rtol=0, atol=1e-5)  # RK4, dt = 0.02: ~1e-6
 
 
 def test_velocity_and_torque_agree_with_fast_inner_gains():
@@ -102,30 +116,32 @@ def test_velocity_and_torque_agree_with_fast_inner_gains():
         same = run(jnp.concatenate([X0, u_vel0]), pt)
         np.testing.assert_allclose(same[:, :3], tv.state, atol=1e-7)
         off = run(jnp.concatenate([X0, u_vel0 + jnp.array([0.3, -0.2])]), pt)
-        gap[lam2] = float(jnp.max(jnp.abs(off[3:, :2] - tv.state[3:, :2])))           # t >= 0.9 s
-    assert gap[40.0] < 0.3 * gap[10.0] and gap[40.0] < 5e-3                 # O(1 / lambda2)
+        gap[lam2] = float(jnp.max(jnp.abs(off[3:, :2] - tv.state[3:, :2])))  # t >= 0.9 s
+    assert gap[40.0] < 0.3 * gap[10.0] and gap[40.0] < 5e-3  # O(1 / lambda2)
 
 
-def _decelerating(t, params):   # speed v0 exp(-t / tau): an L1 reference
+def _decelerating(t, params):  # speed v0 exp(-t / tau): an L1 reference
     return params["p_inf"] - params["v0"] * params["tau"] * jnp.exp(-t / params["tau"]) * params["d"]
 
 
 def test_z3_bounded_on_L1_speed_reference():
     ctrl = w.controller("(2,0)", "velocity", "point")
-    ref = R.from_function(_decelerating, dict(p_inf=jnp.array([1.0, 2.0]), v0=jnp.asarray(1.0),
-                                              tau=jnp.asarray(2.0), d=jnp.array([0.6, 0.8])))
+    ref = R.from_function(
+        _decelerating,
+        dict(p_inf=jnp.array([1.0, 2.0]), v0=jnp.asarray(1.0), tau=jnp.asarray(2.0), d=jnp.array([0.6, 0.8])),
+    )
     p = ctrl.params(ref, poles=1.0, geometry=GEOM["(2,0)"])
     tr = w.simulate(ctrl, jnp.array([-0.5, 0.3, 1.0]), p, dt=0.02, n_steps=1500, save_every=25)
     th = np.asarray(jax.vmap(ctrl.z3)(tr.state))[:, 0]
     assert np.all(np.isfinite(th)) and np.max(np.abs(th)) < 10.0
-    assert abs(th[-1] - th[-11]) < 1e-3                                   # z3 settles (Prop 5)
+    assert abs(th[-1] - th[-11]) < 1e-3  # z3 settles (Prop 5)
 
 
 def test_sigma_tilde_reference_model_30():
     ctrl = w.controller("(3,0)", "torque", "posture")
     p = ctrl.params(R.circle(heading_offset=0.2), poles=jnp.array([[0.8, 2.0]] * 3))
     z0 = _start(ctrl, p)
-    tr = w.simulate(ctrl, z0, p, dt=0.02, n_steps=300, save_every=30)    # compiled in test_error_dynamics_...
+    tr = w.simulate(ctrl, z0, p, dt=0.02, n_steps=300, save_every=30)  # compiled in test_error_dynamics_...
     sig = np.asarray(jax.vmap(lambda t, z: ctrl.sigma_tilde(t, z, p))(tr.t, tr.state))
     # eq (14): sigma~ = R^T(theta) (eta - eta_ref), eta_ref = R(theta) [xi_ref' - Lambda1 xi~]
     t0, th, eta = 0.0, float(z0[2]), np.asarray(z0[3:])
@@ -135,7 +151,9 @@ def test_sigma_tilde_reference_model_30():
     Rm = np.array([[np.cos(th), np.sin(th), 0], [-np.sin(th), np.cos(th), 0], [0, 0, 1]])
     eta_ref = Rm @ (dxr - 0.8 * xi_err)
     np.testing.assert_allclose(sig[0], Rm.T @ (eta - eta_ref), atol=1e-12)
-    np.testing.assert_allclose(sig, sig[0] * np.exp(-2.0 * np.asarray(tr.t))[:, None], atol=1e-7)   # sigma~' = -L2 sigma~
+    np.testing.assert_allclose(
+        sig, sig[0] * np.exp(-2.0 * np.asarray(tr.t))[:, None], atol=1e-7
+    )  # sigma~' = -L2 sigma~
 
 
 def test_vmap_jit_consistency_12_torque():

@@ -77,8 +77,18 @@ def test_table_matches_direct_simulations(tiny):
     spec, out = tiny
     t = _table(out / "runs.parquet")
     assert len(t["run"]) == 2 * 3 * 3 and list(t["run"]) == list(range(18))
-    for col in ("reference_radius", "initial_error_x", "initial_error_y", "failed", "t_failure", "min_margin",
-                "final_position_error", "final_heading_error", "min_distance", "outcome"):
+    for col in (
+        "reference_radius",
+        "initial_error_x",
+        "initial_error_y",
+        "failed",
+        "t_failure",
+        "min_margin",
+        "final_position_error",
+        "final_heading_error",
+        "min_distance",
+        "outcome",
+    ):
         assert col in t
     ctrl = w.dynamic_linearization("(2,0)", "velocity")
     for i in (0, 7, 17):
@@ -88,8 +98,9 @@ def test_table_matches_direct_simulations(tiny):
         zeta = zeta.at[0].add(jnp.array([t["initial_error_x"][i], t["initial_error_y"][i]]))
         tr = w.simulate(ctrl, ctrl.initial_state(zeta, params), params, dt=0.02, n_steps=100, save_every=5)
         post = ref.posture(jnp.asarray(2.0))
-        np.testing.assert_allclose(t["final_position_error"][i], float(jnp.linalg.norm(tr.final_state[:2] - post[:2])),
-                                   rtol=1e-12)
+        np.testing.assert_allclose(
+            t["final_position_error"][i], float(jnp.linalg.norm(tr.final_state[:2] - post[:2])), rtol=1e-12
+        )
         np.testing.assert_allclose(t["min_margin"][i], float(tr.diagnostics.min_margin), rtol=1e-12)
         dist = jax.vmap(lambda z: ctrl.singular_distance(ctrl.psi(z, params), params))(tr.state)
         np.testing.assert_allclose(t["min_distance"][i], float(jnp.min(dist)), rtol=1e-12)
@@ -114,7 +125,8 @@ def test_killed_sweep_resumes_to_the_same_table(tiny, cache, tmp_path, monkeypat
     def dies_after_first(self, runs, blocks):
         original(self, runs, blocks)
         done.append(blocks)
-        raise KeyboardInterrupt                         # killed after the first call (one block per device)
+        raise KeyboardInterrupt  # killed after the first call (one block per device)
+
     monkeypatch.setattr(sweep_run.Progress, "update", dies_after_first)
     with pytest.raises(KeyboardInterrupt):
         sweep_cli.main([str(spec), "--out", str(tmp_path), "--compile-cache", cache])
@@ -145,9 +157,9 @@ def test_foreign_and_torn_blocks_are_named_and_recomputed(tiny, cache, tmp_path,
     with np.load(sweep_run.block_path(o, 0)) as f:
         d = dict(f)
     np.savez(sweep_run.block_path(o, 0), **{**d, "fingerprint": np.str_("0123456789abcdef")})
-    shutil.copy(sweep_run.block_path(o, 3), sweep_run.block_path(o, 1))            # block 3's rows as block 1
+    shutil.copy(sweep_run.block_path(o, 3), sweep_run.block_path(o, 1))  # block 3's rows as block 1
     data = sweep_run.block_path(o, 2).read_bytes()
-    sweep_run.block_path(o, 2).write_bytes(data[: len(data) // 2])                # a torn write
+    sweep_run.block_path(o, 2).write_bytes(data[: len(data) // 2])  # a torn write
     with pytest.raises(ValueError, match="block_000000.npz belongs to another sweep"):
         sweep_run.assemble(plan, o)
     assert sweep_cli.main([str(spec), "--out", str(o), "--compile-cache", cache]) == 0
@@ -156,9 +168,9 @@ def test_foreign_and_torn_blocks_are_named_and_recomputed(tiny, cache, tmp_path,
     assert "block_000001.npz holds block 3" in err and "block_000002.npz is torn" in err
     assert pq.read_table(o / "runs.parquet").equals(pq.read_table(out / "runs.parquet"))
     s = json.loads((o / "summary.json").read_text())
-    assert s["execution"]["runs_computed"] == 12          # the three bad blocks of 4 runs each
+    assert s["execution"]["runs_computed"] == 12  # the three bad blocks of 4 runs each
     (o / sweep_run.STATE_FILE).write_text("{not json")
-    with pytest.raises(SystemExit):                       # corrupt state: refused, naming the way out
+    with pytest.raises(SystemExit):  # corrupt state: refused, naming the way out
         sweep_cli.main([str(spec), "--out", str(o), "--compile-cache", cache])
     assert "sweep_state.json is not valid JSON" in capsys.readouterr().err
     assert sweep_cli.main([str(spec), "--out", str(o), "--compile-cache", cache, "--fresh"]) == 0
@@ -167,8 +179,25 @@ def test_foreign_and_torn_blocks_are_named_and_recomputed(tiny, cache, tmp_path,
 def test_two_processes_give_the_same_table(tiny, cache, tmp_path):
     spec, out = tiny
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    r = subprocess.run([sys.executable, "-m", "experiments.sweep", str(spec), "--out", str(tmp_path), "--processes", "2",
-                        "--compile-cache", cache], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "experiments.sweep",
+            str(spec),
+            "--out",
+            str(tmp_path),
+            "--processes",
+            "2",
+            "--compile-cache",
+            cache,
+        ],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     assert "[process 1]" in r.stderr and "[process 0]" in r.stderr
     s = json.loads((tmp_path / "summary.json").read_text())
@@ -180,13 +209,19 @@ BAD = [
     ("[controller]\nlaw = 'dynamic'\nrobot = '(2,0)'\ncolour = 1", r"\[controller\]: unknown key\(s\) \['colour'\]"),
     ("[controllr]\nlaw = 'dynamic'", r"unknown section\(s\) \['controllr'\]"),
     ("[controller]\nlaw = 'adaptive'\nrobot = '(2,0)'", r"\[controller\] law: expected one of \['dynamic', 'static'\]"),
-    ("[controller]\nlaw = 'dynamic'\nrobot = '(3,0)'", r"no dynamic linearizing law \(Table 4\) for type\(s\) \['\(3,0\)'\]"),
+    (
+        "[controller]\nlaw = 'dynamic'\nrobot = '(3,0)'",
+        r"no dynamic linearizing law \(Table 4\) for type\(s\) \['\(3,0\)'\]",
+    ),
     ("[controller]\nlaw = 'dynamic'\nrobot = '(2,0)'\nlevel = 'jerk'", r"\[controller\] level: expected one of"),
     ("[geometry]\ne = []", r"\[geometry\] e: an empty list"),
     ("[geometry]\ne = 'zero'", r"\[geometry\] e: expected a number, a list of numbers"),
     ("[geometry]\ne = { min = 0.0, max = 1.0 }", r"\[geometry\] e: a grid table needs exactly min, max, num"),
     ("[initial]\nx = { min = 1.0, max = 0.0, num = 3 }", r"\[initial\] x: max must be > min"),
-    ("[initial]\nx = { low = -1.0, high = 1.0 }", r"\[initial\] x: a \{ low, high \} range needs random = \{ count, seed \}"),
+    (
+        "[initial]\nx = { low = -1.0, high = 1.0 }",
+        r"\[initial\] x: a \{ low, high \} range needs random = \{ count, seed \}",
+    ),
     ("[initial]\nrandom = { count = 0 }", r"\[initial.random\] count: expected an integer >= 1"),
     ("[initial]\ntheta = 0.1", r"\[initial\]: unknown key\(s\) \['theta'\]"),
     ("[simulation]\nt_final = 2.0\ndt = 0.03", r"t_final = 2.0 s is not a whole number of steps"),
@@ -197,15 +232,25 @@ BAD = [
     ("[plant]\ninput_limit = [1.0, 2.0, 3.0]", r"\[plant\] input_limit: expected a list of 2 numbers"),
     ("[plant]\ninput_limit = [1.0, 0.0]", r"\[plant\] input_limit: values must be > 0"),
     ("[reference]\nfamily = 'spiral'", r"\[reference\] family: expected one of"),
-    ("[reference]\nfamily = 'circle'\noptions = { radius = 2.0, speed = 1.0 }", r"\[reference.options\]: unknown key\(s\) \['speed'\]"),
+    (
+        "[reference]\nfamily = 'circle'\noptions = { radius = 2.0, speed = 1.0 }",
+        r"\[reference.options\]: unknown key\(s\) \['speed'\]",
+    ),
     ("[reference]\nfamily = 'samples'\nfile = 'nope.csv'", r"\[reference\] file '.*nope.csv': not a regular file"),
     # combinations the paper excludes
-    ("[reference]\nfamily = 'paper_66'\n[simulation]\nt_final = 12.0\ndt = 0.02",
-     r"\[reference\] paper_66 .* reaches the singular set .* at t = 9.99 s"),
+    (
+        "[reference]\nfamily = 'paper_66'\n[simulation]\nt_final = 12.0\ndt = 0.02",
+        r"\[reference\] paper_66 .* reaches the singular set .* at t = 9.99 s",
+    ),
     ("[controller]\nlaw = 'dynamic'\nrobot = '(1,1)'\n[geometry]\nL = 0.0", r"\[geometry\] for type \(1,1\): .*L"),
-    ("[controller]\nlaw = 'static'\nrobot = '(2,0)'\n[geometry]\ne = 0.0\n[initial]\nspace = 'physical'",
-     r"\[geometry\] for type \(2,0\): .*e"),
-    ("[controller]\nlaw = 'static'\nrobot = '(2,0)'\n[geometry]\ne = 0.3", r"space = \"output\" .* needs a dynamic law"),
+    (
+        "[controller]\nlaw = 'static'\nrobot = '(2,0)'\n[geometry]\ne = 0.0\n[initial]\nspace = 'physical'",
+        r"\[geometry\] for type \(2,0\): .*e",
+    ),
+    (
+        "[controller]\nlaw = 'static'\nrobot = '(2,0)'\n[geometry]\ne = 0.3",
+        r"space = \"output\" .* needs a dynamic law",
+    ),
     ("[simulation]\nt_final = 2.0\ndt = 3.5", r"not a whole number of steps"),
 ]
 
@@ -249,7 +294,11 @@ def test_cli_refuses_bad_files_and_options(tmp_path, capsys):
 @pytest.mark.parametrize("name", ["section_6_1_position_grid", "random_references", "sampled_lane_change"])
 def test_shipped_sweeps_are_valid(name):
     plan = S.load(ROOT / "experiments" / "sweeps" / f"{name}.toml")
-    expect = {"section_6_1_position_grid": 81 * 81, "random_references": 8 * 32 * 32, "sampled_lane_change": 2 * 2 * 21 * 21}
+    expect = {
+        "section_6_1_position_grid": 81 * 81,
+        "random_references": 8 * 32 * 32,
+        "sampled_lane_change": 2 * 2 * 21 * 21,
+    }
     assert plan.n_runs == expect[name]
 
 
@@ -286,15 +335,27 @@ def test_a_dead_worker_stops_the_others(tiny, cache, tmp_path):
     import time
 
     spec, out = tiny
-    slow = _write(tmp_path, TINY.replace("t_final = 2.0", "t_final = 40.0").replace("block = 4", "block = 1"), "slow.toml")
+    slow = _write(
+        tmp_path, TINY.replace("t_final = 2.0", "t_final = 40.0").replace("block = 4", "block = 1"), "slow.toml"
+    )
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    cmd = [sys.executable, "-m", "experiments.sweep", str(slow), "--out", str(tmp_path / "o"), "--processes", "2",
-           "--compile-cache", cache]
+    cmd = [
+        sys.executable,
+        "-m",
+        "experiments.sweep",
+        str(slow),
+        "--out",
+        str(tmp_path / "o"),
+        "--processes",
+        "2",
+        "--compile-cache",
+        cache,
+    ]
     launcher = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True)
     children = Path(f"/proc/{launcher.pid}/task/{launcher.pid}/children")
     t0 = time.monotonic()
     while time.monotonic() - t0 < 120 and not (tmp_path / "o" / "blocks").exists():
-        time.sleep(0.2)                 # the workers have started computing
+        time.sleep(0.2)  # the workers have started computing
     pids = [int(x) for x in children.read_text().split()]
     assert len(pids) == 2
     os.kill(pids[1], signal.SIGKILL)
@@ -335,12 +396,15 @@ def test_static_physical_sweep_starts_on_the_reference_and_draws_reproducibly(tm
     """Physical-space initial errors for a static torque-level law: the tracked point starts at the
     reference's plus (x, y), its output velocity equal to the reference's (so a zero error stays
     zero: exact linearization), and the random draws follow numpy's Generator(seed), key by key."""
-    zero = _write(tmp_path, STATIC.replace("random = { count = 3, seed = 7 }\nx = { low = -0.2, high = 0.2 }",
-                                           "x = [0.0, 0.2]"), "zero.toml")
+    zero = _write(
+        tmp_path,
+        STATIC.replace("random = { count = 3, seed = 7 }\nx = { low = -0.2, high = 0.2 }", "x = [0.0, 0.2]"),
+        "zero.toml",
+    )
     assert sweep_cli.main([str(zero), "--out", str(tmp_path / "zero"), "--compile-cache", cache]) == 0
     t = _table(tmp_path / "zero" / "runs.parquet")
-    assert t["final_position_error"][0] < 1e-8          # on the reference from the start, and stays there (RK4: 1.6e-9)
-    assert t["final_position_error"][1] > 1e-3          # 0.2 m off: decays like (1 + t) e^-t, still 0.15 m at 1 s
+    assert t["final_position_error"][0] < 1e-8  # on the reference from the start, and stays there (RK4: 1.6e-9)
+    assert t["final_position_error"][1] > 1e-3  # 0.2 m off: decays like (1 + t) e^-t, still 0.15 m at 1 s
     np.testing.assert_allclose(t["final_position_error"][1], 0.2 * 2 * np.exp(-1.0), rtol=1e-6)
     rnd = _write(tmp_path, STATIC, "random.toml")
     plan = S.load(rnd)

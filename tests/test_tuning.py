@@ -23,12 +23,22 @@ TINY_DATA = {
     "geometry": {"L": 1.0, "e": 0.0, "delta": 0.0},
     "plant": {"input_limit": [5.5, 1.0], "control_period": 0.1, "noise_std": [0.01, 0.01, 0.005]},
     "reference": {"family": "paper_62", "heading_offset": 0.0},
-    "initial": {"space": "output", "random": {"count": 4, "seed": 0}, "x": {"low": -0.5, "high": 0.5},
-                "y": {"low": -0.5, "high": 0.5}, "vx": {"low": -0.5, "high": 0.5}, "vy": {"low": -0.5, "high": 0.5}},
+    "initial": {
+        "space": "output",
+        "random": {"count": 4, "seed": 0},
+        "x": {"low": -0.5, "high": 0.5},
+        "y": {"low": -0.5, "high": 0.5},
+        "vx": {"low": -0.5, "high": 0.5},
+        "vy": {"low": -0.5, "high": 0.5},
+    },
     "gains": {"poles": 1.0},
     "simulation": {"t_final": 2.0, "dt": 0.05},
-    "tune": {"steps": 6, "scenarios": {"train": 3, "validation": 2, "heldout": 2}, "stopping": {"eval_every": 2},
-             "baselines": {"seeds": 2}},
+    "tune": {
+        "steps": 6,
+        "scenarios": {"train": 3, "validation": 2, "heldout": 2},
+        "stopping": {"eval_every": 2},
+        "baselines": {"seeds": 2},
+    },
 }
 TINY = Problem.from_dict(TINY_DATA)
 TS = config.read(TINY.section("tune"))
@@ -37,8 +47,19 @@ TS = config.read(TINY.section("tune"))
 def run_tiny(setting, family=None, out=None, steps=None, **kw):
     family = family or TS.gain_spec(setting)
     steps = steps or TS.steps
-    return tune(setting, family, TS.optimizer.build(steps), steps=steps, scenarios=TS.scenarios, loss=TS.loss,
-                stopping=TS.stopping, seed=TS.seed, out_dir=out, log=lambda *_: None, **kw)
+    return tune(
+        setting,
+        family,
+        TS.optimizer.build(steps),
+        steps=steps,
+        scenarios=TS.scenarios,
+        loss=TS.loss,
+        stopping=TS.stopping,
+        seed=TS.seed,
+        out_dir=out,
+        log=lambda *_: None,
+        **kw,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -50,10 +71,10 @@ def tiny():
 
 def test_gain_spec_maps_paper_poles_and_is_hurwitz(rng):
     spec = GainSpec(2, 2)
-    np.testing.assert_allclose(spec.coefficients(spec.init(1.0)), [[1.0, 2.0]] * 2, atol=1e-12)   # (s + 1)^2
+    np.testing.assert_allclose(spec.coefficients(spec.init(1.0)), [[1.0, 2.0]] * 2, atol=1e-12)  # (s + 1)^2
     spec3 = GainSpec(2, 3, shared=False)
     np.testing.assert_allclose(spec3.coefficients(spec3.init([1.0, 2.0, 3.0]))[0], [6.0, 11.0, 6.0], rtol=1e-12)
-    for _ in range(10):                                                 # any raw gives a Hurwitz polynomial
+    for _ in range(10):  # any raw gives a Hurwitz polynomial
         c = np.asarray(spec3.coefficients(jnp.asarray(rng.normal(size=(2, 3)) * 3)))
         for row in c:
             assert np.all(np.roots(np.concatenate([[1.0], row[::-1]])).real < 0)
@@ -70,11 +91,14 @@ def test_loss_gradient_matches_finite_differences(tiny):
     h = 1e-5
     for i in range(raw.shape[0]):
         d = jnp.zeros_like(raw).at[i].set(h)
-        fd = (mean_loss(raw + d, ctx.sets.train, setting, spec, ctx.weights)[0]
-              - mean_loss(raw - d, ctx.sets.train, setting, spec, ctx.weights)[0]) / (2 * h)
+        fd = (
+            mean_loss(raw + d, ctx.sets.train, setting, spec, ctx.weights)[0]
+            - mean_loss(raw - d, ctx.sets.train, setting, spec, ctx.weights)[0]
+        ) / (2 * h)
         np.testing.assert_allclose(float(grad[i]), float(fd), rtol=1e-5, atol=1e-9)
-    np.testing.assert_allclose(float(loss), float(mean_loss(raw, ctx.sets.train, setting, spec, ctx.weights)[0]),
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        float(loss), float(mean_loss(raw, ctx.sets.train, setting, spec, ctx.weights)[0]), rtol=1e-12
+    )
 
 
 def test_constant_schedule_is_the_constant_gains(tiny):
@@ -108,8 +132,11 @@ def test_quickly_compiled_programs_match_the_default_ones(tiny):
     key = jax.random.PRNGKey(TS.seed)
     k_train, k_heldout = jax.random.split(key)
     draw = jax.jit(lambda k, n: draw_set(setting, TS.scenarios.mismatch, jax.random.split(k, n)), static_argnums=1)
-    for got, k, n in ((ctx.sets.train, k_train, 3), (ctx.sets.validation, jax.random.fold_in(key, 2), 2),
-                      (ctx.sets.heldout, k_heldout, 2)):
+    for got, k, n in (
+        (ctx.sets.train, k_train, 3),
+        (ctx.sets.validation, jax.random.fold_in(key, 2), 2),
+        (ctx.sets.heldout, k_heldout, 2),
+    ):
         for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(draw(k, n))):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-14)
 
@@ -121,10 +148,10 @@ def test_nan_scenario_is_reported_and_excluded(tiny):
     bad = train._replace(inputs={**train.inputs, "input_scale": train.inputs["input_scale"].at[0].set(jnp.nan)})
     loss, grad, ok, _ = mean_loss_and_grad(raw, bad, setting, spec, ctx.weights)
     assert not bool(ok[0]) and bool(jnp.all(ok[1:])) and np.isfinite(float(loss)) and bool(jnp.all(jnp.isfinite(grad)))
-    _, ok_all, m = mean_loss(raw, train, setting, spec, ctx.weights)      # the clean batch, scenario by scenario
+    _, ok_all, m = mean_loss(raw, train, setting, spec, ctx.weights)  # the clean batch, scenario by scenario
     assert bool(jnp.all(ok_all))
     per = np.asarray(scenario_loss(m, TS.loss))
-    np.testing.assert_allclose(float(loss), per[1:].mean(), rtol=1e-12)   # the mean over the others, exactly
+    np.testing.assert_allclose(float(loss), per[1:].mean(), rtol=1e-12)  # the mean over the others, exactly
 
 
 def test_resume_gives_the_same_gains(tmp_path, tiny):
@@ -151,13 +178,16 @@ def test_checkpoint_of_another_configuration_is_refused(tmp_path, tiny):
         run_tiny(setting, out=tmp_path, steps=7)
 
 
-@pytest.mark.parametrize("edit, match", [
-    (lambda d: d.update(step=True), "integer 'step' >= 0"),                        # was taken as step 1
-    (lambda d: d["state"].update(history=d["state"]["history"][:1]), "state 'history'"),   # a short history
-    (lambda d: d["state"].update(stopped_early="no"), "state 'stopped_early' is 'no', expected true or false"),
-    (lambda d: d["state"].update(rollouts="6"), "state 'rollouts'"),
-    (lambda d: d["state"].update(best_raw=[1.0]), "state 'best_raw'"),
-])
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda d: d.update(step=True), "integer 'step' >= 0"),  # was taken as step 1
+        (lambda d: d["state"].update(history=d["state"]["history"][:1]), "state 'history'"),  # a short history
+        (lambda d: d["state"].update(stopped_early="no"), "state 'stopped_early' is 'no', expected true or false"),
+        (lambda d: d["state"].update(rollouts="6"), "state 'rollouts'"),
+        (lambda d: d["state"].update(best_raw=[1.0]), "state 'best_raw'"),
+    ],
+)
 def test_edited_checkpoint_is_refused_by_name(tmp_path, tiny, edit, match):
     """Hand-edited checkpoints that are valid JSON were accepted ("step": true as step 1, a
     short history, stopped_early = "no" as true); each is now refused, naming the field."""
@@ -183,24 +213,42 @@ def test_converges_to_analytic_optimum():
     reference: with a ZOH period dt the error obeys e_{k+1} = (1 - lam dt) e_k, so the loss is
     const + c (1 + w lam^2) / (lam (2 - lam dt)); its minimiser (about 1/sqrt(w)) is the oracle."""
     w_eff, dt = 0.25, 0.01
-    problem = Problem.from_dict({
-        "controller": {"law": "static", "robot": "(3,0)", "task": "posture"},
-        "plant": {"control_period": dt},
-        "reference": {"family": "line"},
-        "initial": {"space": "physical", "random": {"count": 4}, "x": {"low": -2.0, "high": 2.0},
-                    "y": {"low": -2.0, "high": 2.0}},
-        "gains": {"poles": 0.7},
-        "simulation": {"t_final": 8.0, "dt": dt},
-        "tune": {"steps": 150, "family": {"parameterization": "poles"},
-                 "loss": {"tracking": 1.0, "effort": w_eff, "saturation": 0.0, "barrier": 0.0},
-                 "scenarios": {"train": 4, "heldout": 2, "mismatch": 0.0}, "optimizer": {"learning_rate": 0.3},
-                 "stopping": {"eval_every": 20, "patience": 1000}},
-    })
+    problem = Problem.from_dict(
+        {
+            "controller": {"law": "static", "robot": "(3,0)", "task": "posture"},
+            "plant": {"control_period": dt},
+            "reference": {"family": "line"},
+            "initial": {
+                "space": "physical",
+                "random": {"count": 4},
+                "x": {"low": -2.0, "high": 2.0},
+                "y": {"low": -2.0, "high": 2.0},
+            },
+            "gains": {"poles": 0.7},
+            "simulation": {"t_final": 8.0, "dt": dt},
+            "tune": {
+                "steps": 150,
+                "family": {"parameterization": "poles"},
+                "loss": {"tracking": 1.0, "effort": w_eff, "saturation": 0.0, "barrier": 0.0},
+                "scenarios": {"train": 4, "heldout": 2, "mismatch": 0.0},
+                "optimizer": {"learning_rate": 0.3},
+                "stopping": {"eval_every": 20, "patience": 1000},
+            },
+        }
+    )
     setting = problem.setting("tuning")
     ts = config.read(problem.section("tune"))
     family = ts.gain_spec(setting)
-    res = tune(setting, family, ts.optimizer.build(ts.steps), steps=ts.steps, scenarios=ts.scenarios, loss=ts.loss,
-               stopping=ts.stopping, log=lambda *_: None)
+    res = tune(
+        setting,
+        family,
+        ts.optimizer.build(ts.steps),
+        steps=ts.steps,
+        scenarios=ts.scenarios,
+        loss=ts.loss,
+        stopping=ts.stopping,
+        log=lambda *_: None,
+    )
     lam = float(family.coefficients(jnp.asarray(res.raw))[0, 0])
     opt = minimize_scalar(lambda x: (1 + w_eff * x * x) / (x * (2 - x * dt)), bounds=(0.1, 10), method="bounded").x
     assert abs(opt - 2.0) < 0.05 and abs(lam - opt) < 0.005 * opt
@@ -214,19 +262,30 @@ def test_optax_shape_any_transformation(tiny):
     setting, spec, _ = tiny
     slow = tune(setting, spec, optax.sgd(1e-9), steps=2, scenarios=TS.scenarios, log=lambda *_: None)
     np.testing.assert_allclose(slow.raw, np.asarray(spec.init(1.0)), atol=1e-6)
-    assert set(tuning.TuneResult._fields) == {"finished", "raw", "best_raw", "history", "rollouts", "excluded",
-                                             "stopped_early", "wall_time_s", "context"}
+    assert set(tuning.TuneResult._fields) == {
+        "finished",
+        "raw",
+        "best_raw",
+        "history",
+        "rollouts",
+        "excluded",
+        "stopped_early",
+        "wall_time_s",
+        "context",
+    }
     assert not any(callable(v) for v in slow.context._asdict().values())
 
 
 def test_bad_tuning_input(tmp_path):
-    bad = [({"tune": {"scenarios": {"train": 0}}}, r"\[tune.scenarios\] train: expected an integer >= 1"),
-           ({"tune": {"loss": {"effort": -1.0}}}, r"\[tune.loss\] effort: expected a number >= 0"),
-           ({"tune": {"loss": {k: 0.0 for k in LossWeights._fields}}}, "at least one loss weight"),
-           ({"tune": {"family": {"knots": 1}}}, "at least 2 knots"),
-           ({"tune": {"optimizer": {"momentum": 0.9}}}, r"\[tune.optimizer\]: unknown key"),
-           ({"tune": {"baselines": {"cma_population": 1}}}, "CMA-ES ranks"),
-           ({"tune": {"scenarios": {"mismatch": 1.5}}}, r"mismatch: expected a number in \[0, 1\)")]
+    bad = [
+        ({"tune": {"scenarios": {"train": 0}}}, r"\[tune.scenarios\] train: expected an integer >= 1"),
+        ({"tune": {"loss": {"effort": -1.0}}}, r"\[tune.loss\] effort: expected a number >= 0"),
+        ({"tune": {"loss": {k: 0.0 for k in LossWeights._fields}}}, "at least one loss weight"),
+        ({"tune": {"family": {"knots": 1}}}, "at least 2 knots"),
+        ({"tune": {"optimizer": {"momentum": 0.9}}}, r"\[tune.optimizer\]: unknown key"),
+        ({"tune": {"baselines": {"cma_population": 1}}}, "CMA-ES ranks"),
+        ({"tune": {"scenarios": {"mismatch": 1.5}}}, r"mismatch: expected a number in \[0, 1\)"),
+    ]
     for change, msg in bad:
         data = copy.deepcopy(TINY_DATA)
         data["tune"] = {**data["tune"], **change["tune"]}
@@ -242,14 +301,45 @@ def test_bad_tuning_input(tmp_path):
 
 def _tiny_file(tmp_path):
     """TINY as a problem file (a TOML writer is not in the standard library: a few lines by hand)."""
-    lines = ['title = "tiny"', "[controller]", 'law = "dynamic"', 'robot = "(2,0)"', 'level = "velocity"', "[geometry]", "L = 1.0", "e = 0.0",
-             "delta = 0.0", "[plant]", "input_limit = [5.5, 1.0]", "control_period = 0.1",
-             "noise_std = [0.01, 0.01, 0.005]", "[reference]", 'family = "paper_62"', "heading_offset = 0.0",
-             "[initial]", 'space = "output"', "random = { count = 4, seed = 0 }"]
+    lines = [
+        'title = "tiny"',
+        "[controller]",
+        'law = "dynamic"',
+        'robot = "(2,0)"',
+        'level = "velocity"',
+        "[geometry]",
+        "L = 1.0",
+        "e = 0.0",
+        "delta = 0.0",
+        "[plant]",
+        "input_limit = [5.5, 1.0]",
+        "control_period = 0.1",
+        "noise_std = [0.01, 0.01, 0.005]",
+        "[reference]",
+        'family = "paper_62"',
+        "heading_offset = 0.0",
+        "[initial]",
+        'space = "output"',
+        "random = { count = 4, seed = 0 }",
+    ]
     lines += [f"{k} = {{ low = -0.5, high = 0.5 }}" for k in ("x", "y", "vx", "vy")]
-    lines += ["[gains]", "poles = 1.0", "[simulation]", "t_final = 2.0", "dt = 0.05", "[tune]", "steps = 6",
-              "[tune.scenarios]", "train = 3", "validation = 2", "heldout = 2", "[tune.stopping]", "eval_every = 2",
-              "[tune.baselines]", "seeds = 2"]
+    lines += [
+        "[gains]",
+        "poles = 1.0",
+        "[simulation]",
+        "t_final = 2.0",
+        "dt = 0.05",
+        "[tune]",
+        "steps = 6",
+        "[tune.scenarios]",
+        "train = 3",
+        "validation = 2",
+        "heldout = 2",
+        "[tune.stopping]",
+        "eval_every = 2",
+        "[tune.baselines]",
+        "seeds = 2",
+    ]
     path = tmp_path / "tiny.toml"
     path.write_text("\n".join(lines) + "\n")
     assert tomllib.loads(path.read_text()) == TINY_DATA
@@ -296,7 +386,7 @@ def test_cli_writes_summary_and_gains(tmp_path):
     from wmrjax import certify
 
     radii = on_disk["radii"]
-    assert set(radii["tuned"]["lemma2"]) == {"lyapunov", "exact_norm"}     # eq (64) is for the double pole at -1
+    assert set(radii["tuned"]["lemma2"]) == {"lyapunov", "exact_norm"}  # eq (64) is for the double pole at -1
     assert set(radii["initial"]["lemma2"]) == {"paper", "lyapunov", "exact_norm"}
     for which, gains_table in (("tuned", {"file": str(out / "gains.json")}), ("initial", {"poles": 1.0})):
         st = Problem.from_dict({**on_disk["problem"], "gains": gains_table}).setting("tuning")

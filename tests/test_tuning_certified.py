@@ -4,8 +4,8 @@ test_tuning.py so that the two files run on different workers.)"""
 
 import jax.numpy as jnp
 import pytest
-
 from test_tuning import TINY, TINY_DATA, TS, run_tiny
+
 from tuning import config, loop, mean_loss, objective
 from wmrjax.problem import ProblemError
 
@@ -19,11 +19,15 @@ def tiny():
 
 # --- a certified-region requirement (issue 32) ------------------------------------------------------
 
+
 def _position_radius(setting, gains):
     from wmrjax import certify
 
-    return float(certify.exact_map_radius(setting.ctrl, setting.params(gains=gains), t_final=setting.t_final,
-                                          eps=0.01, basis="position").radius)
+    return float(
+        certify.exact_map_radius(
+            setting.ctrl, setting.params(gains=gains), t_final=setting.t_final, eps=0.01, basis="position"
+        ).radius
+    )
 
 
 @pytest.fixture(scope="module")
@@ -51,10 +55,14 @@ def test_requirement_holds_at_every_step(tiny, free_run, scale):
     assert len(radii) == TS.steps and min(radii) >= required
     for raw in (res.raw, res.best_raw):
         assert _position_radius(setting, family.gains(raw)) >= required
-    assert any(h["halvings"] != 0 for h in res.history)       # the requirement was active
-    assert objective(*mean_loss(jnp.asarray(res.best_raw), res.context.sets.validation, setting, family,
-                                res.context.weights)[:2]) <= objective(*mean_loss(
-        loop.initial_raw(setting, family), res.context.sets.validation, setting, family, res.context.weights)[:2])
+    assert any(h["halvings"] != 0 for h in res.history)  # the requirement was active
+    assert objective(
+        *mean_loss(jnp.asarray(res.best_raw), res.context.sets.validation, setting, family, res.context.weights)[:2]
+    ) <= objective(
+        *mean_loss(
+            loop.initial_raw(setting, family), res.context.sets.validation, setting, family, res.context.weights
+        )[:2]
+    )
 
 
 def test_requirement_refuses_what_it_cannot_keep(tiny, tmp_path):
@@ -64,18 +72,29 @@ def test_requirement_refuses_what_it_cannot_keep(tiny, tmp_path):
     # the full slice's radius is capped by the reference's own distance at t = 0 (4.99 = 5 - eps)
     with pytest.raises(ValueError, match="beyond what this gain family reaches"):
         run_tiny(setting, family, steps=1, requirement=certified.Requirement(5.5, "full", 0.01))
-    static = TINY.with_values({"controller.law": "static", "controller.task": "point", "geometry.e": 0.2, "geometry.delta": 1.0,
-                               "initial": {"space": "physical", "random": {"count": 4, "seed": 0},
-                                           "x": {"low": -0.5, "high": 0.5}}}).setting("tuning")
+    static = TINY.with_values(
+        {
+            "controller.law": "static",
+            "controller.task": "point",
+            "geometry.e": 0.2,
+            "geometry.delta": 1.0,
+            "initial": {"space": "physical", "random": {"count": 4, "seed": 0}, "x": {"low": -0.5, "high": 0.5}},
+        }
+    ).setting("tuning")
     with pytest.raises(ValueError, match="dynamic linearizing law"):
         certified.check(static, TS.gain_spec(static))
-    for table, match in (({"radius": "big"}, "radius: expected"), ({"radius": -1.0}, "radius: expected"),
-                         ({"slice": "full"}, "radius: required"), ({"radius": 1.0, "slice": "diag"}, "slice"),
-                         ({"radius": 1.0, "eps": 0.0}, "eps"), ({"radius": 1.0, "margin": 1}, "margin")):
+    for table, match in (
+        ({"radius": "big"}, "radius: expected"),
+        ({"radius": -1.0}, "radius: expected"),
+        ({"slice": "full"}, "radius: required"),
+        ({"radius": 1.0, "slice": "diag"}, "slice"),
+        ({"radius": 1.0, "eps": 0.0}, "eps"),
+        ({"radius": 1.0, "margin": 1}, "margin"),
+    ):
         with pytest.raises(ProblemError, match=match):
             config.read({**TINY_DATA["tune"], "requirement": table})
     box = certified.required_radius(setting, certified.Requirement("box", "full"), None, None)
-    assert box == pytest.approx(1.0)                          # the +-0.5 box in x, y, vx, vy: half-diagonal 1
+    assert box == pytest.approx(1.0)  # the +-0.5 box in x, y, vx, vy: half-diagonal 1
 
 
 def test_pareto_point_is_certified_and_resumes(tmp_path):
@@ -87,7 +106,7 @@ def test_pareto_point_is_certified_and_resumes(tmp_path):
     from tuning import pareto
 
     out = tmp_path / "pareto"
-    problem = TINY.with_values({"simulation.dt": 0.01})     # the falsifier's step is the problem's
+    problem = TINY.with_values({"simulation.dt": 0.01})  # the falsifier's step is the problem's
     s = pareto.run(problem, out, "position", fractions=[1.0], log=lambda *_: None)
     (pt,) = s["points"]
     assert pt["required_radius"] == s["initial_gains"]["radius"] <= pt["tuned_radius"]
@@ -104,9 +123,17 @@ def test_pareto_point_is_certified_and_resumes(tmp_path):
 def test_requirement_on_type_12_is_refused_with_its_reason():
     from tuning import certified
 
-    pr = TINY.with_values({"controller.robot": "(1,2)", "geometry.L": 0.5, "geometry.e": 0.3, "geometry.delta": 0.5,
-                           "reference": {"family": "figure_eight", "heading_offset": 0.5},
-                           "plant.input_limit": [5.5, 1.0, 1.0], "plant.noise_std": [0.01, 0.01, 0.005, 0.005]})
+    pr = TINY.with_values(
+        {
+            "controller.robot": "(1,2)",
+            "geometry.L": 0.5,
+            "geometry.e": 0.3,
+            "geometry.delta": 0.5,
+            "reference": {"family": "figure_eight", "heading_offset": 0.5},
+            "plant.input_limit": [5.5, 1.0, 1.0],
+            "plant.noise_std": [0.01, 0.01, 0.005, 0.005],
+        }
+    )
     st = pr.setting("tuning")
     with pytest.raises(ValueError, match=r"\(1,2\) is not supported: .*branch and bound"):
         certified.check(st, TS.gain_spec(st))

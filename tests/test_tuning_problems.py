@@ -20,13 +20,13 @@ def test_schedule_spec_gives_a_schedule_and_starts_at_the_paper_gains():
     raw = spec.init(1.0)
     s = spec.gains(raw)
     assert isinstance(s, w.GainSchedule) and s.shape == (2, 3)
-    for t in (0.0, 3.7, 10.0):                                       # (s + 1)^3 at every time
+    for t in (0.0, 3.7, 10.0):  # (s + 1)^3 at every time
         np.testing.assert_allclose(s.coeffs_at(t), [[1.0, 3.0, 3.0]] * 2, rtol=1e-12)
-    bumped = raw.at[1, 0, 0].add(0.5)                                # omega of output 1 at the middle knot
+    bumped = raw.at[1, 0, 0].add(0.5)  # omega of output 1 at the middle knot
     c = np.asarray(spec.gains(bumped).coeffs_at(5.0))
     assert c[0, 0] > 1.0 and np.allclose(c[1], [1.0, 3.0, 3.0])
     np.testing.assert_allclose(spec.gains(bumped).coeffs_at(0.0), [[1.0, 3.0, 3.0]] * 2, rtol=1e-12)
-    shared = GainSpec(2, 2, knots=(0.0, 1.0))                         # one schedule for both outputs
+    shared = GainSpec(2, 2, knots=(0.0, 1.0))  # one schedule for both outputs
     np.testing.assert_allclose(shared.coefficients(shared.init(1.0)), [[[1.0, 2.0]] * 2] * 2, rtol=1e-12)
     assert shared.gains(shared.init(1.0)).shape == (2, 2)
     floor = GainSpec(2, 2, min_damping=0.5)
@@ -57,8 +57,8 @@ def test_sampled_loop_tracks_the_continuous_loop(level):
         X = np.asarray(ts.state.plant[:, :3])
         errs.append(np.abs(X - np.asarray(tr.state[::steps, :3])).max())
         np.testing.assert_allclose(np.asarray(ts.state.command[0]), np.asarray(tr.control[0]), rtol=1e-10)
-    assert 1e-4 < errs[0] < 1e-2                      # the hold's first-order error (6.1e-3, 1.5e-3 measured)
-    assert 1.9 < errs[0] / errs[1] < 2.1              # first order in the period (2.00 measured)
+    assert 1e-4 < errs[0] < 1e-2  # the hold's first-order error (6.1e-3, 1.5e-3 measured)
+    assert 1.9 < errs[0] / errs[1] < 2.1  # first order in the period (2.00 measured)
 
 
 def test_sampled_loop_refuses_and_checks():
@@ -106,16 +106,18 @@ def test_cma_es_and_random_search_on_a_known_quadratic():
     spec = GainSpec(1, 2)
     target = np.array([0.3, -0.2])
     evaluate = lambda raws: np.sum((np.asarray(raws).reshape(-1, 2) - target) ** 2, axis=1)
-    run = baselines.cma_es(spec, evaluate, np.zeros(2), budget_rollouts=8 * 60 * 4, n_train=4, seed=1,
-                           population=8, sigma=0.5)
+    run = baselines.cma_es(
+        spec, evaluate, np.zeros(2), budget_rollouts=8 * 60 * 4, n_train=4, seed=1, population=8, sigma=0.5
+    )
     assert run.rollouts == 8 * 60 * 4 and len(run.best_so_far) == 480 and run.best_loss < 1e-6
     assert run.rollouts_to_best == 4 * (1 + int(np.argmin(run.best_so_far)))
     np.testing.assert_allclose(run.best_raw, target, atol=1e-3)
     frozen = GainSpec(1, 2, frozen=(1,))
-    rs = baselines.random_search(frozen, evaluate, np.array([0.0, 0.7]), budget_rollouts=40, n_train=4, seed=0,
-                                 low=0.2, high=5.0)
+    rs = baselines.random_search(
+        frozen, evaluate, np.array([0.0, 0.7]), budget_rollouts=40, n_train=4, seed=0, low=0.2, high=5.0
+    )
     assert rs.rollouts == 40 and len(rs.best_so_far) == 10
-    assert rs.best_raw[1] == 0.7                                     # the frozen damping stayed
+    assert rs.best_raw[1] == 0.7  # the frozen damping stayed
     pos = frozen.positive(jnp.asarray(rs.best_raw))
     assert 0.2 <= float(pos[0]) <= 5.0
     with pytest.raises(ValueError, match="less than one generation"):
@@ -148,7 +150,7 @@ def test_candidate_evaluator_chunks_pads_and_returns_aux():
 def test_shipped_problems_and_bad_tuning_problems(tmp_path):
     assert set(PROBLEMS) == {"section_6_1", "car_schedule", "torque_2_1"}
     car = Problem.load(problem_file("car_schedule"))
-    setting = car.setting("tuning", )
+    setting = car.setting("tuning")
     ts = config.read(car.section("tune"))
     assert setting.ctrl.robot.name == "(1,1)" and ts.gain_spec(setting).size == 24
     assert Problem.load(problem_file("torque_2_1")).setting("tuning").ctrl.level == "torque"
@@ -167,8 +169,9 @@ def test_shipped_problems_and_bad_tuning_problems(tmp_path):
     with pytest.raises(ValueError, match="less than one CMA-ES generation"):
         baseline_budget(ts61, ts61.gain_spec(s61.setting("tuning")))
     with pytest.raises(ValueError, match="takes one value of \\[gains\\]"):
-        loop.check(s61.with_values({"gains.poles": [1.0, 2.0]}).setting("tuning"), GainSpec(2, 2), ts61.scenarios,
-                   ts61.loss)
+        loop.check(
+            s61.with_values({"gains.poles": [1.0, 2.0]}).setting("tuning"), GainSpec(2, 2), ts61.scenarios, ts61.loss
+        )
     from tuning.cli import main
 
     with pytest.raises(SystemExit):
@@ -185,14 +188,21 @@ def test_heading_offset_reaches_the_certificate_term():
     from wmrjax import references as R
 
     problem = Problem.load(problem_file("section_6_1")).with_values(
-        {"controller.robot": "(1,1)", "geometry.e": 0.3, "reference": {"family": "figure_eight", "heading_offset": 0.4},
-         "plant.noise_std": [0.01, 0.01, 0.005, 0.005], "tune.loss.certificate": 1.0})
+        {
+            "controller.robot": "(1,1)",
+            "geometry.e": 0.3,
+            "reference": {"family": "figure_eight", "heading_offset": 0.4},
+            "plant.noise_std": [0.01, 0.01, 0.005, 0.005],
+            "tune.loss.certificate": 1.0,
+        }
+    )
     setting = problem.setting("tuning")
     cert = loop.certificate(setting, 1.0)
     params = setting.params()
     assert float(params.reference.heading_offset) == 0.4
-    np.testing.assert_allclose(np.asarray(cert.m1), np.asarray(certify.m1_closed_form(setting.ctrl, params, cert.ts)),
-                               rtol=1e-14)
-    without = setting.ctrl.params(R.figure_eight(), geometry=params.geometry)     # what the old term used
+    np.testing.assert_allclose(
+        np.asarray(cert.m1), np.asarray(certify.m1_closed_form(setting.ctrl, params, cert.ts)), rtol=1e-14
+    )
+    without = setting.ctrl.params(R.figure_eight(), geometry=params.geometry)  # what the old term used
     other = np.asarray(certify.m1_closed_form(setting.ctrl, without, cert.ts))
     assert np.max(np.abs(other - np.asarray(cert.m1))) > 1e-3

@@ -7,11 +7,10 @@ import json
 import jax
 import numpy as np
 import pytest
+from test_tuning import TINY_DATA
 
 from tuning import GainSpec, baselines, loop, study
 from wmrjax.problem import Problem
-
-from test_tuning import TINY_DATA
 
 jax.config.update("jax_enable_x64", True)
 TINY = Problem.from_dict(TINY_DATA)
@@ -35,8 +34,10 @@ def tiny():
 def _optuna_runs(p, evaluate, family, raw0, seed, budget):
     n = p.settings.scenarios.train
     kw = dict(budget_rollouts=budget, n_train=n, seed=seed, low=0.2, high=5.0)
-    return [baselines.optuna_tpe(family, evaluate, raw0, **kw),
-            baselines.optuna_cmaes(family, evaluate, raw0, population=6, sigma=0.5, **kw)]
+    return [
+        baselines.optuna_tpe(family, evaluate, raw0, **kw),
+        baselines.optuna_cmaes(family, evaluate, raw0, population=6, sigma=0.5, **kw),
+    ]
 
 
 def test_optuna_baselines_respect_budget_frozen_and_seed_and_improve(tiny):
@@ -50,15 +51,15 @@ def test_optuna_baselines_respect_budget_frozen_and_seed_and_improve(tiny):
         assert isinstance(run, baselines.BaselineRun) and run.method in ("optuna_tpe", "optuna_cmaes")
         assert run.rollouts <= budget and run.rollouts == len(run.best_so_far) * n
         assert run.rollouts_per_candidate == n and len(run.seconds) == len(run.best_so_far)
-        assert run.best_so_far[0] == pytest.approx(initial, rel=1e-12)          # trial 0: the initial gains
-        assert run.best_loss < initial                                           # and they improve on them
-        assert run.best_so_far == rerun.best_so_far and run.best_raw == rerun.best_raw   # one seed, one run
+        assert run.best_so_far[0] == pytest.approx(initial, rel=1e-12)  # trial 0: the initial gains
+        assert run.best_loss < initial  # and they improve on them
+        assert run.best_so_far == rerun.best_so_far and run.best_raw == rerun.best_raw  # one seed, one run
         assert run.improvements[-1][1] == run.best_raw
     frozen = dataclasses.replace(p.family, frozen=(1,))
     for run in _optuna_runs(p, evaluate, frozen, p.raw0, 1, budget):
-        assert all(r[1] == p.raw0[1] for _, r in run.improvements)             # the frozen damping stayed
+        assert all(r[1] == p.raw0[1] for _, r in run.improvements)  # the frozen damping stayed
     other = _optuna_runs(p, evaluate, p.family, p.raw0, 1, budget)
-    assert any(a.best_so_far != b.best_so_far for a, b in zip(runs, other))      # another seed, another run
+    assert any(a.best_so_far != b.best_so_far for a, b in zip(runs, other))  # another seed, another run
 
 
 def test_feasible_rejects_and_scenarios_for_resamples_every_baseline():
@@ -74,14 +75,14 @@ def test_feasible_rejects_and_scenarios_for_resamples_every_baseline():
         run = fn(spec, quadratic, np.zeros(2), feasible=feasible, **kw, **extra)
         assert run.best_raw[0] >= 0.5 and np.isfinite(run.best_loss), name
         assert all(r[0] >= 0.5 for k, r in run.improvements if np.isfinite(run.best_so_far[k])), name
-        assert run.best_loss >= (0.5 - 0.3) ** 2 - 1e-12, name                  # the best feasible value
+        assert run.best_loss >= (0.5 - 0.3) ** 2 - 1e-12, name  # the best feasible value
         none = fn(spec, quadratic, np.zeros(2), feasible=lambda raw: False, **kw, **extra)
-        assert np.all(np.isinf(none.best_so_far)) and none.rollouts == run.rollouts, name   # charged all the same
+        assert np.all(np.isinf(none.best_so_far)) and none.rollouts == run.rollouts, name  # charged all the same
         asked = []
-        draws = lambda k: asked.append(k) or 100.0 * (k + 1)                    # batch k scores 100 (k + 1) higher
+        draws = lambda k: asked.append(k) or 100.0 * (k + 1)  # batch k scores 100 (k + 1) higher
         res = fn(spec, quadratic, np.zeros(2), scenarios_for=draws, **kw, **extra)
         assert asked == list(range(len(asked))) and len(asked) > 1, name
-        assert res.best_so_far[0] >= 100.0 and res.best_loss < 200.0, name      # the first batch's draw is the lowest
+        assert res.best_so_far[0] >= 100.0 and res.best_loss < 200.0, name  # the first batch's draw is the lowest
 
 
 def test_aggregate_iqr_and_compute_to_within_one_percent():
@@ -94,8 +95,17 @@ def test_aggregate_iqr_and_compute_to_within_one_percent():
     for m, pts in heldout.items():
         for j, vals in enumerate(pts):
             for seed, v in enumerate(vals):
-                rows.append(dict(problem="p", method=m, seed=seed, point=j, compute_fwd=10.0 * 2 ** j,
-                                 seconds=float(j + seed), heldout_loss=v))
+                rows.append(
+                    dict(
+                        problem="p",
+                        method=m,
+                        seed=seed,
+                        point=j,
+                        compute_fwd=10.0 * 2**j,
+                        seconds=float(j + seed),
+                        heldout_loss=v,
+                    )
+                )
     agg = study.aggregate(rows)["p"]
     fin = agg["a"]["final_heldout_loss"]
     assert (fin["median"], fin["q25"], fin["q75"], fin["iqr"], fin["n"]) == (2.5, 1.75, 3.25, 1.5, 4)
@@ -122,7 +132,7 @@ def test_study_end_to_end_writes_and_resumes(tmp_path, monkeypatch):
     assert set(on_disk["aggregate"]["tiny"]) == set(methods) and on_disk["cost_per_problem"]["tiny"]["ratio"] > 0
     agg = on_disk["aggregate"]["tiny"]
     budget = agg["gradient"]["budget_fwd"]
-    assert all(agg[m]["budget_fwd"] == budget for m in methods)                # one budget for every method
+    assert all(agg[m]["budget_fwd"] == budget for m in methods)  # one budget for every method
     assert "### tiny" in s["table_markdown"]
 
     def recompute(*a, **k):
@@ -131,5 +141,5 @@ def test_study_end_to_end_writes_and_resumes(tmp_path, monkeypatch):
     monkeypatch.setattr(study, "run_seed", recompute)
     again = study.study(problems, tmp_path, seeds=2, methods=methods, points=3, log=lambda *_: None)
     assert again["aggregate"] == s["aggregate"]
-    with pytest.raises(AssertionError, match="computed again"):             # another configuration: not kept
+    with pytest.raises(AssertionError, match="computed again"):  # another configuration: not kept
         study.study(problems, tmp_path, seeds=2, methods=methods, points=4, log=lambda *_: None)

@@ -17,18 +17,11 @@ Example::
     result = tuning.tune(setting, settings.gain_spec(setting), optax.adam(0.1), steps=40)
 """
 
-from tuning.gains import GainSpec  # noqa: F401
-from tuning.losses import LossWeights, Metrics, metrics  # noqa: F401
-from tuning.config import Baselines, Optimizer, Scenarios, Stopping, TuneSettings  # noqa: F401
 from tuning.baselines import BaselineRun, cma_es, random_search  # noqa: F401
-from tuning.loop import (  # noqa: F401
-    Context,
-    TuneResult,
-    mean_loss,
-    mean_loss_and_grad,
-    objective,
-    tune,
-)
+from tuning.config import Baselines, Optimizer, Scenarios, Stopping, TuneSettings  # noqa: F401
+from tuning.gains import GainSpec  # noqa: F401
+from tuning.loop import Context, TuneResult, mean_loss, mean_loss_and_grad, objective, tune  # noqa: F401
+from tuning.losses import LossWeights, Metrics, metrics  # noqa: F401
 from tuning.problems import PROBLEMS, problem_file  # noqa: F401
 from tuning.scenarios import Scenario, rollout  # noqa: F401
 

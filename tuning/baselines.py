@@ -42,17 +42,16 @@ import jax.numpy as jnp
 import numpy as np
 
 
-
 class BaselineRun(NamedTuple):
     """One seed of one baseline (plain Python values: JSON-ready)."""
 
     method: str
     seed: int
-    best_loss: float             # best training objective found
-    best_raw: list               # its unconstrained parameters
-    rollouts_to_best: int        # rollouts spent when it was found
-    rollouts: int                # rollouts spent in all
-    best_so_far: list            # best objective after each candidate
+    best_loss: float  # best training objective found
+    best_raw: list  # its unconstrained parameters
+    rollouts_to_best: int  # rollouts spent when it was found
+    rollouts: int  # rollouts spent in all
+    best_so_far: list  # best objective after each candidate
     rollouts_per_candidate: int
     # wall seconds from the run's start until each candidate's batch was scored (sampler included)
     seconds: list | None = None
@@ -60,7 +59,7 @@ class BaselineRun(NamedTuple):
     improvements: list | None = None
 
 
-TOLD_CAP = 1e12   # what a sampler is told for a rejected or failed candidate (+inf breaks its ranking)
+TOLD_CAP = 1e12  # what a sampler is told for a rejected or failed candidate (+inf breaks its ranking)
 
 
 def candidate_evaluator(objective_fn: Callable, shape, chunk: int = 16, compiler_options: dict | None = None):
@@ -81,7 +80,7 @@ def candidate_evaluator(objective_fn: Callable, shape, chunk: int = 16, compiler
         n = raws.shape[0]
         pad = (-n) % chunk
         full = np.concatenate([raws, np.repeat(raws[:1], pad, axis=0)]) if pad else raws
-        outs = [batched(jnp.asarray(full[i:i + chunk]), scenarios) for i in range(0, full.shape[0], chunk)]
+        outs = [batched(jnp.asarray(full[i : i + chunk]), scenarios) for i in range(0, full.shape[0], chunk)]
         vals, aux = zip(*outs) if isinstance(outs[0], tuple) else (outs, None)
         v = np.concatenate([np.asarray(x) for x in vals])[:n]
         v = np.where(np.isfinite(v), v, np.inf)
@@ -105,10 +104,18 @@ def _record(method, seed, vals, raws, per, seconds=None):
     i = int(np.argmin(vals))
     # a new best is strictly below every earlier candidate (the first candidate always is one)
     new = [k for k in range(len(vals)) if k == 0 or vals[k] < best_so_far[k - 1]]
-    return BaselineRun(method, int(seed), float(vals[i]), np.asarray(raws[i]).tolist(), (i + 1) * per,
-                       len(vals) * per, best_so_far.tolist(), per,
-                       None if seconds is None else [float(t) for t in seconds],
-                       [[k, np.asarray(raws[k]).tolist()] for k in new])
+    return BaselineRun(
+        method,
+        int(seed),
+        float(vals[i]),
+        np.asarray(raws[i]).tolist(),
+        (i + 1) * per,
+        len(vals) * per,
+        best_so_far.tolist(),
+        per,
+        None if seconds is None else [float(t) for t in seconds],
+        [[k, np.asarray(raws[k]).tolist()] for k in new],
+    )
 
 
 def _score(evaluate, raws, k: int, feasible, scenarios_for):
@@ -141,9 +148,20 @@ def raw_box(spec, raw0, low: float, high: float):
     return np.minimum(r_lo, x0), np.maximum(r_hi, x0)
 
 
-def random_search(spec, evaluate, raw0, *, budget_rollouts: int, n_train: int, seed: int, low: float, high: float,
-                  batch: int = 16, feasible: Callable | None = None, scenarios_for: Callable | None = None
-                  ) -> BaselineRun:
+def random_search(
+    spec,
+    evaluate,
+    raw0,
+    *,
+    budget_rollouts: int,
+    n_train: int,
+    seed: int,
+    low: float,
+    high: float,
+    batch: int = 16,
+    feasible: Callable | None = None,
+    scenarios_for: Callable | None = None,
+) -> BaselineRun:
     """Candidates log-uniform in the positive-parameter box (see the module docstring), scored
     ``batch`` at a time (the same candidates for any ``batch``: they are drawn at once)."""
     t0 = time.perf_counter()
@@ -156,13 +174,24 @@ def random_search(spec, evaluate, raw0, *, budget_rollouts: int, n_train: int, s
     raws = np.where(free, raws, np.asarray(raw0))
     vals, secs = [], []
     for k, i in enumerate(range(0, n_cand, batch)):
-        vals.append(_score(evaluate, raws[i:i + batch], k, feasible, scenarios_for))
+        vals.append(_score(evaluate, raws[i : i + batch], k, feasible, scenarios_for))
         secs += [time.perf_counter() - t0] * len(vals[-1])
     return _record("random_search", seed, np.concatenate(vals), raws, n_train, secs)
 
 
-def cma_es(spec, evaluate, raw0, *, budget_rollouts: int, n_train: int, seed: int, population: int,
-           sigma: float, feasible: Callable | None = None, scenarios_for: Callable | None = None) -> BaselineRun:
+def cma_es(
+    spec,
+    evaluate,
+    raw0,
+    *,
+    budget_rollouts: int,
+    n_train: int,
+    seed: int,
+    population: int,
+    sigma: float,
+    feasible: Callable | None = None,
+    scenarios_for: Callable | None = None,
+) -> BaselineRun:
     """CMA-ES over the free unconstrained parameters, whole generations within the budget (one
     generation is one batch of ``scenarios_for``)."""
     from cmaes import CMA
@@ -172,8 +201,9 @@ def cma_es(spec, evaluate, raw0, *, budget_rollouts: int, n_train: int, seed: in
     x0 = np.asarray(raw0, float).reshape(-1)
     n_gen = budget_rollouts // (population * n_train)
     if n_gen < 1:
-        raise ValueError(f"a CMA-ES budget of {budget_rollouts} rollouts is less than one generation "
-                         f"({population} x {n_train})")
+        raise ValueError(
+            f"a CMA-ES budget of {budget_rollouts} rollouts is less than one generation ({population} x {n_train})"
+        )
     opt = CMA(mean=x0[free], sigma=sigma, population_size=population, seed=seed)
     vals, raws, secs = [], [], []
     for k in range(n_gen):
@@ -188,22 +218,57 @@ def cma_es(spec, evaluate, raw0, *, budget_rollouts: int, n_train: int, seed: in
     return _record("cma_es", seed, np.concatenate(vals), np.concatenate(raws), n_train, secs)
 
 
-def optuna_tpe(spec, evaluate, raw0, *, budget_rollouts: int, n_train: int, seed: int, low: float, high: float,
-               batch: int = 16, feasible: Callable | None = None, scenarios_for: Callable | None = None
-               ) -> BaselineRun:
+def optuna_tpe(
+    spec,
+    evaluate,
+    raw0,
+    *,
+    budget_rollouts: int,
+    n_train: int,
+    seed: int,
+    low: float,
+    high: float,
+    batch: int = 16,
+    feasible: Callable | None = None,
+    scenarios_for: Callable | None = None,
+) -> BaselineRun:
     """Optuna's TPE sampler (its defaults, ``seed``) on the free unconstrained parameters in
     :func:`raw_box`, ``batch`` trials asked, simulated together and told at a time."""
     import optuna
 
     sampler = optuna.samplers.TPESampler(seed=seed)
     lo, hi = raw_box(spec, raw0, low, high)
-    return _optuna("optuna_tpe", sampler, spec, evaluate, raw0, (lo, hi), budget_rollouts=budget_rollouts,
-                   n_train=n_train, seed=seed, batch=batch, feasible=feasible, scenarios_for=scenarios_for)
+    return _optuna(
+        "optuna_tpe",
+        sampler,
+        spec,
+        evaluate,
+        raw0,
+        (lo, hi),
+        budget_rollouts=budget_rollouts,
+        n_train=n_train,
+        seed=seed,
+        batch=batch,
+        feasible=feasible,
+        scenarios_for=scenarios_for,
+    )
 
 
-def optuna_cmaes(spec, evaluate, raw0, *, budget_rollouts: int, n_train: int, seed: int, population: int,
-                 sigma: float, low: float, high: float, feasible: Callable | None = None,
-                 scenarios_for: Callable | None = None) -> BaselineRun:
+def optuna_cmaes(
+    spec,
+    evaluate,
+    raw0,
+    *,
+    budget_rollouts: int,
+    n_train: int,
+    seed: int,
+    population: int,
+    sigma: float,
+    low: float,
+    high: float,
+    feasible: Callable | None = None,
+    scenarios_for: Callable | None = None,
+) -> BaselineRun:
     """Optuna's CMA-ES sampler started at ``raw0`` with population ``population``, one generation
     asked, simulated together and told at a time, in :func:`raw_box`.
 
@@ -216,16 +281,42 @@ def optuna_cmaes(spec, evaluate, raw0, *, budget_rollouts: int, n_train: int, se
     lo, hi = raw_box(spec, raw0, low, high)
     free = _free_mask(spec)
     x0 = {f"raw_{i}": float(v) for i, v in enumerate(np.asarray(raw0, float).reshape(-1)) if free[i]}
-    with warnings.catch_warnings():      # x0 and sigma0 are deprecated (still in 5.x): the user's choice here
+    with warnings.catch_warnings():  # x0 and sigma0 are deprecated (still in 5.x): the user's choice here
         warnings.simplefilter("ignore")
-        sampler = optuna.samplers.CmaEsSampler(x0=x0, sigma0=float(sigma / np.min((hi - lo)[free])), seed=seed,
-                                               popsize=population, n_startup_trials=1)
-    return _optuna("optuna_cmaes", sampler, spec, evaluate, raw0, (lo, hi), budget_rollouts=budget_rollouts,
-                   n_train=n_train, seed=seed, batch=population, feasible=feasible, scenarios_for=scenarios_for)
+        sampler = optuna.samplers.CmaEsSampler(
+            x0=x0, sigma0=float(sigma / np.min((hi - lo)[free])), seed=seed, popsize=population, n_startup_trials=1
+        )
+    return _optuna(
+        "optuna_cmaes",
+        sampler,
+        spec,
+        evaluate,
+        raw0,
+        (lo, hi),
+        budget_rollouts=budget_rollouts,
+        n_train=n_train,
+        seed=seed,
+        batch=population,
+        feasible=feasible,
+        scenarios_for=scenarios_for,
+    )
 
 
-def _optuna(method: str, sampler, spec, evaluate, raw0, box, *, budget_rollouts: int, n_train: int, seed: int,
-            batch: int, feasible, scenarios_for) -> BaselineRun:
+def _optuna(
+    method: str,
+    sampler,
+    spec,
+    evaluate,
+    raw0,
+    box,
+    *,
+    budget_rollouts: int,
+    n_train: int,
+    seed: int,
+    batch: int,
+    feasible,
+    scenarios_for,
+) -> BaselineRun:
     """An Optuna study by ask and tell: trial 0 is ``raw0`` (enqueued, scored alone: a sampler
     that needs a completed trial, as the CMA-ES sampler does, then models from it), then batches
     of ``batch`` trials until ``budget_rollouts // n_train`` candidates; batch ``k`` of
@@ -233,19 +324,21 @@ def _optuna(method: str, sampler, spec, evaluate, raw0, box, *, budget_rollouts:
     import optuna
 
     t0 = time.perf_counter()
-    optuna.logging.set_verbosity(optuna.logging.WARNING)    # no line per trial
+    optuna.logging.set_verbosity(optuna.logging.WARNING)  # no line per trial
     free = _free_mask(spec)
     x0 = np.asarray(raw0, float).reshape(-1)
     names = [f"raw_{i}" for i in np.flatnonzero(free)]
     lo, hi = box
-    dists = {n: optuna.distributions.FloatDistribution(float(lo[i]), float(hi[i]))
-             for n, i in zip(names, np.flatnonzero(free))}
+    dists = {
+        n: optuna.distributions.FloatDistribution(float(lo[i]), float(hi[i]))
+        for n, i in zip(names, np.flatnonzero(free))
+    }
     study = optuna.create_study(direction="minimize", sampler=sampler)
     study.enqueue_trial({n: float(x0[i]) for n, i in zip(names, np.flatnonzero(free))})
     n_cand = max(1, budget_rollouts // n_train)
     sizes = [1] + [min(batch, n_cand - i) for i in range(1, n_cand, batch)]
     vals, raws, secs = [], [], []
-    with warnings.catch_warnings():      # optuna's experimental-feature warnings, once per trial
+    with warnings.catch_warnings():  # optuna's experimental-feature warnings, once per trial
         warnings.simplefilter("ignore")
         for k, size in enumerate(sizes):
             trials = [study.ask(dists) for _ in range(size)]

@@ -38,13 +38,13 @@ from wmrjax import certify
 from wmrjax.problem import ProblemError, check_keys, positive
 
 SLICES = ("full", "position")
-DEFAULT_EPS = 1e-2       # the certify command's default margin [output-error units]
-BAND = 0.02              # project the gradient when the radius is within 2 % of the requirement
-MAX_HALVINGS = 30        # a rejected step is halved at most this often (2^-30 of it), then not taken
-RESTORE_STEPS = 200      # ascent steps on the radius when the initial gains miss the requirement
-RESTORE_STEP = 0.2       # their first length in the unconstrained parameters
-RESTORE_MARGIN = 1e-3    # the ascent and the projection aim this fraction above the requirement
-PROJECTION_STEPS = 5     # Newton steps projecting a step back onto the requirement
+DEFAULT_EPS = 1e-2  # the certify command's default margin [output-error units]
+BAND = 0.02  # project the gradient when the radius is within 2 % of the requirement
+MAX_HALVINGS = 30  # a rejected step is halved at most this often (2^-30 of it), then not taken
+RESTORE_STEPS = 200  # ascent steps on the radius when the initial gains miss the requirement
+RESTORE_STEP = 0.2  # their first length in the unconstrained parameters
+RESTORE_MARGIN = 1e-3  # the ascent and the projection aim this fraction above the requirement
+PROJECTION_STEPS = 5  # Newton steps projecting a step back onto the requirement
 
 
 class Requirement(NamedTuple):
@@ -73,8 +73,10 @@ def read(table: dict | None, certify_section: dict) -> Requirement | None:
     if "radius" not in table:
         raise ProblemError('[tune.requirement] radius: required (a radius >= 0, "initial" or "box")')
     r = table["radius"]
-    if not (r in ("initial", "box") or (isinstance(r, (int, float)) and not isinstance(r, bool)
-                                        and math.isfinite(r) and r >= 0)):
+    if not (
+        r in ("initial", "box")
+        or (isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and r >= 0)
+    ):
         raise ProblemError(f'[tune.requirement] radius: expected a radius >= 0, "initial" or "box", got {r!r}')
     sl = table.get("slice", "full")
     if sl not in SLICES:
@@ -94,10 +96,12 @@ def check(setting, family) -> None:
     if FAMILIES[setting.data["reference"]["family"]].kind == "random":
         raise ValueError("a certified-region requirement needs a fixed reference, not a random family")
     if certify.singular_rows(setting.ctrl) is None:
-        raise ValueError("a certified-region requirement on type (1,2) is not supported: its exact-map radius (a "
-                         "curved singular set) is a branch and bound taking minutes per evaluation, without a "
-                         "gradient; tune without it and certify the tuned gains (python -m experiments.certify "
-                         "PROBLEM --gains gains.json), or weight the loss's certificate term (Lemma 2)")
+        raise ValueError(
+            "a certified-region requirement on type (1,2) is not supported: its exact-map radius (a "
+            "curved singular set) is a branch and bound taking minutes per evaluation, without a "
+            "gradient; tune without it and certify the tuned gains (python -m experiments.certify "
+            "PROBLEM --gains gains.json), or weight the loss's certificate term (Lemma 2)"
+        )
 
 
 class Radius(NamedTuple):
@@ -134,8 +138,10 @@ def required_radius(setting, req: Requirement, radius: Radius, raw0) -> float:
         from wmrjax.problem import Space
 
         if Space(setting.data["initial"].get("space", "output")) != Space.OUTPUT:
-            raise ValueError('[tune.requirement] radius = "box" needs output-space initial errors ([initial] space '
-                             '= "output"): the radius is a ball of output errors')
+            raise ValueError(
+                '[tune.requirement] radius = "box" needs output-space initial errors ([initial] space '
+                '= "output"): the radius is a ball of output errors'
+            )
         keys = ("x", "y") if req.slice == "position" else ("x", "y", "vx", "vy")
         return float(math.sqrt(sum(_half_width(setting.data["initial"].get(k, 0.0)) ** 2 for k in keys)))
     return float(req.radius)
@@ -187,7 +193,7 @@ def feasible_step(raw, proposal, radius: Radius, required: float):
         return p, r, -1
     raw = np.asarray(raw)
     for k in range(1, MAX_HALVINGS + 1):
-        cand = jnp.asarray(raw + 0.5 ** k * (np.asarray(proposal) - raw))
+        cand = jnp.asarray(raw + 0.5**k * (np.asarray(proposal) - raw))
         r = radius.value(cand)
         if r >= required:
             return cand, r, k
@@ -216,17 +222,21 @@ def restore(raw, radius: Radius, required: float, log=print):
             step *= 0.5
     r = radius.value(raw)
     if r < required:
-        raise ValueError(f"the requirement {required:.4g} is beyond what this gain family reaches from the initial gains "
-                         f"(the radius climbed to {r:.4g} in {RESTORE_STEPS} ascent steps): lower it")
+        raise ValueError(
+            f"the requirement {required:.4g} is beyond what this gain family reaches from the initial gains "
+            f"(the radius climbed to {r:.4g} in {RESTORE_STEPS} ascent steps): lower it"
+        )
     log(f"requirement {required:.4g}: the initial gains' radius raised to {r:.4g} before tuning")
     return raw, r
 
 
 # --- every radius of a set of gains, labelled ----------------------------------------------------
 
-K2_LABELS = {"paper": "Lemma 2, K2 of eq (64) (the double pole at -1 only)",
-             "lyapunov": "Lemma 2, automatic Lyapunov K2",
-             "exact_norm": "Lemma 2, K2 = ||e^{At}||"}
+K2_LABELS = {
+    "paper": "Lemma 2, K2 of eq (64) (the double pole at -1 only)",
+    "lyapunov": "Lemma 2, automatic Lyapunov K2",
+    "exact_norm": "Lemma 2, K2 = ||e^{At}||",
+}
 SCHEDULE_K2_LABEL = "Lemma 2, K2 = ||Phi(t, 0)|| (gain schedule)"
 
 
@@ -262,15 +272,16 @@ def radii(setting, gains, *, eps: float, falsify=False, seed: int = 0, n_starts:
             block["lower_bound"] = float(em.lower_bound)
         block["worst_error_rollouts"] = worst_error_rollouts(setting, params, em, eps)
         if falsify is True or falsify == basis:
-            f = certify.falsified_radius(ctrl, params, t_final=T, eps=eps, key=key, dt=setting.dt, basis=basis,
-                                         n_starts=n_starts, r_lo=certified)
+            f = certify.falsified_radius(
+                ctrl, params, t_final=T, eps=eps, key=key, dt=setting.dt, basis=basis, n_starts=n_starts, r_lo=certified
+            )
             block["falsified"] = None if f.radius is None else float(f.radius)
             block["falsified_over_exact"] = None if f.radius is None else float(f.radius) / float(em.radius)
         out[f"exact_map_{basis}"] = block
     return out
 
 
-CONFIRM_SCALES = (0.99, 1.01)   # the exact map's worst initial error, simulated this much inside and outside
+CONFIRM_SCALES = (0.99, 1.01)  # the exact map's worst initial error, simulated this much inside and outside
 
 
 def worst_error_rollouts(setting, params, em, eps: float) -> dict:
@@ -279,10 +290,19 @@ def worst_error_rollouts(setting, params, em, eps: float) -> dict:
     come within eps or turn singular. Both holding confirms by rollouts that the radius is
     right to 1 % (an upper bound found where a falsifier's search may miss a brief approach)."""
     x = jnp.asarray(em.worst_error)[None]
-    d = certify.min_distance(setting.ctrl, params, initial_errors=jnp.concatenate([x * s for s in CONFIRM_SCALES]),
-                             t_final=setting.t_final, dt=setting.dt / 10)
+    d = certify.min_distance(
+        setting.ctrl,
+        params,
+        initial_errors=jnp.concatenate([x * s for s in CONFIRM_SCALES]),
+        t_final=setting.t_final,
+        dt=setting.dt / 10,
+    )
     dist, sing = np.asarray(d.distance), np.asarray(d.singular)
     inside_ok = bool(dist[0] >= eps and not sing[0])
     outside_fails = bool(dist[1] < eps or sing[1])
-    return {"scales": list(CONFIRM_SCALES), "min_distance": dist.tolist(), "singular": sing.tolist(),
-            "confirmed": inside_ok and outside_fails}
+    return {
+        "scales": list(CONFIRM_SCALES),
+        "min_distance": dist.tolist(),
+        "singular": sing.tolist(),
+        "confirmed": inside_ok and outside_fails,
+    }

@@ -36,67 +36,161 @@ def parser():
 
     p = options.parser(__doc__.splitlines()[0], "results/tuning")
     p.add_argument("file", type=Path, nargs="?", default=None, help="a problem file (TOML) with a [tune] section")
-    p.add_argument("--problem", default=None, choices=sorted(PROBLEMS),
-                   help="a shipped problem instead of a file (default: section_6_1)")
+    p.add_argument(
+        "--problem",
+        default=None,
+        choices=sorted(PROBLEMS),
+        help="a shipped problem instead of a file (default: section_6_1)",
+    )
     S = "(default: the file's)"
     p.add_argument("--robot", default=None, help=f"robot type: (3,0), (2,0), (2,1), (1,1) or (1,2) {S}")
-    p.add_argument("--task", default=None, choices=["posture", "point"],
-                   help=f"posture: dynamic law (restricted types) or Prop 3 (3,0); point: static Table 3 law {S}")
-    p.add_argument("--level", default=None, choices=["velocity", "torque"], help=f"velocity (model 5) or torque (Lemma 1) {S}")
-    p.add_argument("--reference", default=None,
-                   help=f"a reference family (paper_62, circle, figure_eight, line, random_smooth, ...) or a CSV file of "
-                        f"samples t, x, y {S}")
+    p.add_argument(
+        "--task",
+        default=None,
+        choices=["posture", "point"],
+        help=f"posture: dynamic law (restricted types) or Prop 3 (3,0); point: static Table 3 law {S}",
+    )
+    p.add_argument(
+        "--level", default=None, choices=["velocity", "torque"], help=f"velocity (model 5) or torque (Lemma 1) {S}"
+    )
+    p.add_argument(
+        "--reference",
+        default=None,
+        help=f"a reference family (paper_62, circle, figure_eight, line, random_smooth, ...) or a CSV file of "
+        f"samples t, x, y {S}",
+    )
     p.add_argument("--heading-offset", type=options.finite, default=None, help=f"reference heading offset [rad] {S}")
-    p.add_argument("--geometry", type=options.finite, nargs=3, default=None, metavar=("L", "E", "DELTA"),
-                   help=f"nominal geometry the controller uses [m, m, rad] {S}")
-    p.add_argument("--ic-position", type=options.nonnegative, default=None,
-                   help="initial position errors x, y uniform in +-A [m] (sets the [initial] box)")
-    p.add_argument("--ic-velocity", type=options.nonnegative, default=None,
-                   help="initial velocity errors vx, vy uniform in +-B [m/s] (output space)")
+    p.add_argument(
+        "--geometry",
+        type=options.finite,
+        nargs=3,
+        default=None,
+        metavar=("L", "E", "DELTA"),
+        help=f"nominal geometry the controller uses [m, m, rad] {S}",
+    )
+    p.add_argument(
+        "--ic-position",
+        type=options.nonnegative,
+        default=None,
+        help="initial position errors x, y uniform in +-A [m] (sets the [initial] box)",
+    )
+    p.add_argument(
+        "--ic-velocity",
+        type=options.nonnegative,
+        default=None,
+        help="initial velocity errors vx, vy uniform in +-B [m/s] (output space)",
+    )
     p.add_argument("--n-train", type=options.count, default=None, help=f"training scenarios per step {S}")
-    p.add_argument("--n-validation", type=options.count, default=None,
-                   help=f"validation scenarios (early stopping, selection) {S}")
+    p.add_argument(
+        "--n-validation", type=options.count, default=None, help=f"validation scenarios (early stopping, selection) {S}"
+    )
     p.add_argument("--n-heldout", type=options.count, default=None, help=f"held-out scenarios (reported only) {S}")
     p.add_argument("--steps", type=options.count, default=None, help=f"optimizer steps {S}")
-    p.add_argument("--learning-rate", type=options.positive, default=None,
-                   help=f"Adam learning rate (on the softplus-unconstrained parameters) {S}")
-    p.add_argument("--poles-init", type=options.positive, default=None,
-                   help=f"initial pole magnitude [1/s] (the paper's: 1; sets [gains] poles) {S}")
+    p.add_argument(
+        "--learning-rate",
+        type=options.positive,
+        default=None,
+        help=f"Adam learning rate (on the softplus-unconstrained parameters) {S}",
+    )
+    p.add_argument(
+        "--poles-init",
+        type=options.positive,
+        default=None,
+        help=f"initial pole magnitude [1/s] (the paper's: 1; sets [gains] poles) {S}",
+    )
     p.add_argument("--per-axis", action="store_true", default=None, help="one set of gains per output")
-    p.add_argument("--resample", action=argparse.BooleanOptionalAction, default=None,
-                   help=f"fresh training scenarios every gradient step (stochastic gradient) {S}")
-    p.add_argument("--knots", type=options.nonnegative_int, default=None,
-                   help=f"gain schedule with this many knots uniform on [0, t_final] (0: constant gains) {S}")
-    p.add_argument("--knot-times", type=options.nonnegative, nargs="+", default=None,
-                   help="explicit knot times of the gain schedule [s] (overrides --knots)")
-    p.add_argument("--min-damping", type=options.nonnegative, default=None,
-                   help=f"floor of every damping zeta (in [0, 1)) {S}")
-    p.add_argument("--parameterization", default=None, choices=["damping", "poles"],
-                   help=f"damping: (omega, zeta) factors (real or complex poles); poles: real poles only {S}")
-    p.add_argument("--mismatch", type=options.fraction, default=None,
-                   help=f"+- relative input-scale/geometry error of the plant per scenario (in [0, 1)) {S}")
-    p.add_argument("--input-limit", type=options.limit, nargs="*", default=None,
-                   help="plant actuator limits per input [m/s, rad/s; per s^2 at torque level] (inf: none; no "
-                        f"values: no saturation) {S}")
-    p.add_argument("--noise-std", type=options.nonnegative, nargs="*", default=None,
-                   help=f"measurement noise std of x, y [m] and theta [rad] (and steering angles [rad]) {S}")
-    p.add_argument("--control-dt", type=options.positive, default=None, help=f"controller period (zero-order hold) [s] {S}")
+    p.add_argument(
+        "--resample",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help=f"fresh training scenarios every gradient step (stochastic gradient) {S}",
+    )
+    p.add_argument(
+        "--knots",
+        type=options.nonnegative_int,
+        default=None,
+        help=f"gain schedule with this many knots uniform on [0, t_final] (0: constant gains) {S}",
+    )
+    p.add_argument(
+        "--knot-times",
+        type=options.nonnegative,
+        nargs="+",
+        default=None,
+        help="explicit knot times of the gain schedule [s] (overrides --knots)",
+    )
+    p.add_argument(
+        "--min-damping", type=options.nonnegative, default=None, help=f"floor of every damping zeta (in [0, 1)) {S}"
+    )
+    p.add_argument(
+        "--parameterization",
+        default=None,
+        choices=["damping", "poles"],
+        help=f"damping: (omega, zeta) factors (real or complex poles); poles: real poles only {S}",
+    )
+    p.add_argument(
+        "--mismatch",
+        type=options.fraction,
+        default=None,
+        help=f"+- relative input-scale/geometry error of the plant per scenario (in [0, 1)) {S}",
+    )
+    p.add_argument(
+        "--input-limit",
+        type=options.limit,
+        nargs="*",
+        default=None,
+        help="plant actuator limits per input [m/s, rad/s; per s^2 at torque level] (inf: none; no "
+        f"values: no saturation) {S}",
+    )
+    p.add_argument(
+        "--noise-std",
+        type=options.nonnegative,
+        nargs="*",
+        default=None,
+        help=f"measurement noise std of x, y [m] and theta [rad] (and steering angles [rad]) {S}",
+    )
+    p.add_argument(
+        "--control-dt", type=options.positive, default=None, help=f"controller period (zero-order hold) [s] {S}"
+    )
     p.add_argument("--t-final", type=options.positive, default=None, help=f"horizon of every scenario [s] {S}")
     for f in LossWeights._fields:
-        p.add_argument(f"--w-{f}", type=options.nonnegative, default=None, help=f"weight of the {f} loss term (>= 0) {S}")
+        p.add_argument(
+            f"--w-{f}", type=options.nonnegative, default=None, help=f"weight of the {f} loss term (>= 0) {S}"
+        )
     p.add_argument("--baseline-seeds", type=options.count, default=None, help=f"seeds of each baseline {S}")
-    p.add_argument("--baseline-budget", type=options.positive, default=None,
-                   help=f"baseline rollouts as a multiple of the gradient's {S}")
-    p.add_argument("--cma-population", type=options.nonnegative_int, default=None,
-                   help=f"CMA-ES population (0: 4 + floor(3 ln n)) {S}")
-    p.add_argument("--seed", type=options.seed, default=None, help=f"PRNG seed of the scenarios (and the baselines) {S}")
-    p.add_argument("--require-radius", type=_required, default=None, metavar="R",
-                   help="keep the exact-map radius of initial errors certified >= R throughout [m, m/s]; 'initial': "
-                        f"the initial gains', 'box': the [initial] box's half-diagonal (sets [tune.requirement]) {S}")
-    p.add_argument("--require-slice", default=None, choices=["full", "position"],
-                   help=f"the requirement's slice of initial errors {S}")
-    p.add_argument("--falsify", action="store_true",
-                   help="also falsify the initial and tuned gains' exact-map radii by rollouts (slower)")
+    p.add_argument(
+        "--baseline-budget",
+        type=options.positive,
+        default=None,
+        help=f"baseline rollouts as a multiple of the gradient's {S}",
+    )
+    p.add_argument(
+        "--cma-population",
+        type=options.nonnegative_int,
+        default=None,
+        help=f"CMA-ES population (0: 4 + floor(3 ln n)) {S}",
+    )
+    p.add_argument(
+        "--seed", type=options.seed, default=None, help=f"PRNG seed of the scenarios (and the baselines) {S}"
+    )
+    p.add_argument(
+        "--require-radius",
+        type=_required,
+        default=None,
+        metavar="R",
+        help="keep the exact-map radius of initial errors certified >= R throughout [m, m/s]; 'initial': "
+        f"the initial gains', 'box': the [initial] box's half-diagonal (sets [tune.requirement]) {S}",
+    )
+    p.add_argument(
+        "--require-slice",
+        default=None,
+        choices=["full", "position"],
+        help=f"the requirement's slice of initial errors {S}",
+    )
+    p.add_argument(
+        "--falsify",
+        action="store_true",
+        help="also falsify the initial and tuned gains' exact-map radii by rollouts (slower)",
+    )
     p.add_argument("--fresh", action="store_true", help="ignore (delete) an existing checkpoint in --out")
     return p
 
@@ -111,15 +205,30 @@ def _required(text: str):
 
 
 # option -> dotted key of the problem file it sets
-_KEYS = {"robot": "controller.robot", "level": "controller.level",
-         "heading_offset": "reference.heading_offset", "n_train": "tune.scenarios.train",
-         "n_validation": "tune.scenarios.validation", "n_heldout": "tune.scenarios.heldout", "steps": "tune.steps",
-         "learning_rate": "tune.optimizer.learning_rate", "poles_init": "gains.poles", "knots": "tune.family.knots",
-         "parameterization": "tune.family.parameterization", "mismatch": "tune.scenarios.mismatch",
-         "control_dt": "plant.control_period", "t_final": "simulation.t_final", "baseline_seeds": "tune.baselines.seeds",
-         "baseline_budget": "tune.baselines.budget", "cma_population": "tune.baselines.cma_population",
-         "seed": "tune.seed", "min_damping": "tune.family.min_damping", "resample": "tune.scenarios.resample",
-         "require_radius": "tune.requirement.radius", "require_slice": "tune.requirement.slice"}
+_KEYS = {
+    "robot": "controller.robot",
+    "level": "controller.level",
+    "heading_offset": "reference.heading_offset",
+    "n_train": "tune.scenarios.train",
+    "n_validation": "tune.scenarios.validation",
+    "n_heldout": "tune.scenarios.heldout",
+    "steps": "tune.steps",
+    "learning_rate": "tune.optimizer.learning_rate",
+    "poles_init": "gains.poles",
+    "knots": "tune.family.knots",
+    "parameterization": "tune.family.parameterization",
+    "mismatch": "tune.scenarios.mismatch",
+    "control_dt": "plant.control_period",
+    "t_final": "simulation.t_final",
+    "baseline_seeds": "tune.baselines.seeds",
+    "baseline_budget": "tune.baselines.budget",
+    "cma_population": "tune.baselines.cma_population",
+    "seed": "tune.seed",
+    "min_damping": "tune.family.min_damping",
+    "resample": "tune.scenarios.resample",
+    "require_radius": "tune.requirement.radius",
+    "require_slice": "tune.requirement.slice",
+}
 
 
 def problem_from_args(a):
@@ -168,7 +277,7 @@ def _law_values(a, problem, values) -> dict:
         return {}
     robot = w.robot_type(values.get("controller.robot", problem.data["controller"]["robot"])).name
     task = a.task or problem.data["controller"].get("task", "posture")
-    law = "static" if task == "point" or robot not in w.controllers.TABLE4 else "dynamic"   # (3,0): Prop 3
+    law = "static" if task == "point" or robot not in w.controllers.TABLE4 else "dynamic"  # (3,0): Prop 3
     out = {"controller.law": law, "controller.task": task}
     ini = problem.data["initial"]
     if law == "static" and ini.get("space", "output") == "output":
@@ -193,7 +302,7 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
     returns the summary (``falsify``: falsify the exact-map radii of the initial and tuned gains)."""
     import jax
 
-    jax.config.update("jax_enable_x64", True)   # this entry point runs in float64
+    jax.config.update("jax_enable_x64", True)  # this entry point runs in float64
     import jax.numpy as jnp
     import numpy as np
 
@@ -222,14 +331,25 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
 
     run_id = problem.fingerprint() + repr(tuple(settings.optimizer))
     try:
-        res = loop.tune(setting, family, settings.optimizer.build(settings.steps), steps=settings.steps,
-                        scenarios=settings.scenarios, loss=settings.loss, stopping=settings.stopping,
-                        seed=settings.seed, out_dir=out, run_id=run_id, log=log, on_built=prepare,
-                        requirement=settings.requirement)
+        res = loop.tune(
+            setting,
+            family,
+            settings.optimizer.build(settings.steps),
+            steps=settings.steps,
+            scenarios=settings.scenarios,
+            loss=settings.loss,
+            stopping=settings.stopping,
+            seed=settings.seed,
+            out_dir=out,
+            run_id=run_id,
+            log=log,
+            on_built=prepare,
+            requirement=settings.requirement,
+        )
         for done in programs["ready"]:
-            done.result()                   # their errors are raised here
+            done.result()  # their errors are raised here
     except BaseException:
-        second.shutdown(wait=False, cancel_futures=True)    # a failed run does not wait for them
+        second.shutdown(wait=False, cancel_futures=True)  # a failed run does not wait for them
         raise
     second.shutdown()
     grad_wall = time.perf_counter() - t0
@@ -244,19 +364,46 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
     both = np.stack([np.asarray(paper_raw), np.asarray(tuned_raw)])
     tr_paper, tr_tuned = (float(v) for v in train_eval(both))
     ho, (ho_ok, ho_m) = heldout_eval(both, with_aux=True)
-    ho_paper, ho_tuned = (float(v) for v in ho)        # +inf where a set's objective is not finite
-    log(f"held-out loss: initial gains {ho_paper:.5g}, tuned {ho_tuned:.5g} (ratio {ho_paper / ho_tuned:.2f}); "
-        f"singular events {int(np.sum(ho_m.singular[0]))} -> {int(np.sum(ho_m.singular[1]))}")
+    ho_paper, ho_tuned = (float(v) for v in ho)  # +inf where a set's objective is not finite
+    log(
+        f"held-out loss: initial gains {ho_paper:.5g}, tuned {ho_tuned:.5g} (ratio {ho_paper / ho_tuned:.2f}); "
+        f"singular events {int(np.sum(ho_m.singular[0]))} -> {int(np.sum(ho_m.singular[1]))}"
+    )
     base, runs, match = _baselines(settings, family, train_eval, heldout_eval, paper_raw, res.history, say, log)
     say("certifying the initial and the tuned gains (Lemma 2, exact map" + (", falsifier)" if falsify else ")"))
     radius = _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify)
-    summary = _summary(problem, setting, settings, family, res, paper_raw, tuned_raw, (tr_paper, tr_tuned),
-                       (ho_paper, ho_tuned), ho_ok, ho_m, base, match, radius, grad_wall)
+    summary = _summary(
+        problem,
+        setting,
+        settings,
+        family,
+        res,
+        paper_raw,
+        tuned_raw,
+        (tr_paper, tr_tuned),
+        (ho_paper, ho_tuned),
+        ho_ok,
+        ho_m,
+        base,
+        match,
+        radius,
+        grad_wall,
+    )
     say("writing gains, history, figures and summary")
     files.write_json(out / "gains.json", gains_file_dict(family.gains(tuned_raw), setting.ctrl))
-    files.write_json(out / "history.json", {"gradient": res.history, **{
-        name: [{"seed": r.seed, "best_so_far": r.best_so_far, "rollouts_per_candidate": r.rollouts_per_candidate}
-               for r in rs] for name, rs in runs.items()}})
+    files.write_json(
+        out / "history.json",
+        {
+            "gradient": res.history,
+            **{
+                name: [
+                    {"seed": r.seed, "best_so_far": r.best_so_far, "rollouts_per_candidate": r.rollouts_per_candidate}
+                    for r in rs
+                ]
+                for name, rs in runs.items()
+            },
+        },
+    )
     _figures(out, problem.title, setting, family, res.history, runs, paper_raw, tuned_raw, programs)
     if "initial" in radius:
         _radii_figure(out, problem.title, radius)
@@ -272,9 +419,11 @@ def baseline_budget(settings, family) -> int:
     budget = int(round(b.budget * settings.steps * settings.scenarios.train))
     pop = b.population(family.size)
     if budget < pop * settings.scenarios.train:
-        raise ValueError(f"[tune.baselines] budget = {b.budget} gives {budget} rollouts, less than one CMA-ES "
-                         f"generation ({pop} candidates x {settings.scenarios.train} scenarios); raise budget or steps, "
-                         "or lower cma_population")
+        raise ValueError(
+            f"[tune.baselines] budget = {b.budget} gives {budget} rollouts, less than one CMA-ES "
+            f"generation ({pop} candidates x {settings.scenarios.train} scenarios); raise budget or steps, "
+            "or lower cma_population"
+        )
     return budget
 
 
@@ -294,12 +443,31 @@ def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say,
         seed = settings.seed * 1000 + k
         say(f"baselines, seed {k + 1}/{b.seeds}: random search and CMA-ES, {budget} rollouts each")
         t1 = time.perf_counter()
-        runs["random_search"].append(baselines.random_search(
-            family, train_eval, paper_raw, budget_rollouts=budget, n_train=n_train, seed=seed,
-            low=b.search_low, high=b.search_high))
+        runs["random_search"].append(
+            baselines.random_search(
+                family,
+                train_eval,
+                paper_raw,
+                budget_rollouts=budget,
+                n_train=n_train,
+                seed=seed,
+                low=b.search_low,
+                high=b.search_high,
+            )
+        )
         t2 = time.perf_counter()
-        runs["cma_es"].append(baselines.cma_es(family, train_eval, paper_raw, budget_rollouts=budget, n_train=n_train,
-                                               seed=seed, population=pop, sigma=b.cma_sigma))
+        runs["cma_es"].append(
+            baselines.cma_es(
+                family,
+                train_eval,
+                paper_raw,
+                budget_rollouts=budget,
+                n_train=n_train,
+                seed=seed,
+                population=pop,
+                sigma=b.cma_sigma,
+            )
+        )
         t_base["random_search"] += t2 - t1
         t_base["cma_es"] += time.perf_counter() - t2
     base, match = {}, {}
@@ -311,24 +479,39 @@ def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say,
             "best_heldout_loss": float(np.median(held)),
             "rollouts_to_best": float(np.median([r.rollouts_to_best for r in rs])),
             "statistic": f"median over {len(rs)} seeds",
-            "per_seed": [{"seed": r.seed, "best_loss": r.best_loss, "best_heldout_loss": float(h),
-                          "rollouts_to_best": r.rollouts_to_best, "rollouts": r.rollouts,
-                          "gradient_rollouts_to_match": m}
-                         for r, h, m in zip(rs, held, reach)],
-            "rollouts_budget": budget, "wall_time_s": t_base[name],
+            "per_seed": [
+                {
+                    "seed": r.seed,
+                    "best_loss": r.best_loss,
+                    "best_heldout_loss": float(h),
+                    "rollouts_to_best": r.rollouts_to_best,
+                    "rollouts": r.rollouts,
+                    "gradient_rollouts_to_match": m,
+                }
+                for r, h, m in zip(rs, held, reach)
+            ],
+            "rollouts_budget": budget,
+            "wall_time_s": t_base[name],
         }
-        med = float(np.median([np.inf if m is None else m for m in reach]))    # a seed never matched counts as inf
+        med = float(np.median([np.inf if m is None else m for m in reach]))  # a seed never matched counts as inf
         match[name] = med if np.isfinite(med) else None
         ratio = float(np.median([r.rollouts_to_best / m if m is not None else 0.0 for r, m in zip(rs, reach)]))
         base[name]["rollout_ratio_baseline_over_gradient"] = ratio if match[name] is not None else None
         base[name]["seeds_matched_by_gradient"] = sum(m is not None for m in reach)
-        log(f"{name}: median best train loss {base[name]['best_loss']:.5g} after {base[name]['rollouts_to_best']:.0f} "
+        log(
+            f"{name}: median best train loss {base[name]['best_loss']:.5g} after {base[name]['rollouts_to_best']:.0f} "
             f"rollouts, held-out {base[name]['best_heldout_loss']:.5g}; gradient reached it after {match[name]} "
-            f"rollouts ({base[name]['seeds_matched_by_gradient']}/{len(reach)} seeds)")
-    base["cma_es"].update(population=pop, sigma0=b.cma_sigma,
-                          implementation="cmaes (CyberAgent) CMA, ask/tell; candidates simulated in batched jit calls")
-    base["random_search"]["box"] = (f"log-uniform: rates in [{b.search_low}, {b.search_high}] 1/s, dampings in "
-                                    f"[{max(0.3, 1.01 * family.min_damping):g}, 3], every knot independently")
+            f"rollouts ({base[name]['seeds_matched_by_gradient']}/{len(reach)} seeds)"
+        )
+    base["cma_es"].update(
+        population=pop,
+        sigma0=b.cma_sigma,
+        implementation="cmaes (CyberAgent) CMA, ask/tell; candidates simulated in batched jit calls",
+    )
+    base["random_search"]["box"] = (
+        f"log-uniform: rates in [{b.search_low}, {b.search_high}] 1/s, dampings in "
+        f"[{max(0.3, 1.01 * family.min_damping):g}, 3], every knot independently"
+    )
     return base, runs, match
 
 
@@ -347,22 +530,45 @@ def _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify: bool):
     req, kept = settings.requirement, res.context.kept
     eps = req.eps if req is not None else certified.DEFAULT_EPS
     kw = dict(eps=eps, falsify=falsify, seed=settings.seed)
-    out = {"initial": certified.radii(setting, family.gains(paper_raw), **kw),
-           "tuned": certified.radii(setting, family.gains(tuned_raw), **kw)}
+    out = {
+        "initial": certified.radii(setting, family.gains(paper_raw), **kw),
+        "tuned": certified.radii(setting, family.gains(tuned_raw), **kw),
+    }
     if kept is not None:
         path = [h["radius"] for h in res.history if "radius" in h]
         tuned = out["tuned"][f"exact_map_{req.slice}"]
         held = tuned.get("lower_bound", tuned["radius"])
-        out["requirement"] = {**req._asdict(), "required_radius": kept.required, "measured_by": kept.radius.label,
-                              "initial_gains_radius": kept.initial, "smallest_radius_of_the_run": float(np.min(path)),
-                              "tuned_radius": held, "held": bool(held >= kept.required),
-                              "steps_projected": sum(1 for h in res.history if h.get("halvings") == -1),
-                              "steps_halved": sum(1 for h in res.history if h.get("halvings", 0) > 0)}
+        out["requirement"] = {
+            **req._asdict(),
+            "required_radius": kept.required,
+            "measured_by": kept.radius.label,
+            "initial_gains_radius": kept.initial,
+            "smallest_radius_of_the_run": float(np.min(path)),
+            "tuned_radius": held,
+            "held": bool(held >= kept.required),
+            "steps_projected": sum(1 for h in res.history if h.get("halvings") == -1),
+            "steps_halved": sum(1 for h in res.history if h.get("halvings", 0) > 0),
+        }
     return out
 
 
-def _summary(problem, setting, settings, family, res, paper_raw, tuned_raw, train, heldout, ho_ok, ho_m, base, match,
-             radius, grad_wall) -> dict:
+def _summary(
+    problem,
+    setting,
+    settings,
+    family,
+    res,
+    paper_raw,
+    tuned_raw,
+    train,
+    heldout,
+    ho_ok,
+    ho_m,
+    base,
+    match,
+    radius,
+    grad_wall,
+) -> dict:
     import jax
     import numpy as np
 
@@ -373,34 +579,55 @@ def _summary(problem, setting, settings, family, res, paper_raw, tuned_raw, trai
     ho_paper, ho_tuned = heldout
     ctrl = setting.ctrl
     return {
-        "experiment": "tuning", "problem_name": problem.title, "problem": problem.resolved(),
+        "experiment": "tuning",
+        "problem_name": problem.title,
+        "problem": problem.resolved(),
         "tune": settings.as_dict(),
         "controller": f"{type(ctrl).__name__} of type {ctrl.robot.name}, {ctrl.level} level",
         "n_parameters": family.size,
-        "gain_family": ("gain schedule, knots at " + ", ".join(f"{t:g}" for t in family.knots) + " s"
-                        if family.knots else "constant") + (", shared by the outputs" if family.shared else ", per output"),
+        "gain_family": (
+            "gain schedule, knots at " + ", ".join(f"{t:g}" for t in family.knots) + " s"
+            if family.knots
+            else "constant"
+        )
+        + (", shared by the outputs" if family.shared else ", per output"),
         "initial_gains": _gains_report(family, paper_raw),
-        "tuned_gains": {**_gains_report(family, tuned_raw), "selected_by": "best validation loss among evaluations",
-                        "file": "gains.json"},
-        "train_loss": {"initial": hist[0]["train_loss"], "final": hist[-1]["train_loss"],
-                       "paper_gains": train[0], "tuned": train[1]},
-        "heldout_loss": {"paper_gains": ho_paper, "tuned": ho_tuned,        # null ratio where one is not finite
-                         "ratio_paper_over_tuned": ho_paper / ho_tuned if np.isfinite([ho_paper, ho_tuned]).all()
-                         else None},
-        "heldout_terms": {k: {f: float(np.mean(np.asarray(getattr(m, f))[np.asarray(m.valid)]))
-                              for f in ("tracking", "effort", "saturation", "barrier")}
-                          for k, m in (("paper_gains", m_paper), ("tuned", m_tuned))},
+        "tuned_gains": {
+            **_gains_report(family, tuned_raw),
+            "selected_by": "best validation loss among evaluations",
+            "file": "gains.json",
+        },
+        "train_loss": {
+            "initial": hist[0]["train_loss"],
+            "final": hist[-1]["train_loss"],
+            "paper_gains": train[0],
+            "tuned": train[1],
+        },
+        "heldout_loss": {
+            "paper_gains": ho_paper,
+            "tuned": ho_tuned,  # null ratio where one is not finite
+            "ratio_paper_over_tuned": ho_paper / ho_tuned if np.isfinite([ho_paper, ho_tuned]).all() else None,
+        },
+        "heldout_terms": {
+            k: {
+                f: float(np.mean(np.asarray(getattr(m, f))[np.asarray(m.valid)]))
+                for f in ("tracking", "effort", "saturation", "barrier")
+            }
+            for k, m in (("paper_gains", m_paper), ("tuned", m_tuned))
+        },
         "singularity_events": {"paper_gains": int(np.sum(m_paper.singular)), "tuned": int(np.sum(m_tuned.singular))},
         "failed_heldout_scenarios": {"paper_gains": int(np.sum(~ho_ok[0])), "tuned": int(np.sum(~ho_ok[1]))},
         "excluded_training_scenarios": res.excluded,
         "rollouts": res.rollouts,
         "rollout_counting": "one rollout = one scenario simulated once; a gradient step over B scenarios counts B "
-                            "(its extra cost is in gradient_wall_time_s); held-out and validation runs are not counted",
+        "(its extra cost is in gradient_wall_time_s); held-out and validation runs are not counted",
         "objective": f"mean loss of the valid scenarios + {loop.FAILURE_PENALTY} x fraction failed (+ certificate term)",
         "baselines": base,
         "rollouts_to_match": match,
-        "steps": len(hist), "stopped_early": res.stopped_early,
-        "gradient_wall_time_s": grad_wall, "tuning_wall_time_s_including_compile": res.wall_time_s,
+        "steps": len(hist),
+        "stopped_early": res.stopped_early,
+        "gradient_wall_time_s": grad_wall,
+        "tuning_wall_time_s_including_compile": res.wall_time_s,
         "radii": radius,
     }
 
@@ -428,12 +655,12 @@ def _programs(ctx) -> dict:
         val, ok, m = loop.mean_loss(raw, scen, setting, family, weights)
         return loop.objective(val, ok) + loop.certificate_term(family, raw, cert), (ok, m)
 
-    sc = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], ctx.sets.heldout)     # on the host: no per-leaf program
+    sc = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], ctx.sets.heldout)  # on the host: no per-leaf program
     every = setting.steps_per_sample or 1
     t = np.arange(setting.n_steps // every) * every * setting.dt
 
     @functools.partial(jax.jit, compiler_options=loop.QUICK_COMPILE)
-    def trajectories(gains):      # the tracked point and its position error at the samples
+    def trajectories(gains):  # the tracked point and its position error at the samples
         _, tr, params = rollout(setting, gains, sc, trajectory=True)
         from wmrjax.problem import law_state
 
@@ -443,8 +670,12 @@ def _programs(ctx) -> dict:
 
     # one program for every evaluation after the gradient's (the training and held-out sets
     # have the same size in the default problems; a set of another size compiles its own)
-    return {"evaluate_on": baselines.candidate_evaluator(objective, family.shape, compiler_options=loop.LOOP_COMPILE),
-            "trajectories": trajectories, "scenario": sc, "t": t}
+    return {
+        "evaluate_on": baselines.candidate_evaluator(objective, family.shape, compiler_options=loop.LOOP_COMPILE),
+        "trajectories": trajectories,
+        "scenario": sc,
+        "t": t,
+    }
 
 
 def _warm_up(programs, ctx, raw) -> None:
@@ -459,7 +690,7 @@ def _warm_up(programs, ctx, raw) -> None:
     programs["evaluate_on"](np.asarray(raw)[None], ctx.sets.train)
     size = lambda sc: jax.tree_util.tree_leaves(sc)[0].shape[0]
     if size(ctx.sets.heldout) != size(ctx.sets.train):
-        programs["evaluate_on"](np.asarray(raw)[None], ctx.sets.heldout)      # a set of another size: its own program
+        programs["evaluate_on"](np.asarray(raw)[None], ctx.sets.heldout)  # a set of another size: its own program
     programs["trajectories"](ctx.family.gains(raw))
 
 
@@ -475,11 +706,16 @@ def _gains_report(spec, raw):
     import numpy as np
 
     pos = np.asarray(spec.positive(raw))
-    params = (dict(zip(spec.names(), pos.tolist())) if spec.shared and not spec.knots else pos.tolist())
-    return {"parameterization": spec.parameterization, "shared_across_outputs": spec.shared,
-            "knots_s": list(spec.knots), "parameter_names": spec.names(), "parameters": params,
-            "coefficients_k0_to_kr-1": np.asarray(spec.coefficients(raw)).tolist(),
-            "closed_loop_poles_re_im": spec.closed_loop_poles(raw)}
+    params = dict(zip(spec.names(), pos.tolist())) if spec.shared and not spec.knots else pos.tolist()
+    return {
+        "parameterization": spec.parameterization,
+        "shared_across_outputs": spec.shared,
+        "knots_s": list(spec.knots),
+        "parameter_names": spec.names(),
+        "parameters": params,
+        "coefficients_k0_to_kr-1": np.asarray(spec.coefficients(raw)).tolist(),
+        "closed_loop_poles_re_im": spec.closed_loop_poles(raw),
+    }
 
 
 def _band(runs):
@@ -523,8 +759,8 @@ def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, progra
     for raw, lab, ls in ((paper_raw, "initial", "--"), (tuned_raw, "tuned", "-")):
         gains = spec.gains(raw)
         if spec.knots:
-            pos = np.asarray(schedule_at(gains, jnp.asarray(ts)))                            # (T, m, r)
-        else:                                                                             # (T, 1 or m, r)
+            pos = np.asarray(schedule_at(gains, jnp.asarray(ts)))  # (T, m, r)
+        else:  # (T, 1 or m, r)
             one = np.asarray(spec.positive(raw)).reshape(-1, spec.r)
             pos = np.broadcast_to(one, (len(ts),) + one.shape)
         for j in range(spec.r):
@@ -548,7 +784,9 @@ def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, progra
     fig, axs = plt.subplots(1, 2, figsize=(11, 4.4))
     from wmrjax import references as R
 
-    ref = R.Reference(sc.inputs["reference"], sc.inputs["heading_offset"], setting.reference.path, setting.reference.name)
+    ref = R.Reference(
+        sc.inputs["reference"], sc.inputs["heading_offset"], setting.reference.path, setting.reference.name
+    )
     pos_ref = np.asarray(jax.jit(jax.vmap(ref.position))(t))
     axs[0].plot(pos_ref[:, 0], pos_ref[:, 1], "k--", lw=1.2, label="reference")
     for raw, lab, c in ((paper_raw, "initial gains", "C3"), (tuned_raw, "tuned", "C0")):
@@ -580,7 +818,7 @@ def _radii_figure(out, title, radii: dict) -> None:
 
     def value(which, key, field="radius"):
         d = radii[which]
-        block = d["lemma2"].get(key[len("lemma2_"):]) if key.startswith("lemma2_") else d[key]
+        block = d["lemma2"].get(key[len("lemma2_") :]) if key.startswith("lemma2_") else d[key]
         return np.nan if block is None or block.get(field) is None else block[field]
 
     fig, ax = plt.subplots(figsize=(7.4, 0.55 * len(rows) + 1.6))
@@ -590,8 +828,12 @@ def _radii_figure(out, title, radii: dict) -> None:
         ax.plot([value(which, k, "falsified") for k, _ in rows], y + dy, "k|", ms=12)
     req = radii.get("requirement")
     if req is not None:
-        ax.axvline(req["required_radius"], color="C2", ls="--",
-                   label=f"required ({req['slice']} slice): {req['required_radius']:.3g}")
+        ax.axvline(
+            req["required_radius"],
+            color="C2",
+            ls="--",
+            label=f"required ({req['slice']} slice): {req['required_radius']:.3g}",
+        )
     ax.set_yticks(y, [lab for _, lab in rows], fontsize=7)
     ax.invert_yaxis()
     ax.set_xlabel("radius of certified initial errors [m, m/s]  (|: falsified, an upper bound)")
@@ -610,7 +852,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     import jax
 
-    jax.config.update("jax_enable_x64", True)   # float64 from the first check on (run() sets it too)
+    jax.config.update("jax_enable_x64", True)  # float64 from the first check on (run() sets it too)
     try:
         problem = problem_from_args(a)
         from tuning import config, loop
@@ -626,16 +868,24 @@ def main(argv=None) -> int:
         baseline_budget(settings, family)
     except ValueError as e:
         p.error(str(e))
-    s = options.work(p, a, lambda progress: run(problem, a.out, a.fresh, log=progress, falsify=a.falsify),
-                 hint=lambda msg: msg + "; or rerun with --fresh to start over" if "checkpoint" in msg else msg)
+    s = options.work(
+        p,
+        a,
+        lambda progress: run(problem, a.out, a.fresh, log=progress, falsify=a.falsify),
+        hint=lambda msg: msg + "; or rerun with --fresh to start over" if "checkpoint" in msg else msg,
+    )
     b = s["baselines"]
-    print(f"{problem.title}: {s['n_parameters']} parameters; held-out loss initial {s['heldout_loss']['paper_gains']:.4g} "
-          f"-> tuned {s['heldout_loss']['tuned']:.4g} (CMA-ES {b['cma_es']['best_heldout_loss']:.4g}, random search "
-          f"{b['random_search']['best_heldout_loss']:.4g}); singular events {s['singularity_events']}; "
-          f"gradient rollouts {s['rollouts']}, to match CMA-ES {s['rollouts_to_match']['cma_es']} (CMA-ES best after "
-          f"{b['cma_es']['rollouts_to_best']:.0f}); {s['wall_time_s']:.1f} s")
-    print(f"wrote {a.out}/gains.json, summary.json, history.json, checkpoint.json, loss.png, schedule.png, "
-          "trajectories.png" + (", radii.png" if "initial" in s["radii"] else ""))
+    print(
+        f"{problem.title}: {s['n_parameters']} parameters; held-out loss initial {s['heldout_loss']['paper_gains']:.4g} "
+        f"-> tuned {s['heldout_loss']['tuned']:.4g} (CMA-ES {b['cma_es']['best_heldout_loss']:.4g}, random search "
+        f"{b['random_search']['best_heldout_loss']:.4g}); singular events {s['singularity_events']}; "
+        f"gradient rollouts {s['rollouts']}, to match CMA-ES {s['rollouts_to_match']['cma_es']} (CMA-ES best after "
+        f"{b['cma_es']['rollouts_to_best']:.0f}); {s['wall_time_s']:.1f} s"
+    )
+    print(
+        f"wrote {a.out}/gains.json, summary.json, history.json, checkpoint.json, loss.png, schedule.png, "
+        "trajectories.png" + (", radii.png" if "initial" in s["radii"] else "")
+    )
     return 0
 
 

@@ -51,12 +51,11 @@ from typing import NamedTuple
 import numpy as np
 import optax
 
-from wmrjax.problem import ProblemError, check_keys, integer, nonnegative, positive
-
 from tuning import certified
 from tuning.certified import Requirement
 from tuning.gains import GainSpec
 from tuning.losses import LossWeights
+from wmrjax.problem import ProblemError, check_keys, integer, nonnegative, positive
 
 
 class Scenarios(NamedTuple):
@@ -87,8 +86,10 @@ class Optimizer(NamedTuple):
 
     def build(self, steps: int) -> optax.GradientTransformation:
         """The ``optax.GradientTransformation`` for a run of ``steps`` steps."""
-        return optax.chain(optax.clip_by_global_norm(self.clip),
-                           optax.adam(optax.cosine_decay_schedule(self.learning_rate, steps, alpha=self.decay_to)))
+        return optax.chain(
+            optax.clip_by_global_norm(self.clip),
+            optax.adam(optax.cosine_decay_schedule(self.learning_rate, steps, alpha=self.decay_to)),
+        )
 
 
 class Stopping(NamedTuple):
@@ -138,10 +139,18 @@ class TuneSettings(NamedTuple):
         """The gain family for the problem's controller (knots uniform on [0, t_final] when given as a count)."""
         f = self.family
         knots = tuple(float(t) for t in f.get("knot_times", ())) or (
-            tuple(float(t) for t in np.linspace(0.0, setting.t_final, f["knots"])) if f.get("knots") else ())
+            tuple(float(t) for t in np.linspace(0.0, setting.t_final, f["knots"])) if f.get("knots") else ()
+        )
         try:
-            return GainSpec(setting.ctrl.m, setting.ctrl.relative_degree, f.get("shared", True), tuple(f.get("frozen", ())),
-                            f.get("parameterization", "damping"), knots, f.get("min_damping", 0.0))
+            return GainSpec(
+                setting.ctrl.m,
+                setting.ctrl.relative_degree,
+                f.get("shared", True),
+                tuple(f.get("frozen", ())),
+                f.get("parameterization", "damping"),
+                knots,
+                f.get("min_damping", 0.0),
+            )
         except ValueError as err:
             raise ProblemError(f"[tune.family]: {err}") from None
 
@@ -161,8 +170,11 @@ FAMILY_KEYS = ("parameterization", "shared", "knots", "knot_times", "min_damping
 def read(tune: dict, certify: dict | None = None) -> TuneSettings:
     """The :class:`TuneSettings` of a ``[tune]`` section (a dict), checked key by key
     (``certify``: the problem's ``[certify]`` section, whose eps a requirement defaults to)."""
-    check_keys("tune", tune, ("seed", "steps", "family", "loss", "scenarios", "optimizer", "stopping", "baselines",
-                              "requirement"))
+    check_keys(
+        "tune",
+        tune,
+        ("seed", "steps", "family", "loss", "scenarios", "optimizer", "stopping", "baselines", "requirement"),
+    )
     seed = integer("tune", "seed", tune.get("seed", 0), 0, 2**32 - 1)
     steps = integer("tune", "steps", tune.get("steps", 40), 1)
     family = _family(tune.get("family", {}))
@@ -173,10 +185,14 @@ def read(tune: dict, certify: dict | None = None) -> TuneSettings:
         raise ProblemError(f"[tune.loss]: {err}") from None
     sc = tune.get("scenarios", {})
     check_keys("tune.scenarios", sc, Scenarios._fields)
-    scenarios = Scenarios(*(integer("tune.scenarios", k, sc.get(k, getattr(Scenarios(), k)), 1)
-                            for k in ("train", "validation", "heldout")),
-                          _bool("tune.scenarios", "resample", sc.get("resample", False)),
-                          nonnegative("tune.scenarios", "mismatch", sc.get("mismatch", 0.1)))
+    scenarios = Scenarios(
+        *(
+            integer("tune.scenarios", k, sc.get(k, getattr(Scenarios(), k)), 1)
+            for k in ("train", "validation", "heldout")
+        ),
+        _bool("tune.scenarios", "resample", sc.get("resample", False)),
+        nonnegative("tune.scenarios", "mismatch", sc.get("mismatch", 0.1)),
+    )
     if not scenarios.mismatch < 1:
         raise ProblemError(f"[tune.scenarios] mismatch: expected a number in [0, 1), got {scenarios.mismatch}")
     opt = Optimizer(**_floats("tune.optimizer", tune.get("optimizer", {}), Optimizer._fields, positive))
@@ -206,8 +222,9 @@ def _family(f: dict) -> dict:
     out = {}
     if "parameterization" in f:
         if f["parameterization"] not in ("damping", "poles"):
-            raise ProblemError(f"[tune.family] parameterization: expected \"damping\" or \"poles\", "
-                               f"got {f['parameterization']!r}")
+            raise ProblemError(
+                f'[tune.family] parameterization: expected "damping" or "poles", got {f["parameterization"]!r}'
+            )
         out["parameterization"] = f["parameterization"]
     if "shared" in f:
         out["shared"] = _bool("tune.family", "shared", f["shared"])
@@ -218,10 +235,15 @@ def _family(f: dict) -> dict:
         out["knots"] = k
     if "knot_times" in f:
         kt = f["knot_times"]
-        if not (isinstance(kt, list) and len(kt) >= 2 and all(isinstance(t, (int, float)) and not isinstance(t, bool)
-                                                              and math.isfinite(t) and t >= 0 for t in kt)
-                and all(b > a for a, b in zip(kt, kt[1:]))):
-            raise ProblemError(f"[tune.family] knot_times: expected >= 2 strictly increasing times >= 0 [s], got {kt!r}")
+        if not (
+            isinstance(kt, list)
+            and len(kt) >= 2
+            and all(isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) and t >= 0 for t in kt)
+            and all(b > a for a, b in zip(kt, kt[1:]))
+        ):
+            raise ProblemError(
+                f"[tune.family] knot_times: expected >= 2 strictly increasing times >= 0 [s], got {kt!r}"
+            )
         out["knot_times"] = [float(t) for t in kt]
     if "min_damping" in f:
         md = nonnegative("tune.family", "min_damping", f["min_damping"])
@@ -239,14 +261,18 @@ def _family(f: dict) -> dict:
 def _baselines(b: dict) -> Baselines:
     check_keys("tune.baselines", b, Baselines._fields)
     d = Baselines()
-    out = Baselines(integer("tune.baselines", "seeds", b.get("seeds", d.seeds), 1),
-                    positive("tune.baselines", "budget", b.get("budget", d.budget)),
-                    integer("tune.baselines", "cma_population", b.get("cma_population", d.cma_population), 0),
-                    positive("tune.baselines", "cma_sigma", b.get("cma_sigma", d.cma_sigma)),
-                    positive("tune.baselines", "search_low", b.get("search_low", d.search_low)),
-                    positive("tune.baselines", "search_high", b.get("search_high", d.search_high)))
+    out = Baselines(
+        integer("tune.baselines", "seeds", b.get("seeds", d.seeds), 1),
+        positive("tune.baselines", "budget", b.get("budget", d.budget)),
+        integer("tune.baselines", "cma_population", b.get("cma_population", d.cma_population), 0),
+        positive("tune.baselines", "cma_sigma", b.get("cma_sigma", d.cma_sigma)),
+        positive("tune.baselines", "search_low", b.get("search_low", d.search_low)),
+        positive("tune.baselines", "search_high", b.get("search_high", d.search_high)),
+    )
     if out.cma_population == 1:
-        raise ProblemError("[tune.baselines] cma_population: CMA-ES ranks its candidates, expected >= 2 (0: its default)")
+        raise ProblemError(
+            "[tune.baselines] cma_population: CMA-ES ranks its candidates, expected >= 2 (0: its default)"
+        )
     if not out.search_low < out.search_high:
         raise ProblemError(f"[tune.baselines]: need search_low < search_high, got {out.search_low}, {out.search_high}")
     return out

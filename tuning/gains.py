@@ -67,8 +67,10 @@ class GainSpec:
             if k.ndim != 1 or k.size < 2 or not np.all(np.isfinite(k)) or np.any(np.diff(k) <= 0):
                 raise ValueError(f"knots must be >= 2 finite, strictly increasing times [s], got {list(self.knots)}")
             if self.parameterization != "damping":
-                raise ValueError("a gain schedule needs the damping parameterization (its frozen-time polynomials "
-                                 f"stay Hurwitz as the parameters move), got {self.parameterization!r}")
+                raise ValueError(
+                    "a gain schedule needs the damping parameterization (its frozen-time polynomials "
+                    f"stay Hurwitz as the parameters move), got {self.parameterization!r}"
+                )
 
     @property
     def per_time_shape(self):
@@ -115,12 +117,12 @@ class GainSpec:
         if self.parameterization == "poles":
             return monic_coefficients(p)
         q = self.r // 2
-        return damping_coefficients(p[0:2 * q:2], p[1:2 * q:2], p[-1] if self.r % 2 else None)
+        return damping_coefficients(p[0 : 2 * q : 2], p[1 : 2 * q : 2], p[-1] if self.r % 2 else None)
 
     def coefficients(self, raw):
         """(m, r) coefficients of the error polynomial of each output ((K, m, r) at the knots of a schedule)."""
         p = self.positive(raw)
-        one = (lambda q: self._coeffs_one(q)[None]) if self.shared else jax.vmap(self._coeffs_one)   # (1 or m, r)
+        one = (lambda q: self._coeffs_one(q)[None]) if self.shared else jax.vmap(self._coeffs_one)  # (1 or m, r)
         c = jax.vmap(one)(p) if self.knots else one(p)
         return jnp.broadcast_to(c, ((len(self.knots),) if self.knots else ()) + (self.m, self.r))
 
@@ -131,10 +133,11 @@ class GainSpec:
         K, q = len(self.knots), self.r // 2
         p = jnp.broadcast_to(self.positive(raw).reshape((K, -1, self.r)), (K, self.m, self.r))
         lam = p[..., -1] if self.r % 2 else None
-        return GainSchedule(jnp.asarray(self.knots, p.dtype), p[..., 0:2 * q:2], p[..., 1:2 * q:2], lam)
+        return GainSchedule(jnp.asarray(self.knots, p.dtype), p[..., 0 : 2 * q : 2], p[..., 1 : 2 * q : 2], lam)
 
     def closed_loop_poles(self, raw):
         """Complex closed-loop poles per output, as [[re, im], ...] lists (for reports; per knot for a schedule)."""
+
         def one(c):
             return [[[float(z.real), float(z.imag)] for z in np.roots(np.concatenate([[1.0], row[::-1]]))] for row in c]
 
@@ -163,11 +166,13 @@ class GainSpec:
                 one += [np.sqrt(a * b), (a + b) / (2.0 * np.sqrt(a * b))]
             one += list(p[-1:]) if self.r % 2 else []
             one = np.asarray(one)
-        full = np.broadcast_to(one, self.shape)   # a schedule starts constant
+        full = np.broadcast_to(one, self.shape)  # a schedule starts constant
         for i in self.frozen:
             if not 0 <= i < full.size:
                 raise ValueError(f"frozen index {i} out of range for {full.size} tuned parameters")
         if np.any(full - self._floor() <= 0):
-            raise ValueError(f"initial dampings {np.unique(full[self.kinds() == 'damping']).tolist()} must exceed "
-                             f"min_damping = {self.min_damping}")
+            raise ValueError(
+                f"initial dampings {np.unique(full[self.kinds() == 'damping']).tolist()} must exceed "
+                f"min_damping = {self.min_damping}"
+            )
         return self.raw_from_positive(full)

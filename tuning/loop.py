@@ -21,21 +21,20 @@ import numpy as np
 import optax
 
 import wmrjax as w
-from wmrjax.references import FAMILIES
-from wmrjax_cli import files
-
 from tuning import certified
 from tuning.config import Scenarios, Stopping
 from tuning.gains import GainSpec
 from tuning.losses import LossWeights, certificate_radius, scenario_loss
 from tuning.scenarios import Scenario, draw_set, rollout
+from wmrjax.references import FAMILIES
+from wmrjax_cli import files
 
 # the programs that run a few times in a run (scenario draws, validation, figures, reports)
 # compile at XLA's backend optimization level 0, the gradient's and the baselines' evaluator's
 # (thousands of rollouts) at level 1; the benchmarks page of the docs has the timings
 QUICK_COMPILE = {"xla_backend_optimization_level": 0}
 LOOP_COMPILE = {"xla_backend_optimization_level": 1}
-FAILURE_PENALTY = 1.0   # added to the objective per unit fraction of scenarios that failed (singular/non-finite)
+FAILURE_PENALTY = 1.0  # added to the objective per unit fraction of scenarios that failed (singular/non-finite)
 CERTIFICATE_EPS = 1e-2  # Lemma 2's margin eps of the certificate term
 CERTIFICATE_TIMES = 501  # grid of M1 over [0, t_final]
 
@@ -112,6 +111,7 @@ class TuneResult(NamedTuple):
 
 # --- set-up --------------------------------------------------------------------------------------
 
+
 def check(setting, family: GainSpec, scenarios: Scenarios, loss: LossWeights) -> None:
     """ValueError for what cannot be tuned, before anything compiles: a static law at torque
     level, a certificate term without a dynamic law and a fixed reference, a family of
@@ -123,11 +123,15 @@ def check(setting, family: GainSpec, scenarios: Scenarios, loss: LossWeights) ->
     # a random family's references are drawn per scenario (its count is a sweep's)
     setting.check_single("tuning", keep=("initial", "reference") if random_reference else ("initial",))
     if (family.m, family.r) != (ctrl.m, ctrl.relative_degree):
-        raise ValueError(f"the gain family is for (m, r) = ({family.m}, {family.r}), the controller needs "
-                         f"({ctrl.m}, {ctrl.relative_degree})")
+        raise ValueError(
+            f"the gain family is for (m, r) = ({family.m}, {family.r}), the controller needs "
+            f"({ctrl.m}, {ctrl.relative_degree})"
+        )
     if loss.certificate > 0 and (not isinstance(ctrl, DynamicLinearization) or random_reference):
-        raise ValueError("the certificate term needs a dynamic (posture) controller of type (2,0), (2,1) or (1,1) "
-                         "and a fixed reference (not a random family)")
+        raise ValueError(
+            "the certificate term needs a dynamic (posture) controller of type (2,0), (2,1) or (1,1) "
+            "and a fixed reference (not a random family)"
+        )
     if family.knots and family.knots[-1] > setting.t_final:
         raise ValueError(f"knot times {list(family.knots)} reach beyond the horizon t_final = {setting.t_final} s")
     initial_raw(setting, family)
@@ -146,11 +150,14 @@ def initial_raw(setting, family: GainSpec):
         om, ze = gs["omega"], gs["zeta"]
         if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (om, ze)):
             raise ValueError(f"[gains] omega, zeta: the tuner starts from one value of each, got {om!r}, {ze!r}")
-        one = np.asarray(sum(([float(om), float(ze)] for _ in range(family.r // 2)), [])
-                         + ([float(gs.get("lam", 1.0))] if family.r % 2 else []))
+        one = np.asarray(
+            sum(([float(om), float(ze)] for _ in range(family.r // 2)), [])
+            + ([float(gs.get("lam", 1.0))] if family.r % 2 else [])
+        )
         return family.raw_from_positive(np.broadcast_to(one, family.shape))
-    raise ValueError("[gains]: the tuner starts from poles = p (or omega and zeta with the damping family); "
-                     f"got {sorted(gs)}")
+    raise ValueError(
+        f"[gains]: the tuner starts from poles = p (or omega and zeta with the damping family); got {sorted(gs)}"
+    )
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1), compiler_options=QUICK_COMPILE)
@@ -161,12 +168,13 @@ def _draw_sets(setting, scenarios: Scenarios, key) -> ScenarioSets:
     keys = jnp.concatenate([jax.random.split(k, n) for k, n in zip((k_tr, jax.random.fold_in(key, 2), k_ho), sizes)])
     every = draw_set(setting, scenarios.mismatch, keys)
     ends = np.cumsum(sizes)
-    return ScenarioSets(*(jax.tree_util.tree_map(lambda x: x[e - n:e], every) for n, e in zip(sizes, ends)))
+    return ScenarioSets(*(jax.tree_util.tree_map(lambda x: x[e - n : e], every) for n, e in zip(sizes, ends)))
 
 
 # a fresh training batch (resampling): one program per setting, mismatch and count
-_draw_batch = jax.jit(lambda setting, mismatch, key, n: draw_set(setting, mismatch, jax.random.split(key, n)),
-                      static_argnums=(0, 1, 3))
+_draw_batch = jax.jit(
+    lambda setting, mismatch, key, n: draw_set(setting, mismatch, jax.random.split(key, n)), static_argnums=(0, 1, 3)
+)
 
 
 def certificate(setting, weight: float, eps: float = CERTIFICATE_EPS, n_t: int = CERTIFICATE_TIMES):
@@ -196,6 +204,7 @@ def prepare(setting, family: GainSpec, scenarios: Scenarios, loss: LossWeights, 
 
 
 # --- the objective and its gradient ----------------------------------------------------------------
+
 
 def _per_scenario(raw, sc, setting, family, w_arr):
     m = rollout(setting, family.gains(raw), sc)
@@ -252,8 +261,16 @@ _positive = jax.jit(lambda spec, raw: spec.positive(raw), static_argnums=0)
 STATE_KEYS = ("history", "best", "best_raw", "since_best", "rollouts", "excluded", "wall_time_s", "stopped_early")
 
 
-def fingerprint(setting, family: GainSpec, scenarios: Scenarios, loss: LossWeights, stopping: Stopping, steps: int,
-                seed: int, run_id: str = "") -> str:
+def fingerprint(
+    setting,
+    family: GainSpec,
+    scenarios: Scenarios,
+    loss: LossWeights,
+    stopping: Stopping,
+    steps: int,
+    seed: int,
+    run_id: str = "",
+) -> str:
     """A digest of everything a run's checkpoint depends on (``run_id``: what the caller adds,
     e.g. the problem file's fingerprint and the optimizer's settings)."""
     desc = [setting.data, repr(family), scenarios._asdict(), loss._asdict(), stopping._asdict(), steps, seed, run_id]
@@ -262,15 +279,25 @@ def fingerprint(setting, family: GainSpec, scenarios: Scenarios, loss: LossWeigh
 
 def save_checkpoint(path: Path, fp: str, step, raw, opt_state, state: dict) -> None:
     """Atomic JSON checkpoint of the tuned parameters, the optimizer state and the history."""
-    files.write_checkpoint(path, fingerprint=fp, config={"fingerprint": fp}, step=step,
-                        trees={"raw": raw, "opt_state": opt_state}, state=state)
+    files.write_checkpoint(
+        path,
+        fingerprint=fp,
+        config={"fingerprint": fp},
+        step=step,
+        trees={"raw": raw, "opt_state": opt_state},
+        state=state,
+    )
 
 
 def load_checkpoint(path: Path, fp: str, steps: int, raw_template, opt_state_template):
     """(step, raw, opt_state, state) from a JSON checkpoint; ValueError if it is another run's or
     does not match this run's parameter shapes."""
-    ck = files.read_checkpoint(path, fingerprint=fp, config={"fingerprint": fp},
-                            templates={"raw": raw_template, "opt_state": opt_state_template})
+    ck = files.read_checkpoint(
+        path,
+        fingerprint=fp,
+        config={"fingerprint": fp},
+        templates={"raw": raw_template, "opt_state": opt_state_template},
+    )
     missing = sorted(set(STATE_KEYS) - set(ck.state))
     if missing:
         raise ValueError(f"checkpoint {path} lacks {missing} in its state (an edited or partial checkpoint)")
@@ -285,7 +312,7 @@ def _is_count(v) -> bool:
 
 
 def _is_number(v) -> bool:
-    return type(v) in (int, float)          # not bool; a loss may be inf
+    return type(v) in (int, float)  # not bool; a loss may be inf
 
 
 def _check_state(path: Path, step: int, state: dict, n_params: int) -> None:
@@ -293,28 +320,57 @@ def _check_state(path: Path, step: int, state: dict, n_params: int) -> None:
     written: a history of another length than ``step``, a non-boolean ``stopped_early``, ..."""
     hist, best_raw = state["history"], state["best_raw"]
     checks = [
-        ("history", lambda: isinstance(hist, list) and len(hist) == step
-         and all(isinstance(h, dict) and _is_number(h.get("train_loss")) for h in hist),
-         f"a list of {step} step records (one per step done)"),
+        (
+            "history",
+            lambda: (
+                isinstance(hist, list)
+                and len(hist) == step
+                and all(isinstance(h, dict) and _is_number(h.get("train_loss")) for h in hist)
+            ),
+            f"a list of {step} step records (one per step done)",
+        ),
         ("best", lambda: state["best"] is None or _is_number(state["best"]), "null or a number"),
-        ("best_raw", lambda: (best_raw is None) == (state["best"] is None) and (best_raw is None or (
-            isinstance(best_raw, list) and len(best_raw) == n_params and all(_is_number(v) for v in best_raw))),
-         f"{n_params} numbers (null only with 'best' null)"),
+        (
+            "best_raw",
+            lambda: (
+                (best_raw is None) == (state["best"] is None)
+                and (
+                    best_raw is None
+                    or (
+                        isinstance(best_raw, list)
+                        and len(best_raw) == n_params
+                        and all(_is_number(v) for v in best_raw)
+                    )
+                )
+            ),
+            f"{n_params} numbers (null only with 'best' null)",
+        ),
         ("since_best", lambda: _is_count(state["since_best"]), "an integer >= 0"),
         ("rollouts", lambda: _is_count(state["rollouts"]), "an integer >= 0"),
-        ("excluded", lambda: _is_count(state["excluded"]) and state["excluded"] <= state["rollouts"],
-         "an integer between 0 and rollouts"),
-        ("wall_time_s", lambda: _is_number(state["wall_time_s"]) and np.isfinite(state["wall_time_s"])
-         and state["wall_time_s"] >= 0, "seconds >= 0"),
+        (
+            "excluded",
+            lambda: _is_count(state["excluded"]) and state["excluded"] <= state["rollouts"],
+            "an integer between 0 and rollouts",
+        ),
+        (
+            "wall_time_s",
+            lambda: (
+                _is_number(state["wall_time_s"]) and np.isfinite(state["wall_time_s"]) and state["wall_time_s"] >= 0
+            ),
+            "seconds >= 0",
+        ),
         ("stopped_early", lambda: type(state["stopped_early"]) is bool, "true or false"),
     ]
-    for key, ok, expected in checks:      # in order: a later check may rely on an earlier one
+    for key, ok, expected in checks:  # in order: a later check may rely on an earlier one
         if not ok():
-            raise ValueError(f"checkpoint {path}: state '{key}' is {state[key]!r:.80}, expected {expected} "
-                             "(an edited or corrupt checkpoint); delete it or rerun with --fresh")
+            raise ValueError(
+                f"checkpoint {path}: state '{key}' is {state[key]!r:.80}, expected {expected} "
+                "(an edited or corrupt checkpoint); delete it or rerun with --fresh"
+            )
 
 
 # --- the loop --------------------------------------------------------------------------------------
+
 
 def check_memory(setting, scenarios: Scenarios) -> None:
     """ValueError before anything compiles when a gradient step over ``scenarios.train`` runs
@@ -323,14 +379,30 @@ def check_memory(setting, scenarios: Scenarios) -> None:
 
     n_state = int(getattr(setting.system(), "n_state", None) or setting.ctrl.n_state)
     est = resources.Estimate(resources.gradient_bytes(scenarios.train, setting.n_steps, n_state), 0.0)
-    resources.check_fits(est, f"a gradient step over {scenarios.train} training scenarios of {setting.n_steps} steps",
-                         "lower the training scenarios (--n-train) or the horizon, or raise dt")
+    resources.check_fits(
+        est,
+        f"a gradient step over {scenarios.train} training scenarios of {setting.n_steps} steps",
+        "lower the training scenarios (--n-train) or the horizon, or raise dt",
+    )
 
 
-def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, steps: int,
-         scenarios: Scenarios = Scenarios(), loss: LossWeights = LossWeights(), stopping: Stopping = Stopping(),
-         seed: int = 0, out_dir=None, run_id: str = "", log: Callable = print, stop_after: int | None = None,
-         on_built: Callable | None = None, requirement=None) -> TuneResult:
+def tune(
+    setting,
+    family: GainSpec,
+    optimizer: optax.GradientTransformation,
+    *,
+    steps: int,
+    scenarios: Scenarios = Scenarios(),
+    loss: LossWeights = LossWeights(),
+    stopping: Stopping = Stopping(),
+    seed: int = 0,
+    out_dir=None,
+    run_id: str = "",
+    log: Callable = print,
+    stop_after: int | None = None,
+    on_built: Callable | None = None,
+    requirement=None,
+) -> TuneResult:
     """Tune the gains of a problem's controller by gradient descent through its runs.
 
     The optimizer steps on the mean loss of the valid training scenarios (with
@@ -365,8 +437,11 @@ def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, 
     """
     check_memory(setting, scenarios)
     ctx = prepare(setting, family, scenarios, loss, seed)
-    cert_vg = (jax.jit(jax.value_and_grad(lambda r: certificate_term(family, r, ctx.certificate)))
-               if ctx.certificate is not None else None)
+    cert_vg = (
+        jax.jit(jax.value_and_grad(lambda r: certificate_term(family, r, ctx.certificate)))
+        if ctx.certificate is not None
+        else None
+    )
     raw = initial_raw(setting, family)
     if requirement is not None:
         ctx = ctx._replace(kept=keep(setting, family, requirement, raw))
@@ -384,8 +459,11 @@ def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, 
     done_here = 0
     stream = jax.random.fold_in(jax.random.PRNGKey(seed), 3)
     while step < steps and not state["stopped_early"]:
-        batch = (_draw_batch(setting, scenarios.mismatch, jax.random.fold_in(stream, step), scenarios.train)
-                 if scenarios.resample else ctx.sets.train)
+        batch = (
+            _draw_batch(setting, scenarios.mismatch, jax.random.fold_in(stream, step), scenarios.train)
+            if scenarios.resample
+            else ctx.sets.train
+        )
         val, grad, ok, _ = _gradient_step(raw, batch, setting, family, ctx.weights)
         c_val, c_grad = cert_vg(raw) if cert_vg is not None else (0.0, None)
         grad = grad if c_grad is None else grad + c_grad
@@ -404,16 +482,26 @@ def tune(setting, family: GainSpec, optimizer: optax.GradientTransformation, *, 
         if stop_after is not None and done_here >= stop_after:
             break
     finished = step >= steps or state["stopped_early"]
-    return TuneResult(finished, np.asarray(raw), np.asarray(state["best_raw"]), state["history"], state["rollouts"],
-                      state["excluded"], state["stopped_early"], state["wall_time_s"], ctx)
+    return TuneResult(
+        finished,
+        np.asarray(raw),
+        np.asarray(state["best_raw"]),
+        state["history"],
+        state["rollouts"],
+        state["excluded"],
+        state["stopped_early"],
+        state["wall_time_s"],
+        ctx,
+    )
 
 
 def _update_program(optimizer):
     """``update(grad, opt_state, raw) -> (raw, opt_state)`` as one program (eager, optax's
     update is ~30 small ones)."""
+
     @jax.jit
     def update(grad, opt_state, raw):
-        with jax.numpy_dtype_promotion("standard"):   # optax mixes its int32 step count with floats
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with floats
             upd, opt_state = optimizer.update(grad, opt_state, raw)
         return optax.apply_updates(raw, upd), opt_state
 
@@ -426,8 +514,16 @@ def _start(ckpt, fp: str, steps: int, raw, opt_state, log):
         step, raw, opt_state, state = load_checkpoint(ckpt, fp, steps, raw, opt_state)
         log(f"resumed from {ckpt} at step {step}")
         return step, raw, opt_state, state
-    state = {"history": [], "best": None, "best_raw": None, "since_best": 0, "rollouts": 0, "excluded": 0,
-             "wall_time_s": 0.0, "stopped_early": False}
+    state = {
+        "history": [],
+        "best": None,
+        "best_raw": None,
+        "since_best": 0,
+        "rollouts": 0,
+        "excluded": 0,
+        "wall_time_s": 0.0,
+        "stopped_early": False,
+    }
     return 0, raw, opt_state, state
 
 
@@ -451,22 +547,28 @@ def _kept_step(kept: Kept, update, grad, opt_state, raw, rec: dict):
     return raw, opt_state
 
 
-def _record(ctx: Context, step: int, raw, val, ok, c_val, state: dict, stopping: Stopping, steps: int,
-            resampled: bool) -> dict:
+def _record(
+    ctx: Context, step: int, raw, val, ok, c_val, state: dict, stopping: Stopping, steps: int, resampled: bool
+) -> dict:
     """One step's history entry; updates the run's counts, best parameters and early stopping."""
     setting, family, n = ctx.setting, ctx.family, int(np.size(ok))
     n_ok = int(np.sum(np.asarray(ok)))
     if n_ok == 0:
         raise RuntimeError(f"step {step}: every training scenario failed (non-finite or singular)")
-    if resampled:       # the objective on the fixed training set, as the baselines see it (not counted)
+    if resampled:  # the objective on the fixed training set, as the baselines see it (not counted)
         tr, tr_ok, _ = mean_loss(raw, ctx.sets.train, setting, family, ctx.weights)
         total = float(_objective_plus(tr, tr_ok, c_val))
     else:
         total = float(_objective_plus(val, ok, c_val))
     state["rollouts"] += n
     state["excluded"] += n - n_ok
-    rec = {"step": step, "train_loss": total, "rollouts": state["rollouts"], "excluded": n - n_ok,
-           "params": np.asarray(_positive(family, raw)).tolist()}
+    rec = {
+        "step": step,
+        "train_loss": total,
+        "rollouts": state["rollouts"],
+        "excluded": n - n_ok,
+        "params": np.asarray(_positive(family, raw)).tolist(),
+    }
     if (step + 1) % stopping.eval_every == 0 or step == 0 or step + 1 == steps:
         va, va_ok, _ = validation_loss(raw, ctx.sets.validation, setting, family, ctx.weights)
         va = float(_objective_plus(va, va_ok, c_val))
@@ -483,7 +585,10 @@ def _record(ctx: Context, step: int, raw, val, ok, c_val, state: dict, stopping:
 def _log_step(log, family, raw, rec, step, steps, n_train, wall) -> None:
     shown = np.round(np.asarray(_positive(family, raw)), 3)
     excluded = rec["excluded"]
-    log(f"step {step:4d}/{steps}  train {rec['train_loss']:.5g}"
+    log(
+        f"step {step:4d}/{steps}  train {rec['train_loss']:.5g}"
         + (f"  validation {rec['validation_loss']:.5g}" if "validation_loss" in rec else "")
         + (f"  {'/'.join(family.names())} {shown.tolist()}" if shown.size <= 12 else f"  {shown.size} parameters")
-        + (f"  excluded {excluded}" if excluded else "") + f"  ({wall:.1f} s)")
+        + (f"  excluded {excluded}" if excluded else "")
+        + f"  ({wall:.1f} s)"
+    )

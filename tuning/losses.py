@@ -24,7 +24,7 @@ class LossWeights(NamedTuple):
       tracking: time-average of ||output error||^2 (posture or point) [m^2, rad^2].
       effort: time-average of ||commanded input||^2.
       saturation: time-average of the squared excess of the command over the actuator limit.
-      barrier: time-average of relu(1 - |det K| / margin_safe)^2 (singularity barrier).
+      barrier: time-average of relu(1 - ``|det K|`` / margin_safe)^2 (singularity barrier).
       certificate: minus the Lemma 2 radius with the automatic Lyapunov K2 (maximise it).
     """
 
@@ -50,8 +50,8 @@ class Metrics(NamedTuple):
     effort: jnp.ndarray
     saturation: jnp.ndarray
     barrier: jnp.ndarray
-    valid: jnp.ndarray          # no non-finite value, margin never at the floor
-    singular: jnp.ndarray       # the margin reached the floor
+    valid: jnp.ndarray  # no non-finite value, margin never at the floor
+    singular: jnp.ndarray  # the margin reached the floor
     min_margin: jnp.ndarray
 
 
@@ -83,7 +83,7 @@ def metrics(setting, tr, params, inputs: dict, margin_safe: float = MARGIN_SAFE)
         :class:`SampleTerms` as ``save_fn``.
       params: the law's parameters of the run (reference, gains, nominal geometry).
       inputs: the run's inputs (``input_scale``, ``limit`` of the plant).
-      margin_safe: the barrier term is ``relu(1 - |det K| / margin_safe)^2``.
+      margin_safe: the barrier term is ``relu(1 - ``|det K|`` / margin_safe)^2``.
     """
     import jax
     import jax.numpy as jnp
@@ -91,15 +91,19 @@ def metrics(setting, tr, params, inputs: dict, margin_safe: float = MARGIN_SAFE)
     ctrl = setting.ctrl
     n = tr.t.shape[0] - 1
     saved = jax.tree_util.tree_map(lambda x: x[:n], tr.state)
-    if setting.control_period is not None:      # the digital controller's samples record their error
+    if setting.control_period is not None:  # the digital controller's samples record their error
         err, cmd, margin = saved
     else:
         zs = law_state(setting.system(), saved)
         err = jax.vmap(lambda t, z: jnp.sum(ctrl.error(t, z, params)[0] ** 2))(tr.t[:n], zs)
         cmd, margin = tr.control[:n], tr.margin[:n]
     excess = jax.nn.relu(jnp.abs(inputs["input_scale"] * cmd) - inputs["limit"])
-    terms = (err, jnp.sum(cmd ** 2, axis=-1), jnp.sum(jnp.where(jnp.isfinite(excess), excess, 0.0) ** 2, axis=-1),
-             jax.nn.relu(1.0 - margin / margin_safe) ** 2)
+    terms = (
+        err,
+        jnp.sum(cmd**2, axis=-1),
+        jnp.sum(jnp.where(jnp.isfinite(excess), excess, 0.0) ** 2, axis=-1),
+        jax.nn.relu(1.0 - margin / margin_safe) ** 2,
+    )
     valid = tr.valid[:n]
     means = [jnp.sum(jnp.where(valid, x, 0.0)) / n for x in terms]
     dg = tr.diagnostics

@@ -32,9 +32,22 @@ from pathlib import Path
 
 from wmrjax_cli import files
 
-AGREEMENT = 0.01         # a point is certified when falsified / exact - 1 <= this
-COLUMNS = ("required_radius", "fraction_of_initial", "tuned_radius", "falsified_radius", "falsified_over_exact",
-           "worst_error_confirmed", "certified", "heldout_loss", "train_loss", "parameters", "steps", "steps_projected", "steps_halved")
+AGREEMENT = 0.01  # a point is certified when falsified / exact - 1 <= this
+COLUMNS = (
+    "required_radius",
+    "fraction_of_initial",
+    "tuned_radius",
+    "falsified_radius",
+    "falsified_over_exact",
+    "worst_error_confirmed",
+    "certified",
+    "heldout_loss",
+    "train_loss",
+    "parameters",
+    "steps",
+    "steps_projected",
+    "steps_halved",
+)
 
 
 def parser():
@@ -42,18 +55,28 @@ def parser():
 
     p = options.parser(__doc__.splitlines()[0], "results/pareto")
     p.add_argument("file", type=Path, help="a problem file (TOML) with a [tune] section")
-    p.add_argument("--slice", default="full", choices=["full", "position"],
-                   help="the slice of initial errors whose exact-map radius is required (default: full)")
+    p.add_argument(
+        "--slice",
+        default="full",
+        choices=["full", "position"],
+        help="the slice of initial errors whose exact-map radius is required (default: full)",
+    )
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--fractions", type=options.nonnegative, nargs="+", default=None,
-                   help="required radii as multiples of the initial gains' radius (default: 0 0.25 0.5 0.75 1 1.25)")
-    g.add_argument("--radii", type=options.nonnegative, nargs="+", default=None,
-                   help="required radii [output-error units: m, m/s]")
+    g.add_argument(
+        "--fractions",
+        type=options.nonnegative,
+        nargs="+",
+        default=None,
+        help="required radii as multiples of the initial gains' radius (default: 0 0.25 0.5 0.75 1 1.25)",
+    )
+    g.add_argument(
+        "--radii", type=options.nonnegative, nargs="+", default=None, help="required radii [output-error units: m, m/s]"
+    )
     p.add_argument("--eps", type=options.positive, default=None, help="the margin (default: [certify] eps, else 0.01)")
     return p
 
 
-POINT_FORMAT = 2         # bumped when a point's fields change: older points are computed again
+POINT_FORMAT = 2  # bumped when a point's fields change: older points are computed again
 
 
 def point_id(problem, slice_: str, eps: float, required: float) -> str:
@@ -74,9 +97,18 @@ def tune_point(problem, required: float, slice_: str, eps: float, log=print) -> 
     settings = config.read(problem.section("tune"), problem.section("certify"))
     family = settings.gain_spec(setting)
     req = certified.Requirement(float(required), slice_, float(eps))
-    res = loop.tune(setting, family, settings.optimizer.build(settings.steps), steps=settings.steps,
-                    scenarios=settings.scenarios, loss=settings.loss, stopping=settings.stopping, seed=settings.seed,
-                    log=lambda msg: None, requirement=req)
+    res = loop.tune(
+        setting,
+        family,
+        settings.optimizer.build(settings.steps),
+        steps=settings.steps,
+        scenarios=settings.scenarios,
+        loss=settings.loss,
+        stopping=settings.stopping,
+        seed=settings.seed,
+        log=lambda msg: None,
+        requirement=req,
+    )
     raw = jnp.asarray(res.best_raw)
     ctx = res.context
     val, ok, _ = loop.mean_loss(raw, ctx.sets.heldout, setting, family, ctx.weights)
@@ -87,15 +119,23 @@ def tune_point(problem, required: float, slice_: str, eps: float, log=print) -> 
     held = block.get("lower_bound", block["radius"])
     agree = block["falsified_over_exact"]
     confirmed = block["worst_error_rollouts"]["confirmed"]
-    return {"required_radius": float(required), "tuned_radius": held, "falsified_radius": block["falsified"],
-            "falsified_over_exact": agree,
-            "worst_error_confirmed": confirmed,
-            "certified": bool(held >= required and (confirmed or (agree is not None and agree - 1.0 <= AGREEMENT))),
-            "heldout_loss": float(loop.objective(val, ok)), "train_loss": float(loop.objective(tr, tr_ok)),
-            "parameters": dict(zip(family.names(), map(float, family.positive(raw)))) if family.size <= 12
-            else [float(v) for v in family.positive(raw).reshape(-1)],
-            "steps": len(res.history), "steps_projected": sum(h.get("halvings") == -1 for h in res.history),
-            "steps_halved": sum(h.get("halvings", 0) > 0 for h in res.history), "radii": rad}
+    return {
+        "required_radius": float(required),
+        "tuned_radius": held,
+        "falsified_radius": block["falsified"],
+        "falsified_over_exact": agree,
+        "worst_error_confirmed": confirmed,
+        "certified": bool(held >= required and (confirmed or (agree is not None and agree - 1.0 <= AGREEMENT))),
+        "heldout_loss": float(loop.objective(val, ok)),
+        "train_loss": float(loop.objective(tr, tr_ok)),
+        "parameters": dict(zip(family.names(), map(float, family.positive(raw))))
+        if family.size <= 12
+        else [float(v) for v in family.positive(raw).reshape(-1)],
+        "steps": len(res.history),
+        "steps_projected": sum(h.get("halvings") == -1 for h in res.history),
+        "steps_halved": sum(h.get("halvings", 0) > 0 for h in res.history),
+        "radii": rad,
+    }
 
 
 def run(problem, out: Path, slice_: str = "full", fractions=None, radii=None, eps=None, log=print) -> dict:
@@ -114,7 +154,8 @@ def run(problem, out: Path, slice_: str = "full", fractions=None, radii=None, ep
     eps = float(eps if eps is not None else problem.section("certify").get("eps", certified.DEFAULT_EPS))
     raw0 = loop.initial_raw(setting, family)
     initial = certified.radius_function(setting, family, certified.Requirement(0.0, slice_, eps)).value(
-        jnp.asarray(raw0))
+        jnp.asarray(raw0)
+    )
     if radii is None:
         fractions = fractions if fractions is not None else (0.0, 0.25, 0.5, 0.75, 1.0, 1.25)
         radii = [f * initial for f in fractions]
@@ -127,8 +168,10 @@ def run(problem, out: Path, slice_: str = "full", fractions=None, radii=None, ep
             log(f"point {i + 1}/{len(radii)} (required {required:.4g}): done earlier, kept")
             points.append(old)
             continue
-        log(f"point {i + 1}/{len(radii)}: tuning with the exact-map radius ({slice_}) >= {required:.4g} "
-            f"({time.perf_counter() - t0:.0f} s so far)")
+        log(
+            f"point {i + 1}/{len(radii)}: tuning with the exact-map radius ({slice_}) >= {required:.4g} "
+            f"({time.perf_counter() - t0:.0f} s so far)"
+        )
         pt = {"id": pid, **tune_point(problem, required, slice_, eps, log), "fraction_of_initial": required / initial}
         files.write_json(path, pt)
         points.append(pt)
@@ -161,13 +204,20 @@ def _write(out, problem, setting, family, raw0, slice_, eps, initial, points, wa
         wr.writerow({k: json.dumps(p[k]) if isinstance(p[k], (dict, list)) else p[k] for k in COLUMNS})
     files.write_bytes(out / "pareto.csv", buf.getvalue().encode())
     _figure(out, problem.title, slice_, eps, base, points)
-    summary = {"experiment": "pareto", "problem_name": problem.title, "problem": problem.resolved(),
-               "slice": slice_, "eps": eps, "agreement_tolerance": AGREEMENT,
-               "initial_gains": base, "points": [{k: p[k] for k in COLUMNS} for p in points],
-               "every_point_certified": all(p["certified"] for p in points),
-               "note": "tuned_radius: the exact-map radius of the tuned gains (closed form); falsified_radius: the "
-                       "smallest initial error the falsifier drives within eps (rollouts, an upper bound)",
-               "wall_time_s": wall}
+    summary = {
+        "experiment": "pareto",
+        "problem_name": problem.title,
+        "problem": problem.resolved(),
+        "slice": slice_,
+        "eps": eps,
+        "agreement_tolerance": AGREEMENT,
+        "initial_gains": base,
+        "points": [{k: p[k] for k in COLUMNS} for p in points],
+        "every_point_certified": all(p["certified"] for p in points),
+        "note": "tuned_radius: the exact-map radius of the tuned gains (closed form); falsified_radius: the "
+        "smallest initial error the falsifier drives within eps (rollouts, an upper bound)",
+        "wall_time_s": wall,
+    }
     files.write_json(out / "summary.json", summary)
     return summary
 
@@ -218,9 +268,13 @@ def main(argv=None) -> int:
         p.error(str(e))
     s = options.work(p, a, lambda progress: run(problem, a.out, a.slice, a.fractions, a.radii, a.eps, log=progress))
     for pt in s["points"]:
-        print(f"required {pt['required_radius']:.4g}: radius {pt['tuned_radius']:.4g} (falsified "
-              f"{pt['falsified_radius']}), held-out {pt['heldout_loss']:.4g}, certified {pt['certified']}")
-    print(f"initial gains: radius {s['initial_gains']['radius']:.4g}, held-out {s['initial_gains']['heldout_loss']:.4g}")
+        print(
+            f"required {pt['required_radius']:.4g}: radius {pt['tuned_radius']:.4g} (falsified "
+            f"{pt['falsified_radius']}), held-out {pt['heldout_loss']:.4g}, certified {pt['certified']}"
+        )
+    print(
+        f"initial gains: radius {s['initial_gains']['radius']:.4g}, held-out {s['initial_gains']['heldout_loss']:.4g}"
+    )
     print(f"wrote {a.out}/pareto.csv, pareto.png, summary.json, points/ ({s['wall_time_s']:.0f} s)")
     return 0
 

@@ -18,10 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import wmrjax as w
+from tuning.losses import MARGIN_FLOOR, MARGIN_SAFE, Metrics, SampleTerms, metrics
 from wmrjax import references as R
 from wmrjax.problem import Setting, initial_box, initial_keys, place, random_options
-
-from tuning.losses import MARGIN_FLOOR, MARGIN_SAFE, Metrics, SampleTerms, metrics
 
 
 class Scenario(NamedTuple):
@@ -57,17 +56,20 @@ def draw(setting: Setting, mismatch: float, key) -> Scenario:
     base = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)[0]), setting.inputs())
     base.pop("gains")
     family = R.FAMILIES[setting.data["reference"]["family"]]
-    if family.kind == "random":         # a fresh reference per scenario
+    if family.kind == "random":  # a fresh reference per scenario
         base["reference"] = family.make(kr, **random_options(setting.data["reference"])).params
     lo, hi = (jnp.asarray(v) for v in tuning_box(setting))
     k = lo.shape[0]
-    u = jnp.concatenate([jax.random.uniform(ki, (2,), minval=-1, maxval=1),
-                         jax.random.uniform(kv, (k - 2,), minval=-1, maxval=1)])
+    u = jnp.concatenate(
+        [jax.random.uniform(ki, (2,), minval=-1, maxval=1), jax.random.uniform(kv, (k - 2,), minval=-1, maxval=1)]
+    )
     base["initial"] = 0.5 * (lo + hi) + 0.5 * (hi - lo) * u
     # placed once here (the nominal law's state), not in every rollout of the scenario
-    params = setting.ctrl.params_unchecked(R.Reference(base["reference"], base["heading_offset"], setting.reference.path,
-                                                       setting.reference.name), 1.0,
-                                           w.Geometry(base["L"], base["e"], base["delta"]))
+    params = setting.ctrl.params_unchecked(
+        R.Reference(base["reference"], base["heading_offset"], setting.reference.path, setting.reference.name),
+        1.0,
+        w.Geometry(base["L"], base["e"], base["delta"]),
+    )
     base["z0"] = place(setting.ctrl, params, base["initial"], setting.space, setting.task, base["branch"])
     rho = jax.random.uniform(km, (nu + 2,), minval=-mismatch, maxval=mismatch)
     base["input_scale"] = 1.0 + rho[:nu]
@@ -86,8 +88,14 @@ def rollout(setting: Setting, gains, sc: Scenario, trajectory: bool = False):
     ``(None, the wmrjax.Trajectory of its states, the law's parameters)``)."""
     every = setting.steps_per_sample or 1
     save = None if trajectory else SampleTerms(setting.ctrl.m, setting.control_period is not None)
-    tr, params = setting.run({**sc.inputs, "gains": gains}, save_every=every, error_tol=None,
-                             margin_floor=MARGIN_FLOOR, noise_key=sc.key, save_fn=save)
+    tr, params = setting.run(
+        {**sc.inputs, "gains": gains},
+        save_every=every,
+        error_tol=None,
+        margin_floor=MARGIN_FLOOR,
+        noise_key=sc.key,
+        save_fn=save,
+    )
     if trajectory:
         return None, tr, params
     return metrics(setting, tr, params, sc.inputs, MARGIN_SAFE)

@@ -67,8 +67,8 @@ BASES = ("gradient", "random_search", "cma_es", "optuna_tpe", "optuna_cmaes")
 METHODS = tuple(m + v for m in BASES for v in ("", "_resampled"))
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_PROBLEMS = ("section_6_1", "car_schedule", "torque_2_1", "experiments/problems/s_path.toml")
-TOLERANCE = 0.01           # "within 1 %" of another method's final median held-out loss
-VERSION = 1                # bump when what a seed's file holds changes (its fingerprint then differs)
+TOLERANCE = 0.01  # "within 1 %" of another method's final median held-out loss
+VERSION = 1  # bump when what a seed's file holds changes (its fingerprint then differs)
 FIELDS = ("problem", "method", "seed", "point", "compute_fwd", "seconds", "heldout_loss")
 
 
@@ -76,20 +76,32 @@ def parser():
     from wmrjax_cli import options
 
     p = options.parser(__doc__.splitlines()[0], "results/tuning_study")
-    p.add_argument("--problems", nargs="+", default=list(DEFAULT_PROBLEMS),
-                   help="shipped problem names (tuning/problems) or problem files (TOML with [tune])")
+    p.add_argument(
+        "--problems",
+        nargs="+",
+        default=list(DEFAULT_PROBLEMS),
+        help="shipped problem names (tuning/problems) or problem files (TOML with [tune])",
+    )
     p.add_argument("--seeds", type=options.count, default=10, help="seeds per problem (scenario sets, streams)")
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS, help="methods to run")
     p.add_argument("--points", type=options.count, default=8, help="log-spaced compute points up to the budget")
-    p.add_argument("--budget", type=options.positive, default=1.0,
-                   help="every baseline's budget as a multiple of the gradient run's forward-rollout equivalents")
+    p.add_argument(
+        "--budget",
+        type=options.positive,
+        default=1.0,
+        help="every baseline's budget as a multiple of the gradient run's forward-rollout equivalents",
+    )
     p.add_argument("--steps", type=options.count, default=None, help="override every problem's optimizer steps")
     p.add_argument("--n-train", type=options.count, default=None, help="override every problem's training scenarios")
     p.add_argument("--n-validation", type=options.count, default=None, help="override the validation scenarios")
     p.add_argument("--n-heldout", type=options.count, default=None, help="override the held-out scenarios")
-    p.add_argument("--require-radius", default=None, metavar="R",
-                   help="a certified-region requirement for every problem that can keep one (a radius, 'initial' "
-                        "or 'box'; see python -m tuning --help); the others run without and say so")
+    p.add_argument(
+        "--require-radius",
+        default=None,
+        metavar="R",
+        help="a certified-region requirement for every problem that can keep one (a radius, 'initial' "
+        "or 'box'; see python -m tuning --help); the others run without and say so",
+    )
     p.add_argument("--require-slice", default="full", choices=["full", "position"], help="the requirement's slice")
     return p
 
@@ -109,27 +121,32 @@ def problem_path(spec: str) -> tuple[str, Path]:
 
 def overrides(args) -> dict:
     """The problem-file values the command line's options set."""
-    keys = {"steps": "tune.steps", "n_train": "tune.scenarios.train", "n_validation": "tune.scenarios.validation",
-            "n_heldout": "tune.scenarios.heldout"}
+    keys = {
+        "steps": "tune.steps",
+        "n_train": "tune.scenarios.train",
+        "n_validation": "tune.scenarios.validation",
+        "n_heldout": "tune.scenarios.heldout",
+    }
     return {key: getattr(args, k) for k, key in keys.items() if getattr(args, k, None) is not None}
 
 
 # --- one problem ----------------------------------------------------------------------------------
 
+
 class Plan(NamedTuple):
     """What every seed of one problem shares (built and compiled once)."""
 
     name: str
-    problem: object          # wmrjax.problem.Problem
+    problem: object  # wmrjax.problem.Problem
     setting: object
-    settings: object         # tuning.config.TuneSettings
+    settings: object  # tuning.config.TuneSettings
     family: object
     raw0: np.ndarray
-    evaluate: object         # tuning.baselines.candidate_evaluator of the training objective
-    requirement: object      # tuning.certified.Requirement or None
-    feasible: object         # raw -> bool, or None
-    note: str                # why a requested requirement does not apply ('' otherwise)
-    draw: object             # key -> a training batch (the resampled variants' draws), compiled
+    evaluate: object  # tuning.baselines.candidate_evaluator of the training objective
+    requirement: object  # tuning.certified.Requirement or None
+    feasible: object  # raw -> bool, or None
+    note: str  # why a requested requirement does not apply ('' otherwise)
+    draw: object  # key -> a training batch (the resampled variants' draws), compiled
 
 
 def plan(name: str, problem, require=None) -> Plan:
@@ -147,7 +164,7 @@ def plan(name: str, problem, require=None) -> Plan:
         try:
             certified.check(s, config.read(trial.section("tune"), trial.section("certify")).gain_spec(s))
             problem = trial
-        except ValueError as err:       # e.g. a random reference family: no fixed path to certify
+        except ValueError as err:  # e.g. a random reference family: no fixed path to certify
             note = f"requirement not applied: {err}"
     setting = problem.setting("tuning")
     settings = config.read(problem.section("tune"), problem.section("certify"))
@@ -157,7 +174,7 @@ def plan(name: str, problem, require=None) -> Plan:
     weights = jax.numpy.asarray(tuple(settings.loss), float)
     cert = loop.certificate(setting, settings.loss.certificate)
 
-    def objective(raw, scen):       # the cli's training objective (certificate term included)
+    def objective(raw, scen):  # the cli's training objective (certificate term included)
         val, ok, _ = loop.mean_loss(raw, scen, setting, family, weights)
         return loop.objective(val, ok) + loop.certificate_term(family, raw, cert)
 
@@ -188,7 +205,7 @@ def measure_cost(p: Plan, repeats: int = 3) -> dict:
     fwd = lambda: p.evaluate(chunk, scenarios=ctx.sets.train)
     times = {}
     for key, fn in (("gradient_step_s", step), ("forward_s", fwd)):
-        fn()                                                    # compiles
+        fn()  # compiles
         times[key] = min(_timed(fn) for _ in range(repeats))
     times["forward_s"] /= 16
     times["ratio"] = times["gradient_step_s"] / times["forward_s"]
@@ -210,8 +227,10 @@ def validations(steps: int, eval_every: int) -> list[int]:
 def gradient_budget(settings, ratio: float) -> float:
     """Forward-rollout equivalents of a full gradient run: its steps and its validations."""
     sc = settings.scenarios
-    return (settings.steps * sc.train * ratio
-            + len(validations(settings.steps, settings.stopping.eval_every)) * sc.validation)
+    return (
+        settings.steps * sc.train * ratio
+        + len(validations(settings.steps, settings.stopping.eval_every)) * sc.validation
+    )
 
 
 def compute_points(budget: float, n: int) -> np.ndarray:
@@ -220,6 +239,7 @@ def compute_points(budget: float, n: int) -> np.ndarray:
 
 
 # --- one seed -------------------------------------------------------------------------------------
+
 
 class Trace(NamedTuple):
     """A run's spending and choices: after unit i (a step or a candidate) it had spent
@@ -246,12 +266,22 @@ def gradient_trace(p: Plan, seed: int, resample: bool, cost: dict) -> Trace:
     scen = s.scenarios._replace(resample=resample)
     stamps = []
 
-    def log(msg):           # tune logs one line per step, after its update: the step's end
+    def log(msg):  # tune logs one line per step, after its update: the step's end
         if msg.startswith("step "):
             stamps.append(time.perf_counter())
 
-    res = loop.tune(p.setting, p.family, s.optimizer.build(s.steps), steps=s.steps, scenarios=scen, loss=s.loss,
-                    stopping=s.stopping, seed=seed, log=log, requirement=p.requirement)
+    res = loop.tune(
+        p.setting,
+        p.family,
+        s.optimizer.build(s.steps),
+        steps=s.steps,
+        scenarios=scen,
+        loss=s.loss,
+        stopping=s.stopping,
+        seed=seed,
+        log=log,
+        requirement=p.requirement,
+    )
     costs, spent, picks, best = [], 0.0, [], np.inf
     for i, h in enumerate(res.history):
         spent += scen.train * ratio + (scen.validation if "validation_loss" in h else 0)
@@ -273,9 +303,14 @@ def baseline_trace(p: Plan, method: str, seed: int, resample: bool, sets, budget
     from tuning import baselines
 
     s, b = p.settings, p.settings.baselines
-    stream = jax.random.fold_in(jax.random.PRNGKey(seed), 3)       # tune()'s stream of resampled batches
-    kw = dict(budget_rollouts=budget, n_train=s.scenarios.train, seed=1000 * seed, feasible=p.feasible,
-              scenarios_for=(lambda k: p.draw(jax.random.fold_in(stream, k))) if resample else None)
+    stream = jax.random.fold_in(jax.random.PRNGKey(seed), 3)  # tune()'s stream of resampled batches
+    kw = dict(
+        budget_rollouts=budget,
+        n_train=s.scenarios.train,
+        seed=1000 * seed,
+        feasible=p.feasible,
+        scenarios_for=(lambda k: p.draw(jax.random.fold_in(stream, k))) if resample else None,
+    )
     box = dict(low=b.search_low, high=b.search_high)
     cma = dict(population=b.population(p.family.size), sigma=b.cma_sigma)
     extra = {"random_search": box, "optuna_tpe": box, "cma_es": cma, "optuna_cmaes": {**cma, **box}}[method]
@@ -290,7 +325,7 @@ def at_points(trace: Trace, points, raw0):
     by then (``raw0`` before any) and the seconds spent on them."""
     raws, secs = [], []
     for c in points:
-        n = int(np.searchsorted(trace.costs, c * (1 + 1e-12), side="right"))   # units within c (rounding)
+        n = int(np.searchsorted(trace.costs, c * (1 + 1e-12), side="right"))  # units within c (rounding)
         chosen = [r for k, r in trace.picks if k < n]
         raws.append(np.asarray(chosen[-1] if chosen else raw0))
         secs.append(float(trace.seconds[n - 1]) if n else 0.0)
@@ -308,8 +343,11 @@ def run_seed(p: Plan, seed: int, methods, points, cost: dict, budget: float, say
     for m in methods:
         base, resample = m.removesuffix("_resampled"), m.endswith("_resampled")
         say(f"{p.name}, seed {seed}: {m}")
-        tr = (gradient_trace(p, seed, resample, cost) if base == "gradient"
-              else baseline_trace(p, base, seed, resample, sets, int(budget)))
+        tr = (
+            gradient_trace(p, seed, resample, cost)
+            if base == "gradient"
+            else baseline_trace(p, base, seed, resample, sets, int(budget))
+        )
         chosen[m] = (tr, *at_points(tr, points, p.raw0))
     # every chosen parameter set once on the held-out scenarios (they repeat across points)
     every = [p.raw0] + [r for _, raws, _ in chosen.values() for r in raws]
@@ -318,21 +356,25 @@ def run_seed(p: Plan, seed: int, methods, points, cost: dict, budget: float, say
     held = dict(zip(uniq, p.evaluate(np.stack(list(uniq.values())), scenarios=sets.heldout)))
     out = {"initial_heldout": float(held[keys[0]]), "methods": {}}
     for m, (tr, raws, secs) in chosen.items():
-        out["methods"][m] = {"compute_fwd": [float(c) for c in points], "seconds": secs,
-                             "heldout_loss": [float(held[r.tobytes()]) for r in raws],
-                             "total_compute_fwd": float(tr.costs[-1]), "total_seconds": float(tr.seconds[-1])}
+        out["methods"][m] = {
+            "compute_fwd": [float(c) for c in points],
+            "seconds": secs,
+            "heldout_loss": [float(held[r.tobytes()]) for r in raws],
+            "total_compute_fwd": float(tr.costs[-1]),
+            "total_seconds": float(tr.seconds[-1]),
+        }
     return out
 
 
 # --- aggregation ------------------------------------------------------------------------------------
+
 
 def rows_of(problem: str, seed: int, result: dict) -> list[dict]:
     """Table rows (:data:`FIELDS`) of one seed's result."""
     rows = []
     for m, r in result["methods"].items():
         for j, (c, sec, h) in enumerate(zip(r["compute_fwd"], r["seconds"], r["heldout_loss"])):
-            rows.append(dict(problem=problem, method=m, seed=seed, point=j, compute_fwd=c, seconds=sec,
-                             heldout_loss=h))
+            rows.append(dict(problem=problem, method=m, seed=seed, point=j, compute_fwd=c, seconds=sec, heldout_loss=h))
     return rows
 
 
@@ -352,9 +394,13 @@ def curves(rows: list[dict]) -> dict:
         for m, pts in P.items():
             js = sorted(pts)
             st = [_stats([r["heldout_loss"] for r in pts[j]]) for j in js]
-            P[m] = {"compute_fwd": [pts[j][0]["compute_fwd"] for j in js], "median": [s["median"] for s in st],
-                    "q25": [s["q25"] for s in st], "q75": [s["q75"] for s in st],
-                    "seconds": [float(np.median([r["seconds"] for r in pts[j]])) for j in js]}
+            P[m] = {
+                "compute_fwd": [pts[j][0]["compute_fwd"] for j in js],
+                "median": [s["median"] for s in st],
+                "q25": [s["q25"] for s in st],
+                "q75": [s["q75"] for s in st],
+                "seconds": [float(np.median([r["seconds"] for r in pts[j]])) for j in js],
+            }
     return out
 
 
@@ -369,9 +415,12 @@ def aggregate(rows: list[dict], tolerance: float = TOLERANCE) -> dict:
         for m, c in P.items():
             last = len(c["compute_fwd"]) - 1
             fin = [r for r in rows if r["problem"] == problem and r["method"] == m and r["point"] == last]
-            out[problem][m] = {"final_heldout_loss": _stats([r["heldout_loss"] for r in fin]),
-                               "final_seconds": _stats([r["seconds"] for r in fin]),
-                               "budget_fwd": c["compute_fwd"][-1], "to_within": {}}
+            out[problem][m] = {
+                "final_heldout_loss": _stats([r["heldout_loss"] for r in fin]),
+                "final_seconds": _stats([r["seconds"] for r in fin]),
+                "budget_fwd": c["compute_fwd"][-1],
+                "to_within": {},
+            }
         for m, c in P.items():
             for other in P:
                 if other == m:
@@ -379,8 +428,10 @@ def aggregate(rows: list[dict], tolerance: float = TOLERANCE) -> dict:
                 target = (1 + tolerance) * out[problem][other]["final_heldout_loss"]["median"]
                 j = next((j for j, v in enumerate(c["median"]) if v <= target), None)
                 out[problem][m]["to_within"][other] = {
-                    "target": target, "compute_fwd": None if j is None else c["compute_fwd"][j],
-                    "seconds": None if j is None else c["seconds"][j]}
+                    "target": target,
+                    "compute_fwd": None if j is None else c["compute_fwd"][j],
+                    "seconds": None if j is None else c["seconds"][j],
+                }
     return out
 
 
@@ -397,22 +448,40 @@ def markdown(agg: dict, tolerance: float = TOLERANCE) -> str:
     lines = []
     for problem, P in agg.items():
         ms = ordered(P)
-        lines += [f"### {problem}", "", "| method | final held-out loss, median [IQR] | seconds, median [IQR] | "
-                  "budget [fwd-rollout eq.] |", "|---|---|---|---|"]
-        lines += [f"| {m} | {q(P[m]['final_heldout_loss'])} | {q(P[m]['final_seconds'], '{:.3g}')} | "
-                  f"{P[m]['budget_fwd']:.0f} |" for m in ms]
-        lines += ["", f"compute to come within {100 * tolerance:g} % of the column's final median held-out loss "
-                  "(forward-rollout equivalents / s; '-': never within the budget)", "",
-                  "| method | " + " | ".join(ms) + " |", "|---" * (len(ms) + 1) + "|"]
+        lines += [
+            f"### {problem}",
+            "",
+            "| method | final held-out loss, median [IQR] | seconds, median [IQR] | budget [fwd-rollout eq.] |",
+            "|---|---|---|---|",
+        ]
+        lines += [
+            f"| {m} | {q(P[m]['final_heldout_loss'])} | {q(P[m]['final_seconds'], '{:.3g}')} | "
+            f"{P[m]['budget_fwd']:.0f} |"
+            for m in ms
+        ]
+        lines += [
+            "",
+            f"compute to come within {100 * tolerance:g} % of the column's final median held-out loss "
+            "(forward-rollout equivalents / s; '-': never within the budget)",
+            "",
+            "| method | " + " | ".join(ms) + " |",
+            "|---" * (len(ms) + 1) + "|",
+        ]
         for m in ms:
-            cell = lambda o: ("" if o == m else "-" if P[m]["to_within"][o]["compute_fwd"] is None else
-                              f"{P[m]['to_within'][o]['compute_fwd']:.0f} / {P[m]['to_within'][o]['seconds']:.3g}")
+            cell = lambda o: (
+                ""
+                if o == m
+                else "-"
+                if P[m]["to_within"][o]["compute_fwd"] is None
+                else f"{P[m]['to_within'][o]['compute_fwd']:.0f} / {P[m]['to_within'][o]['seconds']:.3g}"
+            )
             lines.append(f"| {m} | " + " | ".join(cell(o) for o in ms) + " |")
         lines.append("")
     return "\n".join(lines)
 
 
 # --- the study ------------------------------------------------------------------------------------
+
 
 def _fingerprint(*parts) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
@@ -425,7 +494,7 @@ def _kept(path: Path, fp: str):
     try:
         d = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
-        return None                     # a torn or foreign file: computed again
+        return None  # a torn or foreign file: computed again
     return d if isinstance(d, dict) and d.get("fingerprint") == fp else None
 
 
@@ -441,13 +510,12 @@ def problem_cost(p: Plan, out: Path, say=print) -> dict:
     return cost
 
 
-def study(problems: dict, out, *, seeds: int, methods=METHODS, points: int = 8, budget: float = 1.0,
-          log=print) -> dict:
+def study(problems: dict, out, *, seeds: int, methods=METHODS, points: int = 8, budget: float = 1.0, log=print) -> dict:
     """Run (or resume) the study of ``problems`` (name -> (Problem, requirement spec or None))
     into ``out`` and write its three files; returns the summary."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    token = files.acquire_output(out, "tuning.study")      # a second writer is refused (OutputLocked)
+    token = files.acquire_output(out, "tuning.study")  # a second writer is refused (OutputLocked)
     try:
         t0, rows, notes, costs = time.perf_counter(), [], {}, {}
         methods = [m for m in METHODS if m in methods]
@@ -459,8 +527,17 @@ def study(problems: dict, out, *, seeds: int, methods=METHODS, points: int = 8, 
             pts = compute_points(b, points)
             _check_budget(p, budget * b)
             for seed in range(seeds):
-                fp = _fingerprint(VERSION, p.problem.fingerprint(), repr(p.family), seed, methods, pts.tolist(),
-                                  budget, costs[name]["ratio"], repr(p.requirement))
+                fp = _fingerprint(
+                    VERSION,
+                    p.problem.fingerprint(),
+                    repr(p.family),
+                    seed,
+                    methods,
+                    pts.tolist(),
+                    budget,
+                    costs[name]["ratio"],
+                    repr(p.requirement),
+                )
                 path = out / name / f"seed_{seed}.json"
                 res = _kept(path, fp)
                 elapsed = time.perf_counter() - t0
@@ -482,8 +559,10 @@ def _check_budget(p: Plan, budget: float) -> None:
     b, n = p.settings.baselines, p.settings.scenarios.train
     pop = b.population(p.family.size)
     if budget < pop * n:
-        raise ValueError(f"{p.name}: a budget of {budget:.0f} forward rollouts is less than one CMA-ES generation "
-                         f"({pop} x {n}); raise --budget or the steps")
+        raise ValueError(
+            f"{p.name}: a budget of {budget:.0f} forward rollouts is less than one CMA-ES generation "
+            f"({pop} x {n}); raise --budget or the steps"
+        )
 
 
 def _write(out: Path, rows, notes, costs, seeds, budget, wall, log) -> dict:
@@ -496,12 +575,20 @@ def _write(out: Path, rows, notes, costs, seeds, budget, wall, log) -> dict:
     wr.writerows(rows)
     files.write_bytes(out / "study.csv", buf.getvalue().encode())
     figure(out / "study.png", rows)
-    summary = {"experiment": "tuning study on equal terms", "problems": list(costs), "seeds": seeds,
-               "statistic": "median and interquartile range (25th-75th percentile) over seeds",
-               "compute_unit": "forward-rollout equivalents (one scenario simulated once, forward)",
-               "cost_per_problem": costs, "baseline_budget_multiple": budget, "tolerance": TOLERANCE,
-               "requirement_notes": {k: v for k, v in notes.items() if v}, "aggregate": agg,
-               "table_markdown": table, "wall_time_s": wall}
+    summary = {
+        "experiment": "tuning study on equal terms",
+        "problems": list(costs),
+        "seeds": seeds,
+        "statistic": "median and interquartile range (25th-75th percentile) over seeds",
+        "compute_unit": "forward-rollout equivalents (one scenario simulated once, forward)",
+        "cost_per_problem": costs,
+        "baseline_budget_multiple": budget,
+        "tolerance": TOLERANCE,
+        "requirement_notes": {k: v for k, v in notes.items() if v},
+        "aggregate": agg,
+        "table_markdown": table,
+        "wall_time_s": wall,
+    }
     files.write_json(out / "summary.json", summary)
     log(table)
     return summary
@@ -518,8 +605,9 @@ def figure(path: Path, rows: list[dict]) -> None:
         for m in ordered(P):
             c, color = P[m], f"C{bases.index(m.removesuffix('_resampled')) % 10}"
             ls = "--" if m.endswith("_resampled") else "-"
-            ax.plot(c["compute_fwd"], c["median"], ls, color=color, lw=1.4, marker="o", ms=2.5,
-                    label=m.replace("_", " "))
+            ax.plot(
+                c["compute_fwd"], c["median"], ls, color=color, lw=1.4, marker="o", ms=2.5, label=m.replace("_", " ")
+            )
             ax.fill_between(c["compute_fwd"], c["q25"], c["q75"], color=color, alpha=0.12, lw=0)
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -536,8 +624,15 @@ def figure(path: Path, rows: list[dict]) -> None:
 
 def run(args, log=print) -> dict:
     """The study of the command line's options (``args`` from :func:`parser`)."""
-    return study(problems_of(args), args.out, seeds=args.seeds, methods=args.methods, points=args.points,
-                 budget=args.budget, log=log)
+    return study(
+        problems_of(args),
+        args.out,
+        seeds=args.seeds,
+        methods=args.methods,
+        points=args.points,
+        budget=args.budget,
+        log=log,
+    )
 
 
 def problems_of(args) -> dict:
@@ -548,7 +643,7 @@ def problems_of(args) -> dict:
     """
     import jax
 
-    jax.config.update("jax_enable_x64", True)     # the tuner runs in float64
+    jax.config.update("jax_enable_x64", True)  # the tuner runs in float64
     from wmrjax.problem import Problem
 
     require = None if args.require_radius is None else (_radius(args.require_radius), args.require_slice)
@@ -578,12 +673,17 @@ def main(argv=None) -> int:
 
     p = parser()
     a = p.parse_args(argv)
-    try:                            # the problems named by the options: a bad one is a bad option
+    try:  # the problems named by the options: a bad one is a bad option
         problems = problems_of(a)
     except ValueError as e:
         options.fail(p, str(e))
-    s = options.work(p, a, lambda progress: study(problems, a.out, seeds=a.seeds, methods=a.methods, points=a.points,
-                                                  budget=a.budget, log=progress))
+    s = options.work(
+        p,
+        a,
+        lambda progress: study(
+            problems, a.out, seeds=a.seeds, methods=a.methods, points=a.points, budget=a.budget, log=progress
+        ),
+    )
     print(f"wrote {a.out}/study.csv, summary.json, study.png ({s['wall_time_s']:.0f} s)")
     return 0
 

@@ -21,14 +21,24 @@ from jax.experimental import jet as _jet
 from jax.interpreters import ad, batching, mlir
 
 # fdlibm __kernel_sin / __kernel_cos minimax coefficients on [-pi/4, pi/4].
-_SIN = (-1.66666666666666324348e-01, 8.33333333332248946124e-03,
-        -1.98412698298579493134e-04, 2.75573137070700676789e-06,
-        -2.50507602534068634195e-08, 1.58969099521155010221e-10)
-_COS = (4.16666666666666019037e-02, -1.38888888888741095749e-03,
-        2.48015872894767294178e-05, -2.75573143513906633035e-07,
-        2.08757232129817482790e-09, -1.13596475577881948265e-11)
+_SIN = (
+    -1.66666666666666324348e-01,
+    8.33333333332248946124e-03,
+    -1.98412698298579493134e-04,
+    2.75573137070700676789e-06,
+    -2.50507602534068634195e-08,
+    1.58969099521155010221e-10,
+)
+_COS = (
+    4.16666666666666019037e-02,
+    -1.38888888888741095749e-03,
+    2.48015872894767294178e-05,
+    -2.75573143513906633035e-07,
+    2.08757232129817482790e-09,
+    -1.13596475577881948265e-11,
+)
 # pi/2 split in three parts (Cody-Waite): exact products k * _PIO2_1 for |k| < 2**20.
-_PIO2_1 = 1.57079632673412561417e+00
+_PIO2_1 = 1.57079632673412561417e00
 _PIO2_2 = 6.07710050630396597660e-11
 _PIO2_3 = 2.02226624871116645580e-21
 _TWO_OVER_PI = 0.63661977236758134308
@@ -115,9 +125,7 @@ atan2_p = jax.extend.core.Primitive("wmrjax_atan2")
 atan2_p.def_impl(lambda x, y: jax.jit(jax.lax.atan2)(x, y))
 atan2_p.def_abstract_eval(lambda x, y: jax.core.ShapedArray(x.shape, x.dtype))
 mlir.register_lowering(atan2_p, mlir.lower_fun(jax.lax.atan2, multiple_results=False))
-ad.defjvp(atan2_p,
-          lambda dx, x, y: dx * y / (x * x + y * y),
-          lambda dy, x, y: -dy * x / (x * x + y * y))
+ad.defjvp(atan2_p, lambda dx, x, y: dx * y / (x * x + y * y), lambda dy, x, y: -dy * x / (x * x + y * y))
 batching.defbroadcasting(atan2_p)
 
 
@@ -130,7 +138,7 @@ def _atan2_taylor(primals_in, series_in):
     (x, y), (xs, ys) = primals_in, series_in
     u, w = [x] + list(xs), [y] + list(ys)
     order = len(xs)
-    du = [(k + 1) * u[k + 1] for k in range(order)]          # coefficients of x'(t)
+    du = [(k + 1) * u[k + 1] for k in range(order)]  # coefficients of x'(t)
     dw = [(k + 1) * w[k + 1] for k in range(order)]
     num = [_product(w, du, k) - _product(u, dw, k) for k in range(order)]
     den = [_product(u, u, k) + _product(w, w, k) for k in range(order)]
@@ -178,8 +186,10 @@ def adjugate_solve(k, b):
     if n == 2:
         det = k[0, 0] * k[1, 1] - k[0, 1] * k[1, 0]
         return jnp.stack([k[1, 1] * b[0] - k[0, 1] * b[1], k[0, 0] * b[1] - k[1, 0] * b[0]]), det
+
     def cross(u, v):
         return jnp.stack([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])
+
     c0, c1, c2 = cross(k[1], k[2]), cross(k[2], k[0]), cross(k[0], k[1])
     det = k[0, 0] * c0[0] + k[0, 1] * c0[1] + k[0, 2] * c0[2]
     return c0 * b[0] + c1 * b[1] + c2 * b[2], det
@@ -199,6 +209,7 @@ def safe_divisor(d, floor):
 # neither vectorises well nor fuses with the surrounding elementwise code. These
 # helpers unroll over the (static, tiny) inner dimension so the whole closed-loop
 # vector field compiles to one fused loop, many times faster.
+
 
 def matvec(a, x):
     """``a @ x`` for a small (p, q) matrix, unrolled over q."""
@@ -234,6 +245,7 @@ def golden_section(f, lo, hi, iters: int):
     Returns:
       The final bracket ``(lo, hi)``.
     """
+
     def step(c, _):
         lo, hi = c
         x1, x2 = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)

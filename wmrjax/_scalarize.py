@@ -48,18 +48,87 @@ from wmrjax._simplify import rewrites_enabled
 MAX_ELEMENTS = 64
 
 # primitives applied element by element (operands broadcast to the output's shape)
-_ELEMENTWISE = frozenset({
-    "abs", "acos", "acosh", "add", "add_any", "and", "asin", "asinh", "atan", "atan2", "atanh", "cbrt",
-    "ceil", "clamp", "conj", "convert_element_type", "copy", "copy_p", "cos", "cosh", "digamma", "div",
-    "eq", "erf", "erf_inv", "erfc", "exp", "exp2", "expm1", "floor", "ge", "gt", "imag", "integer_pow",
-    "is_finite", "le", "lgamma", "log", "log1p", "logistic", "lt", "max", "min", "mul", "ne", "neg",
-    "nextafter", "not", "or", "pow", "real", "reduce_precision", "rem", "round", "rsqrt", "select_n",
-    "sign", "sin", "sinh", "sqrt", "square", "stop_gradient", "sub", "tan", "tanh", "xor",
-    "wmrjax_atan2", "wmrjax_sincos",
-})
+_ELEMENTWISE = frozenset(
+    {
+        "abs",
+        "acos",
+        "acosh",
+        "add",
+        "add_any",
+        "and",
+        "asin",
+        "asinh",
+        "atan",
+        "atan2",
+        "atanh",
+        "cbrt",
+        "ceil",
+        "clamp",
+        "conj",
+        "convert_element_type",
+        "copy",
+        "copy_p",
+        "cos",
+        "cosh",
+        "digamma",
+        "div",
+        "eq",
+        "erf",
+        "erf_inv",
+        "erfc",
+        "exp",
+        "exp2",
+        "expm1",
+        "floor",
+        "ge",
+        "gt",
+        "imag",
+        "integer_pow",
+        "is_finite",
+        "le",
+        "lgamma",
+        "log",
+        "log1p",
+        "logistic",
+        "lt",
+        "max",
+        "min",
+        "mul",
+        "ne",
+        "neg",
+        "nextafter",
+        "not",
+        "or",
+        "pow",
+        "real",
+        "reduce_precision",
+        "rem",
+        "round",
+        "rsqrt",
+        "select_n",
+        "sign",
+        "sin",
+        "sinh",
+        "sqrt",
+        "square",
+        "stop_gradient",
+        "sub",
+        "tan",
+        "tanh",
+        "xor",
+        "wmrjax_atan2",
+        "wmrjax_sincos",
+    }
+)
 _CALLS = frozenset({"pjit", "jit", "closed_call"})
-_REDUCERS = {"reduce_sum": lax.add, "reduce_prod": lax.mul, "reduce_max": lax.max, "reduce_min": lax.min,
-             "reduce_and": lax.bitwise_and, "reduce_or": lax.bitwise_or}
+_REDUCERS = {
+    "reduce_sum": lax.add,
+    "reduce_prod": lax.mul,
+    "reduce_max": lax.max,
+    "reduce_min": lax.min,
+    "reduce_and": lax.bitwise_and,
+    "reduce_or": lax.bitwise_or,
+}
 
 
 def _is_elements(x) -> bool:
@@ -150,8 +219,8 @@ def _reduce(x, axes, name, aval):
     axes = tuple(sorted(axes))
     keep = [a for a in range(x.ndim) if a not in axes]
     xt = np.transpose(x, keep + list(axes))
-    out_shape = xt.shape[:len(keep)]
-    xt = xt.reshape(out_shape + (int(np.prod(xt.shape[len(keep):], dtype=int)),))
+    out_shape = xt.shape[: len(keep)]
+    xt = xt.reshape(out_shape + (int(np.prod(xt.shape[len(keep) :], dtype=int)),))
     out = np.empty(out_shape, dtype=object)
     for idx in np.ndindex(out_shape):
         out[idx] = _fold(_REDUCERS[name], xt[idx]) if xt.shape[-1] else _identity(name, aval.dtype)
@@ -171,15 +240,16 @@ def _dot_general(lhs, rhs, params, aval):
     lt = np.transpose(lhs, list(lb) + lf + list(lc))
     rt = np.transpose(rhs, list(rb) + rf + list(rc))
     nb = len(lb)
-    batch, lfree, rfree = lt.shape[:nb], lt.shape[nb:nb + len(lf)], rt.shape[nb:nb + len(rf)]
+    batch, lfree, rfree = lt.shape[:nb], lt.shape[nb : nb + len(lf)], rt.shape[nb : nb + len(rf)]
     lt = lt.reshape(batch + lfree + (-1,))
     rt = rt.reshape(batch + rfree + (-1,))
     out = np.empty(batch + lfree + rfree, dtype=object)
     for b in np.ndindex(batch):
         for i in np.ndindex(lfree):
             for j in np.ndindex(rfree):
-                terms = [_bind_fn(lax.mul, _cast(u, aval.dtype), _cast(v, aval.dtype))
-                         for u, v in zip(lt[b + i], rt[b + j])]
+                terms = [
+                    _bind_fn(lax.mul, _cast(u, aval.dtype), _cast(v, aval.dtype)) for u, v in zip(lt[b + i], rt[b + j])
+                ]
                 out[b + i + j] = _fold(lax.add, terms) if terms else np.zeros((), aval.dtype)[()]
     return out
 
@@ -217,8 +287,11 @@ def _scatter(eqn, ins):
     params = eqn.primitive.get_bind_params(eqn.params)
     with jax.ensure_compile_time_eval():
         probe = eqn.primitive.bind(
-            jnp.full(operand.shape, -1.0, jnp.float32), jnp.asarray(_array(indices, eqn.invars[1].aval)),
-            jnp.arange(updates.size, dtype=jnp.float32).reshape(updates.shape), **params)
+            jnp.full(operand.shape, -1.0, jnp.float32),
+            jnp.asarray(_array(indices, eqn.invars[1].aval)),
+            jnp.arange(updates.size, dtype=jnp.float32).reshape(updates.shape),
+            **params,
+        )
     where = np.asarray(probe).astype(np.int64)
     out = operand.copy()
     flat_updates = updates.reshape(-1)
@@ -300,7 +373,7 @@ def _eval(jaxpr, consts, args):
         elif _small(eqn) and not eqn.effects:
             ins_e = [_elements(a) for a in ins]
             outs = _elementwise(eqn, ins_e) if name in _ELEMENTWISE else _structural(eqn, ins_e)
-        if outs is None:        # no rule, or large arrays: the primitive on whole arrays
+        if outs is None:  # no rule, or large arrays: the primitive on whole arrays
             arrays = [_array(a, v.aval) for a, v in zip(ins, eqn.invars)]
             outs = eqn.primitive.bind(*arrays, **eqn.primitive.get_bind_params(eqn.params))
             outs = outs if eqn.primitive.multiple_results else [outs]

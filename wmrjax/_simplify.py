@@ -78,7 +78,7 @@ def _is_zero_constant(x) -> bool:
         return False
     try:
         arr = np.asarray(x)
-    except Exception:      # noqa: BLE001 - anything we cannot inspect is not a known zero
+    except Exception:  # noqa: BLE001 - anything we cannot inspect is not a known zero
         return False
     return arr.dtype.kind in "fcib" and arr.size > 0 and not np.any(arr)
 
@@ -97,10 +97,34 @@ def _materialize(x):
 # primitives p with p(0, ...) == 0 whenever their first operand is zero (other operands,
 # such as indices, are free); the output has the primitive's abstract value
 _ZERO_IN_FIRST = {
-    "neg", "broadcast_in_dim", "reshape", "convert_element_type", "transpose", "squeeze",
-    "expand_dims", "slice", "dynamic_slice", "gather", "reduce_sum", "copy", "copy_p", "rev",
-    "sin", "tan", "sinh", "tanh", "asin", "atan", "sqrt", "cbrt", "cumsum", "reduce_precision",
-    "real", "imag", "conj", "div",
+    "neg",
+    "broadcast_in_dim",
+    "reshape",
+    "convert_element_type",
+    "transpose",
+    "squeeze",
+    "expand_dims",
+    "slice",
+    "dynamic_slice",
+    "gather",
+    "reduce_sum",
+    "copy",
+    "copy_p",
+    "rev",
+    "sin",
+    "tan",
+    "sinh",
+    "tanh",
+    "asin",
+    "atan",
+    "sqrt",
+    "cbrt",
+    "cumsum",
+    "reduce_precision",
+    "real",
+    "imag",
+    "conj",
+    "div",
 }
 # products: zero if any operand is zero
 _ZERO_IN_ANY = {"mul", "dot_general"}
@@ -120,7 +144,7 @@ def _key(x):
 
 
 _ZERO, _EMIT = "zero", "emit"
-_DEAD = object()        # the value of a skipped equation (never bound: the liveness pass proves it unused)
+_DEAD = object()  # the value of a skipped equation (never bound: the liveness pass proves it unused)
 
 
 def _action(eqn, zero):
@@ -132,10 +156,13 @@ def _action(eqn, zero):
     name = eqn.primitive.name
     if eqn.primitive.multiple_results or name in _CALLS:
         return _EMIT
-    if ((name in _ZERO_IN_FIRST and zero and zero[0]) or (name in _ZERO_IN_ANY and any(zero))
-            or (name in _ZERO_IN_ALL and all(zero))
-            or (name == "integer_pow" and zero[0] and eqn.params["y"] > 0)
-            or (name == "select_n" and all(zero[1:]))):
+    if (
+        (name in _ZERO_IN_FIRST and zero and zero[0])
+        or (name in _ZERO_IN_ANY and any(zero))
+        or (name in _ZERO_IN_ALL and all(zero))
+        or (name == "integer_pow" and zero[0] and eqn.params["y"] > 0)
+        or (name == "select_n" and all(zero[1:]))
+    ):
         return _ZERO
     if name in ("mul", "div") and _is_one(eqn.invars[1]):
         return (0, False)
@@ -161,8 +188,7 @@ def _live(jaxpr, zero_vars):
     zero = set(zero_vars)
     actions = []
     for eqn in jaxpr.eqns:
-        act = _action(eqn, [_zero_literal(v) if isinstance(v, jex_core.Literal) else v in zero
-                            for v in eqn.invars])
+        act = _action(eqn, [_zero_literal(v) if isinstance(v, jex_core.Literal) else v in zero for v in eqn.invars])
         if act == _ZERO:
             zero.update(eqn.outvars)
         actions.append(act)
@@ -191,7 +217,7 @@ def _eval(jaxpr, consts, args, memo=None):
     def read(v):
         if isinstance(v, jex_core.Literal):
             return _Zero(v.aval) if _is_zero_constant(v.val) else v.val
-        if v not in env:                # produced by a skipped equation: its value is not needed
+        if v not in env:  # produced by a skipped equation: its value is not needed
             return _Zero(v.aval) if v in known_zero else _DEAD
         return env[v]
 
@@ -209,7 +235,7 @@ def _eval(jaxpr, consts, args, memo=None):
             try:
                 key = (eqn.primitive, tuple(sorted(eqn.params.items())), tuple(_key(x) for x in invals))
                 hash(key)
-            except TypeError:           # unhashable parameters (e.g. functions): emit as is
+            except TypeError:  # unhashable parameters (e.g. functions): emit as is
                 key = None
         if key is not None and key in memo:
             outs = memo[key][1]

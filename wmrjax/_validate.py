@@ -57,7 +57,7 @@ def check_real(name: str, x) -> None:
     if hasattr(x, "dtype"):
         dt = np.dtype(x.dtype)
     else:
-        try:                    # nested lists: np.result_type would read them as a structured dtype
+        try:  # nested lists: np.result_type would read them as a structured dtype
             dt = np.asarray(x).dtype
         except (TypeError, ValueError):
             dt = np.dtype(object)

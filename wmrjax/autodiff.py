@@ -63,8 +63,9 @@ def choose_mode(n_parameters: int, mode: str = "auto", forward_max: int = FORWAR
     return "forward" if n_parameters <= forward_max else "reverse"
 
 
-def value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has_aux: bool = False,
-                   mode: str = "auto") -> Callable:
+def value_and_grad(
+    fun: Callable, argnums: int | Sequence[int] = 0, *, has_aux: bool = False, mode: str = "auto"
+) -> Callable:
     """Like ``jax.value_and_grad``, with the differentiation mode chosen by parameter count.
 
     Args:
@@ -82,7 +83,7 @@ def value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has_aux: 
     Raises:
       ValueError: an unknown ``mode`` (at once), or a non-scalar value (when called).
     """
-    choose_mode(0, mode)            # validate now, before anything is traced
+    choose_mode(0, mode)  # validate now, before anything is traced
     single = isinstance(argnums, int)
     nums = (argnums,) if single else tuple(argnums)
 
@@ -103,8 +104,9 @@ def value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has_aux: 
             return value, aux
 
         basis = jnp.eye(flat.size, dtype=flat.dtype)
-        value, tangents, aux = jax.vmap(lambda v: jax.jvp(along, (flat,), (v,), has_aux=True),
-                                        out_axes=(None, 0, None))(basis)
+        value, tangents, aux = jax.vmap(
+            lambda v: jax.jvp(along, (flat,), (v,), has_aux=True), out_axes=(None, 0, None)
+        )(basis)
         grads = unravel(tangents.astype(flat.dtype))
         grads = grads[0] if single else grads
         return ((value, aux) if has_aux else value), grads
@@ -121,13 +123,22 @@ def _batch_size(args: tuple, nums: tuple) -> int:
     if not leaves:
         raise ValueError("batch_value_and_grad needs at least one batched argument (outside argnums)")
     if jnp.ndim(leaves[0]) == 0:
-        raise ValueError("batch_value_and_grad: the batched arguments need a leading batch axis (the same "
-                         f"leading batch size on every leaf), got shapes {[jnp.shape(x) for x in leaves]}")
+        raise ValueError(
+            "batch_value_and_grad: the batched arguments need a leading batch axis (the same "
+            f"leading batch size on every leaf), got shapes {[jnp.shape(x) for x in leaves]}"
+        )
     return jnp.shape(leaves[0])[0]
 
 
-def batch_value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has_aux: bool = False,
-                         mode: str = "auto", chunk: int | None = None, mesh=None) -> Callable:
+def batch_value_and_grad(
+    fun: Callable,
+    argnums: int | Sequence[int] = 0,
+    *,
+    has_aux: bool = False,
+    mode: str = "auto",
+    chunk: int | None = None,
+    mesh=None,
+) -> Callable:
     """The mean of a per-example loss over a batch, and its gradient in the cheaper mode.
 
     ``fun(*args)`` is the scalar loss of ONE example. The arguments in ``argnums`` are the
@@ -162,7 +173,7 @@ def batch_value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has
         no batched argument, batched arguments of different leading sizes, or a non-scalar
         per-example loss (when called).
     """
-    choose_mode(0, mode)            # validate now, before anything is traced
+    choose_mode(0, mode)  # validate now, before anything is traced
     if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
         raise ValueError(f"chunk must be a positive integer (examples per chunk) or None, got {chunk!r}")
     single = isinstance(argnums, int)
@@ -171,9 +182,11 @@ def batch_value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has
     def wrapped(*args):
         b = _batch_size(args, nums)
 
-        def spread(a):     # shared arguments enter batch_map broadcast along the batch
-            return [jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + jnp.shape(x)), v) if i in nums else v
-                    for i, v in enumerate(a)]
+        def spread(a):  # shared arguments enter batch_map broadcast along the batch
+            return [
+                jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + jnp.shape(x)), v) if i in nums else v
+                for i, v in enumerate(a)
+            ]
 
         n_par = ravel_pytree(tuple(args[i] for i in nums))[0].size
 
@@ -185,14 +198,19 @@ def batch_value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, has
             return out
 
         if choose_mode(n_par, mode, BATCH_FORWARD_MAX_PARAMETERS) == "forward":
+
             def mean_loss(*a):
                 out = batch_map(checked, *spread(a), chunk=512 if chunk is None else chunk, mesh=mesh)
                 return (jnp.mean(out[0]), out[1]) if has_aux else jnp.mean(out)
 
             return value_and_grad(mean_loss, argnums, has_aux=has_aux, mode="forward")(*args)
 
-        out, grads = batch_map(jax.value_and_grad(checked, nums, has_aux=has_aux), *spread(args),
-                               chunk=BATCH_REVERSE_CHUNK if chunk is None else chunk, mesh=mesh)
+        out, grads = batch_map(
+            jax.value_and_grad(checked, nums, has_aux=has_aux),
+            *spread(args),
+            chunk=BATCH_REVERSE_CHUNK if chunk is None else chunk,
+            mesh=mesh,
+        )
         grads = jax.tree_util.tree_map(lambda g: jnp.mean(g, axis=0), grads)
         grads = grads[0] if single else grads
         value = (jnp.mean(out[0]), out[1]) if has_aux else jnp.mean(out)

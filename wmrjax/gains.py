@@ -38,7 +38,7 @@ def monic_coefficients(poles):
       construction. For r = 2: ``k = (l1 l2, l1 + l2)`` as in eq (13).
     """
     r = poles.shape[-1]
-    c = [jnp.ones_like(poles[..., 0])]          # highest power first, start from "1"
+    c = [jnp.ones_like(poles[..., 0])]  # highest power first, start from "1"
     for j in range(r):
         lam = poles[..., j]
         new = [c[0]]
@@ -46,7 +46,7 @@ def monic_coefficients(poles):
             new.append(c[i] + lam * c[i - 1])
         new.append(lam * c[-1])
         c = new
-    return jnp.stack(c[::-1][:r], axis=-1)      # ascending powers, without the leading 1
+    return jnp.stack(c[::-1][:r], axis=-1)  # ascending powers, without the leading 1
 
 
 def _polymul(a, b):
@@ -107,8 +107,10 @@ class Gains(NamedTuple):
         p = jnp.asarray(poles, dtype=jnp.result_type(float))
         if m is not None and r is not None:
             if p.ndim > 2 or (p.ndim >= 1 and p.shape[-1] not in (1, r)) or (p.ndim == 2 and p.shape[0] not in (1, m)):
-                raise ValueError(f"poles must be a scalar, ({r},) or ({m}, {r}) (one pole magnitude per output and "
-                                 f"derivative order, r = {r}), got shape {p.shape}")
+                raise ValueError(
+                    f"poles must be a scalar, ({r},) or ({m}, {r}) (one pole magnitude per output and "
+                    f"derivative order, r = {r}), got shape {p.shape}"
+                )
             p = jnp.broadcast_to(p, (m, r))
         elif p.ndim != 2:
             raise ValueError(f"poles must be (m, r) unless m and r are given, got shape {p.shape}")
@@ -146,8 +148,10 @@ class Gains(NamedTuple):
         check_finite("gains.coeffs", c)
         bad = [i for i in range(m) if not np.all(np.roots(np.concatenate([[1.0], c[i, ::-1]])).real < 0)]
         if bad:
-            raise ValueError(f"gains.coeffs of outputs {bad} are not Hurwitz (closed-loop poles "
-                             f"{self.poles()[bad[0]].tolist()}); the error dynamics would not converge")
+            raise ValueError(
+                f"gains.coeffs of outputs {bad} are not Hurwitz (closed-loop poles "
+                f"{self.poles()[bad[0]].tolist()}); the error dynamics would not converge"
+            )
         return self
 
     def poles(self) -> np.ndarray:
@@ -158,8 +162,12 @@ class Gains(NamedTuple):
     def is_double_pole(self, value: float = 1.0, rtol: float = 1e-12) -> bool:
         """True iff every output's polynomial is :math:`(s + value)^2` (concrete coefficients; r = 2)."""
         c = concrete(self.coeffs)
-        return (c is not None and c.ndim == 2 and c.shape[1] == 2
-                and bool(np.allclose(c, [value * value, 2.0 * value], rtol=rtol, atol=0.0)))
+        return (
+            c is not None
+            and c.ndim == 2
+            and c.shape[1] == 2
+            and bool(np.allclose(c, [value * value, 2.0 * value], rtol=rtol, atol=0.0))
+        )
 
     def cascade_pole(self):
         r"""For r = 2, :math:`\Lambda_1` of the cascade :math:`\dot{\tilde z} + \Lambda_1 \tilde z = \tilde\sigma`,
@@ -170,10 +178,12 @@ class Gains(NamedTuple):
         k0, k1 = self.coeffs[:, 0], self.coeffs[:, 1]
         disc = k1 * k1 - 4.0 * k0
         pos = disc > 0
-        root = jnp.where(pos, jnp.sqrt(jnp.where(pos, disc, 1.0)), 0.0)   # double where: finite gradients at a double pole
+        root = jnp.where(
+            pos, jnp.sqrt(jnp.where(pos, disc, 1.0)), 0.0
+        )  # double where: finite gradients at a double pole
         return jnp.where(disc >= 0, 0.5 * (k1 - root), jnp.nan)
 
-    time_varying = False      # a class constant, not a pytree leaf
+    time_varying = False  # a class constant, not a pytree leaf
 
     def coeffs_at(self, t):
         """The (m, r) coefficients at time t [s]: constant gains ignore t."""
@@ -198,9 +208,9 @@ def _hermite_log(times, values, t):
       t: scalar time [s].
     """
     y = jnp.log(values)
-    h = times[1:] - times[:-1]                                       # (K-1,)
+    h = times[1:] - times[:-1]  # (K-1,)
     hb = h.reshape((-1,) + (1,) * (y.ndim - 1))
-    delta = (y[1:] - y[:-1]) / hb                                    # secant slopes
+    delta = (y[1:] - y[:-1]) / hb  # secant slopes
     if y.shape[0] > 2:
         interior = (hb[1:] * delta[:-1] + hb[:-1] * delta[1:]) / (hb[:-1] + hb[1:])
         d = jnp.concatenate([delta[:1], interior, delta[-1:]])
@@ -209,8 +219,12 @@ def _hermite_log(times, values, t):
     i = jnp.clip(jnp.searchsorted(times, jax.lax.stop_gradient(t), side="right") - 1, 0, times.shape[0] - 2)
     s = jnp.clip((t - times[i]) / h[i], 0.0, 1.0)
     s2, s3 = s * s, s * s * s
-    val = ((2 * s3 - 3 * s2 + 1) * y[i] + (s3 - 2 * s2 + s) * h[i] * d[i]
-           + (-2 * s3 + 3 * s2) * y[i + 1] + (s3 - s2) * h[i] * d[i + 1])
+    val = (
+        (2 * s3 - 3 * s2 + 1) * y[i]
+        + (s3 - 2 * s2 + s) * h[i] * d[i]
+        + (-2 * s3 + 3 * s2) * y[i + 1]
+        + (s3 - s2) * h[i] * d[i + 1]
+    )
     return jnp.exp(val)
 
 
@@ -257,13 +271,17 @@ class GainSchedule(NamedTuple):
         """
         ts = np.asarray(times, float)
         if ts.ndim != 1 or ts.size < 2:
-            raise ValueError(f"a gain schedule needs at least 2 knot times (a (K,) array, K >= 2), got shape {ts.shape}")
+            raise ValueError(
+                f"a gain schedule needs at least 2 knot times (a (K,) array, K >= 2), got shape {ts.shape}"
+            )
         if not np.all(np.isfinite(ts)) or np.any(np.diff(ts) <= 0):
             raise ValueError(f"knot times must be finite and strictly increasing [s], got {ts.tolist()}")
         om, ze = jnp.asarray(omega, float), jnp.asarray(zeta, float)
         if om.ndim != 3 or om.shape[0] != ts.size or ze.shape != om.shape:
-            raise ValueError(f"omega and zeta must both be (K, m, q) = ({ts.size}, m, q) (one value per knot, output "
-                             f"and second-order factor), got {om.shape} and {ze.shape}")
+            raise ValueError(
+                f"omega and zeta must both be (K, m, q) = ({ts.size}, m, q) (one value per knot, output "
+                f"and second-order factor), got {om.shape} and {ze.shape}"
+            )
         check_positive("omega (natural frequencies at the knots)", om)
         check_positive("zeta (dampings at the knots)", ze)
         if lam is not None:
@@ -297,8 +315,10 @@ class GainSchedule(NamedTuple):
         """ValueError unless the schedule is for m outputs of relative degree r, with K >= 2
         strictly increasing knots and positive parameters (concrete values only)."""
         if self.shape != (m, r):
-            raise ValueError(f"the gain schedule is for (m, r) = {self.shape}, the controller needs ({m}, {r}) "
-                             "(outputs, relative degree)")
+            raise ValueError(
+                f"the gain schedule is for (m, r) = {self.shape}, the controller needs ({m}, {r}) "
+                "(outputs, relative degree)"
+            )
         leaves = [concrete(x) for x in (self.times, self.omega, self.zeta, self.lam) if x is not None]
         if all(v is not None for v in leaves):
             GainSchedule.from_damping(self.times, self.omega, self.zeta, self.lam)

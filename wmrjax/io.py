@@ -37,7 +37,7 @@ def read_small_text(path, what: str) -> str:
         size = path.stat().st_size
         if size > MAX_FILE_BYTES:
             raise ValueError(f"{what} {str(path)!r}: {size} bytes, more than {MAX_FILE_BYTES}")
-        with open(path, "rb") as fh:      # bounded even if the file grew since stat
+        with open(path, "rb") as fh:  # bounded even if the file grew since stat
             data = fh.read(MAX_FILE_BYTES + 1)
         if len(data) > MAX_FILE_BYTES:
             raise ValueError(f"{what} {str(path)!r}: more than {MAX_FILE_BYTES} bytes")
@@ -74,8 +74,9 @@ def read_csv_columns(path, cols: tuple, what: str) -> dict:
         raise ValueError(f"{what} {str(path)!r}: column(s) {dup} appear more than once in the header {header}")
     missing = [c for c in cols if c not in header]
     if missing:
-        raise ValueError(f"{what} {str(path)!r}: missing column(s) {missing}; the header must name "
-                         f"{', '.join(cols)} (got {header})")
+        raise ValueError(
+            f"{what} {str(path)!r}: missing column(s) {missing}; the header must name {', '.join(cols)} (got {header})"
+        )
     try:
         rows = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]], float)
     except ValueError as err:

@@ -23,14 +23,14 @@ from jax.experimental import jet
 
 from wmrjax import _math, _simplify
 
-
 # relative degree above which the Taylor-mode construction is used (see output_jet)
 NESTED_MAX_DEGREE = 2
 JET_METHODS = ("auto", "taylor", "nested")
 
 
-def output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_degree: int, method: str = "auto",
-               simplify: bool = True):
+def output_jet(
+    field: Callable, h: Callable, z, n_inputs: int, relative_degree: int, method: str = "auto", simplify: bool = True
+):
     r"""Output derivatives and the decoupling pair of an affine system.
 
     With relative degree r, :math:`L_G L_F^j h \equiv 0` for j < r - 1, so along the flow of
@@ -99,15 +99,15 @@ def _taylor_output_jet(field: Callable, h: Callable, z, n_inputs: int, relative_
 
     def along(U):
         f = lambda x: field(x, U)
-        series = [f(z)]                            # z', z'', ..., z^{(r)} along the flow
+        series = [f(z)]  # z', z'', ..., z^{(r)} along the flow
         for _ in range(1, r):
             _, terms = jet.jet(f, (z,), (series,))
             series = series + [terms[-1]]
-        return jet.jet(h, (z,), (series,))         # (Y, [Y', ..., Y^{(r)}])
+        return jet.jet(h, (z,), (series,))  # (Y, [Y', ..., Y^{(r)}])
 
     y, terms = jax.vmap(along)(inputs)
     zeta = jnp.stack([y[0]] + [terms[j][0] for j in range(r - 1)])
-    top = terms[r - 1]                             # (1 + n_inputs, m): a, then a + K e_i
+    top = terms[r - 1]  # (1 + n_inputs, m): a, then a + K e_i
     a = top[0]
     return zeta, a, (top[1:] - a).T
 
@@ -168,8 +168,10 @@ def transition_matrix(gains, t, *, n_steps: int | None = None):
     """
     if n_steps is None:
         if gains.time_varying:
-            raise ValueError("transition_matrix of a gain schedule needs n_steps (RK4 steps over [0, t]); "
-                             "expm(A t) holds for constant gains only")
+            raise ValueError(
+                "transition_matrix of a gain schedule needs n_steps (RK4 steps over [0, t]); "
+                "expm(A t) holds for constant gains only"
+            )
         A = companion(gains.coeffs_at(0.0))
         return jax.scipy.linalg.expm(A * t)
     if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
@@ -182,7 +184,7 @@ def transition_matrix(gains, t, *, n_steps: int | None = None):
 
 def _rk4_transition(gains, P, a, b, n_steps: int):
     """P advanced from time a to b by n_steps equal RK4 steps of dP/dt = A(t) P."""
-    from wmrjax.simulate import rk4_step    # the one RK4 step (simulate's), imported when used
+    from wmrjax.simulate import rk4_step  # the one RK4 step (simulate's), imported when used
 
     h = (b - a) / n_steps
     field = lambda s, P: (companion(gains.coeffs_at(s)) @ P, None)

@@ -66,8 +66,20 @@ import numpy as np
 from wmrjax import io, resources
 from wmrjax.controllers.law import Level
 
-SECTIONS = ("title", "controller", "geometry", "plant", "reference", "initial", "gains", "simulation", "classify",
-            "case", "tune", "certify")
+SECTIONS = (
+    "title",
+    "controller",
+    "geometry",
+    "plant",
+    "reference",
+    "initial",
+    "gains",
+    "simulation",
+    "classify",
+    "case",
+    "tune",
+    "certify",
+)
 CASE_SECTIONS = ("controller", "geometry", "plant", "reference", "initial", "gains")
 GEOMETRY_KEYS = ("L", "e", "delta")
 GAIN_FILE_KIND = "wmrjax.gains"
@@ -100,6 +112,7 @@ class ProblemError(ValueError):
 
 # --- reading values ----------------------------------------------------------------------------
 
+
 def _where(section: str, key: str) -> str:
     return f"[{section}] {key}" if section else key
 
@@ -108,15 +121,23 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def axis_values(section: str, key: str, v, *, vector: int | None = None, positive: bool = False,
-                allow_inf: bool = False) -> np.ndarray:
+def axis_values(
+    section: str, key: str, v, *, vector: int | None = None, positive: bool = False, allow_inf: bool = False
+) -> np.ndarray:
     """A fixed value, a list (axis) or a ``{min, max, num}`` table -> (n,) or (n, vector) values."""
     where = _where(section, key)
-    form = ("a number, a list of numbers or { min = a, max = b, num = n }" if vector is None else
-            f"a list of {vector} numbers, or a list of such lists (an axis)")
+    form = (
+        "a number, a list of numbers or { min = a, max = b, num = n }"
+        if vector is None
+        else f"a list of {vector} numbers, or a list of such lists (an axis)"
+    )
 
     def number(x):
-        ok = isinstance(x, (int, float)) and not isinstance(x, bool) and (math.isfinite(x) or (allow_inf and x == math.inf))
+        ok = (
+            isinstance(x, (int, float))
+            and not isinstance(x, bool)
+            and (math.isfinite(x) or (allow_inf and x == math.inf))
+        )
         if not ok:
             raise ProblemError(f"{where}: expected {form}, got {x!r}")
         if positive and not x > 0:
@@ -203,8 +224,11 @@ def product(named: dict) -> dict:
     # only after a long allocation, with MemoryError); PRODUCT_COPIES arrays of runs x names
     # numbers are alive at once
     try:
-        resources.check_fits(resources.Estimate(0.0, PRODUCT_COPIES * runs * max(1, len(names)) * 8.0),
-                             f"a grid of {runs} runs over {names}", "sweep fewer values")
+        resources.check_fits(
+            resources.Estimate(0.0, PRODUCT_COPIES * runs * max(1, len(names)) * 8.0),
+            f"a grid of {runs} runs over {names}",
+            "sweep fewer values",
+        )
     except ValueError as err:
         raise ProblemError(str(err)) from None
     idx = np.indices(sizes).reshape(len(names), -1) if names else np.zeros((0, 1), int)
@@ -220,6 +244,7 @@ def read_text(path: Path, what: str) -> str:
 
 
 # --- the problem -------------------------------------------------------------------------------
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Problem:
@@ -297,8 +322,9 @@ class Problem:
             check_keys(f"case #{i + 1}", c, ("name",) + CASE_SECTIONS, ("name",))
             name = c["name"]
             if not isinstance(name, str) or not name or name in names:
-                raise ProblemError(f"[[case]] #{i + 1} name: expected a non-empty name not used by another case, "
-                                   f"got {name!r}")
+                raise ProblemError(
+                    f"[[case]] #{i + 1} name: expected a non-empty name not used by another case, got {name!r}"
+                )
             names.add(name)
             merged = {k: v for k, v in self.data.items() if k != "case"}
             merged.update({k: v for k, v in c.items() if k != "name"})
@@ -328,9 +354,11 @@ class Problem:
                 raise ProblemError(f"no case named {case!r}; the problem has {[c for c, _ in self.cases()]}")
         if len(settings) != 1:
             which = sorted({(s.case, s.ctrl.robot.name, str(s.ctrl.level)) for s in settings}, key=str)
-            raise ProblemError(f"{job} takes one controller: this problem has {len(settings)} settings {which} "
-                               "(a list of robots or levels, or several [[case]]s); keep one"
-                               + (" or choose a case" if len({s.case for s in settings}) > 1 else ""))
+            raise ProblemError(
+                f"{job} takes one controller: this problem has {len(settings)} settings {which} "
+                "(a list of robots or levels, or several [[case]]s); keep one"
+                + (" or choose a case" if len({s.case for s in settings}) > 1 else "")
+            )
         return settings[0]
 
     def resolved(self) -> dict:
@@ -350,8 +378,10 @@ class Problem:
             gains = sec.get("gains")
             if isinstance(gains, dict) and isinstance(gains.get("file"), str):
                 path = self.base / gains["file"]
-                sec["gains"] = {**read_gains_file(path).to_problem(),
-                                "source_file": {"path": str(path), "sha256": _digest(path)}}
+                sec["gains"] = {
+                    **read_gains_file(path).to_problem(),
+                    "source_file": {"path": str(path), "sha256": _digest(path)},
+                }
         return data
 
     def fingerprint(self) -> str:
@@ -463,8 +493,10 @@ class Setting:
             if a.name in keep or a.size == 1:
                 continue
             swept = [k for k, v in a.columns.items() if len(set(np.asarray(v).tolist())) > 1]
-            raise ProblemError(f"{job} takes one value of [{a.name}], got {a.size} ({', '.join(swept)} swept); "
-                               "keep one value (sweeps take lists)")
+            raise ProblemError(
+                f"{job} takes one value of [{a.name}], got {a.size} ({', '.join(swept)} swept); "
+                "keep one value (sweeps take lists)"
+            )
 
     def geometry(self, i: int = 0):
         import wmrjax as w
@@ -481,8 +513,7 @@ class Setting:
     def params(self, *, gains=None, reference: int = 0, geometry: int = 0):
         """The law's checked parameters (one geometry, one reference; ``gains`` overrides the axis's first)."""
         g = self.geometry(geometry)
-        return self.ctrl.params(self.references[reference], geometry=g,
-                                gains=self.gains() if gains is None else gains)
+        return self.ctrl.params(self.references[reference], geometry=g, gains=self.gains() if gains is None else gains)
 
     def initial_errors(self) -> np.ndarray:
         """(n, k) initial errors of the initial axis (keys :func:`initial_keys`)."""
@@ -494,10 +525,19 @@ class Setting:
         import jax
 
         geo, plant, ref, gains, init = (a.payload for a in self.axes)
-        src = {"L": geo["L"], "e": geo["e"], "delta": geo["delta"], "limit": plant["limit"],
-               "input_scale": plant["input_scale"], "geometry_scale": plant["geometry_scale"],
-               "reference": ref["reference"], "heading_offset": ref["heading_offset"],
-               "branch": self.branch.astype(float), "gains": gains["gains"], "initial": init["initial"]}
+        src = {
+            "L": geo["L"],
+            "e": geo["e"],
+            "delta": geo["delta"],
+            "limit": plant["limit"],
+            "input_scale": plant["input_scale"],
+            "geometry_scale": plant["geometry_scale"],
+            "reference": ref["reference"],
+            "heading_offset": ref["heading_offset"],
+            "branch": self.branch.astype(float),
+            "gains": gains["gains"],
+            "initial": init["initial"],
+        }
         if idx is None:
             return src
         return {k: jax.tree_util.tree_map(lambda x, k=k: np.asarray(x)[idx[AXIS_OF[k]]], v) for k, v in src.items()}
@@ -511,8 +551,17 @@ class Setting:
         idx = list(np.unravel_index(np.array([i]), self.shape))
         return jax.tree_util.tree_map(lambda x: np.asarray(x)[0], self.inputs(idx))
 
-    def run(self, p: dict, *, save_every: int | None = None, error_tol=1e-3, margin_floor=1e-9, noise_key=None,
-            t0=0.0, save_fn=None):
+    def run(
+        self,
+        p: dict,
+        *,
+        save_every: int | None = None,
+        error_tol=1e-3,
+        margin_floor=1e-9,
+        noise_key=None,
+        t0=0.0,
+        save_fn=None,
+    ):
         """One run (pure: vmap it) from one run's inputs ``p`` (:meth:`inputs`, unbatched).
 
         ``save_every`` (default: every sample of a digital controller, else every step),
@@ -537,15 +586,14 @@ class Setting:
         z0 = p["z0"] if "z0" in p else place(ctrl, params, p["initial"], self.space, self.task, p["branch"], t0)
         loop = self.system()
         if self.plant:
-            scale = jnp.broadcast_to(p["geometry_scale"], (2,))      # of L and e (one factor: both)
+            scale = jnp.broadcast_to(p["geometry_scale"], (2,))  # of L and e (one factor: both)
             pg = w.Geometry(L=scale[0] * g.L, e=scale[1] * g.e, delta=g.delta)
             plant = w.PlantParams(params, pg, jnp.broadcast_to(p["input_scale"], (ctrl.robot.n_input,)), p["limit"])
             if self.control_period is not None:
                 noise = None
                 if any(self.noise_std) and noise_key is not None:
                     n_samples = self.n_steps // self.steps_per_sample + 1
-                    noise = w.measurement_noise(noise_key, jnp.asarray(self.noise_std), n_samples,
-                                                ctrl.robot.n_state)
+                    noise = w.measurement_noise(noise_key, jnp.asarray(self.noise_std), n_samples, ctrl.robot.n_state)
                 sp = w.SampledParams(plant, jnp.zeros((1, ctrl.robot.n_state), t0.dtype) if noise is None else noise)
                 z0, params_run = loop.initial_state(z0, sp), sp
             else:
@@ -553,13 +601,34 @@ class Setting:
         else:
             params_run = params
         save_every = (self.steps_per_sample or 1) if save_every is None else save_every
-        tr = w.simulate(loop, z0, params_run, dt=self.dt, n_steps=self.n_steps, t0=t0, save_every=save_every,
-                        error_tol=error_tol, margin_floor=margin_floor, save_fn=save_fn)
+        tr = w.simulate(
+            loop,
+            z0,
+            params_run,
+            dt=self.dt,
+            n_steps=self.n_steps,
+            t0=t0,
+            save_every=save_every,
+            error_tol=error_tol,
+            margin_floor=margin_floor,
+            save_fn=save_fn,
+        )
         return tr, params
 
 
-AXIS_OF = {"L": 0, "e": 0, "delta": 0, "limit": 1, "input_scale": 1, "geometry_scale": 1,
-           "reference": 2, "heading_offset": 2, "branch": 2, "gains": 3, "initial": 4}
+AXIS_OF = {
+    "L": 0,
+    "e": 0,
+    "delta": 0,
+    "limit": 1,
+    "input_scale": 1,
+    "geometry_scale": 1,
+    "reference": 2,
+    "heading_offset": 2,
+    "branch": 2,
+    "gains": 3,
+    "initial": 4,
+}
 """The axis (index into :attr:`Setting.axes`) each run input varies along."""
 
 
@@ -570,6 +639,7 @@ def law_state(system, z):
 
 
 # --- the one placement of an initial state near a reference ---------------------------------
+
 
 def initial_keys(ctrl, space) -> tuple:
     """The initial-error keys this controller takes in ``space`` (output: position and velocity
@@ -614,7 +684,7 @@ def place(ctrl, params, error, space, task, branch, t0=0.0, rest: bool = False):
         r = ctrl.relative_degree
         zeta = ctrl.reference_jet(t0, params)[:r]
         if Space(space) == Space.OUTPUT:
-            if d.shape[0] == r * ctrl.m:            # the whole error jet
+            if d.shape[0] == r * ctrl.m:  # the whole error jet
                 return ctrl.inverse_psi(zeta + d.reshape(r, ctrl.m), params, branch)
             zeta = zeta.at[0, 0].add(d[0]).at[0, 1].add(d[1])
             if r >= 2:
@@ -632,7 +702,7 @@ def _place_static(ctrl, params, d, task, t0, rest):
     steer = _steering(ctrl, params, t0)
     X = jnp.concatenate([jnp.zeros(2, t0.dtype), post[2:3], steer])
     X = X.at[2:].add(d[2:])
-    offset = ctrl.law.outputs(X, g)[:2]              # the tracked point relative to (x, y)
+    offset = ctrl.law.outputs(X, g)[:2]  # the tracked point relative to (x, y)
     target = ref.position(t0) if task == Task.POINT else post[:2]
     X = X.at[:2].set(target + d[:2] - (offset if task == Task.POINT else 0.0))
     if ctrl.level != Level.TORQUE:
@@ -640,7 +710,7 @@ def _place_static(ctrl, params, d, task, t0, rest):
     if rest:
         return jnp.concatenate([X, jnp.zeros(ctrl.robot.n_input, X.dtype)])
     vl = controller(Law.STATIC, ctrl.robot.name, Level.VELOCITY, task)
-    u = vl.law.solve_top(X, vl.reference_jet(t0, params)[1], g)   # output velocity = the reference's
+    u = vl.law.solve_top(X, vl.reference_jet(t0, params)[1], g)  # output velocity = the reference's
     return ctrl.physical_state(X, u, params)
 
 
@@ -649,13 +719,17 @@ def _steering(ctrl, params, t0):
     import jax.numpy as jnp
 
     n = ctrl.robot.delta_s
-    b = jnp.reshape(params.steering(t0), (-1,)) if getattr(params, "steering", None) is not None \
+    b = (
+        jnp.reshape(params.steering(t0), (-1,))
+        if getattr(params, "steering", None) is not None
         else jnp.zeros((0,), t0.dtype)
+    )
     # (1,2): beta1 free (0), beta2 the steering reference; (2,1): beta the steering reference
     return jnp.concatenate([jnp.zeros(n - b.shape[0], t0.dtype), b]) if b.shape[0] < n else b[:n]
 
 
 # --- the sections ------------------------------------------------------------------------------
+
 
 def controller(law, kind: str, level, task):
     """The controller of a law, robot type, level and task (ProblemError if there is none)."""
@@ -697,19 +771,32 @@ def _settings(data: dict, base: Path, case) -> list:
     task = choice("controller", "task", task, Task)
     if law == Law.DYNAMIC:
         if task != Task.POSTURE:
-            raise ProblemError(f"[controller] task: dynamic laws track a posture (task = \"posture\"), got {task!r}")
+            raise ProblemError(f'[controller] task: dynamic laws track a posture (task = "posture"), got {task!r}')
         bad = [k for k in kinds if k not in w.controllers.TABLE4]
         if bad:
-            raise ProblemError(f"[controller] robot: no dynamic linearizing law (Table 4) for type(s) {bad}; "
-                               f"expected some of {sorted(w.controllers.TABLE4)}")
+            raise ProblemError(
+                f"[controller] robot: no dynamic linearizing law (Table 4) for type(s) {bad}; "
+                f"expected some of {sorted(w.controllers.TABLE4)}"
+            )
     t_final, dt, n_steps = simulation(data["simulation"])
-    space = choice("initial", "space", data["initial"].get("space", "output" if law == Law.DYNAMIC else "physical")
-                   if isinstance(data["initial"], dict) else None, Space)
+    space = choice(
+        "initial",
+        "space",
+        data["initial"].get("space", "output" if law == Law.DYNAMIC else "physical")
+        if isinstance(data["initial"], dict)
+        else None,
+        Space,
+    )
     if space == Space.OUTPUT and law != Law.DYNAMIC:
-        raise ProblemError("[initial] space = \"output\" (errors in the output jet) needs a dynamic law; "
-                           "static laws take space = \"physical\"")
-    return [_setting(controller(law, kind, level, task), data, base, case, law, task, space, t_final, dt, n_steps)
-            for kind in kinds for level in levels]
+        raise ProblemError(
+            '[initial] space = "output" (errors in the output jet) needs a dynamic law; '
+            'static laws take space = "physical"'
+        )
+    return [
+        _setting(controller(law, kind, level, task), data, base, case, law, task, space, t_final, dt, n_steps)
+        for kind in kinds
+        for level in levels
+    ]
 
 
 def simulation(sim) -> tuple:
@@ -736,8 +823,10 @@ def _setting(ctrl, data, base, case, law, task, space, t_final, dt, n_steps) -> 
     # every (geometry, reference) pair over the horizon, and every gain against dt
     n_pairs = geometry.size * len(refs)
     if n_pairs > 4096:
-        raise ProblemError(f"type {kind}: {n_pairs} (geometry, reference) pairs to check; at most 4096 "
-                           "(sweep fewer geometries or references per file)")
+        raise ProblemError(
+            f"type {kind}: {n_pairs} (geometry, reference) pairs to check; at most 4096 "
+            "(sweep fewer geometries or references per file)"
+        )
     branch = np.ones(len(refs), int)
     for i in range(geometry.size):
         g = w.Geometry(**{k: float(geo[k][i]) for k in GEOMETRY_KEYS})
@@ -746,8 +835,9 @@ def _setting(ctrl, data, base, case, law, task, space, t_final, dt, n_steps) -> 
                 params = ctrl.params(ref, poles=1.0, geometry=g)
                 ctrl.check_reference(params, t_final)
             except ValueError as err:
-                raise ProblemError(f"[reference] {ref.name} (#{j}) with geometry {g._asdict()} for type {kind}, "
-                                   f"{level} level: {err}") from None
+                raise ProblemError(
+                    f"[reference] {ref.name} (#{j}) with geometry {g._asdict()} for type {kind}, {level} level: {err}"
+                ) from None
             branch[j] = ctrl.reference_branch(params)
     g0 = w.Geometry(**{k: float(geo[k][0]) for k in GEOMETRY_KEYS})
     step = dt if period is None else period
@@ -760,8 +850,24 @@ def _setting(ctrl, data, base, case, law, task, space, t_final, dt, n_steps) -> 
         except ValueError as err:
             what = "[plant] control_period" if period is not None else "[simulation] dt"
             raise ProblemError(f"{what} with gains #{i} for type {kind}, {level} level: {err}") from None
-    return Setting(case, law, task, space, ctrl, [geometry, plant, reference, gains, initial], refs, branch,
-                   "plant" in data, period, noise_std, noise_seed, t_final, dt, n_steps, data)
+    return Setting(
+        case,
+        law,
+        task,
+        space,
+        ctrl,
+        [geometry, plant, reference, gains, initial],
+        refs,
+        branch,
+        "plant" in data,
+        period,
+        noise_std,
+        noise_seed,
+        t_final,
+        dt,
+        n_steps,
+        data,
+    )
 
 
 def _geometry_axis(gs, ctrl) -> Axis:
@@ -770,8 +876,9 @@ def _geometry_axis(gs, ctrl) -> Axis:
     kind = ctrl.robot.name
     check_keys("geometry", gs, GEOMETRY_KEYS)
     base = ctrl.row.default_geometry
-    geo = {k: axis_values("geometry", k, gs[k]) if k in gs else np.array([float(getattr(base, k))])
-           for k in GEOMETRY_KEYS}
+    geo = {
+        k: axis_values("geometry", k, gs[k]) if k in gs else np.array([float(getattr(base, k))]) for k in GEOMETRY_KEYS
+    }
     cols = product(geo)
     for i in range(len(cols["L"])):
         g = w.Geometry(**{k: float(cols[k][i]) for k in GEOMETRY_KEYS})
@@ -791,11 +898,16 @@ def _plant_axis(ps, ctrl, dt, t_final):
     nu, nX = ctrl.robot.n_input, ctrl.robot.n_state
     ps = {} if ps is None else ps
     check_keys("plant", ps, PLANT_KEYS)
-    lim = axis_values("plant", "input_limit", ps["input_limit"], vector=nu, positive=True, allow_inf=True) \
-        if "input_limit" in ps else np.full((1, nu), np.inf)
-    pv = {"limit": lim,
-          "input_scale": axis_values("plant", "input_scale", ps.get("input_scale", 1.0), positive=True),
-          "geometry_scale": axis_values("plant", "geometry_scale", ps.get("geometry_scale", 1.0), positive=True)}
+    lim = (
+        axis_values("plant", "input_limit", ps["input_limit"], vector=nu, positive=True, allow_inf=True)
+        if "input_limit" in ps
+        else np.full((1, nu), np.inf)
+    )
+    pv = {
+        "limit": lim,
+        "input_scale": axis_values("plant", "input_scale", ps.get("input_scale", 1.0), positive=True),
+        "geometry_scale": axis_values("plant", "geometry_scale", ps.get("geometry_scale", 1.0), positive=True),
+    }
     cols = product(pv)
     columns = {f"plant_input_limit_{i + 1}": cols["limit"][:, i] for i in range(nu)}
     columns |= {"plant_input_scale": cols["input_scale"], "plant_geometry_scale": cols["geometry_scale"]}
@@ -808,12 +920,15 @@ def _plant_axis(ps, ctrl, dt, t_final):
         if abs(t_final / period - round(t_final / period)) > 1e-9 * (t_final / period):
             raise ProblemError(f"[plant] control_period = {period} s does not divide t_final = {t_final} s")
         if ctrl.level == Level.TORQUE and ctrl.law.extension.n_comp == 0:
-            raise ProblemError("[plant] control_period: a sampled-data loop at torque level needs a dynamic law "
-                               "(law = \"dynamic\")")
+            raise ProblemError(
+                '[plant] control_period: a sampled-data loop at torque level needs a dynamic law (law = "dynamic")'
+            )
     noise = ps.get("noise_std", [])
     if not (isinstance(noise, list) and len(noise) <= nX and all(_is_number(v) and v >= 0 for v in noise)):
-        raise ProblemError(f"[plant] noise_std: expected a list of at most {nX} numbers >= 0 (std of x, y [m], "
-                           f"theta [rad] and steering angles [rad] as measured), got {noise!r}")
+        raise ProblemError(
+            f"[plant] noise_std: expected a list of at most {nX} numbers >= 0 (std of x, y [m], "
+            f"theta [rad] and steering angles [rad] as measured), got {noise!r}"
+        )
     if any(noise) and period is None:
         raise ProblemError("[plant] noise_std: measurement noise needs a digital controller (control_period [s])")
     seed = integer("plant", "noise_seed", ps.get("noise_seed", 0), 0, 2**32 - 1)
@@ -830,8 +945,9 @@ def reference_axis(rs, base: Path, law, kind):
     if not isinstance(rs, dict) or "family" not in rs:
         raise ProblemError(f"[reference]: needs family = one of {list(R.FAMILIES)}")
     fam = R.FAMILIES[choice("reference", "family", rs["family"], tuple(R.FAMILIES))]
-    build = _named_references if fam.kind == "named" else _random_references if fam.kind == "random" \
-        else _data_reference
+    build = (
+        _named_references if fam.kind == "named" else _random_references if fam.kind == "random" else _data_reference
+    )
     refs, cols = build(fam, rs, base, law)
     params = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *[r.params for r in refs])
     heading = axis_values("reference", "heading_offset", rs.get("heading_offset", _default_offset(law, kind)))
@@ -883,8 +999,9 @@ def random_options(rs) -> dict:
         if k == "n_modes":
             opts[k] = integer("reference.options", k, v, 1)
         elif not _is_number(v) or (k != "start_scale" and v <= 0) or v < 0:
-            raise ProblemError(f"[reference.options] {k}: expected a number {'>= 0' if k == 'start_scale' else '> 0'}, "
-                               f"got {v!r}")
+            raise ProblemError(
+                f"[reference.options] {k}: expected a number {'>= 0' if k == 'start_scale' else '> 0'}, got {v!r}"
+            )
         else:
             opts[k] = float(v)
     if not 0 < opts["min_speed"] < opts["speed"]:
@@ -904,8 +1021,10 @@ def _random_references(fam, rs, base, law):
     opts = random_options(rs)
     batch = _draw_references(fam.make, tuple(sorted(opts.items())), seed, count)
     params = jax.tree_util.tree_map(np.asarray, batch.params)
-    refs = [R.Reference(jax.tree_util.tree_map(lambda x: jnp.asarray(x[i]), params), 0.0, batch.path, fam.name)
-            for i in range(count)]
+    refs = [
+        R.Reference(jax.tree_util.tree_map(lambda x: jnp.asarray(x[i]), params), 0.0, batch.path, fam.name)
+        for i in range(count)
+    ]
     return refs, {"reference_index": np.arange(count, dtype=float)}
 
 
@@ -926,23 +1045,30 @@ def _data_reference(fam, rs, base, law):
     cols = fam.columns
     waypoints = "t" not in cols
     extra = ("speed", "t0") if waypoints else ()
-    check_keys("reference", rs, COMMON_REFERENCE_KEYS + ("file", "min_speed", "extrapolate", "source_file") + cols
-               + extra)
+    check_keys(
+        "reference", rs, COMMON_REFERENCE_KEYS + ("file", "min_speed", "extrapolate", "source_file") + cols + extra
+    )
     if ("file" in rs) == any(c in rs for c in cols):
-        raise ProblemError(f"[reference] family = \"{fam.name}\": give file = \"path.csv\" (columns {', '.join(cols)}) "
-                           f"or the arrays {', '.join(cols)} = [...], not both")
+        raise ProblemError(
+            f'[reference] family = "{fam.name}": give file = "path.csv" (columns {", ".join(cols)}) '
+            f"or the arrays {', '.join(cols)} = [...], not both"
+        )
     if "file" in rs:
         f = rs["file"]
         if not isinstance(f, str):
-            raise ProblemError(f"[reference] file: expected one path (relative to the problem file) of a CSV with "
-                               f"columns {', '.join(cols)}, got {f!r}")
+            raise ProblemError(
+                f"[reference] file: expected one path (relative to the problem file) of a CSV with "
+                f"columns {', '.join(cols)}, got {f!r}"
+            )
         data = _read_csv(base / f, cols)
         name = Path(f).stem
     else:
         data = {c: axis_values("reference", c, rs.get(c, [])) for c in cols}
         n = {len(v) for v in data.values()}
         if len(n) != 1:
-            raise ProblemError(f"[reference] {', '.join(cols)}: arrays of different lengths {[len(data[c]) for c in cols]}")
+            raise ProblemError(
+                f"[reference] {', '.join(cols)}: arrays of different lengths {[len(data[c]) for c in cols]}"
+            )
         name = fam.name
     default_speed = 1e-3 if Law(law) == Law.DYNAMIC else None
     min_speed = rs.get("min_speed", default_speed)
@@ -950,13 +1076,21 @@ def _data_reference(fam, rs, base, law):
         min_speed = positive("reference", "min_speed", min_speed)
     extrapolate = rs.get("extrapolate", False)
     if not isinstance(extrapolate, bool):
-        raise ProblemError(f"[reference] extrapolate: expected true or false (extend the path past its first and "
-                           f"last point), got {extrapolate!r}")
+        raise ProblemError(
+            f"[reference] extrapolate: expected true or false (extend the path past its first and "
+            f"last point), got {extrapolate!r}"
+        )
     xy = np.stack([data["x"], data["y"]], axis=1)
     try:
         if waypoints:
-            ref = fam.make(xy, speed=positive("reference", "speed", rs.get("speed", 1.0)),
-                           t0=float(rs.get("t0", 0.0)), min_speed=min_speed, name=name, extrapolate=extrapolate)
+            ref = fam.make(
+                xy,
+                speed=positive("reference", "speed", rs.get("speed", 1.0)),
+                t0=float(rs.get("t0", 0.0)),
+                min_speed=min_speed,
+                name=name,
+                extrapolate=extrapolate,
+            )
         else:
             ref = fam.make(data["t"], xy, min_speed=min_speed, name=name, extrapolate=extrapolate)
     except ValueError as err:
@@ -998,12 +1132,15 @@ def gains_axis(gs, ctrl, base: Path) -> Axis:
     if "zeta" in gs and "omega" not in gs:
         forms.append("zeta")
     if len(forms) > 1:
-        raise ProblemError(f"[gains]: give one of poles, omega and zeta (lam), coefficients, schedule or file; got {forms}")
+        raise ProblemError(
+            f"[gains]: give one of poles, omega and zeta (lam), coefficients, schedule or file; got {forms}"
+        )
     if "file" in gs:
         files = gs["file"] if isinstance(gs["file"], list) else [gs["file"]]
         if not files or not all(isinstance(f, str) for f in files):
-            raise ProblemError(f"[gains] file: expected a path, or a list of paths (an axis), of tuned-gains files; "
-                               f"got {gs['file']!r}")
+            raise ProblemError(
+                f"[gains] file: expected a path, or a list of paths (an axis), of tuned-gains files; got {gs['file']!r}"
+            )
         if len(set(files)) != len(files):
             raise ProblemError(f"[gains] file: a file listed twice in {files}")
         values = [read_gains_file(base / f, ctrl).gains for f in files]
@@ -1024,8 +1161,9 @@ def gains_axis(gs, ctrl, base: Path) -> Axis:
         cols = {"gains_poles": poles}
     kinds = {type(v).__name__ for v in values}
     if len(kinds) > 1:
-        raise ProblemError(f"[gains] file: constant gains and gain schedules in one axis ({sorted(kinds)}); "
-                           "use one kind per case")
+        raise ProblemError(
+            f"[gains] file: constant gains and gain schedules in one axis ({sorted(kinds)}); use one kind per case"
+        )
     stacked = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *values)
     return Axis("gains", cols, {"gains": stacked})
 
@@ -1042,8 +1180,10 @@ def _gains_from_coefficients(v, m, r):
 
     a = np.asarray(v, float) if isinstance(v, list) else None
     if a is None or a.shape not in ((m, r), (r,)) or not np.all(np.isfinite(a)):
-        raise ProblemError(f"[gains] coefficients: expected {r} Hurwitz coefficients k_0 .. k_{r - 1} per output, "
-                           f"shape ({m}, {r}) or ({r},), got {v!r}")
+        raise ProblemError(
+            f"[gains] coefficients: expected {r} Hurwitz coefficients k_0 .. k_{r - 1} per output, "
+            f"shape ({m}, {r}) or ({r},), got {v!r}"
+        )
     return w.Gains(np.broadcast_to(a, (m, r)).copy())
 
 
@@ -1059,8 +1199,10 @@ def _damping(gs, ctrl):
     elif "lam" in gs:
         raise ProblemError(f"[gains] lam: only for an odd relative degree; this controller's is {r}")
     if r < 2:
-        raise ProblemError(f"[gains] omega, zeta: second-order factors need a relative degree >= 2; this controller's "
-                           f"is {r} (give poles)")
+        raise ProblemError(
+            f"[gains] omega, zeta: second-order factors need a relative degree >= 2; this controller's "
+            f"is {r} (give poles)"
+        )
     grid = product(vals)
     values = []
     for i in range(len(grid["omega"])):
@@ -1079,8 +1221,9 @@ def _schedule(s, ctrl):
     check_keys("gains.schedule", s, ("knots", "omega", "zeta", "lam"), ("knots", "omega", "zeta"))
     try:
         lam = None if "lam" not in s else np.asarray(s["lam"], float)
-        return w.GainSchedule.from_damping(np.asarray(s["knots"], float), np.asarray(s["omega"], float),
-                                           np.asarray(s["zeta"], float), lam).check(ctrl.m, ctrl.relative_degree)
+        return w.GainSchedule.from_damping(
+            np.asarray(s["knots"], float), np.asarray(s["omega"], float), np.asarray(s["zeta"], float), lam
+        ).check(ctrl.m, ctrl.relative_degree)
     except (ValueError, TypeError) as err:
         raise ProblemError(f"[gains] schedule: {err}") from None
 
@@ -1100,19 +1243,30 @@ class GainsFile:
 
         if getattr(self.gains, "time_varying", False):
             g = self.gains
-            return {"schedule": {"knots": np.asarray(g.times).tolist(), "omega": np.asarray(g.omega).tolist(),
-                                 "zeta": np.asarray(g.zeta).tolist(),
-                                 **({"lam": np.asarray(g.lam).tolist()} if g.lam is not None else {})}}
+            return {
+                "schedule": {
+                    "knots": np.asarray(g.times).tolist(),
+                    "omega": np.asarray(g.omega).tolist(),
+                    "zeta": np.asarray(g.zeta).tolist(),
+                    **({"lam": np.asarray(g.lam).tolist()} if g.lam is not None else {}),
+                }
+            }
         return {"coefficients": jax.tree_util.tree_map(lambda x: np.asarray(x).tolist(), self.gains.coeffs)}
 
 
 def gains_file_dict(gains, ctrl) -> dict:
     """The JSON of a tuned-gains file for ``gains`` (:class:`wmrjax.Gains` or a schedule) of ``ctrl``."""
     body = GainsFile(gains, None, None, None).to_problem()
-    return {"kind": GAIN_FILE_KIND, "robot": ctrl.robot.name, "level": str(ctrl.level),
-            "law": "dynamic" if ctrl.law.extension.n_comp else "static", **body,
-            "poles_re_im": [[[float(p.real), float(p.imag)] for p in row] for row in np.atleast_2d(gains.poles())]
-            if not getattr(gains, "time_varying", False) else None}
+    return {
+        "kind": GAIN_FILE_KIND,
+        "robot": ctrl.robot.name,
+        "level": str(ctrl.level),
+        "law": "dynamic" if ctrl.law.extension.n_comp else "static",
+        **body,
+        "poles_re_im": [[[float(p.real), float(p.imag)] for p in row] for row in np.atleast_2d(gains.poles())]
+        if not getattr(gains, "time_varying", False)
+        else None,
+    }
 
 
 def read_gains_file(path: Path, ctrl=None) -> GainsFile:
@@ -1136,32 +1290,44 @@ def read_gains_file(path: Path, ctrl=None) -> GainsFile:
         body = {"coefficients": data["tuned_gains"]["coefficients_k0_to_kr-1"]}
         # where the summary says what it tuned: its resolved problem (older summaries: config)
         prob = data.get("problem") if isinstance(data.get("problem"), dict) else {}
-        cfg = prob.get("controller") if isinstance(prob.get("controller"), dict) else (
-            data.get("config") if isinstance(data.get("config"), dict) else {})
+        cfg = (
+            prob.get("controller")
+            if isinstance(prob.get("controller"), dict)
+            else (data.get("config") if isinstance(data.get("config"), dict) else {})
+        )
         robot, level, law = cfg.get("robot"), cfg.get("level"), cfg.get("law")
     else:
-        raise ProblemError(f"{where}: neither a gains file (kind = \"{GAIN_FILE_KIND}\") nor a tuning summary "
-                           "(tuned_gains.coefficients_k0_to_kr-1)")
+        raise ProblemError(
+            f'{where}: neither a gains file (kind = "{GAIN_FILE_KIND}") nor a tuning summary '
+            "(tuned_gains.coefficients_k0_to_kr-1)"
+        )
     if len(body) != 1:
         raise ProblemError(f"{where}: needs one of coefficients or schedule")
     if ctrl is not None:
         # gains of the same shape fit other types and levels (e.g. (2,0) and (1,1) at velocity
         # level); on another robot they are not the tuned gains, so the file must say whose they are
         if not (isinstance(robot, str) and isinstance(level, str)):
-            raise ProblemError(f"{where}: does not say which robot type and level the gains were tuned for "
-                               f"(keys robot and level, e.g. robot = \"{ctrl.robot.name}\", level = \"{ctrl.level}\")")
+            raise ProblemError(
+                f"{where}: does not say which robot type and level the gains were tuned for "
+                f'(keys robot and level, e.g. robot = "{ctrl.robot.name}", level = "{ctrl.level}")'
+            )
         law_here = "dynamic" if ctrl.law.extension.n_comp else "static"
         if robot != ctrl.robot.name or level != str(ctrl.level) or (isinstance(law, str) and law != law_here):
-            raise ProblemError(f"{where}: gains tuned for type {robot} at {level} level"
-                               + (f" ({law} law)" if isinstance(law, str) else "")
-                               + f", this controller is type {ctrl.robot.name} at {ctrl.level} level ({law_here} law)")
+            raise ProblemError(
+                f"{where}: gains tuned for type {robot} at {level} level"
+                + (f" ({law} law)" if isinstance(law, str) else "")
+                + f", this controller is type {ctrl.robot.name} at {ctrl.level} level ({law_here} law)"
+            )
     try:
         if "schedule" in body:
             sch = body["schedule"]
             check_keys("gains.schedule", sch, ("knots", "omega", "zeta", "lam"), ("knots", "omega", "zeta"))
-            gains = w.GainSchedule.from_damping(np.asarray(sch["knots"], float), np.asarray(sch["omega"], float),
-                                                np.asarray(sch["zeta"], float),
-                                                None if "lam" not in sch else np.asarray(sch["lam"], float))
+            gains = w.GainSchedule.from_damping(
+                np.asarray(sch["knots"], float),
+                np.asarray(sch["omega"], float),
+                np.asarray(sch["zeta"], float),
+                None if "lam" not in sch else np.asarray(sch["lam"], float),
+            )
         else:
             gains = w.Gains(np.asarray(body["coefficients"], float))
         if ctrl is not None:
@@ -1172,6 +1338,7 @@ def read_gains_file(path: Path, ctrl=None) -> GainsFile:
 
 
 # --- initial conditions --------------------------------------------------------------------------
+
 
 def initial_axis(ins, ctrl, space) -> Axis:
     """The initial errors of an ``[initial]`` section: a grid (values, lists or ``{min, max,
@@ -1212,7 +1379,7 @@ def _random_errors(ins, rnd, keys) -> dict:
     count = integer("initial.random", "count", rnd["count"], 1)
     rng = np.random.default_rng(integer("initial.random", "seed", rnd.get("seed", 0), 0))
     errs = {}
-    for k in keys:      # every key drawn (fixed order), so a key's values do not depend on the others
+    for k in keys:  # every key drawn (fixed order), so a key's values do not depend on the others
         v = ins.get(k, 0.0)
         lo, hi = initial_box(ins, (k,))[k]
         if isinstance(v, dict):
@@ -1230,15 +1397,19 @@ def initial_box(ins, keys) -> dict:
     for k in keys:
         v = ins.get(k, 0.0)
         if isinstance(v, dict):
-            if set(v) != {"low", "high"} or not (_is_number(v["low"]) and _is_number(v["high"])) \
-                    or not v["high"] >= v["low"]:
+            if (
+                set(v) != {"low", "high"}
+                or not (_is_number(v["low"]) and _is_number(v["high"]))
+                or not v["high"] >= v["low"]
+            ):
                 raise ProblemError(f"[initial] {k}: a random range is {{ low = a, high = b }} with b >= a, got {v!r}")
             out[k] = (float(v["low"]), float(v["high"]))
         elif _is_number(v):
             out[k] = (float(v), float(v))
         else:
-            raise ProblemError(f"[initial] {k}: with random draws, expected a number or {{ low = a, high = b }}, "
-                               f"got {v!r}")
+            raise ProblemError(
+                f"[initial] {k}: with random draws, expected a number or {{ low = a, high = b }}, got {v!r}"
+            )
     return out
 
 

@@ -21,8 +21,8 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
-from jax.experimental import jet
 import numpy as np
+from jax.experimental import jet
 
 from wmrjax import _math, _simplify
 from wmrjax._validate import check_real, concrete
@@ -47,7 +47,7 @@ def taylor(fn: Callable, t, order: int):
         return fn(t)[None]
     t = jnp.asarray(t, dtype=jnp.result_type(t, float))
 
-    def expand(t):      # the input series (1, 0, 0, ...) is built inside, so its zeros fold away
+    def expand(t):  # the input series (1, 0, 0, ...) is built inside, so its zeros fold away
         return jet.jet(fn, (t,), ([jnp.ones_like(t)] + [jnp.zeros_like(t)] * (order - 1),))
 
     try:
@@ -133,10 +133,12 @@ def check_domain(ref: "Reference", t0: float, t_final: float) -> None:
     tol = DOMAIN_RTOL * (1.0 + max(abs(lo), abs(hi)))
     if t0 < lo - tol or t_final > hi + tol:
         where = "before its first" if t0 < lo - tol else "past its last"
-        raise ValueError(f"reference {ref.name!r} is defined by its samples on [{lo:g}, {hi:g}] s, and the horizon "
-                         f"[{t0:g}, {t_final:g}] s goes {where} sample: fit the horizon inside the samples, add "
-                         "samples, or extend the path explicitly (from_samples(..., extrapolate=True); extrapolate "
-                         "= true in a problem file's [reference])")
+        raise ValueError(
+            f"reference {ref.name!r} is defined by its samples on [{lo:g}, {hi:g}] s, and the horizon "
+            f"[{t0:g}, {t_final:g}] s goes {where} sample: fit the horizon inside the samples, add "
+            "samples, or extend the path explicitly (from_samples(..., extrapolate=True); extrapolate "
+            "= true in a problem file's [reference])"
+        )
 
 
 def _as_array(x):
@@ -173,14 +175,19 @@ def paper_66() -> Reference:
 
 # --- simple families -------------------------------------------------------------
 
+
 def _path_line(t, params):
     return params["start"] + t * params["velocity"]
 
 
 def line(start=(0.0, 0.0), velocity=(1.0, 0.0), heading_offset=0.0) -> Reference:
     """Straight line at constant velocity: ``p(t) = start + t velocity`` [m, m/s]."""
-    return Reference(params=dict(start=_as_array(start), velocity=_as_array(velocity)),
-                     heading_offset=_as_array(heading_offset), path=_path_line, name="line")
+    return Reference(
+        params=dict(start=_as_array(start), velocity=_as_array(velocity)),
+        heading_offset=_as_array(heading_offset),
+        path=_path_line,
+        name="line",
+    )
 
 
 def _path_circle(t, params):
@@ -190,9 +197,12 @@ def _path_circle(t, params):
 
 def circle(center=(0.0, 0.0), radius=2.0, omega=0.5, phase=0.0, heading_offset=0.0) -> Reference:
     """Circle of ``radius`` [m] about ``center`` at angular rate ``omega`` [rad/s] (sign = direction)."""
-    return Reference(params=dict(center=_as_array(center), radius=_as_array(radius),
-                                 omega=_as_array(omega), phase=_as_array(phase)),
-                     heading_offset=_as_array(heading_offset), path=_path_circle, name="circle")
+    return Reference(
+        params=dict(center=_as_array(center), radius=_as_array(radius), omega=_as_array(omega), phase=_as_array(phase)),
+        heading_offset=_as_array(heading_offset),
+        path=_path_circle,
+        name="circle",
+    )
 
 
 def _path_eight(t, params):
@@ -206,18 +216,27 @@ def figure_eight(center=(0.0, 0.0), size=3.0, omega=0.3, heading_offset=0.0) -> 
     Its speed never vanishes: ``|p'|^2 = (size omega)^2 (cos^2 wt + cos^2 2wt)`` is smallest
     at ``cos^2 wt = 3/8``, so ``|p'| >= size * omega * sqrt(7) / 4``.
     """
-    return Reference(params=dict(center=_as_array(center), size=_as_array(size), omega=_as_array(omega)),
-                     heading_offset=_as_array(heading_offset), path=_path_eight, name="figure_eight")
+    return Reference(
+        params=dict(center=_as_array(center), size=_as_array(size), omega=_as_array(omega)),
+        heading_offset=_as_array(heading_offset),
+        path=_path_eight,
+        name="figure_eight",
+    )
 
 
 def _path_random(t, params):
     s, c = _math.sincos(params["omega"] * t + params["phase"])  # (K,)
     # p(t) = p0 + V t d + sum_k A_k sin(w_k t + phi_k) / w_k  ->  p' = V d + sum_k A_k cos(...)
-    return params["start"] + t * params["speed"] * params["direction"] + (params["amplitude"] * (s / params["omega"])[:, None]).sum(0)
+    return (
+        params["start"]
+        + t * params["speed"] * params["direction"]
+        + (params["amplitude"] * (s / params["omega"])[:, None]).sum(0)
+    )
 
 
-def random_smooth(key, n_modes: int = 3, speed: float = 1.0, min_speed: float = 0.3,
-                  max_omega: float = 1.0, start_scale: float = 0.0) -> Reference:
+def random_smooth(
+    key, n_modes: int = 3, speed: float = 1.0, min_speed: float = 0.3, max_omega: float = 1.0, start_scale: float = 0.0
+) -> Reference:
     r"""A keyed random smooth reference with a guaranteed speed floor.
 
     ``p(t) = p_0 + V t d + \sum_k A_k \sin(\omega_k t + \phi_k)/\omega_k`` with unit ``d``
@@ -237,10 +256,14 @@ def random_smooth(key, n_modes: int = 3, speed: float = 1.0, min_speed: float = 
     """
     if not 0.0 < min_speed < speed:
         raise ValueError(f"random_smooth needs 0 < min_speed < speed, got min_speed={min_speed}, speed={speed}")
-    if not (hasattr(key, "dtype") and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
-                                       or (key.dtype == jnp.uint32 and key.shape[-1:] == (2,)))):
-        raise ValueError(f"random_smooth: key must be a jax.random key (jax.random.key(seed) or "
-                         f"jax.random.PRNGKey(seed)), got {key!r:.60}")
+    if not (
+        hasattr(key, "dtype")
+        and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or (key.dtype == jnp.uint32 and key.shape[-1:] == (2,)))
+    ):
+        raise ValueError(
+            f"random_smooth: key must be a jax.random key (jax.random.key(seed) or "
+            f"jax.random.PRNGKey(seed)), got {key!r:.60}"
+        )
     k = jax.random.split(key, 6)
     ang = jax.random.uniform(k[0], (), minval=-jnp.pi, maxval=jnp.pi)
     sd, cd = _math.sincos(ang)
@@ -251,8 +274,14 @@ def random_smooth(key, n_modes: int = 3, speed: float = 1.0, min_speed: float = 
     omega = max_omega * jax.random.uniform(k[3], (n_modes,), minval=0.2, maxval=1.0)
     phase = jax.random.uniform(k[4], (n_modes,), minval=-jnp.pi, maxval=jnp.pi)
     start = start_scale * jax.random.uniform(k[5], (2,), minval=-1.0, maxval=1.0)
-    params = dict(start=start, speed=jnp.asarray(speed, start.dtype), direction=jnp.stack([cd, sd]),
-                  amplitude=amplitude, omega=omega, phase=phase)
+    params = dict(
+        start=start,
+        speed=jnp.asarray(speed, start.dtype),
+        direction=jnp.stack([cd, sd]),
+        amplitude=amplitude,
+        omega=omega,
+        phase=phase,
+    )
     return Reference(params=params, heading_offset=jnp.zeros((), start.dtype), path=_path_random, name="random_smooth")
 
 
@@ -271,7 +300,7 @@ def named(name: str) -> Reference:
 
 # --- references from the user's own samples ---------------------------------------------
 
-SPLINE_DEGREE = 5     # quintic: C^4, enough for the torque-level dynamic laws (they use p up to order 4)
+SPLINE_DEGREE = 5  # quintic: C^4, enough for the torque-level dynamic laws (they use p up to order 4)
 
 
 def _span(knots, s, n_coef: int, k: int):
@@ -288,9 +317,9 @@ def _basis(knots, l, s, k: int):
     Cox-de Boor recursion (Piegl & Tiller, Algorithm A2.2); polynomial in ``s`` on the span,
     so every derivative with respect to ``s`` (and to the knots) comes from autodiff.
     """
-    window = jax.lax.dynamic_slice(knots, (l - k + 1,), (2 * k,))     # knots[l-k+1 .. l+k]
-    left = [s - window[k - j] for j in range(1, k + 1)]            # s - knots[l+1-j]
-    right = [window[k - 1 + j] - s for j in range(1, k + 1)]       # knots[l+j] - s
+    window = jax.lax.dynamic_slice(knots, (l - k + 1,), (2 * k,))  # knots[l-k+1 .. l+k]
+    left = [s - window[k - j] for j in range(1, k + 1)]  # s - knots[l+1-j]
+    right = [window[k - 1 + j] - s for j in range(1, k + 1)]  # knots[l+j] - s
     n = [jnp.ones_like(s)]
     for j in range(1, k + 1):
         saved = jnp.zeros_like(s)
@@ -332,12 +361,12 @@ def _spline_knots(ts):
     interior samples except the (k - 1) / 2 nearest each end."""
     k = SPLINE_DEGREE
     h = (k - 1) // 2
-    return jnp.concatenate([jnp.repeat(ts[:1], k + 1), ts[h + 1: ts.shape[0] - h - 1], jnp.repeat(ts[-1:], k + 1)])
+    return jnp.concatenate([jnp.repeat(ts[:1], k + 1), ts[h + 1 : ts.shape[0] - h - 1], jnp.repeat(ts[-1:], k + 1)])
 
 
 def _check_samples(t, xy):
     """ValueError for samples a quintic spline cannot interpolate (concrete inputs only)."""
-    for name, v in (("t", t), ("xy", xy)):      # a complex path lost its imaginary part silently
+    for name, v in (("t", t), ("xy", xy)):  # a complex path lost its imaginary part silently
         check_real(f"from_samples: {name}", v)
     tv, xv = concrete(t), concrete(xy)
     if tv is not None:
@@ -345,27 +374,32 @@ def _check_samples(t, xy):
         if tv.ndim != 1:
             raise ValueError(f"from_samples: t must be a 1-D array of times [s], got shape {tv.shape}")
         if tv.shape[0] < SPLINE_DEGREE + 1:
-            raise ValueError(f"from_samples needs at least {SPLINE_DEGREE + 1} samples for a quintic spline, "
-                             f"got {tv.shape[0]}")
+            raise ValueError(
+                f"from_samples needs at least {SPLINE_DEGREE + 1} samples for a quintic spline, got {tv.shape[0]}"
+            )
         if not np.all(np.isfinite(tv)):
             raise ValueError("from_samples: t has non-finite values")
         steps = np.diff(tv)
         if not np.all(steps > 0):
             i = int(np.argmin(steps > 0))
-            raise ValueError(f"from_samples: times must be strictly increasing, got t[{i}] = {tv[i]} "
-                             f"then t[{i + 1}] = {tv[i + 1]}")
+            raise ValueError(
+                f"from_samples: times must be strictly increasing, got t[{i}] = {tv[i]} then t[{i + 1}] = {tv[i + 1]}"
+            )
     if xv is not None:
         xv = np.asarray(xv)
         n = None if tv is None else tv.shape[0]
         if xv.ndim != 2 or xv.shape[1] != 2 or (n is not None and xv.shape[0] != n):
-            raise ValueError(f"from_samples: xy must have shape ({n if n is not None else 'N'}, 2) (x, y per time) [m], "
-                             f"got {xv.shape}")
+            raise ValueError(
+                f"from_samples: xy must have shape ({n if n is not None else 'N'}, 2) (x, y per time) [m], "
+                f"got {xv.shape}"
+            )
         if not np.all(np.isfinite(xv)):
             raise ValueError("from_samples: xy has non-finite values")
 
 
-def from_samples(t, xy, *, min_speed: float | None = None, heading_offset=0.0, name: str = "samples",
-                 extrapolate: bool = False) -> Reference:
+def from_samples(
+    t, xy, *, min_speed: float | None = None, heading_offset=0.0, name: str = "samples", extrapolate: bool = False
+) -> Reference:
     r"""A reference through sampled positions: the quintic interpolating spline (C^4).
 
     The spline is the one SciPy's ``make_interp_spline(t, xy, k=5)`` builds (not-a-knot
@@ -410,8 +444,12 @@ def from_samples(t, xy, *, min_speed: float | None = None, heading_offset=0.0, n
 
     collocation = jax.vmap(row)(t)
     coef = jnp.linalg.solve(collocation, xy)
-    ref = Reference(params=dict(knots=knots, coef=coef), heading_offset=_as_array(heading_offset),
-                    path=_path_spline_extrapolated if extrapolate else _path_spline, name=name)
+    ref = Reference(
+        params=dict(knots=knots, coef=coef),
+        heading_offset=_as_array(heading_offset),
+        path=_path_spline_extrapolated if extrapolate else _path_spline,
+        name=name,
+    )
     if min_speed is not None:
         _check_min_speed(ref, t, float(min_speed))
     return ref
@@ -426,16 +464,21 @@ def _check_min_speed(ref: Reference, t, min_speed: float) -> None:
         grid = np.concatenate([(tv[:-1, None] + frac * np.diff(tv)[:, None]).ravel(), tv[-1:]])
         with jax.ensure_compile_time_eval():
             speed = concrete(_speeds(ref, jnp.asarray(grid, jnp.result_type(float))))
-    if speed is None:       # traced samples (under jit or vmap): the check needs values
-        warnings.warn(f"from_samples: min_speed = {min_speed} m/s is not checked on traced samples (under jax.jit "
-                      "or jax.vmap); build the reference from concrete samples to check it", stacklevel=3)
+    if speed is None:  # traced samples (under jit or vmap): the check needs values
+        warnings.warn(
+            f"from_samples: min_speed = {min_speed} m/s is not checked on traced samples (under jax.jit "
+            "or jax.vmap); build the reference from concrete samples to check it",
+            stacklevel=3,
+        )
         return
     speed = np.asarray(speed)
     if not np.all(speed >= min_speed):
         i = int(np.nanargmin(speed)) if np.any(np.isfinite(speed)) else 0
-        raise ValueError(f"reference {ref.name!r} slows to {speed[i]:.3g} m/s at t = {grid[i]:.4g} s, below "
-                         f"min_speed = {min_speed} m/s: the dynamic laws need a moving reference (its heading "
-                         "is the path tangent); resample the path or pass min_speed=None")
+        raise ValueError(
+            f"reference {ref.name!r} slows to {speed[i]:.3g} m/s at t = {grid[i]:.4g} s, below "
+            f"min_speed = {min_speed} m/s: the dynamic laws need a moving reference (its heading "
+            "is the path tangent); resample the path or pass min_speed=None"
+        )
 
 
 @jax.jit
@@ -443,8 +486,16 @@ def _speeds(ref, ts):
     return jax.vmap(ref.speed)(ts)
 
 
-def from_waypoints(points, *, speed: float = 1.0, t0: float = 0.0, min_speed: float | None = None,
-                   heading_offset=0.0, name: str = "waypoints", extrapolate: bool = False) -> Reference:
+def from_waypoints(
+    points,
+    *,
+    speed: float = 1.0,
+    t0: float = 0.0,
+    min_speed: float | None = None,
+    heading_offset=0.0,
+    name: str = "waypoints",
+    extrapolate: bool = False,
+) -> Reference:
     """A reference through position-only waypoints, timed at constant chord speed.
 
     Waypoint ``i`` is reached at ``t0 + (chord length from the first waypoint) / speed``;
@@ -467,8 +518,10 @@ def from_waypoints(points, *, speed: float = 1.0, t0: float = 0.0, min_speed: fl
     chords = np.hypot(*np.diff(pv, axis=0).T)
     if np.any(chords == 0):
         i = int(np.argmin(chords))
-        raise ValueError(f"from_waypoints: waypoints {i} and {i + 1} coincide ({pv[i].tolist()}); "
-                         "consecutive waypoints must be distinct")
+        raise ValueError(
+            f"from_waypoints: waypoints {i} and {i + 1} coincide ({pv[i].tolist()}); "
+            "consecutive waypoints must be distinct"
+        )
     t = t0 + np.concatenate([[0.0], np.cumsum(chords)]) / speed
     return from_samples(t, pv, min_speed=min_speed, heading_offset=heading_offset, name=name, extrapolate=extrapolate)
 
@@ -488,11 +541,18 @@ def load_samples(path, *, min_speed: float | None = None, heading_offset=0.0, ex
 
     path = Path(path)
     col = io.read_csv_columns(path, ("t", "x", "y"), "reference samples")
-    return from_samples(col["t"], np.stack([col["x"], col["y"]], axis=1), min_speed=min_speed,
-                        heading_offset=heading_offset, name=path.stem, extrapolate=extrapolate)
+    return from_samples(
+        col["t"],
+        np.stack([col["x"], col["y"]], axis=1),
+        min_speed=min_speed,
+        heading_offset=heading_offset,
+        name=path.stem,
+        extrapolate=extrapolate,
+    )
 
 
 # --- the one registry of reference families ------------------------------------------------
+
 
 @dataclasses.dataclass(frozen=True)
 class Family:
@@ -531,16 +591,19 @@ class Family:
 # random_smooth's defaults as problem files use them (a sweep file's options override them)
 RANDOM_SMOOTH_DEFAULTS = (("n_modes", 3), ("speed", 1.0), ("min_speed", 0.3), ("max_omega", 1.0), ("start_scale", 0.0))
 
-FAMILIES: dict[str, Family] = {f.name: f for f in (
-    Family("paper_62", paper_62, "named", paper=True),
-    Family("paper_66", paper_66, "named", paper=True),
-    Family("line", line, "named"),
-    Family("circle", circle, "named"),
-    Family("figure_eight", figure_eight, "named"),
-    Family("random_smooth", random_smooth, "random", RANDOM_SMOOTH_DEFAULTS),
-    Family("samples", from_samples, "data", columns=("t", "x", "y")),
-    Family("waypoints", from_waypoints, "data", columns=("x", "y")),
-)}
+FAMILIES: dict[str, Family] = {
+    f.name: f
+    for f in (
+        Family("paper_62", paper_62, "named", paper=True),
+        Family("paper_66", paper_66, "named", paper=True),
+        Family("line", line, "named"),
+        Family("circle", circle, "named"),
+        Family("figure_eight", figure_eight, "named"),
+        Family("random_smooth", random_smooth, "random", RANDOM_SMOOTH_DEFAULTS),
+        Family("samples", from_samples, "data", columns=("t", "x", "y")),
+        Family("waypoints", from_waypoints, "data", columns=("x", "y")),
+    )
+}
 """Every reference family, by name: the one registry the problem files, the sweep, the tuner and
 the certification read."""
 

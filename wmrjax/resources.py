@@ -37,7 +37,7 @@ GRID_EXTRA_FLOATS = 3
 # copies of a step's carry reverse mode keeps, per run and step (measured on section 6.1's sampled
 # loop, 13 states, 1000 steps, one process going from 64 to 2048 training scenarios: 91-180 MB
 # more over six runs, 46-91 B per scenario-step, where one carry is 104 B)
-GRADIENT_CARRY_COPIES = 1.25      # one carry and a margin for the run-to-run spread
+GRADIENT_CARRY_COPIES = 1.25  # one carry and a margin for the run-to-run spread
 # one JAX process with its compiled programs (measured: 0.53 GB resident after importing wmrjax
 # and a first simulate of the section 6.1 loop; the issue's probe: 0.6 GB per sweep process)
 PROCESS_BYTES = 0.6e9
@@ -82,7 +82,7 @@ def available_bytes() -> int | None:
         pass
     try:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):   # pragma: no cover - non-POSIX
+    except (AttributeError, ValueError, OSError):  # pragma: no cover - non-POSIX
         return None
 
 
@@ -94,11 +94,11 @@ def samples_bytes(n_samples: int, n_state: int, itemsize: int = 8, runs: int = 1
 def check_bytes(horizon: float, jet_floats: int) -> float:
     """The reference check over ``horizon`` seconds of a law whose reference jet has
     ``jet_floats`` numbers per time (0: a system without a reference check) [bytes]."""
-    from wmrjax.controllers.law import REFERENCE_GRID_STEP      # lazily: this module needs only NumPy
+    from wmrjax.controllers.law import REFERENCE_GRID_STEP  # lazily: this module needs only NumPy
 
     if jet_floats <= 0 or not np.isfinite(horizon):
         return 0.0
-    points = horizon / (REFERENCE_GRID_STEP / 2) + 2            # both parities of the check's grid
+    points = horizon / (REFERENCE_GRID_STEP / 2) + 2  # both parities of the check's grid
     return points * GRID_COPIES * (jet_floats + GRID_EXTRA_FLOATS) * 8
 
 
@@ -106,15 +106,16 @@ def jet_floats(system) -> int:
     """Numbers per time in ``system``'s reference check (0 without one): its outputs' jets up to
     the relative degree."""
     while getattr(system, "check_reference", None) is None and getattr(system, "ctrl", None) is not None:
-        system = system.ctrl            # a plant or sampled-data loop checks its law's reference
+        system = system.ctrl  # a plant or sampled-data loop checks its law's reference
     r, m = getattr(system, "relative_degree", None), getattr(system, "m", None)
     if getattr(system, "check_reference", None) is None or not isinstance(r, int) or not isinstance(m, int):
         return 0
     return (r + 1) * m
 
 
-def run_estimate(system, *, n_steps: int, save_every: int, n_state: int, itemsize: int, horizon: float,
-                 runs: int = 1) -> Estimate:
+def run_estimate(
+    system, *, n_steps: int, save_every: int, n_state: int, itemsize: int, horizon: float, runs: int = 1
+) -> Estimate:
     """One call of :func:`wmrjax.simulate` (or ``runs`` of them batched): saved samples on the
     device, the reference check on the host."""
     samples = n_steps // save_every + 1
@@ -139,9 +140,14 @@ def check_fits(estimate: Estimate, what: str, fix: str) -> None:
     if have is None:
         return
     if estimate.total > USABLE_FRACTION * have:
-        parts = [f"{v / 1e9:.3g} GB {name}" for v, name in ((estimate.device, "of run arrays"),
-                                                             (estimate.host, "on the host")) if v > 0]
+        parts = [
+            f"{v / 1e9:.3g} GB {name}"
+            for v, name in ((estimate.device, "of run arrays"), (estimate.host, "on the host"))
+            if v > 0
+        ]
         if estimate.processes:
             parts.append(f"{estimate.processes} processes of {PROCESS_BYTES / 1e9:.2g} GB")
-        raise ValueError(f"{what} needs about {estimate.total / 1e9:.3g} GB ({', '.join(parts)}), more than "
-                         f"{USABLE_FRACTION:.0%} of the {have / 1e9:.3g} GB of memory available now: {fix}")
+        raise ValueError(
+            f"{what} needs about {estimate.total / 1e9:.3g} GB ({', '.join(parts)}), more than "
+            f"{USABLE_FRACTION:.0%} of the {have / 1e9:.3g} GB of memory available now: {fix}"
+        )

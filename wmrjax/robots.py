@@ -65,9 +65,13 @@ def _sigma_11(beta, g):
 def _sigma_12(beta, g):
     s1, c1 = _math.sincos(beta[0])
     s2, c2 = _math.sincos(beta[1])
-    return jnp.stack([-2.0 * g.L * s1 * s2,
-                      g.L * (s1 * c2 + c1 * s2),     # L sin(beta1 + beta2)
-                      s2 * c1 - c2 * s1])[:, None]   # sin(beta2 - beta1)
+    return jnp.stack(
+        [
+            -2.0 * g.L * s1 * s2,
+            g.L * (s1 * c2 + c1 * s2),  # L sin(beta1 + beta2)
+            s2 * c1 - c2 * s1,
+        ]
+    )[:, None]  # sin(beta2 - beta1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,8 +137,8 @@ def robot_type(kind) -> RobotType:
         key = f"({s})"
     if key not in TYPES:
         raise ValueError(
-            f"unknown robot type {kind!r}; expected one of {sorted(TYPES)} "
-            "(delta_m, delta_s) as in Proposition 1")
+            f"unknown robot type {kind!r}; expected one of {sorted(TYPES)} (delta_m, delta_s) as in Proposition 1"
+        )
     return TYPES[key]
 
 
@@ -146,9 +150,11 @@ def check_geometry(geometry: Geometry) -> None:
             raise ValueError(f"geometry.{name} must be a scalar, got shape {jnp.shape(val)}")
         check_finite(f"geometry.{name}", val)
     L = concrete(geometry.L)
-    if L is not None and float(L) < 0:      # a negative length is a mirrored robot, not this one
-        raise ValueError(f"geometry.L is a length (the distance from the body's reference point to the "
-                         f"steering wheels) and must be >= 0 [m], got {float(L)}; mirror the frame instead")
+    if L is not None and float(L) < 0:  # a negative length is a mirrored robot, not this one
+        raise ValueError(
+            f"geometry.L is a length (the distance from the body's reference point to the "
+            f"steering wheels) and must be >= 0 [m], got {float(L)}; mirror the frame instead"
+        )
 
 
 def rotation(theta):
@@ -211,7 +217,7 @@ def kinematic(robot: RobotType, X, u, geometry: Geometry):
     Returns:
       ``Xdot``, shape ``(3 + delta_s,)``.
     """
-    eta, zeta = u[: robot.delta_m], u[robot.delta_m:]
+    eta, zeta = u[: robot.delta_m], u[robot.delta_m :]
     xi_dot = rotate_to_world(X[2], body_velocity(robot, X, eta, geometry))
     return jnp.concatenate([xi_dot, zeta]) if robot.delta_s else xi_dot
 

@@ -48,13 +48,12 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 from jax.extend import core as jex_core
-import numpy as np
 
 from wmrjax import _scalarize, _simplify, resources
 from wmrjax._validate import check_finite, check_int, concrete
-
 
 # from this many steps on, reverse-mode differentiation checkpoints the saving chunks too
 TWO_LEVEL_CHECKPOINT_STEPS = 2000
@@ -167,8 +166,11 @@ def _rk4(field, t, z, dt):
     k2, _ = field(t + 0.5 * dt, _axpy(z, 0.5 * dt, k1))
     k3, _ = field(t + 0.5 * dt, _axpy(z, 0.5 * dt, k2))
     k4, _ = field(t + dt, _axpy(z, dt, k3))
-    combine = lambda zi, a, b, c, d: (zi + (dt / 6.0) * (a + 2.0 * b + 2.0 * c + d)
-                                      if _is_continuous(zi) and not all(map(_held, (a, b, c, d))) else zi)
+    combine = lambda zi, a, b, c, d: (
+        zi + (dt / 6.0) * (a + 2.0 * b + 2.0 * c + d)
+        if _is_continuous(zi) and not all(map(_held, (a, b, c, d)))
+        else zi
+    )
     return jax.tree_util.tree_map(combine, z, k1, k2, k3, k4), aux, k1, k4
 
 
@@ -188,12 +190,12 @@ def _rk4_stage_loop(field, t, z, dt, parts, rebuild):
     rounding (4e-16 on 300 steps of the section 6.1 loop).
     """
     dtype = jnp.result_type(dt)
-    nodes = jnp.asarray([0.0, 0.5, 0.5, 1.0], dtype)      # stage times, in units of dt
-    weights = jnp.asarray([1.0, 2.0, 2.0, 1.0], dtype)    # weights x 6
+    nodes = jnp.asarray([0.0, 0.5, 0.5, 1.0], dtype)  # stage times, in units of dt
+    weights = jnp.asarray([1.0, 2.0, 2.0, 1.0], dtype)  # weights x 6
     k_like, aux_like = jax.eval_shape(field, t, z, rebuild(parts))
 
     def stage(carry, stage_xs, zs, parts):
-        k_prev, acc, k1, aux = carry           # tuples of scalars: the continuous leaves of k; aux
+        k_prev, acc, k1, aux = carry  # tuples of scalars: the continuous leaves of k; aux
         i, node, weight = stage_xs
         z_i = _axpy(_from_scalars(zs, z), node * dt, _from_continuous(k_prev, k_like))
         k, aux_i = field(t + node * dt, z_i, rebuild(parts))
@@ -207,17 +209,24 @@ def _rk4_stage_loop(field, t, z, dt, parts, rebuild):
     zs = _to_scalars(z)
     zeros = lambda tree: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), tree)
     zero_k, zero_aux = _continuous(zeros(k_like)), _to_scalars(zeros(aux_like))
-    (k4, acc, k1, aux), _ = jax.lax.scan(lambda c, xs: body(c, xs, zs, parts), (zero_k, zero_k, zero_k, zero_aux),
-                                         (jnp.arange(4), nodes, weights))
+    (k4, acc, k1, aux), _ = jax.lax.scan(
+        lambda c, xs: body(c, xs, zs, parts), (zero_k, zero_k, zero_k, zero_aux), (jnp.arange(4), nodes, weights)
+    )
     acc = _from_continuous(acc, k_like)
     combine = lambda zi, s: zi + (dt / 6.0) * s if _is_continuous(zi) else zi
-    return (jax.tree_util.tree_map(combine, z, acc), _from_scalars(aux, aux_like),
-            _from_continuous(k1, k_like), _from_continuous(k4, k_like))
+    return (
+        jax.tree_util.tree_map(combine, z, acc),
+        _from_scalars(aux, aux_like),
+        _from_continuous(k1, k_like),
+        _from_continuous(k4, k_like),
+    )
 
 
 def _continuous(tree):
     """The floating leaves of a pytree, flattened to one tuple of scalars."""
-    return tuple(x for leaf in jax.tree_util.tree_leaves(tree) if _is_continuous(leaf) for x in jnp.reshape(leaf, (-1,)))
+    return tuple(
+        x for leaf in jax.tree_util.tree_leaves(tree) if _is_continuous(leaf) for x in jnp.reshape(leaf, (-1,))
+    )
 
 
 def _from_continuous(scalars, like):
@@ -231,7 +240,7 @@ def _from_continuous(scalars, like):
             out.append(jnp.zeros(shape, leaf.dtype))
             continue
         n = int(np.prod(shape))
-        out.append(jnp.stack(scalars[i:i + n]).reshape(shape) if len(shape) else scalars[i])
+        out.append(jnp.stack(scalars[i : i + n]).reshape(shape) if len(shape) else scalars[i])
         i += n
     return jax.tree_util.tree_unflatten(treedef, out)
 
@@ -289,10 +298,10 @@ def _from_scalars(scalars, like):
     out, i = [], 0
     for leaf in leaves:
         n = int(np.prod(np.shape(leaf)))
-        if n == 0:                      # an empty leaf (a static law's controller state)
+        if n == 0:  # an empty leaf (a static law's controller state)
             out.append(jnp.zeros(np.shape(leaf), jnp.result_type(leaf)))
             continue
-        out.append(jnp.stack(scalars[i:i + n]).reshape(np.shape(leaf)) if np.ndim(leaf) else scalars[i])
+        out.append(jnp.stack(scalars[i : i + n]).reshape(np.shape(leaf)) if np.ndim(leaf) else scalars[i])
         i += n
     return jax.tree_util.tree_unflatten(treedef, out)
 
@@ -360,8 +369,10 @@ class _Rebuild:
     split: tuple
 
     def __call__(self, parts):
-        return jax.tree_util.tree_unflatten(self.treedef, [
-            jnp.reshape(jnp.stack(p), shape) if s else p for p, shape, s in zip(parts, self.shapes, self.split)])
+        return jax.tree_util.tree_unflatten(
+            self.treedef,
+            [jnp.reshape(jnp.stack(p), shape) if s else p for p, shape, s in zip(parts, self.shapes, self.split)],
+        )
 
 
 def _scalar_field(system, t, z, params):
@@ -384,7 +395,7 @@ def _sampler(system):
     every = getattr(system, "sample_every", None)
     if every is None:
         return None, None
-    return system.sample, int(every)     # re-emitted on scalars with the step that calls it
+    return system.sample, int(every)  # re-emitted on scalars with the step that calls it
 
 
 def _period_advance(field_s, t, z, dt, every: int, estimate: bool, parts, rebuild, held_mask):
@@ -420,8 +431,9 @@ def _period_advance(field_s, t, z, dt, every: int, estimate: bool, parts, rebuil
     held = tuple(x for x, m in zip(leaves, moving) if not m)
     body = scalarized(sub)
     k0s = tuple(jnp.zeros_like(x) for x in _continuous(like)) if estimate else ()
-    (zt, _, est), _ = jax.lax.scan(lambda c, j: body(c, j, parts, held), (_to_scalars(like), k0s, jnp.zeros((), dt.dtype)),
-                                   jnp.arange(every))
+    (zt, _, est), _ = jax.lax.scan(
+        lambda c, j: body(c, j, parts, held), (_to_scalars(like), k0s, jnp.zeros((), dt.dtype)), jnp.arange(every)
+    )
     return merge(_from_scalars(zt, like), held), aux, est, (), jnp.array(False)
 
 
@@ -436,7 +448,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     dtype = jnp.result_type(*[x for x in jax.tree_util.tree_leaves(z0) if _is_continuous(x)])
     dt = jnp.asarray(dt, dtype)
     t0 = jnp.asarray(t0, dtype)
-    estimate = error_tol is not None     # static: None compiles the loop without the error estimate
+    estimate = error_tol is not None  # static: None compiles the loop without the error estimate
     error_tol = jnp.asarray(jnp.inf if error_tol is None else error_tol, dtype)
     # traced once, reused by the four RK stages and the final evaluation (XLA inlines it):
     # cuts tracing and compile time of the rollout and of its gradient several-fold
@@ -453,19 +465,27 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     loop = _Loop(system, field_s, dt, estimate, stage_loop, post_step, sample, sample_every, rebuild_params)
 
     def step_on_scalars(carry, i, parts):
-        zt, alive, diag, sign_prev, k4_prev, est_ok = carry   # est_ok is None without discrete transitions
+        zt, alive, diag, sign_prev, k4_prev, est_ok = carry  # est_ok is None without discrete transitions
         p = rebuild_params(parts)
         z = _from_scalars(zt, z0)
         t = t0 + i.astype(dtype) * dt
-        z_in = z        # what a failed run keeps: a dead run's sample is discarded by the selection below
-        if sample is not None:      # a digital controller samples at its period's start
+        z_in = z  # what a failed run keeps: a dead run's sample is discarded by the selection below
+        if sample is not None:  # a digital controller samples at its period's start
             z = sample(i // sample_every, t, z, p)
         z_next, aux, est, k4, jumped = _advance(loop, t, z, i, p, parts, k4_prev, est_ok)
         margin = jnp.asarray(aux.margin, dtype)
-        flags = _classify(alive, aux.control, margin, getattr(aux, "regularity", None), sign_prev,
-                          est if estimate else None, margin_floor, error_tol)     # the state z at time t
+        flags = _classify(
+            alive,
+            aux.control,
+            margin,
+            getattr(aux, "regularity", None),
+            sign_prev,
+            est if estimate else None,
+            margin_floor,
+            error_tol,
+        )  # the state z at time t
         finite_next = _all_finite(z_next)
-        ok = flags.ok & finite_next                                 # may we go on from z?
+        ok = flags.ok & finite_next  # may we go on from z?
         # reverse mode stores these two flags (the step's checkpoint policy, below), so that
         # its recomputation of the step needs neither the diagnostics nor the error estimate
         ok, finite_next = checkpoint_name(ok, _SAVED_FLAGS[0]), checkpoint_name(finite_next, _SAVED_FLAGS[1])
@@ -474,8 +494,14 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         z_keep = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, jnp.where(finite_next, a, b), b), z_next, z_in)
         zt_next = _to_scalars(z_keep)
         sign_next = jnp.where(flags.sign != 0, flags.sign, sign_prev)
-        carry = (zt_next, ok, diag, sign_next, _continuous(k4) if estimate and sample is None else (),
-                 None if est_ok is None else ~jumped)
+        carry = (
+            zt_next,
+            ok,
+            diag,
+            sign_next,
+            _continuous(k4) if estimate and sample is None else (),
+            None if est_ok is None else ~jumped,
+        )
         return carry, (z if save_fn is None else save_fn(t, z, aux), aux.control, margin, flags.ok)
 
     # One step as operations on scalars: under vmap, elementwise on batch vectors, with no
@@ -485,30 +511,48 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # jet of the linearizing law has hundreds); the backward pass then stays in cache. It
     # stores the step's two flags that select the next state: the recomputation is then the
     # RK4 stages alone, a faster gradient.
-    step = jax.checkpoint(lambda carry, i: step_on_scalars(carry, i, params_parts), prevent_cse=False,
-                          policy=jax.checkpoint_policies.save_only_these_names(*_SAVED_FLAGS))
+    step = jax.checkpoint(
+        lambda carry, i: step_on_scalars(carry, i, params_parts),
+        prevent_cse=False,
+        policy=jax.checkpoint_policies.save_only_these_names(*_SAVED_FLAGS),
+    )
     if sample is not None:
         # a sampled-data period holds one evaluation of the law among plant steps: reverse mode
         # stores its residuals instead of recomputing the period
         step = lambda carry, i: step_on_scalars(carry, i, params_parts)
 
-    carry, rec0 = _initial_carry(field, z0, t0, dt, save_fn, estimate and sample is None,
-                                 post_step is not None and estimate)
+    carry, rec0 = _initial_carry(
+        field, z0, t0, dt, save_fn, estimate and sample is None, post_step is not None and estimate
+    )
     carry, recs = _scan_steps(step, carry, rec0, n_steps, save_every, 1 if sample is None else sample_every)
-    return _finish(system, field, carry, recs, z0, params, t0, dt, n_steps, save_every, margin_floor, error_tol,
-                   estimate and sample is None, save_fn)
+    return _finish(
+        system,
+        field,
+        carry,
+        recs,
+        z0,
+        params,
+        t0,
+        dt,
+        n_steps,
+        save_every,
+        margin_floor,
+        error_tol,
+        estimate and sample is None,
+        save_fn,
+    )
 
 
 class _Loop(NamedTuple):
     """What one unit of the time loop needs (static pieces and the step; see :func:`_simulate`)."""
 
     system: object
-    field_s: object           # the vector field on scalars, parameters as an argument
+    field_s: object  # the vector field on scalars, parameters as an argument
     dt: object
-    estimate: bool            # compute the error estimate
-    stage_loop: bool          # the RK stages in a loop over one copy of the field
-    post_step: object         # a hybrid system's discrete transition, or None
-    sample: object            # a sampled-data system's sampler, or None
+    estimate: bool  # compute the error estimate
+    stage_loop: bool  # the RK stages in a loop over one copy of the field
+    post_step: object  # a hybrid system's discrete transition, or None
+    sample: object  # a sampled-data system's sampler, or None
     sample_every: object
     rebuild_params: object
 
@@ -519,22 +563,23 @@ def _advance(loop: _Loop, t, z, i, p, parts, k4_prev, est_ok):
     sampled-data system's whole period: its ``sample_every`` steps under the held sample."""
     dt = loop.dt
     if loop.sample is not None:
-        return _period_advance(loop.field_s, t, z, dt, loop.sample_every, loop.estimate, parts, loop.rebuild_params,
-                               loop.system.held(z))
+        return _period_advance(
+            loop.field_s, t, z, dt, loop.sample_every, loop.estimate, parts, loop.rebuild_params, loop.system.held(z)
+        )
     if loop.stage_loop:
         z_next, aux, k1, k4 = _rk4_stage_loop(loop.field_s, t, z, dt, parts, loop.rebuild_params)
     else:
         z_next, aux, k1, k4 = _rk4(lambda tt, zz: loop.field_s(tt, zz, p), t, z, dt)
     jumped = jnp.array(False)
-    if loop.post_step is not None:   # hybrid systems: discrete transition at the end of the step
+    if loop.post_step is not None:  # hybrid systems: discrete transition at the end of the step
         z_post = loop.post_step(t + dt, z_next, p)
         jumped = ~_all_equal(z_post, z_next) if loop.estimate else jumped
         z_next = z_post
     est = jnp.zeros((), dt.dtype)
     if loop.estimate:
         est = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1), _continuous(z)))
-        est = jnp.where(i == 0, 0.0, est)       # no previous step to compare with
-        if est_ok is not None:      # no estimate across a discrete jump
+        est = jnp.where(i == 0, 0.0, est)  # no previous step to compare with
+        if est_ok is not None:  # no estimate across a discrete jump
             est = jnp.where(est_ok, est, 0.0)
     return z_next, aux, est, k4, jumped
 
@@ -542,10 +587,10 @@ def _advance(loop: _Loop, t, z, i, p, parts, k4_prev, est_ok):
 class _Flags(NamedTuple):
     """One sample's classification (see :func:`_classify`)."""
 
-    finite: jnp.ndarray     # its control, margin and error estimate are finite
-    regular: jnp.ndarray    # its margin is above the floor and det K kept its sign
-    ok: jnp.ndarray         # alive, finite, regular and accurate: a valid sample
-    sign: jnp.ndarray       # the sign of its regularity function (0: none)
+    finite: jnp.ndarray  # its control, margin and error estimate are finite
+    regular: jnp.ndarray  # its margin is above the floor and det K kept its sign
+    ok: jnp.ndarray  # alive, finite, regular and accurate: a valid sample
+    sign: jnp.ndarray  # the sign of its regularity function (0: none)
 
 
 def _classify(alive, control, margin, regularity, sign_prev, est, margin_floor, error_tol) -> _Flags:
@@ -610,12 +655,17 @@ def _initial_carry(field, z0, t0, dt, save_fn, carry_k4: bool, carry_jumps: bool
     # shapes only: evaluating the field at t0 would put one more copy of it in the program
     control0 = jax.eval_shape(field, t0, z0)[1].control
     # k4_prev starts at zero; the first step's estimate is set to zero (step index 0)
-    carry = (_to_scalars(z0), ~failed0, diag0, zero,
-             jax.tree_util.tree_map(lambda x: 0.0 * x, _continuous(z0)) if carry_k4 else (),
-             bad0 & False if carry_jumps else None)
+    carry = (
+        _to_scalars(z0),
+        ~failed0,
+        diag0,
+        zero,
+        jax.tree_util.tree_map(lambda x: 0.0 * x, _continuous(z0)) if carry_k4 else (),
+        bad0 & False if carry_jumps else None,
+    )
 
     saved0 = z0
-    if save_fn is not None:     # zeros shaped like what save_fn returns (no evaluation at t0)
+    if save_fn is not None:  # zeros shaped like what save_fn returns (no evaluation at t0)
         shapes = jax.eval_shape(lambda: save_fn(t0, z0, field(t0, z0)[1]))
         saved0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype) + zero.astype(a.dtype), shapes)
     rec0 = (saved0, jnp.zeros(control0.shape, control0.dtype) + zero.astype(control0.dtype), inf, ~failed0)
@@ -638,11 +688,11 @@ def _scan_steps(step, carry, rec0, n_steps, save_every, unit):
         rec = jax.tree_util.tree_map(lambda a, b: jnp.where(j == 0, a, b), new_rec, rec)
         return (state, rec), None
 
-    idx = unit * jnp.arange(n_saves * save_units).reshape(n_saves, save_units)     # first step of each unit
+    idx = unit * jnp.arange(n_saves * save_units).reshape(n_saves, save_units)  # first step of each unit
     within = jnp.broadcast_to(jnp.arange(save_units), idx.shape)
 
     def outer(c, ids):
-        if save_units == 1:         # one step (or period) per saved sample: no inner loop
+        if save_units == 1:  # one step (or period) per saved sample: no inner loop
             return step(c, ids[0][0])
         (state, rec), _ = jax.lax.scan(inner, (c, rec0), ids)
         return state, rec
@@ -658,8 +708,9 @@ def _scan_steps(step, carry, rec0, n_steps, save_every, unit):
     return carry, recs
 
 
-def _finish(system, field, carry, recs, z0, params, t0, dt, n_steps, save_every, margin_floor, error_tol,
-            estimate_last, save_fn):
+def _finish(
+    system, field, carry, recs, z0, params, t0, dt, n_steps, save_every, margin_floor, error_tol, estimate_last, save_fn
+):
     """The run's end: the failure rule applied at the final state too (its margin, sign, finite
     values and -- ``estimate_last``, the continuous loops -- the last step's error estimate), the
     diagnostics completed (``inaccurate``, the system's ``final_report``) and the
@@ -670,21 +721,23 @@ def _finish(system, field, carry, recs, z0, params, t0, dt, n_steps, save_every,
     t_final = t0 + n_steps * dt
     k1_f, aux_f = field(t_final, z_final)
     m_f = jnp.asarray(aux_f.margin, dtype)
-    est_f = None          # (a sampled period's steps estimated their own error)
+    est_f = None  # (a sampled period's steps estimated their own error)
     if estimate_last:
         est_f = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1_f), _continuous(z_final)))
         if est_ok is not None:
             est_f = jnp.where(est_ok, est_f, 0.0)
-    flags = _classify(alive, aux_f.control, m_f, getattr(aux_f, "regularity", None), sign_prev, est_f,
-                      margin_floor, error_tol)
+    flags = _classify(
+        alive, aux_f.control, m_f, getattr(aux_f, "regularity", None), sign_prev, est_f, margin_floor, error_tol
+    )
     final_ok = flags.ok
-    diag = _running_update(diag, t_final, alive, final_ok, flags, jnp.array(True),
-                           m_f, jnp.zeros_like(m_f) if est_f is None else est_f)
+    diag = _running_update(
+        diag, t_final, alive, final_ok, flags, jnp.array(True), m_f, jnp.zeros_like(m_f) if est_f is None else est_f
+    )
     # a step was too inaccurate exactly when the largest estimate of the live run exceeds the
     # tolerance (the estimate stops growing at the failure): derived here, not carried
     diag = Diagnostics(*diag[:6], inaccurate=diag.error_estimate > error_tol, error_estimate=diag.error_estimate)
     final_report = getattr(system, "final_report", None)
-    if final_report is not None:    # e.g. the internal dynamics of a static law
+    if final_report is not None:  # e.g. the internal dynamics of a static law
         diag = diag._replace(internal=final_report(t_final, z_final, params))
     states, controls, margins, valids = recs
     n_saves = n_steps // save_every
@@ -692,8 +745,11 @@ def _finish(system, field, carry, recs, z0, params, t0, dt, n_steps, save_every,
     t_saved = t_saved.at[-1].set(t_final)
     traj = Trajectory(
         t=t_saved,
-        state=jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), states,
-                                     z_final if save_fn is None else save_fn(t_final, z_final, aux_f)),
+        state=jax.tree_util.tree_map(
+            lambda a, b: jnp.concatenate([a, b[None]]),
+            states,
+            z_final if save_fn is None else save_fn(t_final, z_final, aux_f),
+        ),
         control=jnp.concatenate([controls, jnp.asarray(aux_f.control)[None]]),
         margin=jnp.concatenate([margins, jnp.asarray(aux_f.margin, dtype)[None]]),
         valid=jnp.concatenate([valids, final_ok[None]]),
@@ -723,7 +779,9 @@ def shard_batch(tree, mesh=None):
     spec = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(mesh.axis_names[0]))
     for leaf in jax.tree_util.tree_leaves(tree):
         if np.ndim(leaf) == 0 or np.shape(leaf)[0] % n:
-            raise ValueError(f"shard_batch needs a leading batch axis divisible by {n} devices, got shape {np.shape(leaf)}")
+            raise ValueError(
+                f"shard_batch needs a leading batch axis divisible by {n} devices, got shape {np.shape(leaf)}"
+            )
     return jax.device_put(tree, spec)
 
 
@@ -780,8 +838,19 @@ def batch_map(fn, *args, chunk: int = 512, mesh=None):
     return jax.tree_util.tree_map(lambda x: x[:b], out)
 
 
-def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 1, margin_floor=1e-9,
-             error_tol=1e-3, save_fn=None) -> Trajectory:
+def simulate(
+    system,
+    z0,
+    params,
+    *,
+    dt,
+    n_steps: int,
+    t0=0.0,
+    save_every: int = 1,
+    margin_floor=1e-9,
+    error_tol=1e-3,
+    save_fn=None,
+) -> Trajectory:
     """Simulate one closed loop with fixed-step RK4.
 
     ``WMRJAX_JAXPR_REWRITES=0`` in the environment (read at each call) runs the plain JAX
@@ -833,11 +902,14 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
         raise ValueError(f"save_every must be <= n_steps ({n_steps}), got {save_every}")
     every = getattr(system, "sample_every", None)
     if every is not None and getattr(system, "post_step", None) is not None:
-        raise ValueError(f"{type(system).__name__} has both post_step and sample_every: a system is hybrid or "
-                         "sampled, not both")
+        raise ValueError(
+            f"{type(system).__name__} has both post_step and sample_every: a system is hybrid or sampled, not both"
+        )
     if every is not None and (n_steps % every or save_every % every):
-        raise ValueError(f"a sampled-data loop runs whole controller periods of {every} steps: n_steps ({n_steps}) "
-                         f"and save_every ({save_every}) must be multiples of {every}")
+        raise ValueError(
+            f"a sampled-data loop runs whole controller periods of {every} steps: n_steps ({n_steps}) "
+            f"and save_every ({save_every}) must be multiples of {every}"
+        )
     dtv, t0v = _check_scalars(dt, t0, margin_floor, error_tol)
     z0, size = _prepared_state(system, z0)
     # the reference check runs (and takes memory) only with concrete times
@@ -848,8 +920,9 @@ def simulate(system, z0, params, *, dt, n_steps: int, t0=0.0, save_every: int = 
         check_run(params, t0=t0, dt=dt, n_steps=n_steps)
     if save_fn is not None and not callable(save_fn):
         raise ValueError(f"save_fn must be a function (t, z, aux) -> pytree, got {type(save_fn).__name__}")
-    return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn,
-                     _simplify.rewrites_enabled())
+    return _simulate(
+        system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn, _simplify.rewrites_enabled()
+    )
 
 
 def _check_scalars(dt, t0, margin_floor, error_tol):
@@ -878,34 +951,47 @@ def _prepared_state(system, z0):
     if not leaves:
         raise ValueError("z0 must be a state array (or a pytree of arrays), got an empty pytree")
     if isinstance(z0, (list, tuple)) and not hasattr(z0, "_fields"):
-        z0 = jnp.asarray(z0)          # a plain sequence of numbers is a state vector
+        z0 = jnp.asarray(z0)  # a plain sequence of numbers is a state vector
     floating = jnp.result_type(float)
-    z0 = jax.tree_util.tree_map(                  # numbers keep their dtype, booleans become floats
-        lambda x: jnp.asarray(x) if jnp.issubdtype(jnp.result_type(x), jnp.number) else jnp.asarray(x, floating), z0)
+    z0 = jax.tree_util.tree_map(  # numbers keep their dtype, booleans become floats
+        lambda x: jnp.asarray(x) if jnp.issubdtype(jnp.result_type(x), jnp.number) else jnp.asarray(x, floating), z0
+    )
     if not any(_is_continuous(x) for x in jax.tree_util.tree_leaves(z0)):
-        z0 = jax.tree_util.tree_map(lambda x: x.astype(floating), z0)   # an all-integer vector is a state
+        z0 = jax.tree_util.tree_map(lambda x: x.astype(floating), z0)  # an all-integer vector is a state
     n = getattr(system, "n_state", None)
     size = sum(int(np.size(x)) for x in jax.tree_util.tree_leaves(z0))
     is_array = isinstance(z0, jax.Array)
     if (is_array and z0.ndim != 1) or (n is not None and size != n):
         names = getattr(system, "state_names", None)
-        raise ValueError(f"z0 must be an unbatched state of shape ({n},)"
-                         + (f" = ({', '.join(names)})" if names else "")
-                         + f"; got shape {np.shape(z0) if is_array else [np.shape(x) for x in jax.tree_util.tree_leaves(z0)]}"
-                         " (use jax.vmap to batch)")
+        raise ValueError(
+            f"z0 must be an unbatched state of shape ({n},)"
+            + (f" = ({', '.join(names)})" if names else "")
+            + f"; got shape {np.shape(z0) if is_array else [np.shape(x) for x in jax.tree_util.tree_leaves(z0)]}"
+            " (use jax.vmap to batch)"
+        )
     for leaf in jax.tree_util.tree_leaves(z0):
         if jnp.issubdtype(jnp.result_type(leaf), jnp.complexfloating):
             raise ValueError(f"z0 must be real, got a complex state of dtype {jnp.result_type(leaf)}")
         check_finite("z0", leaf)
-    z0 = jax.tree_util.tree_map(                  # float32 with float64 enabled: promote, never mix
-        lambda x: x.astype(floating) if _is_continuous(x) and jnp.result_type(x) != floating else x, z0)
+    z0 = jax.tree_util.tree_map(  # float32 with float64 enabled: promote, never mix
+        lambda x: x.astype(floating) if _is_continuous(x) and jnp.result_type(x) != floating else x, z0
+    )
     return z0, size
 
 
 def _check_memory(system, n_steps: int, save_every: int, n_state: int, dtype, horizon: float) -> None:
     """ValueError when one run (its saved samples and its reference check) cannot fit in the
     memory available now (:mod:`wmrjax.resources`)."""
-    est = resources.run_estimate(system, n_steps=n_steps, save_every=save_every, n_state=n_state,
-                                 itemsize=np.dtype(dtype).itemsize, horizon=horizon)
-    resources.check_fits(est, f"n_steps = {n_steps} with save_every = {save_every} (a horizon of {horizon:.6g} s)",
-                         "raise dt or save_every, or shorten the horizon")
+    est = resources.run_estimate(
+        system,
+        n_steps=n_steps,
+        save_every=save_every,
+        n_state=n_state,
+        itemsize=np.dtype(dtype).itemsize,
+        horizon=horizon,
+    )
+    resources.check_fits(
+        est,
+        f"n_steps = {n_steps} with save_every = {save_every} (a horizon of {horizon:.6g} s)",
+        "raise dt or save_every, or shorten the horizon",
+    )

@@ -18,8 +18,13 @@ import sys as _sys
 # The command lines write figures and tables at the end of their work: without the extra they
 # would compute for minutes and then fail on an import. Say so before anything runs.
 _CLI_EXTRA = ("matplotlib", "pyarrow", "cmaes", "optuna")
-_missing = [name for name in _CLI_EXTRA
-            if (_sys.modules[name] is None if name in _sys.modules else _importlib_util.find_spec(name) is None)]
+_missing = [
+    name
+    for name in _CLI_EXTRA
+    if (_sys.modules[name] is None if name in _sys.modules else _importlib_util.find_spec(name) is None)
+]
 if _missing:
-    raise ImportError(f"the wmrjax command lines need {', '.join(_missing)}: install them with "
-                      "pip install \"wmrjax[cli]\" (the library alone, wmrjax, needs only jax, numpy and optax)")
+    raise ImportError(
+        f"the wmrjax command lines need {', '.join(_missing)}: install them with "
+        'pip install "wmrjax[cli]" (the library alone, wmrjax, needs only jax, numpy and optax)'
+    )

@@ -29,9 +29,9 @@ def atomic_write(path, write: Callable) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        try:                                  # mkstemp makes 0600; results are as readable as the umask allows
+        try:  # mkstemp makes 0600; results are as readable as the umask allows
             os.fchmod(fd, 0o666 & ~_umask())
-        except OSError:                       # file systems without modes: keep what they give
+        except OSError:  # file systems without modes: keep what they give
             pass
         with os.fdopen(fd, "wb") as fh:
             write(fh)
@@ -91,6 +91,7 @@ def write_bytes(path, data: bytes) -> Path:
 
 # --- checkpoints -----------------------------------------------------------------------------
 
+
 class Checkpoint(NamedTuple):
     """A resumable state: ``step`` done, the array pytrees, and a JSON-able ``state`` dict."""
 
@@ -112,8 +113,9 @@ def write_checkpoint(path, *, fingerprint: str, config: dict, step: int, trees: 
     import jax
 
     leaves = {k: [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(t)] for k, t in trees.items()}
-    return write_json(path, {"fingerprint": fingerprint, "config": config, "step": step, "trees": leaves,
-                             "state": state})
+    return write_json(
+        path, {"fingerprint": fingerprint, "config": config, "step": step, "trees": leaves, "state": state}
+    )
 
 
 def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) -> Checkpoint:
@@ -135,50 +137,71 @@ def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) ->
     try:
         d = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"checkpoint {path} is corrupt or truncated (not readable JSON: {exc}); "
-                         "delete it (or start fresh) to run from the beginning") from None
+        raise ValueError(
+            f"checkpoint {path} is corrupt or truncated (not readable JSON: {exc}); "
+            "delete it (or start fresh) to run from the beginning"
+        ) from None
     if not isinstance(d, dict):
-        raise ValueError(f"checkpoint {path} is not a checkpoint (a JSON {type(d).__name__}, expected an object); "
-                         "delete it (or start fresh) to run from the beginning")
+        raise ValueError(
+            f"checkpoint {path} is not a checkpoint (a JSON {type(d).__name__}, expected an object); "
+            "delete it (or start fresh) to run from the beginning"
+        )
     for key in ("config", "trees", "state"):
         if key in d and not isinstance(d[key], dict):
-            raise ValueError(f"checkpoint {path}: '{key}' is a JSON {type(d[key]).__name__}, expected an object "
-                             "(an edited or corrupt checkpoint)")
+            raise ValueError(
+                f"checkpoint {path}: '{key}' is a JSON {type(d[key]).__name__}, expected an object "
+                "(an edited or corrupt checkpoint)"
+            )
     if d.get("fingerprint") != fingerprint:
         old = d.get("config", {}) or {}
-        diff = sorted(k for k, v in config.items() if json.loads(json.dumps(jsonable(old.get(k))))
-                      != json.loads(json.dumps(jsonable(v))))
-        raise ValueError(f"checkpoint {path} belongs to another configuration (differs in {diff}); "
-                         "use another --out directory or delete the checkpoint")
+        diff = sorted(
+            k
+            for k, v in config.items()
+            if json.loads(json.dumps(jsonable(old.get(k)))) != json.loads(json.dumps(jsonable(v)))
+        )
+        raise ValueError(
+            f"checkpoint {path} belongs to another configuration (differs in {diff}); "
+            "use another --out directory or delete the checkpoint"
+        )
     trees = {}
     for name, template in templates.items():
         got = (d.get("trees") or {}).get(name)
         tmpl, treedef = jax.tree_util.tree_flatten(template)
         if got is not None and not isinstance(got, list):
-            raise ValueError(f"checkpoint {path}: tree {name!r} is a JSON {type(got).__name__}, expected a list of leaves")
+            raise ValueError(
+                f"checkpoint {path}: tree {name!r} is a JSON {type(got).__name__}, expected a list of leaves"
+            )
         if got is None or len(got) != len(tmpl):
-            raise ValueError(f"checkpoint {path}: tree {name!r} has {None if got is None else len(got)} leaves, "
-                             f"expected {len(tmpl)}")
+            raise ValueError(
+                f"checkpoint {path}: tree {name!r} has {None if got is None else len(got)} leaves, expected {len(tmpl)}"
+            )
         leaves = []
         for i, (v, t) in enumerate(zip(got, tmpl)):
             try:
                 a = np.asarray(v, dtype=np.asarray(t).dtype)
             except (TypeError, ValueError) as exc:
-                raise ValueError(f"checkpoint {path}: leaf {i} of {name!r} is not a numeric array ({exc}); "
-                                 "an edited or corrupt checkpoint") from None
+                raise ValueError(
+                    f"checkpoint {path}: leaf {i} of {name!r} is not a numeric array ({exc}); "
+                    "an edited or corrupt checkpoint"
+                ) from None
             if a.shape != np.shape(t):
-                raise ValueError(f"checkpoint {path}: leaf {i} of {name!r} has shape {a.shape}, expected "
-                                 f"{np.shape(t)} (a truncated or edited checkpoint)")
+                raise ValueError(
+                    f"checkpoint {path}: leaf {i} of {name!r} has shape {a.shape}, expected "
+                    f"{np.shape(t)} (a truncated or edited checkpoint)"
+                )
             leaves.append(jnp.asarray(a))
         trees[name] = jax.tree_util.tree_unflatten(treedef, leaves)
     # bool is an int in Python: "step": true would be taken as step 1
     if type(d.get("step")) is not int or d["step"] < 0 or not isinstance(d.get("state"), dict):
-        raise ValueError(f"checkpoint {path} lacks an integer 'step' >= 0 or a 'state' object (got step "
-                         f"{d.get('step')!r}); an edited or corrupt checkpoint: delete it (or start fresh)")
+        raise ValueError(
+            f"checkpoint {path} lacks an integer 'step' >= 0 or a 'state' object (got step "
+            f"{d.get('step')!r}); an edited or corrupt checkpoint: delete it (or start fresh)"
+        )
     return Checkpoint(d["step"], trees, d["state"])
 
 
 # --- figures -----------------------------------------------------------------------------------
+
 
 def headless_pyplot():
     """``matplotlib.pyplot`` on the non-interactive Agg backend (for writing PNG files)."""
@@ -242,7 +265,7 @@ def _process_start(pid: int) -> str | None:
     try:
         with open(f"/proc/{pid}/stat", "rb") as fh:
             stat = fh.read().decode(errors="replace")
-        return stat[stat.rindex(")") + 2:].split()[19]          # field 22, after the command name
+        return stat[stat.rindex(")") + 2 :].split()[19]  # field 22, after the command name
     except (OSError, ValueError, IndexError):
         return None
 
@@ -252,14 +275,14 @@ def _alive(owner: dict) -> bool:
     import socket
 
     if owner.get("host") != socket.gethostname():
-        return True                         # another host's process: cannot tell, assume alive
+        return True  # another host's process: cannot tell, assume alive
     pid = owner.get("pid")
     if not isinstance(pid, int) or isinstance(pid, bool) or pid <= 0:
         return False
     start = _process_start(pid)
     if start is not None:
         return start == owner.get("start")
-    try:                                    # no /proc: is the pid in use at all?
+    try:  # no /proc: is the pid in use at all?
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
@@ -298,33 +321,43 @@ def acquire_output(out, command: str) -> str | None:
     out = Path(out)
     path = out / LOCK_NAME
     token = uuid.uuid4().hex
-    me = {"host": socket.gethostname(), "pid": os.getpid(), "start": _process_start(os.getpid()),
-          "command": command, "since": time.strftime("%Y-%m-%d %H:%M:%S"), "token": token}
+    me = {
+        "host": socket.gethostname(),
+        "pid": os.getpid(),
+        "start": _process_start(os.getpid()),
+        "command": command,
+        "since": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "token": token,
+    }
     for _ in range(100):
         try:
             fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
             owner = _read_owner(path)
             if owner.get("token") and owner.get("token") == os.environ.get(LOCK_ENV):
-                return None                              # a worker of the lock's owner
+                return None  # a worker of the lock's owner
             if owner.get("pid") == me["pid"] and owner.get("host") == me["host"] and owner.get("start") == me["start"]:
-                return None                              # this process holds it already (a command run again in-process)
+                return None  # this process holds it already (a command run again in-process)
             if not owner and time.time() - path.stat().st_mtime < 5.0:
-                time.sleep(0.05)                         # being written this instant
+                time.sleep(0.05)  # being written this instant
                 continue
             if owner and _alive(owner):
                 raise OutputLocked(
                     f"{out} is being written by another run: process {owner.get('pid')} on {owner.get('host')} "
                     f"({owner.get('command')!r}, since {owner.get('since')}); wait for it to finish, or choose "
-                    f"another output directory (if that process is gone, delete {path})") from None
+                    f"another output directory (if that process is gone, delete {path})"
+                ) from None
             stale = path.with_name(f"{LOCK_NAME}.stale-{token}")
-            try:                                         # one taker renames it; the others retry
+            try:  # one taker renames it; the others retry
                 os.rename(path, stale)
             except FileNotFoundError:
                 continue
             os.unlink(stale)
-            print(f"{out}: removed the stale lock of process {owner.get('pid')} ({owner.get('command')!r}, "
-                  f"since {owner.get('since')}), which is no longer running", file=sys.stderr)
+            print(
+                f"{out}: removed the stale lock of process {owner.get('pid')} ({owner.get('command')!r}, "
+                f"since {owner.get('since')}), which is no longer running",
+                file=sys.stderr,
+            )
             continue
         with os.fdopen(fd, "w") as fh:
             json.dump(me, fh)

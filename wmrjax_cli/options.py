@@ -35,7 +35,9 @@ def _number(text: str, kind=float):
     try:
         v = kind(text)
     except (TypeError, ValueError):
-        raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected {'an integer' if kind is int else 'a number'}, got {text!r}"
+        ) from None
     if kind is float and not math.isfinite(v):
         raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
     return v
@@ -68,7 +70,7 @@ def limit(text: str) -> float:
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number > 0 or inf, got {text!r}") from None
-    if not v > 0:          # NaN, 0 and negative limits are refused
+    if not v > 0:  # NaN, 0 and negative limits are refused
         raise argparse.ArgumentTypeError(f"must be > 0 (or inf: no limit), got {text!r}")
     return v
 
@@ -96,13 +98,14 @@ def _integer(minimum: int, maximum: int | None = None, what: str = ""):
     return parse
 
 
-count = _integer(1, what="count")                                  # runs, steps, samples
+count = _integer(1, what="count")  # runs, steps, samples
 nonnegative_int = _integer(0, what="nonnegative integer")
-seed = _integer(0, 2**32, what="seed")                             # a PRNG seed
-grid_size = _integer(2, what="grid size")                          # points per axis of a grid
+seed = _integer(0, 2**32, what="seed")  # a PRNG seed
+grid_size = _integer(2, what="grid size")  # points per axis of a grid
 
 
 # --- the parser ------------------------------------------------------------------------------------
+
 
 class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
     """Help text with each option's default appended."""
@@ -120,12 +123,19 @@ def parser(description: str, default_out: str | None, compile_cache: bool = True
     p = argparse.ArgumentParser(description=description, formatter_class=_Formatter)
     if default_out is not None:
         p.add_argument("--out", type=Path, default=Path(default_out), help="output directory (created if missing)")
-    p.add_argument("--compile-cache", type=Path, default=default_cache_dir() if compile_cache else None,
-                   help="directory of JAX's persistent compilation cache: a second run reuses the compiled programs "
-                        "of the first (turn it off with --no-compile-cache)")
+    p.add_argument(
+        "--compile-cache",
+        type=Path,
+        default=default_cache_dir() if compile_cache else None,
+        help="directory of JAX's persistent compilation cache: a second run reuses the compiled programs "
+        "of the first (turn it off with --no-compile-cache)",
+    )
     p.add_argument("--no-compile-cache", action="store_true", help="do not read or write the compilation cache")
-    p.add_argument("--verbose", action="store_true",
-                   help="when the work fails, print the full traceback of its error (not only its message)")
+    p.add_argument(
+        "--verbose",
+        action="store_true",
+        help="when the work fails, print the full traceback of its error (not only its message)",
+    )
     return p
 
 
@@ -144,8 +154,10 @@ def use_compilation_cache(args) -> Path | None:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        print(f"note: compilation cache {path} unavailable ({exc.strerror or exc}); compiling from scratch",
-              file=sys.stderr)
+        print(
+            f"note: compilation cache {path} unavailable ({exc.strerror or exc}); compiling from scratch",
+            file=sys.stderr,
+        )
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
@@ -171,8 +183,17 @@ def fail_work(p: argparse.ArgumentParser, message: str, verbose: bool = False):
     p.exit(1, f"{p.prog}: error: {message}\n")
 
 
-def check_horizon(p, *, t_final: float, dt: float, batch: int = 1, n_state: int = 4, saved_every: int = 1,
-                  t_name: str = "--t-final", dt_name: str = "--dt") -> int:
+def check_horizon(
+    p,
+    *,
+    t_final: float,
+    dt: float,
+    batch: int = 1,
+    n_state: int = 4,
+    saved_every: int = 1,
+    t_name: str = "--t-final",
+    dt_name: str = "--dt",
+) -> int:
     """Steps of a run of ``t_final`` in steps of ``dt``; exits if the step exceeds the horizon,
     the horizon is not a whole number of steps (to 1e-6), or the saved samples of ``batch``
     runs would not fit in the memory available now (:mod:`wmrjax.resources`)."""
@@ -185,7 +206,9 @@ def check_horizon(p, *, t_final: float, dt: float, batch: int = 1, n_state: int 
     # the samples of the batch; the reference check's memory is simulate's own check
     est = resources.Estimate(resources.samples_bytes(n // saved_every + 1, n_state, 8, batch), 0.0)
     try:
-        resources.check_fits(est, f"{t_name} / {dt_name} = {n} steps for {batch} runs", f"raise {dt_name} or shorten {t_name}")
+        resources.check_fits(
+            est, f"{t_name} / {dt_name} = {n} steps for {batch} runs", f"raise {dt_name} or shorten {t_name}"
+        )
     except ValueError as err:
         fail(p, str(err))
     return n
@@ -240,6 +263,7 @@ def work(p, args, fn, hint=lambda message: message):
 
 
 # --- progress --------------------------------------------------------------------------------------
+
 
 class Heartbeat:
     """Prints the current stage when it starts and every ``every`` seconds while it runs.

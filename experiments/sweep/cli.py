@@ -25,15 +25,30 @@ def parser():
     p.add_argument("spec", type=Path, help="the sweep file (TOML; see docs/problem_files.md and experiments/sweeps/)")
     p.add_argument("--out", type=Path, default=None, help="output directory (default: results/sweeps/<spec name>)")
     p.add_argument("--fresh", action="store_true", help="discard finished blocks of an earlier run in --out")
-    p.add_argument("--gains", type=Path, nargs="+", default=None,
-                   help="tuned-gains files (gains.json of python -m tuning): the sweep runs the file's own gains as case "
-                        "'default' and each file as a case of its own ('tuned', or the file's directory name)")
-    p.add_argument("--processes", type=options.count, default=1,
-                   help="local processes joined by jax.distributed, each computing its share of the blocks")
-    p.add_argument("--devices", type=options.count, default=None,
-                   help="JAX host devices per process (default: the cores divided among the processes)")
+    p.add_argument(
+        "--gains",
+        type=Path,
+        nargs="+",
+        default=None,
+        help="tuned-gains files (gains.json of python -m tuning): the sweep runs the file's own gains as case "
+        "'default' and each file as a case of its own ('tuned', or the file's directory name)",
+    )
+    p.add_argument(
+        "--processes",
+        type=options.count,
+        default=1,
+        help="local processes joined by jax.distributed, each computing its share of the blocks",
+    )
+    p.add_argument(
+        "--devices",
+        type=options.count,
+        default=None,
+        help="JAX host devices per process (default: the cores divided among the processes)",
+    )
     p.add_argument("--coordinator", default=None, help="HOST:PORT of process 0, for a run over several hosts")
-    p.add_argument("--process-id", type=options.nonnegative_int, default=None, help="this process's index (with --coordinator)")
+    p.add_argument(
+        "--process-id", type=options.nonnegative_int, default=None, help="this process's index (with --coordinator)"
+    )
     p.add_argument("--num-processes", type=options.count, default=None, help="number of processes (with --coordinator)")
     return p
 
@@ -63,10 +78,12 @@ def main(argv=None) -> int:
     if a.processes > cores:
         options.fail(p, f"--processes {a.processes} is more than this machine's {cores} cores")
     if a.devices is not None and a.devices > cores:
-        options.fail(p, f"--devices {a.devices} is more than this machine's {cores} cores (JAX host devices run one per core)")
+        options.fail(
+            p, f"--devices {a.devices} is more than this machine's {cores} cores (JAX host devices run one per core)"
+        )
     devices = a.devices or max(1, cores // n_proc)
     flag = f"--xla_force_host_platform_device_count={devices}"
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()   # before JAX starts
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()  # before JAX starts
     # one writer per --out: the launching process (its workers inherit the lock's token), or
     # process 0 of a run over several hosts
     options.prepare_output(p, a.out, lock=not distributed or a.process_id == 0)
@@ -74,7 +91,7 @@ def main(argv=None) -> int:
         return _launch(p, a, devices)
     try:
         return _run(p, a, a.process_id or 0, a.num_processes or 1)
-    except ValueError as err:       # raised by the work (the file and --out were checked before it): exit 1
+    except ValueError as err:  # raised by the work (the file and --out were checked before it): exit 1
         options.fail_work(p, str(err), verbose=a.verbose)
 
 
@@ -86,8 +103,10 @@ def problem_of(a):
     if not a.gains:
         return problem
     if "case" in problem.data:
-        raise ProblemError("--gains pairs the file's own gains with tuned ones as [[case]]s; this file has [[case]]s "
-                           "already: add the tuned gains there")
+        raise ProblemError(
+            "--gains pairs the file's own gains with tuned ones as [[case]]s; this file has [[case]]s "
+            "already: add the tuned gains there"
+        )
     names = ["tuned"] if len(a.gains) == 1 else [f.resolve().parent.name for f in a.gains]
     if len(set(names)) != len(names):
         names = [f"tuned_{i + 1}" for i in range(len(a.gains))]
@@ -99,9 +118,11 @@ def _launch(p, a, devices: int) -> int:
     """Start ``--processes`` local processes (jax.distributed over 127.0.0.1) and wait for them."""
     from experiments.sweep import spec as S
     from wmrjax_cli import options
+
     common.enable_x64()
     from experiments.sweep import run
-    try:                            # refuse a bad file or another sweep's --out here, before starting anything
+
+    try:  # refuse a bad file or another sweep's --out here, before starting anything
         plan = S.plan(problem_of(a))
         run.check_memory(plan, devices, a.processes)
         run.prepare(plan, a.out, a.fresh)
@@ -110,8 +131,20 @@ def _launch(p, a, devices: int) -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    base = [sys.executable, "-m", "experiments.sweep", str(a.spec), "--out", str(a.out), "--devices", str(devices),
-            "--coordinator", f"127.0.0.1:{port}", "--num-processes", str(a.processes)]
+    base = [
+        sys.executable,
+        "-m",
+        "experiments.sweep",
+        str(a.spec),
+        "--out",
+        str(a.out),
+        "--devices",
+        str(devices),
+        "--coordinator",
+        f"127.0.0.1:{port}",
+        "--num-processes",
+        str(a.processes),
+    ]
     if a.gains:
         base += ["--gains", *[str(f) for f in a.gains]]
     if a.no_compile_cache:
@@ -146,8 +179,11 @@ def _wait(procs: list, a) -> int:
         except subprocess.TimeoutExpired:
             pr.kill()
             pr.wait()
-    print(f"process {bad[0]} of {len(procs)} failed (exit code {codes[bad[0]]}); the others were stopped. Finished "
-          f"blocks are kept in {a.out}: run the same command again to resume", file=sys.stderr)
+    print(
+        f"process {bad[0]} of {len(procs)} failed (exit code {codes[bad[0]]}); the others were stopped. Finished "
+        f"blocks are kept in {a.out}: run the same command again to resume",
+        file=sys.stderr,
+    )
     return codes[bad[0]] if codes[bad[0]] > 0 else 1
 
 
@@ -172,12 +208,14 @@ def _run(p, a, pid: int, n_proc: int) -> int:
             multihost_utils.sync_global_devices(name)
 
     say = (lambda m: print(m, file=sys.stderr, flush=True)) if pid == 0 else (lambda m: None)
-    try:                            # the user's errors (the file, --out): an argparse-style exit
+    try:  # the user's errors (the file, --out): an argparse-style exit
         plan = S.plan(problem_of(a))
-        run.check_memory(plan, len(jax.local_devices()))   # this process's share (the launcher checked all)
-        say(f"{a.spec}: {plan.n_runs} runs in {len(plan.blocks())} blocks of {plan.block} "
+        run.check_memory(plan, len(jax.local_devices()))  # this process's share (the launcher checked all)
+        say(
+            f"{a.spec}: {plan.n_runs} runs in {len(plan.blocks())} blocks of {plan.block} "
             f"({len(plan.groups)} group(s); {plan.n_steps} RK4 steps each), {n_proc} process(es) x "
-            f"{len(jax.local_devices())} device(s)")
+            f"{len(jax.local_devices())} device(s)"
+        )
         if pid == 0:
             resumed = run.prepare(plan, a.out, a.fresh)
             if resumed:
@@ -186,8 +224,10 @@ def _run(p, a, pid: int, n_proc: int) -> int:
         options.fail(p, str(err))
     barrier("sweep-prepared")
     if pid != 0 and run.read_state(a.out) is None:
-        raise RuntimeError(f"{a.out}/{run.STATE_FILE} missing: process 0 did not prepare the output directory "
-                           "(with several hosts, --out must be one shared directory)")
+        raise RuntimeError(
+            f"{a.out}/{run.STATE_FILE} missing: process 0 did not prepare the output directory "
+            "(with several hosts, --out must be one shared directory)"
+        )
     t0 = time.perf_counter()
     stats = run.compute(plan, a.out, process_id=pid, num_processes=n_proc)
     stats["wall_s"] = time.perf_counter() - t0
@@ -206,24 +246,41 @@ def _run(p, a, pid: int, n_proc: int) -> int:
     procs = [json.loads((a.out / "blocks" / f"process_{i}.json").read_text()) for i in range(n_proc)]
     computed = sum(s["runs_computed"] for s in procs)
     compute_wall = max(s["wall_s"] for s in procs)
-    summary = {"sweep": str(a.spec), "title": plan.spec.get("title", a.spec.stem), "law": str(plan.law),
-               "task": str(plan.task), "initial_space": str(plan.space), "swept": plan.swept,
-               "fingerprint": plan.fingerprint, "t_final": plan.t_final, "dt": plan.dt, "n_steps": plan.n_steps,
-               "cases": [c for c, _ in plan.problem.cases() if c is not None],
-               "problem": plan.problem.resolved()} | summary
+    summary = {
+        "sweep": str(a.spec),
+        "title": plan.spec.get("title", a.spec.stem),
+        "law": str(plan.law),
+        "task": str(plan.task),
+        "initial_space": str(plan.space),
+        "swept": plan.swept,
+        "fingerprint": plan.fingerprint,
+        "t_final": plan.t_final,
+        "dt": plan.dt,
+        "n_steps": plan.n_steps,
+        "cases": [c for c, _ in plan.problem.cases() if c is not None],
+        "problem": plan.problem.resolved(),
+    } | summary
     summary["execution"] = {
-        "processes": n_proc, "devices_per_process": len(jax.local_devices()), "block": plan.block,
-        "blocks": len(plan.blocks()), "runs_computed": computed, "runs_resumed": plan.n_runs - computed,
+        "processes": n_proc,
+        "devices_per_process": len(jax.local_devices()),
+        "block": plan.block,
+        "blocks": len(plan.blocks()),
+        "runs_computed": computed,
+        "runs_resumed": plan.n_runs - computed,
         "compute_wall_s": compute_wall,
         "first_calls_s": max(s["first_calls_s"] for s in procs),
         "throughput_runs_per_s": computed / compute_wall if compute_wall > 0 and computed else None,
-        "throughput_trajectory_steps_per_s": computed * plan.n_steps / compute_wall if compute_wall > 0 and computed else None,
+        "throughput_trajectory_steps_per_s": computed * plan.n_steps / compute_wall
+        if compute_wall > 0 and computed
+        else None,
     }
     summary["figures"] = report.figures(plan, table, certified, a.out)
     summary["wall_time_s"] = time.perf_counter() - t_start
     files.write_json(a.out / "summary.json", summary)
     c = summary["counts"]
-    print(f"{plan.n_runs} runs: {c['converged']} converged, {c['not_converged']} not converged, {c['singular']} "
-          f"singular, {c['failed']} failed; wrote {a.out}/runs.parquet, summary.json and "
-          f"{len(summary['figures'])} figures ({summary['wall_time_s']:.0f} s)")
+    print(
+        f"{plan.n_runs} runs: {c['converged']} converged, {c['not_converged']} not converged, {c['singular']} "
+        f"singular, {c['failed']} failed; wrote {a.out}/runs.parquet, summary.json and "
+        f"{len(summary['figures'])} figures ({summary['wall_time_s']:.0f} s)"
+    )
     return 0

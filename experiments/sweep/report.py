@@ -15,15 +15,33 @@ from experiments.sweep.run import OUTCOMES
 
 COLORS = {"converged": "#2ca02c", "not_converged": "#ff7f0e", "singular": "#d62728", "failed": "#7f7f7f"}
 # "failed": non-finite or inaccurate (the step's error estimate above error_tol), not singular
-LABELS = {"converged": "converged", "not_converged": "not converged", "singular": "singular",
-          "failed": "failed (inaccurate or non-finite)"}
-MAX_MAPS = 12              # maps of a one-group sweep
-MAX_MAPS_PER_GROUP = 3     # and per group of a sweep over several types or levels
-UNITS = {"initial_error_x": "m", "initial_error_y": "m", "initial_error_vx": "m/s", "initial_error_vy": "m/s",
-         "initial_error_theta": "rad", "initial_error_beta": "rad", "initial_error_beta1": "rad",
-         "initial_error_beta2": "rad", "geometry_L": "m", "geometry_e": "m", "geometry_delta": "rad",
-         "gains_poles": "1/s", "gains_omega": "rad/s", "reference_heading_offset": "rad", "reference_radius": "m",
-         "reference_omega": "rad/s", "reference_size": "m"}
+LABELS = {
+    "converged": "converged",
+    "not_converged": "not converged",
+    "singular": "singular",
+    "failed": "failed (inaccurate or non-finite)",
+}
+MAX_MAPS = 12  # maps of a one-group sweep
+MAX_MAPS_PER_GROUP = 3  # and per group of a sweep over several types or levels
+UNITS = {
+    "initial_error_x": "m",
+    "initial_error_y": "m",
+    "initial_error_vx": "m/s",
+    "initial_error_vy": "m/s",
+    "initial_error_theta": "rad",
+    "initial_error_beta": "rad",
+    "initial_error_beta1": "rad",
+    "initial_error_beta2": "rad",
+    "geometry_L": "m",
+    "geometry_e": "m",
+    "geometry_delta": "rad",
+    "gains_poles": "1/s",
+    "gains_omega": "rad/s",
+    "reference_heading_offset": "rad",
+    "reference_radius": "m",
+    "reference_omega": "rad/s",
+    "reference_size": "m",
+}
 
 
 def label(col: str) -> str:
@@ -41,9 +59,20 @@ def read_table(path: Path, columns=None) -> dict:
 def columns_needed(plan: S.Plan) -> list:
     """The columns the summary and the figures read back (not the whole table)."""
     cases = ["case"] if any(g.case is not None for g in plan.groups) else []
-    return ["run", *cases, "robot", "level", *[c for c in plan.swept if c not in ("case", "robot", "level")],
-            "outcome", "failed",
-            "inaccurate", "final_position_error", "final_heading_error", "min_margin", "min_distance"]
+    return [
+        "run",
+        *cases,
+        "robot",
+        "level",
+        *[c for c in plan.swept if c not in ("case", "robot", "level")],
+        "outcome",
+        "failed",
+        "inaccurate",
+        "final_position_error",
+        "final_heading_error",
+        "min_margin",
+        "min_distance",
+    ]
 
 
 def quantiles(a) -> dict:
@@ -60,8 +89,10 @@ def summarize(plan: S.Plan, table: dict, certified: dict) -> dict:
         "runs": n,
         "counts": counts,
         "fractions": {o: (c / n if n else None) for o, c in counts.items()},
-        "converged_definition": (f"regular run with final position error <= {plan.position_tol} m"
-                                 + (f" and heading error <= {plan.heading_tol} rad" if plan.task == "posture" else "")),
+        "converged_definition": (
+            f"regular run with final position error <= {plan.position_tol} m"
+            + (f" and heading error <= {plan.heading_tol} rad" if plan.task == "posture" else "")
+        ),
         "quantiles_regular_runs": {
             "final_position_error_m": quantiles(table["final_position_error"][ok]),
             "final_heading_error_rad": quantiles(table["final_heading_error"][ok]),
@@ -74,10 +105,12 @@ def summarize(plan: S.Plan, table: dict, certified: dict) -> dict:
     groups = {}
     for g in plan.groups:
         sel = select(table, g)
-        groups[group_name(g)] = {"runs": int(sel.sum()), **{o: int(np.sum(sel & (table["outcome"] == o)))
-                                                           for o in OUTCOMES}}
+        groups[group_name(g)] = {
+            "runs": int(sel.sum()),
+            **{o: int(np.sum(sel & (table["outcome"] == o))) for o in OUTCOMES},
+        }
     out["by_group"] = groups
-    if certified:       # one group: its radii; several: by group
+    if certified:  # one group: its radii; several: by group
         out["certified_radii"] = next(iter(certified.values())) if len(plan.groups) == 1 else certified
     return out
 
@@ -115,9 +148,10 @@ def certified_radii(plan: S.Plan) -> dict:
             if c is not None:
                 radii[f"lemma2_{name}"] = float(c.radius)
         try:
-            radii["exact_map_position_slice"] = float(certify.exact_map_radius(
-                ctrl, params, t_final=plan.t_final, eps=eps, basis="position").radius)
-        except ValueError as err:         # (1,2): curved singular set
+            radii["exact_map_position_slice"] = float(
+                certify.exact_map_radius(ctrl, params, t_final=plan.t_final, eps=eps, basis="position").radius
+            )
+        except ValueError as err:  # (1,2): curved singular set
             radii["exact_map_note"] = str(err)
         out[group_name(g)] = radii
     return out
@@ -140,22 +174,30 @@ def _edges(v):
 def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
     plt = common.pyplot()
     written = []
-    for old in out.glob("map_*.png"):       # an earlier run's maps (other quantities) must not linger
+    for old in out.glob("map_*.png"):  # an earlier run's maps (other quantities) must not linger
         old.unlink()
     numeric, random_cols, pairs = _map_pairs(plan, table)
     for g in plan.groups:
         robot, level = g.ctrl.robot.name, str(g.ctrl.level)
         gsel = select(table, g)
-        tag = ((f"_{g.case}" if g.case is not None else "") + f"_{robot.strip('()').replace(',', '')}_{level}"
-               if len(plan.groups) > 1 else "")
+        tag = (
+            (f"_{g.case}" if g.case is not None else "") + f"_{robot.strip('()').replace(',', '')}_{level}"
+            if len(plan.groups) > 1
+            else ""
+        )
         radii = certified.get(group_name(g), {})
         for a, b in pairs:
             sel = gsel.copy()
             fixed = []
             for c in numeric:
-                if c in (a, b) or c in random_cols and (a in random_cols or b in random_cols) \
-                        or _determines(table, a, c) or _determines(table, b, c):
-                    continue            # c varies with a or b (one vector, one random draw): not fixed
+                if (
+                    c in (a, b)
+                    or c in random_cols
+                    and (a in random_cols or b in random_cols)
+                    or _determines(table, a, c)
+                    or _determines(table, b, c)
+                ):
+                    continue  # c varies with a or b (one vector, one random draw): not fixed
                 vals = table[c][gsel]
                 if vals.size:
                     v0 = vals[0]
@@ -174,18 +216,29 @@ def _map_pairs(plan: S.Plan, table: dict):
     one-to-one correspondence with an earlier one dropped; random draws of several columns are
     one-to-one by construction: kept, and mapped as scatter plots), initial errors first."""
     numeric = [c for c in plan.swept if c not in ("case", "robot", "level")]
-    random_cols = {c for g in plan.groups for a in g.axes[-1:] if a.random for c in a.columns}   # the initial axis
-    numeric = [c for i, c in enumerate(numeric)
-               if c in random_cols or not any(_determines(table, q, c) and _determines(table, c, q) for q in numeric[:i])]
-    pairs = [(a, b) for a, b in itertools.combinations(numeric, 2)
-             if {a, b} <= random_cols or not (_determines(table, a, b) or _determines(table, b, a))]
+    random_cols = {c for g in plan.groups for a in g.axes[-1:] if a.random for c in a.columns}  # the initial axis
+    numeric = [
+        c
+        for i, c in enumerate(numeric)
+        if c in random_cols or not any(_determines(table, q, c) and _determines(table, c, q) for q in numeric[:i])
+    ]
+    pairs = [
+        (a, b)
+        for a, b in itertools.combinations(numeric, 2)
+        if {a, b} <= random_cols or not (_determines(table, a, b) or _determines(table, b, a))
+    ]
     # initial errors first (x against y above all), then the rest in the file's order
-    pairs.sort(key=lambda ab: -sum(c.startswith("initial_error_") for c in ab) - 2 * (ab == ("initial_error_x", "initial_error_y")))
-    return numeric, random_cols, pairs[:MAX_MAPS if len(plan.groups) == 1 else MAX_MAPS_PER_GROUP]
+    pairs.sort(
+        key=lambda ab: (
+            -sum(c.startswith("initial_error_") for c in ab) - 2 * (ab == ("initial_error_x", "initial_error_y"))
+        )
+    )
+    return numeric, random_cols, pairs[: MAX_MAPS if len(plan.groups) == 1 else MAX_MAPS_PER_GROUP]
 
 
-def _map_figure(plt, plan: S.Plan, table: dict, g, a: str, b: str, sel, fixed: list, random_cols, radii: dict,
-                path: Path) -> None:
+def _map_figure(
+    plt, plan: S.Plan, table: dict, g, a: str, b: str, sel, fixed: list, random_cols, radii: dict, path: Path
+) -> None:
     """One outcome map of columns ``a`` against ``b`` over the runs ``sel`` (cells on a full grid,
     points otherwise), the certified circles on the initial-position plane."""
     robot, level = g.ctrl.robot.name, str(g.ctrl.level)
@@ -193,13 +246,20 @@ def _map_figure(plt, plan: S.Plan, table: dict, g, a: str, b: str, sel, fixed: l
     xa, yb, oc = table[a][sel], table[b][sel], table["outcome"][sel]
     ux, uy = np.unique(xa), np.unique(yb)
     grid = a not in random_cols and b not in random_cols and len(xa) == len(ux) * len(uy) > 1
-    if grid and len(ux) > 1 and len(uy) > 1:     # a full grid: cells that touch
+    if grid and len(ux) > 1 and len(uy) > 1:  # a full grid: cells that touch
         from matplotlib.colors import ListedColormap
 
         code = np.full((len(uy), len(ux)), np.nan)
         code[np.searchsorted(uy, yb), np.searchsorted(ux, xa)] = [OUTCOMES.index(o) for o in oc]
-        ax.pcolormesh(_edges(ux), _edges(uy), code, cmap=ListedColormap([COLORS[o] for o in OUTCOMES]),
-                      vmin=-0.5, vmax=len(OUTCOMES) - 0.5, shading="flat")
+        ax.pcolormesh(
+            _edges(ux),
+            _edges(uy),
+            code,
+            cmap=ListedColormap([COLORS[o] for o in OUTCOMES]),
+            vmin=-0.5,
+            vmax=len(OUTCOMES) - 0.5,
+            shading="flat",
+        )
         for o in OUTCOMES:
             m = int(np.sum(oc == o))
             if m:
@@ -208,17 +268,26 @@ def _map_figure(plt, plan: S.Plan, table: dict, g, a: str, b: str, sel, fixed: l
         for o in OUTCOMES:
             m = oc == o
             if m.any():
-                ax.scatter(xa[m], yb[m], s=12, c=COLORS[o], linewidths=0,
-                           label=f"{LABELS[o]} ({int(m.sum())})")
+                ax.scatter(xa[m], yb[m], s=12, c=COLORS[o], linewidths=0, label=f"{LABELS[o]} ({int(m.sum())})")
     if radii and {a, b} == {"initial_error_x", "initial_error_y"}:
         th = np.linspace(0, 2 * np.pi, 400)
-        styles = {"lemma2_paper": ("k", ":"), "lemma2_lyapunov": ("k", "-."), "lemma2_exact_norm": ("k", "--"),
-                  "exact_map_position_slice": ("b", "-")}
+        styles = {
+            "lemma2_paper": ("k", ":"),
+            "lemma2_lyapunov": ("k", "-."),
+            "lemma2_exact_norm": ("k", "--"),
+            "exact_map_position_slice": ("b", "-"),
+        }
         for name, (col, ls) in styles.items():
             rad = radii.get(name)
             if rad:
-                ax.plot(rad * np.cos(th), rad * np.sin(th), color=col, ls=ls, lw=1.2,
-                        label=f"{name.replace('_', ' ')}: {rad:.3g} m")
+                ax.plot(
+                    rad * np.cos(th),
+                    rad * np.sin(th),
+                    color=col,
+                    ls=ls,
+                    lw=1.2,
+                    label=f"{name.replace('_', ' ')}: {rad:.3g} m",
+                )
     ax.set_xlabel(label(a))
     ax.set_ylabel(label(b))
     title = (f"{g.case}: " if g.case is not None else "") + f"{robot}, {plan.law} law, {level} level"
@@ -239,8 +308,9 @@ def _histograms(plt, plan: S.Plan, table: dict, out: Path) -> None:
     for g, c in zip(plan.groups, itertools.cycle([f"C{i}" for i in range(10)])):
         sel = ok & select(table, g)
         lab = group_name(g)
-        axs[0].hist(*_hist_args(np.log10(np.maximum(table["final_position_error"][sel], 1e-16))), alpha=0.6, color=c,
-                    label=lab)
+        axs[0].hist(
+            *_hist_args(np.log10(np.maximum(table["final_position_error"][sel], 1e-16))), alpha=0.6, color=c, label=lab
+        )
         axs[1].hist(*_hist_args(np.log10(np.maximum(table["min_margin"][sel], 1e-16))), alpha=0.6, color=c, label=lab)
         if plan.law == "dynamic":
             d = table["min_distance"][sel]
@@ -256,8 +326,6 @@ def _histograms(plt, plan: S.Plan, table: dict, out: Path) -> None:
     fig.tight_layout()
     common.save_figure(fig, out / "histograms.png")
     plt.close(fig)
-
-
 
 
 HIST_BINS = 50

@@ -21,12 +21,23 @@ import numpy as np
 
 from experiments.sweep import spec as S
 
-RESULT_COLUMNS = ("failed", "singular", "nonfinite", "inaccurate", "t_failure", "min_margin", "error_estimate",
-                  "final_position_error", "final_heading_error", "min_distance")
+RESULT_COLUMNS = (
+    "failed",
+    "singular",
+    "nonfinite",
+    "inaccurate",
+    "t_failure",
+    "min_margin",
+    "error_estimate",
+    "final_position_error",
+    "final_heading_error",
+    "min_distance",
+)
 STATE_FILE = "sweep_state.json"
 
 
 # --- the rollout of one run ------------------------------------------------------------------
+
 
 def rollout_fn(plan: S.Plan, group: S.Group):
     """``one(varying) -> results`` for one run of ``group`` (pure; batched by the caller), with
@@ -55,9 +66,17 @@ def rollout_fn(plan: S.Plan, group: S.Group):
         pos = (ctrl.law.outputs(zf, g)[:2] - ref.position(tf)) if point else zf[:2] - post_f[:2]
         head = jnp.abs(_math.wrap_angle(zf[2] - post_f[2]))
         dg = tr.diagnostics
-        out = dict(failed=dg.failed, singular=dg.singular, nonfinite=dg.nonfinite, inaccurate=dg.inaccurate,
-                   t_failure=dg.t_failure, min_margin=dg.min_margin, error_estimate=dg.error_estimate,
-                   final_position_error=jnp.linalg.norm(pos), final_heading_error=head)
+        out = dict(
+            failed=dg.failed,
+            singular=dg.singular,
+            nonfinite=dg.nonfinite,
+            inaccurate=dg.inaccurate,
+            t_failure=dg.t_failure,
+            min_margin=dg.min_margin,
+            error_estimate=dg.error_estimate,
+            final_position_error=jnp.linalg.norm(pos),
+            final_heading_error=head,
+        )
         if dynamic:
             states = law_state(system, tr.state)
             dist = jax.vmap(lambda z: ctrl.singular_distance(ctrl.psi(z, params), params))(states)
@@ -90,9 +109,12 @@ def split(group: S.Group):
     src = _sources(group)
     leaves, treedef = jax.tree_util.tree_flatten(src)
     # the initial conditions (and run indices) are always batched: they carry the batch axis
-    flags = {k: jax.tree_util.tree_map(lambda x, k=k: k not in ("initial", "run")
-                                       and bool(np.all(np.asarray(x) == np.asarray(x)[:1])), v)
-             for k, v in src.items()}
+    flags = {
+        k: jax.tree_util.tree_map(
+            lambda x, k=k: k not in ("initial", "run") and bool(np.all(np.asarray(x) == np.asarray(x)[:1])), v
+        )
+        for k, v in src.items()
+    }
     constant = jax.tree_util.tree_leaves(flags)
     return treedef, constant, [np.asarray(x)[0] for x in leaves]
 
@@ -112,12 +134,21 @@ def payload(group: S.Group, start: int, n: int, pad_to: int, constant: list) -> 
 
 # --- execution ---------------------------------------------------------------------------------
 
+
 class Progress:
     """Chunks done, runs/s and ETA: a rewritten line on a terminal, plain lines every
     ``every`` seconds otherwise (a log)."""
 
-    def __init__(self, total_runs: int, total_blocks: int, done_runs: int, done_blocks: int, every: float = 10.0,
-                 stream=None, prefix: str = ""):
+    def __init__(
+        self,
+        total_runs: int,
+        total_blocks: int,
+        done_runs: int,
+        done_blocks: int,
+        every: float = 10.0,
+        stream=None,
+        prefix: str = "",
+    ):
         self.total_runs, self.total_blocks = total_runs, total_blocks
         self.done_runs, self.done_blocks = done_runs, done_blocks
         self.start_runs = done_runs
@@ -136,8 +167,10 @@ class Progress:
             rate = (self.done_runs - self.start_runs) / max(now - self.t0, 1e-9)
             left = self.total_runs - self.done_runs
             eta = left / rate if rate > 0 else float("inf")
-            line = (f"{self.prefix}blocks {self.done_blocks}/{self.total_blocks}, runs {self.done_runs}/{self.total_runs}, "
-                    f"{rate:,.0f} runs/s, ETA {eta:.0f} s")
+            line = (
+                f"{self.prefix}blocks {self.done_blocks}/{self.total_blocks}, runs {self.done_runs}/{self.total_runs}, "
+                f"{rate:,.0f} runs/s, ETA {eta:.0f} s"
+            )
             if self.tty:
                 end = "\n" if self.done_blocks == self.total_blocks else ""
                 print("\r" + line + " " * 8, end=end, file=self.stream, flush=True)
@@ -162,10 +195,12 @@ def check_memory(plan: S.Plan, devices: int, processes: int = 1) -> None:
     """ValueError before anything compiles when the sweep would not fit in memory."""
     from wmrjax import resources
 
-    resources.check_fits(estimate(plan, devices, processes),
-                         f"{processes} process(es) x {devices} device(s), each running a block of {plan.block} runs "
-                         f"with {plan.n_steps // plan.save_every + 1} samples each",
-                         "lower [simulation] block, raise distance_every, or use fewer --processes/--devices")
+    resources.check_fits(
+        estimate(plan, devices, processes),
+        f"{processes} process(es) x {devices} device(s), each running a block of {plan.block} runs "
+        f"with {plan.n_steps // plan.save_every + 1} samples each",
+        "lower [simulation] block, raise distance_every, or use fewer --processes/--devices",
+    )
 
 
 def block_path(out: Path, b: int) -> Path:
@@ -195,8 +230,10 @@ def block_problem(plan: S.Plan, out: Path, b: int) -> str | None:
             if str(f["fingerprint"]) != plan.fingerprint:
                 return f"{path} belongs to another sweep (fingerprint {f['fingerprint']}, this one {plan.fingerprint})"
             if (int(f["block"]), int(f["start"]), int(f["n"])) != (b, start, n):
-                return (f"{path} holds block {int(f['block'])} (runs {int(f['start'])}+{int(f['n'])}), "
-                        f"expected block {b} (runs {start}+{n})")
+                return (
+                    f"{path} holds block {int(f['block'])} (runs {int(f['start'])}+{int(f['n'])}), "
+                    f"expected block {b} (runs {start}+{n})"
+                )
             bad = [c for c in RESULT_COLUMNS if c not in keys or f[c].shape != (n,)]
             if bad:
                 return f"{path} lacks result columns or has wrong lengths: {bad}"
@@ -234,15 +271,17 @@ def prepare(plan: S.Plan, out: Path, fresh: bool) -> int:
     """
     from wmrjax_cli import files
 
-    state = None if fresh else read_state(out)      # --fresh discards even a corrupt state file
+    state = None if fresh else read_state(out)  # --fresh discards even a corrupt state file
     blocks = plan.blocks()
     want = {"fingerprint": plan.fingerprint, "n_runs": plan.n_runs, "n_blocks": len(blocks), "block": plan.block}
     if fresh or state is None or state.get("fingerprint") != plan.fingerprint:
         if state is not None and state.get("fingerprint") != plan.fingerprint and not fresh:
             done = list((out / "blocks").glob("block_*.npz")) if (out / "blocks").exists() else []
             if done:
-                raise ValueError(f"{out} holds {len(done)} finished blocks of another sweep (fingerprint "
-                                 f"{state.get('fingerprint')}, this one {plan.fingerprint}); use another --out or --fresh")
+                raise ValueError(
+                    f"{out} holds {len(done)} finished blocks of another sweep (fingerprint "
+                    f"{state.get('fingerprint')}, this one {plan.fingerprint}); use another --out or --fresh"
+                )
         for f in (out / "blocks").glob("block_*.npz") if (out / "blocks").exists() else []:
             f.unlink()
         files.write_json(out / STATE_FILE, want)
@@ -263,8 +302,13 @@ def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int 
     mine = [b for b in range(len(blocks)) if b % num_processes == process_id]
     todo = [b for b in mine if not block_done(plan, out, b)]
     done_runs = sum(blocks[b][2] for b in set(mine) - set(todo))
-    prog = Progress(sum(blocks[b][2] for b in mine), len(mine), done_runs, len(mine) - len(todo),
-                    prefix=f"[process {process_id}] " if num_processes > 1 else "")
+    prog = Progress(
+        sum(blocks[b][2] for b in mine),
+        len(mine),
+        done_runs,
+        len(mine) - len(todo),
+        prefix=f"[process {process_id}] " if num_processes > 1 else "",
+    )
     t_first, t_run, n_run = 0.0, 0.0, 0
     by_group = {}
     for b in todo:
@@ -277,18 +321,26 @@ def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int 
         fn = jax.jit(jax.vmap(rollout_fn(plan, group)))
         _, constant, _ = split(group)
         for k in range(0, len(bs), D):
-            ids = bs[k:k + D]
+            ids = bs[k : k + D]
             t = time.perf_counter()
-            pending = [fn(jax.device_put(payload(group, blocks[b][1], blocks[b][2], plan.block, constant), devices[j]))
-                       for j, b in enumerate(ids)]          # dispatched asynchronously: the devices run together
+            pending = [
+                fn(jax.device_put(payload(group, blocks[b][1], blocks[b][2], plan.block, constant), devices[j]))
+                for j, b in enumerate(ids)
+            ]  # dispatched asynchronously: the devices run together
             for b, res in zip(ids, pending):
                 _, start, n = blocks[b]
                 res = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], res)
-                files.write_npz(block_path(out, b), fingerprint=np.str_(plan.fingerprint), block=b, start=start, n=n,
-                             **{c: res[c] for c in RESULT_COLUMNS})
+                files.write_npz(
+                    block_path(out, b),
+                    fingerprint=np.str_(plan.fingerprint),
+                    block=b,
+                    start=start,
+                    n=n,
+                    **{c: res[c] for c in RESULT_COLUMNS},
+                )
                 n_run += n
             dt_ = time.perf_counter() - t
-            if k == 0:              # the group's first call compiles
+            if k == 0:  # the group's first call compiles
                 t_first += dt_
             else:
                 t_run += dt_
@@ -308,9 +360,10 @@ def assemble(plan: S.Plan, out: Path):
     if missing:
         raise RuntimeError(f"{len(missing)} blocks are missing (first: {missing[0]}); rerun the sweep to finish them")
     bad = [why for why in (block_problem(plan, out, b) for b in range(len(blocks))) if why is not None]
-    if bad:     # changed since compute() checked them: refuse rather than mix another sweep's rows in
-        raise ValueError(f"{len(bad)} block files cannot be used (first: {bad[0]}); rerun the same sweep command: "
-                         "it recomputes them")
+    if bad:  # changed since compute() checked them: refuse rather than mix another sweep's rows in
+        raise ValueError(
+            f"{len(bad)} block files cannot be used (first: {bad[0]}); rerun the same sweep command: it recomputes them"
+        )
     names = value_columns(plan)
     # label columns (a gains file's name): null where a group has none, numbers NaN
     labels = {k for g in plan.groups for a in g.axes for k, v in a.columns.items() if np.asarray(v).dtype.kind in "US"}
@@ -322,12 +375,18 @@ def assemble(plan: S.Plan, out: Path):
             cols = S.columns_of(group, idx)
             with np.load(block_path(out, b), allow_pickle=False) as f:
                 res = {c: f[c] for c in RESULT_COLUMNS}
-            data = {"run": np.arange(start, start + n) + sum(g.size for g in plan.groups[:gi]),
-                    **({"case": np.full(n, group.case)} if group.case is not None else {}),
-                    "robot": np.full(n, group.ctrl.robot.name), "level": np.full(n, str(group.ctrl.level))}
+            data = {
+                "run": np.arange(start, start + n) + sum(g.size for g in plan.groups[:gi]),
+                **({"case": np.full(n, group.case)} if group.case is not None else {}),
+                "robot": np.full(n, group.ctrl.robot.name),
+                "level": np.full(n, str(group.ctrl.level)),
+            }
             for k in names:
-                data[k] = cols[k] if k in cols else np.full(n, None if k in labels else np.nan,
-                                                            dtype=object if k in labels else float)
+                data[k] = (
+                    cols[k]
+                    if k in cols
+                    else np.full(n, None if k in labels else np.nan, dtype=object if k in labels else float)
+                )
             data |= res
             data |= classify(plan, res)
             yield data
@@ -352,6 +411,7 @@ def classify(plan: S.Plan, res: dict) -> dict:
     pos_ok = res["final_position_error"] <= plan.position_tol
     head_ok = res["final_heading_error"] <= plan.heading_tol
     conv = ~res["failed"] & pos_ok & (head_ok if plan.task == "posture" else True)
-    outcome = np.where(res["singular"], "singular", np.where(res["failed"], "failed",
-                                                             np.where(conv, "converged", "not_converged")))
+    outcome = np.where(
+        res["singular"], "singular", np.where(res["failed"], "failed", np.where(conv, "converged", "not_converged"))
+    )
     return {"converged": conv, "outcome": outcome}

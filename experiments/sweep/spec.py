@@ -33,8 +33,8 @@ from wmrjax.problem import (  # noqa: F401  (the file form's helpers, as the swe
     unravel,
 )
 
-SpecError = ProblemError        # a sweep file that cannot run (the name the sweep's callers know)
-Group = Setting                 # one group of runs: one case, robot type and level
+SpecError = ProblemError  # a sweep file that cannot run (the name the sweep's callers know)
+Group = Setting  # one group of runs: one case, robot type and level
 
 
 @dataclasses.dataclass
@@ -51,12 +51,12 @@ class Plan:
     t_final: float
     dt: float
     n_steps: int
-    block: int                     # runs per compiled block (per device)
-    save_every: int                # steps between the samples min_distance is taken on
+    block: int  # runs per compiled block (per device)
+    save_every: int  # steps between the samples min_distance is taken on
     error_tol: float | None
     position_tol: float
     heading_tol: float
-    swept: list                    # the columns with more than one value (map axes)
+    swept: list  # the columns with more than one value (map axes)
     fingerprint: str
 
     @property
@@ -89,8 +89,10 @@ def plan(problem: Problem) -> Plan:
     first = groups[0]
     for g in groups[1:]:
         if (g.law, g.task, g.space) != (first.law, first.task, first.space):
-            raise SpecError("[[case]]: the cases of one sweep share the law, the task and the initial space "
-                            f"(got {first.law}/{first.task}/{first.space} and {g.law}/{g.task}/{g.space})")
+            raise SpecError(
+                "[[case]]: the cases of one sweep share the law, the task and the initial space "
+                f"(got {first.law}/{first.task}/{first.space} and {g.law}/{g.task}/{g.space})"
+            )
         if (g.t_final, g.dt) != (first.t_final, first.dt):
             raise SpecError("[[case]]: the cases of one sweep share the horizon and the step")
     sim = problem.data["simulation"]
@@ -103,23 +105,47 @@ def plan(problem: Problem) -> Plan:
     if tol == "none":
         tol = None
     elif not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and np.isfinite(tol) and tol > 0):
-        raise SpecError(f"[simulation] error_tol: expected a number > 0 or \"none\", got {tol!r}")
+        raise SpecError(f'[simulation] error_tol: expected a number > 0 or "none", got {tol!r}')
     cls = problem.data.get("classify", {})
     check_keys("classify", cls, ("position_tol", "heading_tol"))
     position_tol = positive("classify", "position_tol", cls.get("position_tol", 0.01))
     heading_tol = positive("classify", "heading_tol", cls.get("heading_tol", 0.01))
-    swept = []            # columns with more than one value within a group (defaults differ across groups)
+    swept = []  # columns with more than one value within a group (defaults differ across groups)
     for g in groups:
         for a in g.axes:
             for k, v in a.columns.items():
                 if k not in swept and len(set(np.asarray(v).tolist())) > 1:
                     swept.append(k)
-    labels = [k for k, f in (("case", lambda g: g.case), ("robot", lambda g: g.ctrl.robot.name),
-                             ("level", lambda g: str(g.ctrl.level))) if len({f(g) for g in groups}) > 1]
+    labels = [
+        k
+        for k, f in (
+            ("case", lambda g: g.case),
+            ("robot", lambda g: g.ctrl.robot.name),
+            ("level", lambda g: str(g.ctrl.level)),
+        )
+        if len({f(g) for g in groups}) > 1
+    ]
     swept = labels + swept
     fp = hashlib.sha256(json.dumps(problem.resolved(), sort_keys=True, default=str).encode())
-    return Plan(problem, problem.data, problem.source, first.law, first.task, first.space, groups, first.t_final,
-                first.dt, n_steps, block, every, tol, position_tol, heading_tol, swept, fp.hexdigest()[:16])
+    return Plan(
+        problem,
+        problem.data,
+        problem.source,
+        first.law,
+        first.task,
+        first.space,
+        groups,
+        first.t_final,
+        first.dt,
+        n_steps,
+        block,
+        every,
+        tol,
+        position_tol,
+        heading_tol,
+        swept,
+        fp.hexdigest()[:16],
+    )
 
 
 def controller(law, kind: str, level, task):

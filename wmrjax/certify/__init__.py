@@ -50,12 +50,12 @@ from wmrjax.certify.lemma2 import (  # noqa: F401
     check_lemma2_args,
     k2_exact,
     k2_lyapunov,
-    k2_transition,
-    transition_steps,
     k2_paper,
+    k2_transition,
     lemma2,
     lyapunov_bound,
     m1_closed_form,
     m1_numerical,
+    transition_steps,
 )
 from wmrjax.certify.pipeline import CertificationReport, EmpiricalCheck, analyse, plain  # noqa: F401

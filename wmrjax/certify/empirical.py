@@ -12,10 +12,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
+from wmrjax._validate import check_int, check_positive, concrete
 from wmrjax.certify.exact_map import singular_rows
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
-from wmrjax._validate import check_int, check_positive, concrete
+from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 from wmrjax.problem import Space, Task, place
 from wmrjax.simulate import batch_map, simulate
 
@@ -50,14 +50,17 @@ def check_runs(ctrl, params, t_final, dt, initial_errors, save_every) -> tuple[i
 
 def n_steps_for(t_final: float, dt: float, dt_name: str = "dt") -> int:
     """Number of RK4 steps covering [0, t_final] with step dt (ValueError for a bad pair)."""
+
     def real_scalar(v):
         a = np.asarray(v) if not isinstance(v, bool) else np.asarray(None)
         return a.ndim == 0 and a.dtype.kind in "iuf"
 
-    if not (real_scalar(t_final) and real_scalar(dt)) or not (np.isfinite(dt) and dt > 0 and np.isfinite(t_final)
-                                                              and t_final > 0):
-        raise ValueError(f"t_final and {dt_name} must be finite real numbers > 0 [s], got t_final = {t_final!r}, "
-                         f"{dt_name} = {dt!r}")
+    if not (real_scalar(t_final) and real_scalar(dt)) or not (
+        np.isfinite(dt) and dt > 0 and np.isfinite(t_final) and t_final > 0
+    ):
+        raise ValueError(
+            f"t_final and {dt_name} must be finite real numbers > 0 [s], got t_final = {t_final!r}, {dt_name} = {dt!r}"
+        )
     n = int(round(t_final / dt))
     if n < 1:
         raise ValueError(f"{dt_name} = {dt} s is longer than the horizon t_final = {t_final} s")
@@ -73,15 +76,24 @@ def sample_sphere(key, n, dim):
 class Verification(NamedTuple):
     """Per-run results of :func:`verify`, each (N,)."""
 
-    norm0: jnp.ndarray          # ||initial error||
-    violation_53: jnp.ndarray   # (53) violated at some valid sample
-    singular: jnp.ndarray       # the run failed (or started on the other branch)
-    max_ratio: jnp.ndarray      # max_t ||err(t)|| / (K2(t) ||err(0)||)
-    min_margin: jnp.ndarray     # min_t |det K|
+    norm0: jnp.ndarray  # ||initial error||
+    violation_53: jnp.ndarray  # (53) violated at some valid sample
+    singular: jnp.ndarray  # the run failed (or started on the other branch)
+    max_ratio: jnp.ndarray  # max_t ||err(t)|| / (K2(t) ||err(0)||)
+    min_margin: jnp.ndarray  # min_t |det K|
 
 
-def verify(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, initial_errors, k2,
-           dt: float, save_every: int = 10, tol: float = 1e-6) -> Verification:
+def verify(
+    ctrl: DynamicLinearization,
+    params: DynamicParams,
+    *,
+    t_final: float,
+    initial_errors,
+    k2,
+    dt: float,
+    save_every: int = 10,
+    tol: float = 1e-6,
+) -> Verification:
     r"""Simulate from :math:`\zeta(0) = \zeta_{ref}(0) + \tilde\zeta_0` and check (53) and regularity.
 
     Args:
@@ -96,12 +108,29 @@ def verify(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
     """
     if not callable(k2):
         raise ValueError(f"k2 must be a function ts -> K2(ts), got {type(k2).__name__}")
-    return verify_all(ctrl, params, t_final=t_final, initial_errors=initial_errors, k2s={"k2": k2}, dt=dt,
-                      save_every=save_every, tol=tol)["k2"]
+    return verify_all(
+        ctrl,
+        params,
+        t_final=t_final,
+        initial_errors=initial_errors,
+        k2s={"k2": k2},
+        dt=dt,
+        save_every=save_every,
+        tol=tol,
+    )["k2"]
 
 
-def verify_all(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, initial_errors, k2s: dict,
-               dt: float, save_every: int = 10, tol: float = 1e-6) -> dict:
+def verify_all(
+    ctrl: DynamicLinearization,
+    params: DynamicParams,
+    *,
+    t_final: float,
+    initial_errors,
+    k2s: dict,
+    dt: float,
+    save_every: int = 10,
+    tol: float = 1e-6,
+) -> dict:
     """:func:`verify` for several K2 bounds on the same runs (simulated once).
 
     Args:
@@ -118,12 +147,20 @@ def verify_all(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: fl
     n_saves = n_steps // save_every
     ts = dt * save_every * jnp.arange(n_saves + 1, dtype=jnp.result_type(float))
     ts = ts.at[-1].set(dt * n_steps)
-    k2v = np.stack([np.asarray(f(ts)) for f in k2s.values()])   # every bound on the saved grid
+    k2v = np.stack([np.asarray(f(ts)) for f in k2s.values()])  # every bound on the saved grid
     if len(k2v) > _N_BOUNDS:
         raise ValueError(f"verify_all checks at most {_N_BOUNDS} K2 bounds at once, got {len(k2v)}")
     st = _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, 4, 512, k2v, tol)
-    return {name: Verification(jnp.asarray(st.norm0), jnp.asarray(st.violation[:, i]), jnp.asarray(st.failed),
-                               jnp.asarray(st.ratio[:, i]), jnp.asarray(st.min_margin)) for i, name in enumerate(k2s)}
+    return {
+        name: Verification(
+            jnp.asarray(st.norm0),
+            jnp.asarray(st.violation[:, i]),
+            jnp.asarray(st.failed),
+            jnp.asarray(st.ratio[:, i]),
+            jnp.asarray(st.min_margin),
+        )
+        for i, name in enumerate(k2s)
+    }
 
 
 # --- running the real closed loop from initial errors ---------------------------------------
@@ -165,12 +202,13 @@ def distance_along(ctrl, params, tr, chord=False, within=1.0):
 class Distances(NamedTuple):
     """Per-run results of :func:`min_distance`, each (N,)."""
 
-    distance: jnp.ndarray   # min_t dist(zeta(t), S) over the samples (capped at 1 for (1,2)); 0: failed
-    singular: jnp.ndarray   # flagged by the simulator (or started on the other branch)
+    distance: jnp.ndarray  # min_t dist(zeta(t), S) over the samples (capped at 1 for (1,2)); 0: failed
+    singular: jnp.ndarray  # flagged by the simulator (or started on the other branch)
 
 
-def min_distance(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, initial_errors, dt: float,
-                 save_every: int = 1) -> Distances:
+def min_distance(
+    ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, initial_errors, dt: float, save_every: int = 1
+) -> Distances:
     r"""Simulate from :math:`\zeta_{ref}(0) + \tilde\zeta_0` and return, per run,
     :math:`\min_t \mathrm{dist}(\zeta(t), S)` and whether the simulator flagged it singular.
 
@@ -189,8 +227,9 @@ def min_distance(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: 
     return Distances(jnp.asarray(np.where(fail, 0.0, per.min(axis=1))), jnp.asarray(fail))
 
 
-def window_distances(ctrl, params, initial_errors, *, dt: float, n_steps: int, save_every: int = 1,
-                     n_windows: int = 4, block: int = 512):
+def window_distances(
+    ctrl, params, initial_errors, *, dt: float, n_steps: int, save_every: int = 1, n_windows: int = 4, block: int = 512
+):
     """Per run: the smallest distance to the singular set in each of ``n_windows`` equal windows
     of the horizon (samples), whether it failed, and the time of its closest approach.
 
@@ -207,19 +246,19 @@ def window_distances(ctrl, params, initial_errors, *, dt: float, n_steps: int, s
     return st.window_minima, st.failed, st.t_closest
 
 
-_N_BOUNDS = 4     # K2 bounds one compiled program checks (unused rows: an infinite bound)
+_N_BOUNDS = 4  # K2 bounds one compiled program checks (unused rows: an infinite bound)
 
 
 class _Stats(NamedTuple):
     """What :func:`_rollout_stats` measures per run (NumPy arrays with a leading run axis)."""
 
-    window_minima: np.ndarray   # (N, W) smallest distance to the singular set per window (0: failed)
-    failed: np.ndarray          # (N,) flagged singular / non-finite, or started on the other branch
-    t_closest: np.ndarray       # (N,) time of the closest approach (of the failure, for failed runs)
-    norm0: np.ndarray           # (N,) ||initial error||
-    violation: np.ndarray       # (N, K) (53) violated at a valid sample, per bound
-    ratio: np.ndarray           # (N, K) max_t ||err(t)|| / (K2(t) ||err(0)||), per bound
-    min_margin: np.ndarray      # (N,) min_t |det K|
+    window_minima: np.ndarray  # (N, W) smallest distance to the singular set per window (0: failed)
+    failed: np.ndarray  # (N,) flagged singular / non-finite, or started on the other branch
+    t_closest: np.ndarray  # (N,) time of the closest approach (of the failure, for failed runs)
+    norm0: np.ndarray  # (N,) ||initial error||
+    violation: np.ndarray  # (N, K) (53) violated at a valid sample, per bound
+    ratio: np.ndarray  # (N, K) max_t ||err(t)|| / (K2(t) ||err(0)||), per bound
+    min_margin: np.ndarray  # (N,) min_t |det K|
 
 
 def _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, n_windows, block, k2v, tol) -> _Stats:
@@ -235,10 +274,22 @@ def _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, n_windows, b
     branch = jnp.asarray(float(ctrl.reference_branch(params)))
     out = []
     for i in range(0, n, block):
-        e = errs[i:i + block]
+        e = errs[i : i + block]
         e = np.concatenate([e, np.repeat(e[:1], block - len(e), axis=0)])
-        out.append(_rollout_stats(ctrl, params, jnp.asarray(e), jnp.asarray(bounds), jnp.asarray(tol, e.dtype), branch,
-                                  dt, n_steps, save_every, n_windows))
+        out.append(
+            _rollout_stats(
+                ctrl,
+                params,
+                jnp.asarray(e),
+                jnp.asarray(bounds),
+                jnp.asarray(tol, e.dtype),
+                branch,
+                dt,
+                n_steps,
+                save_every,
+                n_windows,
+            )
+        )
     return _Stats(*(np.concatenate([np.asarray(o[j]) for o in out])[:n] for j in range(len(_Stats._fields))))
 
 
@@ -260,11 +311,18 @@ def _rollout_stats(ctrl, params, errs, k2, tol, branch, dt, n_steps, save_every,
         err = jax.vmap(lambda t, z: ctrl.error(t, z, params).reshape(-1))(tr.t, tr.state)
         nrm = jnp.linalg.norm(err, axis=1)
         n0 = jnp.linalg.norm(e0)
-        bound = k2 * n0                                                   # (K, T)
+        bound = k2 * n0  # (K, T)
         viol = jnp.any(tr.valid[None] & (nrm[None] > bound + tol), axis=1)
         ratio = jnp.max(jnp.where(tr.valid[None], nrm[None] / jnp.maximum(bound, 1e-300), 0.0), axis=1)
-        return (jnp.where(fail, 0.0, per), fail, jnp.where(fail, tr.diagnostics.t_failure, tr.t[i]), n0, viol, ratio,
-                tr.diagnostics.min_margin)
+        return (
+            jnp.where(fail, 0.0, per),
+            fail,
+            jnp.where(fail, tr.diagnostics.t_failure, tr.t[i]),
+            n0,
+            viol,
+            ratio,
+            tr.diagnostics.min_margin,
+        )
 
     return batch_map(one, errs, chunk=64)
 
@@ -272,15 +330,26 @@ def _rollout_stats(ctrl, params, errs, k2, tol, branch, dt, n_steps, save_every,
 class EmpiricalRadius(NamedTuple):
     """Result of :func:`empirical_radius`."""
 
-    per_direction: np.ndarray    # (D,) first failing radius per ray (inf: none up to r_max)
-    radius: float                # min over the rays
+    per_direction: np.ndarray  # (D,) first failing radius per ray (inf: none up to r_max)
+    radius: float  # min over the rays
     worst_direction: np.ndarray  # (r m,) the ray attaining it
-    n_runs: int                  # simulations used
+    n_runs: int  # simulations used
 
 
-def empirical_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float, directions,
-                     r_max: float, dt: float, n_grid: int = 48, n_dips: int = 3, n_golden: int = 16,
-                     n_bisect: int = 14) -> EmpiricalRadius:
+def empirical_radius(
+    ctrl: DynamicLinearization,
+    params: DynamicParams,
+    *,
+    t_final: float,
+    eps: float,
+    directions,
+    r_max: float,
+    dt: float,
+    n_grid: int = 48,
+    n_dips: int = 3,
+    n_golden: int = 16,
+    n_bisect: int = 14,
+) -> EmpiricalRadius:
     r"""Empirical safe radius per direction by simulation: the smallest :math:`\rho \le` ``r_max``
     at which the run from :math:`\rho d` comes within ``eps`` of the singular set (or is flagged).
 
@@ -336,7 +405,7 @@ def empirical_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     for _ in range(n_golden):
         x1, x2 = b - gr * (b - a), a + gr * (b - a)
         m12 = m_of(np.concatenate([dd, dd]), np.concatenate([x1, x2]))
-        left = m12[: len(a)] <= m12[len(a):]
+        left = m12[: len(a)] <= m12[len(a) :]
         a, b = np.where(left, a, x1), np.where(left, x2, b)
     r_star = 0.5 * (a + b)
     dips = m_of(dd, r_star) < eps
@@ -357,4 +426,3 @@ def empirical_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     np.minimum.at(per, owner[live], ch)
     k = int(np.argmin(per))
     return EmpiricalRadius(per, float(per[k]), dirs[k], runs)
-

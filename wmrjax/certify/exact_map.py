@@ -50,7 +50,11 @@ def slice_basis(ctrl: DynamicLinearization, kind="full"):
             return jnp.eye(n)[:, :2]
         raise ValueError(f"unknown slice {kind!r}; expected 'full', 'position' or an (n, k) array")
     P = jnp.asarray(kind)
-    if P.ndim != 2 or P.shape[0] != n or not np.allclose(np.asarray(P).T @ np.asarray(P), np.eye(P.shape[1]), atol=1e-9):
+    if (
+        P.ndim != 2
+        or P.shape[0] != n
+        or not np.allclose(np.asarray(P).T @ np.asarray(P), np.eye(P.shape[1]), atol=1e-9)
+    ):
         raise ValueError(f"a slice basis must be an ({n}, k) array with orthonormal columns, got shape {P.shape}")
     return P
 
@@ -137,8 +141,16 @@ class ExactMapRadius(NamedTuple):
     boxes: int = 0
 
 
-def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float,
-                     basis="full", n_t: int = 2001, refine: int = 40) -> ExactMapRadius:
+def exact_map_radius(
+    ctrl: DynamicLinearization,
+    params: DynamicParams,
+    *,
+    t_final: float,
+    eps: float,
+    basis="full",
+    n_t: int = 2001,
+    refine: int = 40,
+) -> ExactMapRadius:
     r"""Exact safe radius from the linear error map (semi-infinite over t; grid then golden section).
 
     With :math:`\tilde\zeta(t) = e^{At}P s` (P the slice basis) and the singular set
@@ -164,9 +176,11 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     rows = singular_rows(ctrl)
     scheduled = params.gains.time_varying
     if rows is None and scheduled:
-        raise ValueError(f"the exact-map radius of type {ctrl.robot.name} (a curved singular set, branch and bound "
-                         "with bounds from ||A||) is implemented for constant gains only, not a GainSchedule; "
-                         "use lemma2 (K2 = ||Phi(t, 0)||) or the empirical radius")
+        raise ValueError(
+            f"the exact-map radius of type {ctrl.robot.name} (a curved singular set, branch and bound "
+            "with bounds from ||A||) is implemented for constant gains only, not a GainSchedule; "
+            "use lemma2 (K2 = ||Phi(t, 0)||) or the empirical radius"
+        )
     if rows is None:
         return curved_exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=basis)
     P = slice_basis(ctrl, basis)
@@ -182,7 +196,7 @@ def exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
 
 def _ball_problem(ctrl, params, P, C, t, Phi=None, n_phi=None):
     """``(M, a)`` of the problem at time t: reach ``||a + M s|| <= eps`` with ``M = C Phi(t, 0) P``."""
-    a = C @ ctrl.reference_jet(t, params)[:ctrl.relative_degree].reshape(-1)
+    a = C @ ctrl.reference_jet(t, params)[: ctrl.relative_degree].reshape(-1)
     if Phi is None:
         Phi = linearize.transition_matrix(params.gains, t, n_steps=n_phi)
     return C @ Phi @ P, a
@@ -217,8 +231,16 @@ def _exact_map_core(ctrl, params, P, C, eps, ts, Phis, refine, n_phi):
     return rho, rad, t_star, P @ xs
 
 
-def differentiable_exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float,
-                                    basis="full", n_t: int = 2001, refine: int = 40):
+def differentiable_exact_map_radius(
+    ctrl: DynamicLinearization,
+    params: DynamicParams,
+    *,
+    t_final: float,
+    eps: float,
+    basis="full",
+    n_t: int = 2001,
+    refine: int = 40,
+):
     r"""The exact-map radius of a linear singular set as a differentiable function of the gains.
 
     Its value is :func:`exact_map_radius`'s ``radius`` (the same grid and golden section; no
@@ -249,18 +271,19 @@ def differentiable_exact_map_radius(ctrl: DynamicLinearization, params: DynamicP
     """
     rows = singular_rows(ctrl)
     if rows is None:
-        raise ValueError(f"type {ctrl.robot.name} has a curved singular set: its exact-map radius is a branch and "
-                         "bound (curved_exact_map_radius, with a proved lower bound), not differentiable")
+        raise ValueError(
+            f"type {ctrl.robot.name} has a curved singular set: its exact-map radius is a branch and "
+            "bound (curved_exact_map_radius, with a proved lower bound), not differentiable"
+        )
     P = slice_basis(ctrl, basis)
     C = jnp.eye(ctrl.relative_degree * ctrl.m)[jnp.asarray(rows)]
     ts = np.linspace(0.0, float(t_final), n_t)
     n_phi = transition_steps(t_final) if params.gains.time_varying else None
     frozen = jax.lax.stop_gradient(params)
-    Phis = (linearize.transition_matrices(frozen.gains, ts, max_step=TRANSITION_STEP)
-            if n_phi is not None else None)
+    Phis = linearize.transition_matrices(frozen.gains, ts, max_step=TRANSITION_STEP) if n_phi is not None else None
     eps = jnp.asarray(eps, jnp.result_type(float))
     _, rad, t_star, worst = _exact_map_core(ctrl, frozen, P, C, eps, jnp.asarray(ts), Phis, refine, n_phi)
-    s = P.T @ worst                                               # s*, in slice coordinates (P orthonormal)
+    s = P.T @ worst  # s*, in slice coordinates (P orthonormal)
     M0, a0 = _ball_problem(ctrl, frozen, P, C, t_star, None, n_phi)
     g = M0.T @ (a0 + M0 @ s)
     nu = -(s @ g) / jnp.maximum(g @ g, jnp.finfo(g.dtype).tiny)
@@ -271,8 +294,8 @@ def differentiable_exact_map_radius(ctrl: DynamicLinearization, params: DynamicP
     return rad + jnp.where(moving, step, 0.0)
 
 
-
 # --- (1,2): the curved singular set, by branch and bound over (t, phi) ----------------------
+
 
 def _turn_of_headings(ctrl, params, P, eps_a, t_c, theta_c, phi_width: float):
     """``(rho, x)`` of shapes (n_t, n_phi) and (n_t, n_phi, k): the attained radius at every time
@@ -280,7 +303,9 @@ def _turn_of_headings(ctrl, params, P, eps_a, t_c, theta_c, phi_width: float):
     so that the reference's own heading is one of them)."""
     psi_c = np.linspace(-np.pi, np.pi, 2 * int(np.ceil(np.pi / phi_width)) + 1)
     T, Ps = np.meshgrid(t_c, psi_c, indexing="ij")
-    rho, x = _curved_centres(ctrl, params, P, eps_a, jnp.asarray(T.ravel()), jnp.asarray((Ps + theta_c[:, None]).ravel()))
+    rho, x = _curved_centres(
+        ctrl, params, P, eps_a, jnp.asarray(T.ravel()), jnp.asarray((Ps + theta_c[:, None]).ravel())
+    )
     return np.asarray(rho).reshape(T.shape), np.asarray(x).reshape(T.shape + (-1,))
 
 
@@ -296,13 +321,27 @@ def _heading_boxes(t_c, theta_c, h_t: float, half: float, phi_width: float):
 def _split_in_four(t_lo, t_hi, p_lo, p_hi):
     """Every (t, phi) box split at its centre into four."""
     tm, pm = 0.5 * (t_lo + t_hi), 0.5 * (p_lo + p_hi)
-    return (np.concatenate([t_lo, t_lo, tm, tm]), np.concatenate([tm, tm, t_hi, t_hi]),
-            np.concatenate([p_lo, pm, p_lo, pm]), np.concatenate([pm, p_hi, pm, p_hi]))
+    return (
+        np.concatenate([t_lo, t_lo, tm, tm]),
+        np.concatenate([tm, tm, t_hi, t_hi]),
+        np.concatenate([p_lo, pm, p_lo, pm]),
+        np.concatenate([pm, p_hi, pm, p_hi]),
+    )
 
 
-def curved_exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float,
-                            basis="full", n_t: int = 400, phi_width: float = 0.05, rtol: float = 2e-3,
-                            max_rounds: int = 24, max_boxes: int = 1 << 18) -> ExactMapRadius:
+def curved_exact_map_radius(
+    ctrl: DynamicLinearization,
+    params: DynamicParams,
+    *,
+    t_final: float,
+    eps: float,
+    basis="full",
+    n_t: int = 400,
+    phi_width: float = 0.05,
+    rtol: float = 2e-3,
+    max_rounds: int = 24,
+    max_boxes: int = 1 << 18,
+) -> ExactMapRadius:
     r"""Exact-map radius of (1,2) with a proved lower bound (branch and bound over (t, phi)).
 
     The singular set is :math:`\{\sigma_\theta(\zeta) = 0\}` with
@@ -357,13 +396,15 @@ def curved_exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *
         raise ValueError("no initial error in this slice brings zeta within eps of the singular set over the horizon")
     # boxes: per time box, headings within reach of theta(t) for errors up to rho_up
     reach = np.asarray(_heading_reach(ctrl, params, P, jnp.asarray(t_c), t_final / (2 * n_t), rho_up, G))
-    t_lo, t_hi, p_lo, p_hi = _heading_boxes(t_c, theta_c, t_final / n_t, float(np.max(reach)) + eps + phi_width,
-                                            phi_width)
-    closed_min = np.inf          # smallest lower bound of the closed boxes
+    t_lo, t_hi, p_lo, p_hi = _heading_boxes(
+        t_c, theta_c, t_final / n_t, float(np.max(reach)) + eps + phi_width, phi_width
+    )
+    closed_min = np.inf  # smallest lower bound of the closed boxes
     evaluated = 0
     for _ in range(max_rounds):
-        lb, ub, xs = _curved_boxes(ctrl, params, P, eps_a, jnp.asarray(rho_up), jnp.asarray(G), *map(jnp.asarray, (
-            t_lo, t_hi, p_lo, p_hi)))
+        lb, ub, xs = _curved_boxes(
+            ctrl, params, P, eps_a, jnp.asarray(rho_up), jnp.asarray(G), *map(jnp.asarray, (t_lo, t_hi, p_lo, p_hi))
+        )
         lb, ub = np.asarray(lb), np.asarray(ub)
         evaluated += len(lb)
         k = int(np.argmin(ub))
@@ -378,8 +419,16 @@ def curved_exact_map_radius(ctrl: DynamicLinearization, params: DynamicParams, *
         t_lo, t_hi, p_lo, p_hi = _split_in_four(*(x[open_] for x in (t_lo, t_hi, p_lo, p_hi)))
     lower = min(closed_min, float(lb[open_].min()) if open_.any() else np.inf, rho_up)
     worst = np.asarray(P) @ x_best
-    return ExactMapRadius(jnp.asarray(t_c), jnp.asarray(ub0.min(axis=1)), jnp.asarray(rho_up),
-                          jnp.asarray(t_best), jnp.asarray(worst), lower, (rho_up - lower) / rho_up, evaluated)
+    return ExactMapRadius(
+        jnp.asarray(t_c),
+        jnp.asarray(ub0.min(axis=1)),
+        jnp.asarray(rho_up),
+        jnp.asarray(t_best),
+        jnp.asarray(worst),
+        lower,
+        (rho_up - lower) / rho_up,
+        evaluated,
+    )
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -412,7 +461,7 @@ def _curved_rows(ctrl, params, t, phi):
     n = r * m
     e_th = jnp.zeros(n).at[2].set(1.0)
     n_phi = jnp.zeros(n).at[m].set(jnp.cos(phi)).at[m + 1].set(jnp.sin(phi)).at[m + 2].set(es) / jnp.sqrt(1.0 + es**2)
-    return jet[:r].reshape(-1), jet[1:r + 1].reshape(-1), e_th, n_phi
+    return jet[:r].reshape(-1), jet[1 : r + 1].reshape(-1), e_th, n_phi
 
 
 def _centre_problem(ctrl, params, P, t, phi):
@@ -429,6 +478,7 @@ def _centre_problem(ctrl, params, P, t, phi):
 @functools.partial(jax.jit, static_argnums=(0,))
 def _curved_centres(ctrl, params, P, eps, ts, phis):
     """Attained radius (and the slice coordinates of its error) at each (t, phi)."""
+
     def one(t, phi):
         M, a, _, _, _ = _centre_problem(ctrl, params, P, t, phi)
         return min_norm_to_ball(M, a, eps)
@@ -464,7 +514,7 @@ def _curved_boxes(ctrl, params, P, eps, rho_up, G, t_lo, t_hi, p_lo, p_hi):
         M, a, zr, zd, E = _centre_problem(ctrl, params, P, tc, pc)
         ub, x = min_norm_to_ball(M, a, eps)
         move = ht * jnp.linalg.norm(zd) + 0.5 * ht**2 * G + jnp.linalg.norm(E, 2) * jnp.expm1(nA * ht) * rho_up
-        speed = jnp.linalg.norm(zr[m:m + 2]) + jnp.linalg.norm((E @ P)[m:m + 2], 2) * rho_up + move
+        speed = jnp.linalg.norm(zr[m : m + 2]) + jnp.linalg.norm((E @ P)[m : m + 2], 2) * rho_up + move
         lb, _ = min_norm_to_ball(M, a, eps + move + hp * jnp.sqrt(1.0 + speed**2 / c2))
         return jnp.minimum(lb, rho_up), ub, x
 

@@ -35,18 +35,28 @@ from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 from wmrjax.simulate import batch_map
 
 
-
 class Falsification(NamedTuple):
     """Result of :func:`falsify` at one radius."""
 
-    initial_errors: jnp.ndarray   # (S, r m) final iterate of every start
-    distance: jnp.ndarray         # (S,) min_t dist(zeta(t), S) of each (0: the run failed)
-    best: jnp.ndarray             # index of the worst case found
+    initial_errors: jnp.ndarray  # (S, r m) final iterate of every start
+    distance: jnp.ndarray  # (S,) min_t dist(zeta(t), S) of each (0: the run failed)
+    best: jnp.ndarray  # index of the worst case found
 
 
-def falsify(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, radius, starts, dt: float,
-            basis="full", steps: int = 60, learning_rate: float = 0.1, n_windows: int = 8,
-            windows=None) -> Falsification:
+def falsify(
+    ctrl: DynamicLinearization,
+    params: DynamicParams,
+    *,
+    t_final: float,
+    radius,
+    starts,
+    dt: float,
+    basis="full",
+    steps: int = 60,
+    learning_rate: float = 0.1,
+    n_windows: int = 8,
+    windows=None,
+) -> Falsification:
     r"""Gradient search for the worst initial error on the sphere :math:`\|\tilde\zeta_0\| = \rho`.
 
     Minimises :math:`\min_t \mathrm{dist}(\zeta(t), S)` over the simulated closed loop (forward-mode
@@ -86,12 +96,24 @@ def falsify(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     else:
         windows = jnp.asarray(check_vectors("windows", windows, 2, "time windows [s] of the starts"))
         if windows.shape[0] != u0.shape[0] or not bool(jnp.all(windows[:, 0] <= windows[:, 1])):
-            raise ValueError(f"windows must be ({u0.shape[0]}, 2) intervals [t0, t1] with t0 <= t1 [s], one per start, "
-                             f"got shape {windows.shape}")
-    Q = _square(P)       # every slice through one compiled program: directions padded with zeros
-    us, vals = _falsify(ctrl, params, jnp.asarray(radius, dtype=u0.dtype),
-                        _pad(u0 / jnp.linalg.norm(u0, axis=1, keepdims=True), Q), windows, Q, branch, dt, n_steps, steps,
-                        learning_rate)
+            raise ValueError(
+                f"windows must be ({u0.shape[0]}, 2) intervals [t0, t1] with t0 <= t1 [s], one per start, "
+                f"got shape {windows.shape}"
+            )
+    Q = _square(P)  # every slice through one compiled program: directions padded with zeros
+    us, vals = _falsify(
+        ctrl,
+        params,
+        jnp.asarray(radius, dtype=u0.dtype),
+        _pad(u0 / jnp.linalg.norm(u0, axis=1, keepdims=True), Q),
+        windows,
+        Q,
+        branch,
+        dt,
+        n_steps,
+        steps,
+        learning_rate,
+    )
     errs = radius * (us / jnp.linalg.norm(us, axis=1, keepdims=True)) @ Q.T
     return Falsification(errs, vals, jnp.argmin(vals))
 
@@ -126,7 +148,7 @@ def _falsify(ctrl, params, radius, us, windows, P, branch, dt, n_steps, steps, l
         better = v < best_v
         best_u = jnp.where(better[:, None], us, best_u)
         best_v = jnp.where(better, v, best_v)
-        with jax.numpy_dtype_promotion("standard"):   # optax mixes its int32 step count with floats
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with floats
             upd, state = opt.update(g, state, us)
         us = optax.apply_updates(us, upd)
         us = us / jnp.linalg.norm(us, axis=1, keepdims=True)
@@ -165,10 +187,25 @@ class FalsifiedRadius(NamedTuple):
     t_failure: float | None = None
 
 
-def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float, key, dt: float,
-                     basis="full", r_lo: float = 0.0, r_hi: float | None = None, n_starts: int = 16, steps: int = 30,
-                     n_samples: int = 512, n_bisect: int = 16, rtol: float = 2e-3, learning_rate: float = 0.1,
-                     n_windows: int = 4) -> FalsifiedRadius:
+def falsified_radius(
+    ctrl: DynamicLinearization,
+    params: DynamicParams,
+    *,
+    t_final: float,
+    eps: float,
+    key,
+    dt: float,
+    basis="full",
+    r_lo: float = 0.0,
+    r_hi: float | None = None,
+    n_starts: int = 16,
+    steps: int = 30,
+    n_samples: int = 512,
+    n_bisect: int = 16,
+    rtol: float = 2e-3,
+    learning_rate: float = 0.1,
+    n_windows: int = 4,
+) -> FalsifiedRadius:
     """The smallest radius at which the falsifier finds a confirmed failure (dist < eps or singular).
 
     Tries ``r_hi`` (default: twice ``r_lo``, or 1 when ``r_lo`` is 0), doubled up to 4 times
@@ -191,11 +228,36 @@ def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
     Returns:
       :class:`FalsifiedRadius` (radius None if nothing failed up to 16 times the first radius).
     """
-    r_hi = _check_falsifier_args(ctrl, params, t_final=t_final, eps=eps, r_lo=r_lo, r_hi=r_hi, n_starts=n_starts,
-                                 steps=steps, n_samples=n_samples, n_bisect=n_bisect, n_windows=n_windows,
-                                 learning_rate=learning_rate, rtol=rtol)
-    search = _Search(ctrl, params, t_final=t_final, eps=eps, key=key, dt=dt, basis=basis, n_starts=n_starts,
-                     steps=steps, n_samples=n_samples, learning_rate=learning_rate, n_windows=n_windows, r_lo=r_lo)
+    r_hi = _check_falsifier_args(
+        ctrl,
+        params,
+        t_final=t_final,
+        eps=eps,
+        r_lo=r_lo,
+        r_hi=r_hi,
+        n_starts=n_starts,
+        steps=steps,
+        n_samples=n_samples,
+        n_bisect=n_bisect,
+        n_windows=n_windows,
+        learning_rate=learning_rate,
+        rtol=rtol,
+    )
+    search = _Search(
+        ctrl,
+        params,
+        t_final=t_final,
+        eps=eps,
+        key=key,
+        dt=dt,
+        basis=basis,
+        n_starts=n_starts,
+        steps=steps,
+        n_samples=n_samples,
+        learning_rate=learning_rate,
+        n_windows=n_windows,
+        r_lo=r_lo,
+    )
     rad, found, warm = float(r_hi), None, None
     for _ in range(5):
         found, warm = search.attempt(rad, warm)
@@ -219,12 +281,21 @@ def falsified_radius(ctrl: DynamicLinearization, params: DynamicParams, *, t_fin
             found, step = new, min(2.0 * step, 0.5)
         else:
             search.lo = mid
-    return FalsifiedRadius(float(found[0]), np.asarray(found[1]), found[2], search.rollouts(),
-                           (search.lo, float(found[0])), searched, search.counts, found[3])
+    return FalsifiedRadius(
+        float(found[0]),
+        np.asarray(found[1]),
+        found[2],
+        search.rollouts(),
+        (search.lo, float(found[0])),
+        searched,
+        search.counts,
+        found[3],
+    )
 
 
-def _check_falsifier_args(ctrl, params, *, t_final, eps, r_lo, r_hi, n_starts, steps, n_samples, n_bisect, n_windows,
-                          learning_rate, rtol) -> float:
+def _check_falsifier_args(
+    ctrl, params, *, t_final, eps, r_lo, r_hi, n_starts, steps, n_samples, n_bisect, n_windows, learning_rate, rtol
+) -> float:
     """ValueError for a bad argument of :func:`falsified_radius`; returns ``r_hi`` (its default filled in)."""
     check_dynamic(ctrl, params)
     check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
@@ -235,15 +306,20 @@ def _check_falsifier_args(ctrl, params, *, t_final, eps, r_lo, r_hi, n_starts, s
     check_positive("r_hi", r_hi)
     if not r_lo < r_hi:
         raise ValueError(f"r_lo must satisfy 0 <= r_lo < r_hi = {r_hi}, got {r_lo!r}")
-    for name, v, lo in (("n_starts", n_starts, 1), ("steps", steps, 1), ("n_samples", n_samples, 1),
-                        ("n_bisect", n_bisect, 0), ("n_windows", n_windows, 1)):
+    for name, v, lo in (
+        ("n_starts", n_starts, 1),
+        ("steps", steps, 1),
+        ("n_samples", n_samples, 1),
+        ("n_bisect", n_bisect, 0),
+        ("n_windows", n_windows, 1),
+    ):
         check_int(name, v, lo)
     check_positive("learning_rate", learning_rate)
     check_positive("rtol", rtol)
     return r_hi
 
 
-N_INSTANTANEOUS = 64     # random starts of the instantaneous stage (no rollout)
+N_INSTANTANEOUS = 64  # random starts of the instantaneous stage (no rollout)
 
 
 class _Search:
@@ -251,8 +327,9 @@ class _Search:
     rollouts spent per stage (``counts``) and the largest radius known safe so far (``lo``).
     Its methods are the stages of :func:`falsified_radius`."""
 
-    def __init__(self, ctrl, params, *, t_final, eps, key, dt, basis, n_starts, steps, n_samples, learning_rate,
-                 n_windows, r_lo):
+    def __init__(
+        self, ctrl, params, *, t_final, eps, key, dt, basis, n_starts, steps, n_samples, learning_rate, n_windows, r_lo
+    ):
         self.ctrl, self.params, self.t_final, self.eps, self.dt, self.basis = ctrl, params, t_final, eps, dt, basis
         self.n_starts, self.steps, self.n_samples = n_starts, steps, n_samples
         self.learning_rate, self.n_windows = learning_rate, n_windows
@@ -285,7 +362,7 @@ class _Search:
         frac = np.arange(1, 9) / 8.0
         rows = np.arange(len(u))
         for _ in range(3):
-            rs = lo[:, None] + (hi - lo)[:, None] * frac[None]            # (n, 8)
+            rs = lo[:, None] + (hi - lo)[:, None] * frac[None]  # (n, 8)
             fail, _, _ = self.confirm((rs[..., None] * u[:, None, :]).reshape(-1, u.shape[1]))
             fail = fail.reshape(rs.shape)
             j = np.argmax(fail, axis=1)
@@ -317,15 +394,27 @@ class _Search:
     def cheap_stages(self, rad):
         """Stages 1 and 2 at one radius: the instantaneous distance at t = 0 over the sphere (no
         rollout) and global sampling ranked per time window. ``(u_inst, d_inst, dirs, per_win)``."""
-        u_inst, d_inst = _instantaneous(self.ctrl, self.params, jnp.asarray(rad), self.Q,
-                                        _pad(jax.random.normal(next(self.keys), (N_INSTANTANEOUS, self.k)), self.Q),
-                                        200, self.learning_rate)
+        u_inst, d_inst = _instantaneous(
+            self.ctrl,
+            self.params,
+            jnp.asarray(rad),
+            self.Q,
+            _pad(jax.random.normal(next(self.keys), (N_INSTANTANEOUS, self.k)), self.Q),
+            200,
+            self.learning_rate,
+        )
         self.counts["instantaneous"] += N_INSTANTANEOUS * 201
         best_inst = np.argsort(np.asarray(d_inst))[:2]
-        u_inst, d_inst = np.asarray(u_inst)[best_inst, :self.k], np.asarray(d_inst)[best_inst]
+        u_inst, d_inst = np.asarray(u_inst)[best_inst, : self.k], np.asarray(d_inst)[best_inst]
         dirs = np.asarray(jax.random.normal(next(self.keys), (self.n_samples, self.k)))
-        per_win, _, _ = window_distances(self.ctrl, self.params, self.on_sphere(dirs, rad), dt=self.dt,
-                                         n_steps=self.n_steps, n_windows=self.n_windows)
+        per_win, _, _ = window_distances(
+            self.ctrl,
+            self.params,
+            self.on_sphere(dirs, rad),
+            dt=self.dt,
+            n_steps=self.n_steps,
+            n_windows=self.n_windows,
+        )
         self.counts["sampling"] += self.n_samples
         return u_inst, d_inst, dirs, per_win
 
@@ -360,8 +449,18 @@ class _Search:
         if n_warm:
             starts += list(warm[:n_warm])
             windows += [(-0.5 * dt, dt * self.n_steps + 0.5 * dt)] * n_warm
-        f = falsify(self.ctrl, self.params, t_final=self.t_final, radius=rad, starts=np.stack(starts), dt=dt,
-                    basis=self.basis, steps=self.steps, learning_rate=self.learning_rate, windows=np.asarray(windows))
+        f = falsify(
+            self.ctrl,
+            self.params,
+            t_final=self.t_final,
+            radius=rad,
+            starts=np.stack(starts),
+            dt=dt,
+            basis=self.basis,
+            steps=self.steps,
+            learning_rate=self.learning_rate,
+            windows=np.asarray(windows),
+        )
         self.counts["gradient"] += len(starts) * (self.steps + 1)
         return np.asarray(f.initial_errors), np.asarray(f.distance)
 

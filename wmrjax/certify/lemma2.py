@@ -34,9 +34,8 @@ from wmrjax._validate import concrete
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 from wmrjax.references import check_domain
 
-
-
 # --- M1 -------------------------------------------------------------------------------
+
 
 def check_dynamic(ctrl, params=None) -> None:
     """ValueError unless ``ctrl`` is a dynamic linearizing law (the only one Lemma 2 is about)
@@ -45,7 +44,8 @@ def check_dynamic(ctrl, params=None) -> None:
         raise ValueError(
             f"certification needs a dynamic linearizing controller (wmrjax.dynamic_linearization), got "
             f"{type(ctrl).__name__}: Lemma 2's M1 is the distance of the reference's output jet to the singular "
-            "set of Psi (Remark 16), which a static law does not have")
+            "set of Psi (Remark 16), which a static law does not have"
+        )
     if params is not None:
         ctrl.check_params(params)
 
@@ -134,6 +134,7 @@ def _m1_numerical(ctrl, params, ts, iters, damping):
 
 # --- K2 -------------------------------------------------------------------------------
 
+
 def k2_paper(ts):
     r"""Eq (64): :math:`K_2(t) = 2\sqrt2(1 + 1/\sqrt2)\,e^{-(1 - 1/\sqrt2)t}` (§6.1 gains: double pole -1)."""
     ts = jnp.asarray(ts)
@@ -159,8 +160,10 @@ def lyapunov_bound(A) -> LyapunovBound:
     n = A.shape[0]
     Av = concrete(A)
     if Av is not None and not np.all(np.linalg.eigvals(Av).real < 0):
-        raise ValueError(f"error matrix is not Hurwitz (eigenvalues {np.linalg.eigvals(Av)}); "
-                         "the closed-loop poles must be at -poles with poles > 0")
+        raise ValueError(
+            f"error matrix is not Hurwitz (eigenvalues {np.linalg.eigvals(Av)}); "
+            "the closed-loop poles must be at -poles with poles > 0"
+        )
     eye = jnp.eye(n, dtype=A.dtype)
     # vec(A^T P + P A) = (I kron A^T + A^T kron I) vec(P)   (column-major vec)
     L = jnp.kron(eye, A.T) + jnp.kron(A.T, eye)
@@ -186,7 +189,7 @@ def _k2_exact(A, ts):
     return jax.vmap(lambda t: jnp.linalg.norm(jax.scipy.linalg.expm(A * t), ord=2))(ts)
 
 
-TRANSITION_STEP = 1e-2   # [s] largest RK4 step of Phi(t, 0) for scheduled gains (error ~1e-10 at poles ~ -5)
+TRANSITION_STEP = 1e-2  # [s] largest RK4 step of Phi(t, 0) for scheduled gains (error ~1e-10 at poles ~ -5)
 
 
 def transition_steps(t_final: float, step: float = TRANSITION_STEP) -> int:
@@ -212,6 +215,7 @@ def k2_transition(gains, ts):
 
 # --- F, radii, condition (52) -------------------------------------------------------
 
+
 class Certificate(NamedTuple):
     """A Lemma 2 certificate on a time grid."""
 
@@ -219,8 +223,8 @@ class Certificate(NamedTuple):
     m1: jnp.ndarray
     k2: jnp.ndarray
     F: jnp.ndarray
-    radius: jnp.ndarray      # min_t F(t); from lemma2, over the grid and points between them (<= F.min())
-    argmin: jnp.ndarray      # where that minimum is attained [s] (from lemma2: possibly between grid points)
+    radius: jnp.ndarray  # min_t F(t); from lemma2, over the grid and points between them (<= F.min())
+    argmin: jnp.ndarray  # where that minimum is attained [s] (from lemma2: possibly between grid points)
 
 
 def certificate(ts, m1, k2, eps) -> Certificate:
@@ -244,9 +248,11 @@ def check_lemma2_args(*, t_final, eps, m1=None, reference=None) -> None:
         m = np.asarray(m1)
         if not np.all(np.isfinite(m)) or np.min(m) <= eps:
             low = np.nanmin(np.where(np.isfinite(m), m, 0.0))
-            raise ValueError(f"the reference comes within eps = {eps} of the singular set (min M1 = {low:.3g}; "
-                             "non-finite where it stops): "
-                             "Lemma 2 certifies nothing (condition 2 fails); shorten the horizon or change the reference")
+            raise ValueError(
+                f"the reference comes within eps = {eps} of the singular set (min M1 = {low:.3g}; "
+                "non-finite where it stops): "
+                "Lemma 2 certifies nothing (condition 2 fails); shorten the horizon or change the reference"
+            )
 
 
 class Lemma2Report(NamedTuple):
@@ -273,12 +279,19 @@ class Lemma2Report(NamedTuple):
 
 
 M1_METHODS = ("closed", "numerical")
-MIN_GRID = 3            # time samples of min F: at least both ends and a midpoint
-GRID_RTOL = 1e-2        # refining the grid may lower min F by at most this fraction
+MIN_GRID = 3  # time samples of min F: at least both ends and a midpoint
+GRID_RTOL = 1e-2  # refining the grid may lower min F by at most this fraction
 
 
-def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float, n_t: int = 1001,
-           m1: str = "closed") -> Lemma2Report:
+def lemma2(
+    ctrl: DynamicLinearization,
+    params: DynamicParams,
+    *,
+    t_final: float,
+    eps: float,
+    n_t: int = 1001,
+    m1: str = "closed",
+) -> Lemma2Report:
     """All Lemma 2 certificates of this module for one closed loop over [0, t_final].
 
     Args:
@@ -300,8 +313,10 @@ def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
     """
     check_dynamic(ctrl, params)
     if any(concrete(x) is None for x in jax.tree_util.tree_leaves(params)):
-        raise ValueError("lemma2 runs eagerly (its grid search and refinement need values): call it outside "
-                         "jax.jit / jax.vmap, with concrete params (a raw TracerArrayConversionError before)")
+        raise ValueError(
+            "lemma2 runs eagerly (its grid search and refinement need values): call it outside "
+            "jax.jit / jax.vmap, with concrete params (a raw TracerArrayConversionError before)"
+        )
     if not isinstance(m1, str) or m1 not in M1_METHODS:
         raise ValueError(f"m1 must be one of {M1_METHODS}, got {m1!r}")
     if isinstance(n_t, bool) or not isinstance(n_t, (int, np.integer)) or n_t < MIN_GRID:
@@ -316,8 +331,11 @@ def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
         check_lemma2_args(t_final=t_final, eps=eps, m1=m1v)
         if scheduled:
             return None, None, certificate(ts, m1v, k2_transition(params.gains, ts), eps)
-        return (certificate(ts, m1v, k2_paper(ts), eps) if paper_k2 else None,
-                certificate(ts, m1v, k2_lyapunov(A, ts), eps), certificate(ts, m1v, k2_exact(A, ts), eps))
+        return (
+            certificate(ts, m1v, k2_paper(ts), eps) if paper_k2 else None,
+            certificate(ts, m1v, k2_lyapunov(A, ts), eps),
+            certificate(ts, m1v, k2_exact(A, ts), eps),
+        )
 
     ts = jnp.linspace(0.0, t_final, n_t)
     certs = certificates(ts)
@@ -326,8 +344,10 @@ def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
     # grid minimum alone over-certifies); a grid on which that refinement lowers it by more than
     # GRID_RTOL is too coarse to trust at all (F may dip between points elsewhere) and is refused.
     tg = np.asarray(ts)
-    local = [np.linspace(tg[max(i - 1, 0)], tg[min(i + 1, n_t - 1)], 257)
-             for i in (int(np.argmin(np.asarray(c.F))) for c in certs if c is not None)]
+    local = [
+        np.linspace(tg[max(i - 1, 0)], tg[min(i + 1, n_t - 1)], 257)
+        for i in (int(np.argmin(np.asarray(c.F))) for c in certs if c is not None)
+    ]
     refined = certificates(jnp.asarray(np.concatenate([0.5 * (tg[1:] + tg[:-1])] + local)))
     out = []
     for name, c, c2 in zip(("paper", "lyapunov", "exact_norm"), certs, refined):
@@ -336,10 +356,12 @@ def lemma2(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float,
             continue
         coarse, fine = float(c.radius), float(c2.radius)
         if fine < coarse - GRID_RTOL * abs(coarse):
-            raise ValueError(f"n_t = {n_t} is too coarse to bound min F on [0, {t_final}] s: the {name} certificate's "
-                             f"min F is {coarse:.6g} on the grid but {fine:.6g} between its points (relative drop "
-                             f"{(coarse - fine) / abs(coarse):.2g} > {GRID_RTOL}); use a finer grid (e.g. n_t = "
-                             f"{4 * n_t - 3} or more)")
+            raise ValueError(
+                f"n_t = {n_t} is too coarse to bound min F on [0, {t_final}] s: the {name} certificate's "
+                f"min F is {coarse:.6g} on the grid but {fine:.6g} between its points (relative drop "
+                f"{(coarse - fine) / abs(coarse):.2g} > {GRID_RTOL}); use a finer grid (e.g. n_t = "
+                f"{4 * n_t - 3} or more)"
+            )
         out.append(c._replace(radius=c2.radius, argmin=c2.argmin) if fine < coarse else c)
     certs = tuple(out)
     closed = "closed form (Lemma 3)" if ctrl.row.singular_set_is_linear else "closed form (1-D search over theta)"

@@ -29,10 +29,10 @@ from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 class EmpiricalCheck(NamedTuple):
     """Counts of one K2's empirical check (sampled initial errors)."""
 
-    runs_inside: int             # samples inside the certified ball
-    violations_53_inside: int    # of those, runs violating (53)
-    singular_inside: int         # of those, runs flagged singular
-    singular_total: int          # singular runs among all samples
+    runs_inside: int  # samples inside the certified ball
+    violations_53_inside: int  # of those, runs violating (53)
+    singular_inside: int  # of those, runs flagged singular
+    singular_total: int  # singular runs among all samples
 
 
 class CertificationReport(NamedTuple):
@@ -84,26 +84,45 @@ class CertificationReport(NamedTuple):
             block[f"argmin_F_{name}"] = float(c.argmin)
         if self.zeta0_norm is not None:
             ref = certs["paper"] if "paper" in certs else certs["exact_norm"]
-            block.update(zeta0_norm=self.zeta0_norm, min_F=float(ref.radius), argmin_F=float(ref.argmin),
-                         condition_52=bool(self.zeta0_norm <= float(ref.radius)))
-        for key, em in (("radius_exact_map", self.exact_full), ("radius_exact_map_position_slice", self.exact_position)):
+            block.update(
+                zeta0_norm=self.zeta0_norm,
+                min_F=float(ref.radius),
+                argmin_F=float(ref.argmin),
+                condition_52=bool(self.zeta0_norm <= float(ref.radius)),
+            )
+        for key, em in (
+            ("radius_exact_map", self.exact_full),
+            ("radius_exact_map_position_slice", self.exact_position),
+        ):
             block[key] = float(em.radius)
             block[key.replace("radius", "worst")] = {"t": float(em.argmin), "initial_error": np.asarray(em.worst_error)}
-            if em.lower_bound is not None:      # the curved singular set of (1,2): attained radius and proved bound
+            if em.lower_bound is not None:  # the curved singular set of (1,2): attained radius and proved bound
                 block[key + "_lower_bound"] = em.lower_bound
                 block[key.replace("radius_exact_map", "radius_exact_map_gap")] = em.gap
         block["empirical"] = {**self.empirical_sampling, **{k: v._asdict() for k, v in self.empirical.items()}}
         er = self.empirical_position
         block["empirical_radius_position_slice"] = er.radius if np.isfinite(er.radius) else None
         block["empirical_position_slice"] = {
-            "n_directions": len(er.per_direction), "r_max": self.empirical_sampling["radius_range"][1],
-            "n_runs": er.n_runs, "fraction_of_directions_failing": float(np.isfinite(er.per_direction).mean()),
-            "worst_direction": er.worst_direction}
+            "n_directions": len(er.per_direction),
+            "r_max": self.empirical_sampling["radius_range"][1],
+            "n_runs": er.n_runs,
+            "fraction_of_directions_failing": float(np.isfinite(er.per_direction).mean()),
+            "worst_direction": er.worst_direction,
+        }
         for name, f in (("falsified_full", self.falsified_full), ("falsified_position_slice", self.falsified_position)):
-            block[name] = ({"radius": None, "skipped": "n_starts = 0"} if f is None else
-                           {"radius": f.radius, "initial_error": f.initial_error, "distance": f.distance,
-                            "t": f.t_failure, "rollouts": f.rollouts, "rollouts_by_stage": f.rollouts_by_stage,
-                            "bracket": None if f.bracket is None else list(f.bracket)})
+            block[name] = (
+                {"radius": None, "skipped": "n_starts = 0"}
+                if f is None
+                else {
+                    "radius": f.radius,
+                    "initial_error": f.initial_error,
+                    "distance": f.distance,
+                    "t": f.t_failure,
+                    "rollouts": f.rollouts,
+                    "rollouts_by_stage": f.rollouts_by_stage,
+                    "bracket": None if f.bracket is None else list(f.bracket),
+                }
+            )
         block["certified_below_falsified"] = self.certified_below_falsified
         block["alarms"] = list(self.alarms)
         # tightness of every certificate: certified radius / the falsifier's (1: tight)
@@ -136,10 +155,21 @@ def plain(x):
     return a.tolist() if a.ndim else (int(a) if np.issubdtype(a.dtype, np.integer) else float(a))
 
 
-def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, eps: float = 1e-2,
-            dt: float = 0.01, n_empirical: int = 4096, n_directions: int = 128, n_starts: int = 16,
-            falsifier_dt: float | None = None, seed: int = 0, zeta0_norm: float | None = None,
-            log: Callable[[str], None] = lambda msg: None) -> CertificationReport:
+def analyse(
+    ctrl: DynamicLinearization,
+    params: DynamicParams,
+    *,
+    t_final: float,
+    eps: float = 1e-2,
+    dt: float = 0.01,
+    n_empirical: int = 4096,
+    n_directions: int = 128,
+    n_starts: int = 16,
+    falsifier_dt: float | None = None,
+    seed: int = 0,
+    zeta0_norm: float | None = None,
+    log: Callable[[str], None] = lambda msg: None,
+) -> CertificationReport:
     """Every certificate of one closed loop, checked by simulation and falsification.
 
     Args:
@@ -165,8 +195,12 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     n_steps = n_steps_for(t_final, dt)
     falsifier_dt = dt if falsifier_dt is None else falsifier_dt
     n_steps_for(t_final, falsifier_dt, "falsifier_dt")
-    for name, v, lo in (("n_empirical", n_empirical, 0), ("n_directions", n_directions, 1),
-                        ("n_starts", n_starts, 0), ("seed", seed, 0)):
+    for name, v, lo in (
+        ("n_empirical", n_empirical, 0),
+        ("n_directions", n_directions, 1),
+        ("n_starts", n_starts, 0),
+        ("seed", seed, 0),
+    ):
         check_int(name, v, lo)
     if not callable(log):
         raise ValueError(f"log must be a function of one message, got {type(log).__name__}")
@@ -175,46 +209,74 @@ def analyse(ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float
     certified = max(radii.values())
     log("  Lemma 2 radii " + ", ".join(f"{n} {r:.4f}" for n, r in radii.items()) + f"  ({time.time() - t0:.0f} s)")
 
-    exact = {b: exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=b, n_t=4 * n_steps + 1)
-             for b in ("full", "position")}
-    gaps = "".join(f" (proved lower bound {exact[b].lower_bound:.4f})" if exact[b].lower_bound is not None else ""
-                   for b in ("full",))
-    log(f"  exact-map radius full {float(exact['full'].radius):.4f}{gaps}, position slice "
-        f"{float(exact['position'].radius):.4f}  ({time.time() - t0:.0f} s)")
+    exact = {
+        b: exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=b, n_t=4 * n_steps + 1)
+        for b in ("full", "position")
+    }
+    gaps = "".join(
+        f" (proved lower bound {exact[b].lower_bound:.4f})" if exact[b].lower_bound is not None else ""
+        for b in ("full",)
+    )
+    log(
+        f"  exact-map radius full {float(exact['full'].radius):.4f}{gaps}, position slice "
+        f"{float(exact['position'].radius):.4f}  ({time.time() - t0:.0f} s)"
+    )
     r_top = max([certified] + [float(e.radius) for e in exact.values()])
 
     # -- empirical: (53) and regularity inside every ball
     kd, kr, kf1, kf2 = jax.random.split(jax.random.PRNGKey(seed), 4)
-    sampling = {"n_runs": n_empirical, "radius_range": [0.0, 2.0 * r_top],
-                "sampling": "uniform direction, uniform radius"}
+    sampling = {
+        "n_runs": n_empirical,
+        "radius_range": [0.0, 2.0 * r_top],
+        "sampling": "uniform direction, uniform radius",
+    }
     emp, alarms = {}, []
     if n_empirical:
-        errs = sample_sphere(kd, n_empirical, ctrl.error_matrix(params.gains).shape[0]) * (
-            2.0 * r_top * jax.random.uniform(kr, (n_empirical,)))[:, None]
+        errs = (
+            sample_sphere(kd, n_empirical, ctrl.error_matrix(params.gains).shape[0])
+            * (2.0 * r_top * jax.random.uniform(kr, (n_empirical,)))[:, None]
+        )
         emp, alarms = _empirical_checks(ctrl, params, cert, radii, errs, t_final=t_final, dt=dt, log=log)
 
     # -- empirical safe radius per direction of the position slice
     P = slice_basis(ctrl, "position")
     ring = _rays(n_directions, np.asarray(P.T @ exact["position"].worst_error))
-    er = empirical_radius(ctrl, params, t_final=t_final, eps=eps, directions=ring @ np.asarray(P).T,
-                          r_max=2.0 * r_top, dt=dt)
+    er = empirical_radius(
+        ctrl, params, t_final=t_final, eps=eps, directions=ring @ np.asarray(P).T, r_max=2.0 * r_top, dt=dt
+    )
     log(f"  empirical safe radius (position slice, {len(ring)} rays): {er.radius:.4f}  ({time.time() - t0:.0f} s)")
 
     # -- gradient falsifier, full and position slice
     fs = {}
     for b, kf in (("full", kf1), ("position", kf2)) if n_starts else ():
-        fs[b] = falsified_radius(ctrl, params, t_final=t_final, eps=eps, key=kf, dt=falsifier_dt, basis=b,
-                                 n_starts=n_starts, r_lo=certified)
-        log(f"  falsifier ({b}): smallest failing radius {fs[b].radius} after {fs[b].rollouts} rollouts  "
-            f"({time.time() - t0:.0f} s)")
+        fs[b] = falsified_radius(
+            ctrl, params, t_final=t_final, eps=eps, key=kf, dt=falsifier_dt, basis=b, n_starts=n_starts, r_lo=certified
+        )
+        log(
+            f"  falsifier ({b}): smallest failing radius {fs[b].radius} after {fs[b].rollouts} rollouts  "
+            f"({time.time() - t0:.0f} s)"
+        )
     below, disagree = consistency(radii, exact, fs)
     alarms += disagree
     for msg in disagree:
         log(msg.upper() if msg.startswith("a certified") else msg)
         warnings.warn(msg, RuntimeWarning, stacklevel=2)
-    return CertificationReport(eps, t_final, cert, zeta0_norm, exact["full"], exact["position"], emp,
-                               sampling, er, fs.get("full"), fs.get("position"), below, tuple(alarms),
-                               time.time() - t0)
+    return CertificationReport(
+        eps,
+        t_final,
+        cert,
+        zeta0_norm,
+        exact["full"],
+        exact["position"],
+        emp,
+        sampling,
+        er,
+        fs.get("full"),
+        fs.get("position"),
+        below,
+        tuple(alarms),
+        time.time() - t0,
+    )
 
 
 def _lemma2_on_grid(ctrl, params, *, t_final: float, eps: float, dt: float, n_steps: int):
@@ -225,8 +287,10 @@ def _lemma2_on_grid(ctrl, params, *, t_final: float, eps: float, dt: float, n_st
     except ValueError as exc:
         if "n_t" not in str(exc):
             raise
-        raise ValueError(f"dt = {dt} s gives Lemma 2 a grid of n_t = {n_steps + 1} times over [0, {t_final}] s, "
-                         f"too coarse: use a smaller dt ({exc})") from None
+        raise ValueError(
+            f"dt = {dt} s gives Lemma 2 a grid of n_t = {n_steps + 1} times over [0, {t_final}] s, "
+            f"too coarse: use a smaller dt ({exc})"
+        ) from None
 
 
 def _rays(n: int, worst) -> np.ndarray:
@@ -241,7 +305,7 @@ def _empirical_checks(ctrl, params, cert, radii: dict, errs, *, t_final: float, 
     :class:`EmpiricalCheck` (violations of (53) and singular runs inside its ball), and an
     alarm message for each certificate violated inside its ball."""
     A = ctrl.error_matrix(params.gains)
-    if cert.lyapunov is None:        # a gain schedule: K2 = ||Phi(t, 0)|| only
+    if cert.lyapunov is None:  # a gain schedule: K2 = ||Phi(t, 0)|| only
         k2s = {"exact_norm": lambda ts: k2_transition(params.gains, ts)}
     else:
         k2s = {"lyapunov": lambda ts: k2_lyapunov(A, ts), "exact_norm": lambda ts: k2_exact(A, ts)}
@@ -254,15 +318,18 @@ def _empirical_checks(ctrl, params, cert, radii: dict, errs, *, t_final: float, 
     for name, res in checks.items():
         inside = n0 <= radii[name]
         sing, viol = np.asarray(res.singular), np.asarray(res.violation_53)
-        emp[name] = EmpiricalCheck(int(inside.sum()), int((viol & inside).sum()), int((sing & inside).sum()),
-                                   int(sing.sum()))
+        emp[name] = EmpiricalCheck(
+            int(inside.sum()), int((viol & inside).sum()), int((sing & inside).sum()), int(sing.sum())
+        )
         if emp[name].violations_53_inside or emp[name].singular_inside:
             msg = f"LEMMA 2 VIOLATED inside the {name} certificate: {emp[name]}"
             alarms.append(msg)
             log(msg)
             warnings.warn(msg, RuntimeWarning, stacklevel=3)
-    log(f"  empirical: {len(errs)} runs, every K2 checked on them, violations inside "
-        f"{sum(e.violations_53_inside + e.singular_inside for e in emp.values())}")
+    log(
+        f"  empirical: {len(errs)} runs, every K2 checked on them, violations inside "
+        f"{sum(e.violations_53_inside + e.singular_inside for e in emp.values())}"
+    )
     return emp, alarms
 
 
@@ -280,21 +347,26 @@ def consistency(radii: dict, exact: dict, falsified: dict) -> tuple[bool, list]:
     worst initial error scaled up fails, so a falsified radius far above it means the map is wrong)."""
     bounds = [(r, "full", f"Lemma 2 ({n})") for n, r in radii.items()]
     # the exact map's proved radius: the radius itself for the linear singular sets, its lower bound for (1,2)
-    bounds += [(float(e.radius) if e.lower_bound is None else e.lower_bound, b, f"exact map ({b})")
-               for b, e in exact.items()]
+    bounds += [
+        (float(e.radius) if e.lower_bound is None else e.lower_bound, b, f"exact map ({b})") for b, e in exact.items()
+    ]
     msgs = []
     for r, b, name in bounds:
         f = falsified.get(b)
         if f is not None and f.radius is not None and r > f.radius + 1e-9:
-            msgs.append(f"a certified radius exceeds a falsified one: a certificate is wrong ({name} {r:.6g} > "
-                        f"falsified {f.radius:.6g}, {b} error space)")
+            msgs.append(
+                f"a certified radius exceeds a falsified one: a certificate is wrong ({name} {r:.6g} > "
+                f"falsified {f.radius:.6g}, {b} error space)"
+            )
     below = not msgs
     for b, e in exact.items():
         f = falsified.get(b)
         if e.lower_bound is None and f is not None and f.radius is not None:
             r = float(e.radius)
             if abs(r - f.radius) > EXACT_FALSIFIED_RTOL * f.radius:
-                msgs.append(f"the exact-map radius ({b}) {r:.6g} and the falsified radius {f.radius:.6g} disagree "
-                            f"by more than {EXACT_FALSIFIED_RTOL:.0%}: the exact map is tight by construction, so one "
-                            "of them is wrong (please report it with the problem file)")
+                msgs.append(
+                    f"the exact-map radius ({b}) {r:.6g} and the falsified radius {f.radius:.6g} disagree "
+                    f"by more than {EXACT_FALSIFIED_RTOL:.0%}: the exact map is tight by construction, so one "
+                    "of them is wrong (please report it with the problem file)"
+                )
     return below, msgs

@@ -29,13 +29,22 @@ import numpy as np
 
 from wmrjax import _math, robots
 from wmrjax._validate import check_finite, check_real, check_shape, concrete
-from wmrjax.controllers.law import (DET_FLOOR, Extension, Level, LinearizingController, Requirement, check_level,
-                                    check_reference_type, check_requirements, make_gains, physical_state_names,
-                                    validated_physical)
+from wmrjax.controllers.law import (
+    DET_FLOOR,
+    Extension,
+    Level,
+    LinearizingController,
+    Requirement,
+    check_level,
+    check_reference_type,
+    check_requirements,
+    make_gains,
+    physical_state_names,
+    validated_physical,
+)
 from wmrjax.gains import Gains
 from wmrjax.references import Reference, taylor
 from wmrjax.robots import Geometry, RobotType
-
 
 # --- Table 4: the extensions -------------------------------------------------------------
 
@@ -99,7 +108,7 @@ def _pi_11(X, c, U, g):  # u = (eta1, zeta1); compensator (eta1, chi2); U = (U2 
 
 def _lever_11(beta, g):
     s, co = _math.sincos(beta)
-    return g.L * s + g.e * co, g.L * co - g.e * s   # chi1 = eta1 * lever, and d lever / d beta
+    return g.L * s + g.e * co, g.L * co - g.e * s  # chi1 = eta1 * lever, and d lever / d beta
 
 
 def _comp_11(X, c, U, g):
@@ -115,9 +124,9 @@ def _psi_inv_11(zeta, branch, g):
     th = jnp.arctan2(-branch * hd[0], branch * hd[1])
     s, c = _math.sincos(th)
     chi1 = branch * jnp.sqrt(hd[0] ** 2 + hd[1] ** 2)
-    chi2 = -s * hdd[0] + c * hdd[1]                  # h'' = chi2 (-s, c) - chi1 theta' (c, s)
+    chi2 = -s * hdd[0] + c * hdd[1]  # h'' = chi2 (-s, c) - chi1 theta' (c, s)
     thd = -(c * hdd[0] + s * hdd[1]) / chi1
-    a, b = (chi1 - g.e * thd) / g.L, thd             # eta1 sin(beta), eta1 cos(beta)
+    a, b = (chi1 - g.e * thd) / g.L, thd  # eta1 sin(beta), eta1 cos(beta)
     beta = jnp.arctan2(a, b)
     eta1 = jnp.sqrt(a**2 + b**2)
     return jnp.stack([zeta[0, 0] - g.e * c, zeta[0, 1] - g.e * s, th, beta, eta1, chi2])
@@ -155,14 +164,14 @@ def _psi_inv_12(zeta, branch, g):
     x, y = h1 - g.e * cp, h2 - g.e * sp
     xd, yd = hd1 + g.e * sp * thd, hd2 - g.e * cp * thd
     s, c = _math.sincos(th)
-    vb1, vb2 = c * xd + s * yd, -s * xd + c * yd          # body-frame velocity of P
-    v1x, v1y = vb1, vb2 + thd * g.L                        # wheel 1 at (L, 0)
-    v2x, v2y = vb1, vb2 - thd * g.L                        # wheel 2 at (-L, 0)
-    b1 = jnp.arctan(-v1x / v1y)                            # direction mod pi, in (-pi/2, pi/2)
+    vb1, vb2 = c * xd + s * yd, -s * xd + c * yd  # body-frame velocity of P
+    v1x, v1y = vb1, vb2 + thd * g.L  # wheel 1 at (L, 0)
+    v2x, v2y = vb1, vb2 - thd * g.L  # wheel 2 at (-L, 0)
+    b1 = jnp.arctan(-v1x / v1y)  # direction mod pi, in (-pi/2, pi/2)
     b2 = jnp.arctan(-v2x / v2y)
     s1, c1 = _math.sincos(b1)
     s2, c2 = _math.sincos(b2)
-    mu1 = -s1 * v1x + c1 * v1y                             # signed speed of wheel 1 = 2 L eta1 sin b2
+    mu1 = -s1 * v1x + c1 * v1y  # signed speed of wheel 1 = 2 L eta1 sin b2
     eta1 = mu1 / (2.0 * g.L * s2)
     # branch: flipping beta1 by pi flips the sign of eta1 (Sigma -> -Sigma)
     flip = jnp.sign(eta1) != branch
@@ -180,10 +189,11 @@ def _chi1_11(z, g):
 
 
 def _first_comp(z, g, n_x):
-    return z[n_x]          # first compensator state: chi1 (2,0), eta1 (2,1), (1,2)
+    return z[n_x]  # first compensator state: chi1 (2,0), eta1 (2,1), (1,2)
 
 
 # --- Table 4: the singular sets (Remark 16) -----------------------------------------------
+
 
 def _distance_point_speed(jet, g, within=None):
     r"""Distance in :math:`\zeta` coordinates to :math:`\{\dot h_1 = \dot h_2 = 0\}` (the output
@@ -235,7 +245,7 @@ def _distance_lateral_velocity(jet, g, within=None):
     h = grid[1] - grid[0]
     lo, hi = grid[i] - h, grid[i] + h
     x = grid[i]
-    for _ in range(4):      # Newton on d2' = 2 x + 2 sig sig' / c2, safeguarded to the bracket
+    for _ in range(4):  # Newton on d2' = 2 x + 2 sig sig' / c2, safeguarded to the bracket
         s, c = jnp.sin(th_r + x), jnp.cos(th_r + x)
         sig = c * v[0] + s * v[1] + es * v[2]
         dsig = -s * v[0] + c * v[1]
@@ -251,11 +261,11 @@ def _families_first_comp(n_x):
 
 
 def _families_11(g):
-    return [(4, 0.0), (3, jnp.arctan2(-g.e, g.L))]       # eta1 = 0; lever L sin(beta) + e cos(beta) = 0
+    return [(4, 0.0), (3, jnp.arctan2(-g.e, g.L))]  # eta1 = 0; lever L sin(beta) + e cos(beta) = 0
 
 
 def _families_12(g):
-    return [(5, 0.0), (3, 0.0), (4, 0.0)]                # eta1 = 0, beta1 = 0, beta2 = 0
+    return [(5, 0.0), (3, 0.0), (4, 0.0)]  # eta1 = 0, beta1 = 0, beta2 = 0
 
 
 _L_NONZERO = Requirement("L", "nonzero", "Table 4: det K is proportional to L")
@@ -312,47 +322,107 @@ class Table4Row:
         return self.extension.robot
 
 
-TABLE4: dict[str, Table4Row] = {row.robot.name: row for row in (
-    Table4Row(
-        extension=Extension(robot=robots.TYPES["(2,0)"], outputs=_out_axle_point, relative_degree=2, n_comp=1,
-                            comp_names=("chi1",), plant_input=_pi_20, compensator=_comp_20),
-        regularity="chi1 = eta1 + e eta2 != 0",
-        psi_inverse=_psi_inv_20, from_physical=_phys_20,
-        branch_quantity=functools.partial(_first_comp, n_x=3), branch_name="chi1", branch_follows_heading=True,
-        singular_families=_families_first_comp(3), singular_set_is_linear=True,
-        singular_distance=_distance_point_speed, default_geometry=Geometry(e=0.2), paper_geometry=Geometry(e=0.0)),
-    Table4Row(
-        extension=Extension(robot=robots.TYPES["(2,1)"], outputs=_out_posture, relative_degree=2, n_comp=2,
-                            comp_names=("eta1", "eta2"), plant_input=_pi_21, compensator=_comp_21,
-                            angle_outputs=(2,)),
-        regularity="eta1 != 0",
-        psi_inverse=_psi_inv_21, from_physical=_phys_21,
-        branch_quantity=functools.partial(_first_comp, n_x=4), branch_name="eta1", branch_follows_heading=False,
-        singular_families=_families_first_comp(4), singular_set_is_linear=True,
-        singular_distance=_distance_point_speed, default_geometry=Geometry(), default_heading_offset=0.3),
-    Table4Row(
-        extension=Extension(robot=robots.TYPES["(1,1)"], outputs=_out_axle_point, relative_degree=3, n_comp=2,
-                            comp_names=("eta1", "chi2"), plant_input=_pi_11, compensator=_comp_11,
-                            extra_margin=_margin_11),
-        regularity="eta1 (L sin beta + e cos beta) != 0 (errata: Table 4 prints only eta1 != 0)",
-        psi_inverse=_psi_inv_11, from_physical=_phys_11,
-        branch_quantity=_chi1_11, branch_name="chi1", branch_follows_heading=True,
-        singular_families=_families_11, singular_set_is_linear=True,
-        singular_distance=_distance_point_speed, requires=(_L_NONZERO,),
-        default_geometry=Geometry(L=1.0, e=0.3)),
-    Table4Row(
-        extension=Extension(robot=robots.TYPES["(1,2)"], outputs=_out_12, relative_degree=2, n_comp=1,
-                            comp_names=("eta1",), plant_input=_pi_12, compensator=_comp_12, angle_outputs=(2,)),
-        regularity="L eta1 sin(beta1) sin(beta2) != 0",
-        psi_inverse=_psi_inv_12, from_physical=_phys_12,
-        branch_quantity=functools.partial(_first_comp, n_x=5), branch_name="eta1", branch_follows_heading=False,
-        singular_families=_families_12, singular_set_is_linear=False,
-        singular_distance=_distance_lateral_velocity, requires=(_L_NONZERO,),
-        default_geometry=Geometry(L=0.5, e=0.3, delta=0.5), default_heading_offset=0.5),
-)}
+TABLE4: dict[str, Table4Row] = {
+    row.robot.name: row
+    for row in (
+        Table4Row(
+            extension=Extension(
+                robot=robots.TYPES["(2,0)"],
+                outputs=_out_axle_point,
+                relative_degree=2,
+                n_comp=1,
+                comp_names=("chi1",),
+                plant_input=_pi_20,
+                compensator=_comp_20,
+            ),
+            regularity="chi1 = eta1 + e eta2 != 0",
+            psi_inverse=_psi_inv_20,
+            from_physical=_phys_20,
+            branch_quantity=functools.partial(_first_comp, n_x=3),
+            branch_name="chi1",
+            branch_follows_heading=True,
+            singular_families=_families_first_comp(3),
+            singular_set_is_linear=True,
+            singular_distance=_distance_point_speed,
+            default_geometry=Geometry(e=0.2),
+            paper_geometry=Geometry(e=0.0),
+        ),
+        Table4Row(
+            extension=Extension(
+                robot=robots.TYPES["(2,1)"],
+                outputs=_out_posture,
+                relative_degree=2,
+                n_comp=2,
+                comp_names=("eta1", "eta2"),
+                plant_input=_pi_21,
+                compensator=_comp_21,
+                angle_outputs=(2,),
+            ),
+            regularity="eta1 != 0",
+            psi_inverse=_psi_inv_21,
+            from_physical=_phys_21,
+            branch_quantity=functools.partial(_first_comp, n_x=4),
+            branch_name="eta1",
+            branch_follows_heading=False,
+            singular_families=_families_first_comp(4),
+            singular_set_is_linear=True,
+            singular_distance=_distance_point_speed,
+            default_geometry=Geometry(),
+            default_heading_offset=0.3,
+        ),
+        Table4Row(
+            extension=Extension(
+                robot=robots.TYPES["(1,1)"],
+                outputs=_out_axle_point,
+                relative_degree=3,
+                n_comp=2,
+                comp_names=("eta1", "chi2"),
+                plant_input=_pi_11,
+                compensator=_comp_11,
+                extra_margin=_margin_11,
+            ),
+            regularity="eta1 (L sin beta + e cos beta) != 0 (errata: Table 4 prints only eta1 != 0)",
+            psi_inverse=_psi_inv_11,
+            from_physical=_phys_11,
+            branch_quantity=_chi1_11,
+            branch_name="chi1",
+            branch_follows_heading=True,
+            singular_families=_families_11,
+            singular_set_is_linear=True,
+            singular_distance=_distance_point_speed,
+            requires=(_L_NONZERO,),
+            default_geometry=Geometry(L=1.0, e=0.3),
+        ),
+        Table4Row(
+            extension=Extension(
+                robot=robots.TYPES["(1,2)"],
+                outputs=_out_12,
+                relative_degree=2,
+                n_comp=1,
+                comp_names=("eta1",),
+                plant_input=_pi_12,
+                compensator=_comp_12,
+                angle_outputs=(2,),
+            ),
+            regularity="L eta1 sin(beta1) sin(beta2) != 0",
+            psi_inverse=_psi_inv_12,
+            from_physical=_phys_12,
+            branch_quantity=functools.partial(_first_comp, n_x=5),
+            branch_name="eta1",
+            branch_follows_heading=False,
+            singular_families=_families_12,
+            singular_set_is_linear=False,
+            singular_distance=_distance_lateral_velocity,
+            requires=(_L_NONZERO,),
+            default_geometry=Geometry(L=0.5, e=0.3, delta=0.5),
+            default_heading_offset=0.5,
+        ),
+    )
+}
 
 
 # --- parameters and the controller --------------------------------------------------------
+
 
 class DynamicParams(NamedTuple):
     """Everything array-valued the closed loop depends on (a pytree: vmap/grad it)."""
@@ -405,8 +475,9 @@ class DynamicLinearization(LinearizingController):
         return self.row.singular_distance(jet, params.geometry, within)
 
     # -- parameters --
-    def params(self, reference: Reference, poles=1.0, geometry: Geometry = Geometry(), *,
-               gains: Gains | None = None) -> DynamicParams:
+    def params(
+        self, reference: Reference, poles=1.0, geometry: Geometry = Geometry(), *, gains: Gains | None = None
+    ) -> DynamicParams:
         """Build and validate :class:`DynamicParams`.
 
         Args:
@@ -424,9 +495,11 @@ class DynamicLinearization(LinearizingController):
         with jax.ensure_compile_time_eval():
             v0 = concrete(reference.velocity(jnp.zeros((), jnp.result_type(float))))
         if v0 is not None and not (np.all(np.isfinite(v0)) and np.hypot(*v0) > 1e-9):
-            raise ValueError(f"reference {reference.name!r} is at rest at t = 0 (velocity {np.asarray(v0).tolist()} m/s): "
-                             f"Table 4 requires a moving reference ({self.row.regularity} along it); its heading "
-                             "is the path tangent, undefined at a stop")
+            raise ValueError(
+                f"reference {reference.name!r} is at rest at t = 0 (velocity {np.asarray(v0).tolist()} m/s): "
+                f"Table 4 requires a moving reference ({self.row.regularity} along it); its heading "
+                "is the path tangent, undefined at a stop"
+            )
         return DynamicParams(make_gains(gains, poles, self.m, self.relative_degree), reference, geometry)
 
     def params_unchecked(self, reference: Reference, poles, geometry: Geometry) -> DynamicParams:
@@ -530,13 +603,18 @@ class DynamicLinearization(LinearizingController):
         if int(branch) != ref_branch:
             raise ValueError(
                 f"initial branch {int(branch):+d} differs from the reference's branch {ref_branch:+d} "
-                f"(sign of {self.row.branch_name}); Remark 17: robot and reference must be on the same branch")
+                f"(sign of {self.row.branch_name}); Remark 17: robot and reference must be on the same branch"
+            )
 
     def reference_margins(self, params: DynamicParams, t_final, n: int = 201, t0=0.0):
         """Margin and branch quantity of :math:`(X_e)_{ref}(t)` on a uniform grid of n times."""
         ts = jnp.linspace(t0, t_final, n)
         zr = jax.vmap(lambda t: self.reference_state(t, params))(ts)
-        return ts, jax.vmap(lambda z: self.margin(z, params))(zr), jax.vmap(lambda z: self.branch_quantity(z, params))(zr)
+        return (
+            ts,
+            jax.vmap(lambda z: self.margin(z, params))(zr),
+            jax.vmap(lambda z: self.branch_quantity(z, params))(zr),
+        )
 
     def reference_regularity(self, t, params: DynamicParams):
         """Margin and branch quantity of the reference's extended state at time t (Lemma 2, condition 2)."""
@@ -563,6 +641,8 @@ def dynamic_linearization(robot, level: Level | str = Level.VELOCITY) -> Dynamic
     """
     rt = robots.robot_type(robot)
     if rt.name not in TABLE4:
-        raise ValueError(f"type {rt.name} has no dynamic extension in Table 4; "
-                         f"expected one of {sorted(TABLE4)} (type (3,0) is statically linearizable, Prop 3)")
+        raise ValueError(
+            f"type {rt.name} has no dynamic extension in Table 4; "
+            f"expected one of {sorted(TABLE4)} (type (3,0) is statically linearizable, Prop 3)"
+        )
     return DynamicLinearization(TABLE4[rt.name], check_level(level))

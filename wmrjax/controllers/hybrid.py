@@ -49,9 +49,9 @@ from wmrjax.controllers.law import Aux, Level
 from wmrjax.references import Reference
 from wmrjax.robots import Geometry
 
-PAPER_R_SWITCH = float(np.sqrt(np.sqrt(2.0) / 10.0))   # x^2 + y^2 = sqrt(2)/10  ->  r_s = 0.376 m
+PAPER_R_SWITCH = float(np.sqrt(np.sqrt(2.0) / 10.0))  # x^2 + y^2 = sqrt(2)/10  ->  r_s = 0.376 m
 PAPER_LAMBDA = 40.0
-TRACKING, PARKING = 0, 1    # values of HybridState.mode
+TRACKING, PARKING = 0, 1  # values of HybridState.mode
 
 
 def identity(theta):
@@ -85,7 +85,7 @@ def stabilizer(X, tau, lam, psi: Callable = identity):
 class StabilizerParams(NamedTuple):
     """Parameters of the stand-alone stabilizer (a pytree)."""
 
-    lam: jnp.ndarray       # lambda > 0
+    lam: jnp.ndarray  # lambda > 0
     t_switch: jnp.ndarray  # its clock starts here [s]
 
 
@@ -120,9 +120,9 @@ def check_stabilizer_args(lam, r_switch=None) -> None:
 class HybridParams(NamedTuple):
     """Everything array-valued the hybrid loop depends on (a pytree)."""
 
-    tracking: DynamicParams   # gains, reference, geometry (e = 0)
-    r_switch: jnp.ndarray     # switching radius r_s [m]
-    lam: jnp.ndarray          # stabilizer gain
+    tracking: DynamicParams  # gains, reference, geometry (e = 0)
+    r_switch: jnp.ndarray  # switching radius r_s [m]
+    lam: jnp.ndarray  # stabilizer gain
 
 
 class HybridState(NamedTuple):
@@ -156,7 +156,8 @@ class Hybrid:
 
     psi: Callable = identity
     tracking: DynamicLinearization = dataclasses.field(
-        default_factory=lambda: dynamic_linearization("(2,0)", Level.VELOCITY))
+        default_factory=lambda: dynamic_linearization("(2,0)", Level.VELOCITY)
+    )
 
     n_state = 10
     state_names = ("x", "y", "theta", "chi1", "mode", "t_switch", "x_switch", "y_switch", "theta_switch", "chi1_switch")
@@ -171,17 +172,23 @@ class Hybrid:
         u = jnp.where(parking, u_p, aux_t.control)
         Xdot = robots.kinematic(robots.TYPES["(2,0)"], zt[:3], u, Geometry(e=0.0))
         chi_dot = jnp.where(parking, 0.0, zdot_t[3])
-        zdot = HybridState(jnp.concatenate([Xdot, chi_dot[None]]), jnp.zeros_like(z.mode),
-                           jnp.zeros_like(z.t_switch), jnp.zeros_like(z.at_switch))
+        zdot = HybridState(
+            jnp.concatenate([Xdot, chi_dot[None]]),
+            jnp.zeros_like(z.mode),
+            jnp.zeros_like(z.t_switch),
+            jnp.zeros_like(z.at_switch),
+        )
         margin = jnp.where(parking, jnp.ones_like(aux_t.margin), aux_t.margin)
-        regularity = jnp.where(parking, jnp.nan, aux_t.regularity)   # no singular set while parking
-        return zdot, Aux(u, margin, regularity)   # applied (eta1, eta2); |chi1| while tracking, 1 while parking
+        regularity = jnp.where(parking, jnp.nan, aux_t.regularity)  # no singular set while parking
+        return zdot, Aux(u, margin, regularity)  # applied (eta1, eta2); |chi1| while tracking, 1 while parking
 
     def check_run(self, params, *, t0, dt, n_steps: int) -> None:
         """Before compiling: hybrid parameters, and a step that is stable for the tracking phase."""
         del t0, n_steps
         if not isinstance(params, HybridParams):
-            raise ValueError(f"params must be HybridParams (build them with hybrid_parking().params), got {type(params).__name__}")
+            raise ValueError(
+                f"params must be HybridParams (build them with hybrid_parking().params), got {type(params).__name__}"
+            )
         self.tracking.check_params(params.tracking)
         self.tracking.check_step(params.tracking, dt)
 
@@ -191,11 +198,16 @@ class Hybrid:
         inside = zt[0] ** 2 + zt[1] ** 2 <= params.r_switch**2
         switch = (z.mode == TRACKING) & inside
         zt = zt.at[2].set(jnp.where(switch, _math.wrap_angle(zt[2]), zt[2]))
-        return HybridState(zt, jnp.where(switch, PARKING, z.mode).astype(z.mode.dtype),
-                           jnp.where(switch, t, z.t_switch), jnp.where(switch, zt, z.at_switch))
+        return HybridState(
+            zt,
+            jnp.where(switch, PARKING, z.mode).astype(z.mode.dtype),
+            jnp.where(switch, t, z.t_switch),
+            jnp.where(switch, zt, z.at_switch),
+        )
 
-    def params(self, reference: Reference, poles=1.0, r_switch=PAPER_R_SWITCH, lam=PAPER_LAMBDA,
-               t_end: float = 10.0) -> HybridParams:
+    def params(
+        self, reference: Reference, poles=1.0, r_switch=PAPER_R_SWITCH, lam=PAPER_LAMBDA, t_end: float = 10.0
+    ) -> HybridParams:
         """Build and validate :class:`HybridParams`.
 
         Args:
@@ -212,8 +224,10 @@ class Hybrid:
         tp = self.tracking.params(reference, poles, Geometry(e=0.0))
         end = np.asarray(reference.position(jnp.asarray(float(t_end))))
         if not np.hypot(*end) < float(r_switch):
-            raise ValueError(f"the reference must end inside the switching disk: at t_end = {t_end} s it is at "
-                             f"({end[0]:.3g}, {end[1]:.3g}) m, |p| = {np.hypot(*end):.3g} m >= r_s = {float(r_switch):.3g} m")
+            raise ValueError(
+                f"the reference must end inside the switching disk: at t_end = {t_end} s it is at "
+                f"({end[0]:.3g}, {end[1]:.3g}) m, |p| = {np.hypot(*end):.3g} m >= r_s = {float(r_switch):.3g} m"
+            )
         return HybridParams(tp, jnp.asarray(r_switch, float), jnp.asarray(lam, float))
 
     def initial_state(self, zeta0, params: HybridParams) -> HybridState:

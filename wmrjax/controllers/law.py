@@ -31,8 +31,8 @@ import math
 from typing import Any, Callable, NamedTuple, Protocol, runtime_checkable
 
 import jax
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 
 from wmrjax import _math, linearize, robots
 from wmrjax._validate import check_finite, check_real, check_shape, concrete, is_concrete
@@ -43,7 +43,6 @@ from wmrjax.robots import Geometry, RobotType
 # |det K| below this is treated as singular inside the law (the division is clamped);
 # runs report the true margin so such events are flagged.
 DET_FLOOR = 1e-12
-
 
 
 class Level(enum.StrEnum):
@@ -105,6 +104,7 @@ class ClosedLoop(Protocol):
 
 # --- geometry requirements (keyword facts of the table rows) -------------------------------
 
+
 @dataclasses.dataclass(frozen=True)
 class Requirement:
     """A condition on one geometry constant, for the rows' regularity conditions.
@@ -132,11 +132,14 @@ def check_requirements(requirements, g: Geometry, where: str) -> None:
     for req in requirements:
         if req.violated(g):
             what = "!= 0" if req.test == "nonzero" else "!= k pi"
-            raise ValueError(f"{where}: geometry.{req.field} must be {what} ({req.why}); "
-                             f"got {req.field} = {float(getattr(g, req.field))!r}")
+            raise ValueError(
+                f"{where}: geometry.{req.field} must be {what} ({req.why}); "
+                f"got {req.field} = {float(getattr(g, req.field))!r}"
+            )
 
 
 # --- the mechanics of a table row -----------------------------------------------------------
+
 
 def _identity_input(X, c, U, g):
     return U
@@ -262,8 +265,9 @@ class LinearizingLaw:
 
     def jet(self, z, g):
         """``(zeta, a, K)`` of :func:`wmrjax.linearize.output_jet` at ``z``."""
-        return linearize.output_jet(lambda x, U: self.field(x, U, g), lambda x: self.outputs(x, g),
-                                    z, self.m, self.relative_degree)
+        return linearize.output_jet(
+            lambda x, U: self.field(x, U, g), lambda x: self.outputs(x, g), z, self.m, self.relative_degree
+        )
 
     def wrap_error(self, err):
         """Wrap the zeroth-order error of angle outputs to [-pi, pi)."""
@@ -327,6 +331,7 @@ class LinearizingLaw:
 
 # --- helpers shared by the sibling controllers -------------------------------------------
 
+
 def physical_state_names(robot: RobotType) -> tuple:
     """Names of the kinematic state X = (x, y, theta, beta...)."""
     beta = ("beta",) if robot.delta_s == 1 else ("beta1", "beta2")[: robot.delta_s]
@@ -351,12 +356,16 @@ def make_gains(gains, poles, m: int, r: int):
     :class:`wmrjax.GainSchedule` checked (m, r)), else real ``poles``."""
     if gains is not None:
         if not isinstance(gains, (Gains, GainSchedule)):
-            raise ValueError(f"gains must be a wmrjax.Gains (Hurwitz coefficients) or a wmrjax.GainSchedule, "
-                             f"got {type(gains).__name__}")
+            raise ValueError(
+                f"gains must be a wmrjax.Gains (Hurwitz coefficients) or a wmrjax.GainSchedule, "
+                f"got {type(gains).__name__}"
+            )
         return gains.check(m, r)
     if jnp.iscomplexobj(jnp.asarray(poles)):
-        raise ValueError("poles must be real pole magnitudes (poles at -poles); for complex pole pairs pass "
-                         "gains=wmrjax.Gains.from_damping(omega, zeta, m=...)")
+        raise ValueError(
+            "poles must be real pole magnitudes (poles at -poles); for complex pole pairs pass "
+            "gains=wmrjax.Gains.from_damping(omega, zeta, m=...)"
+        )
     return Gains.from_poles(poles, m, r)
 
 
@@ -368,24 +377,28 @@ def check_reference_type(reference) -> None:
         raise ValueError("reference.path is None: build references with wmrjax.references (e.g. from_function)")
     try:
         out = jax.eval_shape(reference.path, jax.ShapeDtypeStruct((), jnp.result_type(float)), reference.params)
-    except Exception as exc:   # a path that cannot be traced (NumPy calls, Python control flow on t)
-        raise ValueError(f"reference {reference.name!r}: its path(t, params) cannot be traced by JAX ({type(exc).__name__}: "
-                         f"{str(exc).splitlines()[0][:200]}); write it with jax.numpy so that its derivatives exist") from None
+    except Exception as exc:  # a path that cannot be traced (NumPy calls, Python control flow on t)
+        raise ValueError(
+            f"reference {reference.name!r}: its path(t, params) cannot be traced by JAX ({type(exc).__name__}: "
+            f"{str(exc).splitlines()[0][:200]}); write it with jax.numpy so that its derivatives exist"
+        ) from None
     if getattr(out, "shape", None) != (2,):
-        raise ValueError(f"reference {reference.name!r}: path(t, params) must return the position (x, y) of shape (2,) "
-                         f"[m], got {getattr(out, 'shape', type(out).__name__)}; a heading comes from the path's "
-                         "tangent (add a constant with heading_offset)")
+        raise ValueError(
+            f"reference {reference.name!r}: path(t, params) must return the position (x, y) of shape (2,) "
+            f"[m], got {getattr(out, 'shape', type(out).__name__)}; a heading comes from the path's "
+            "tangent (add a constant with heading_offset)"
+        )
 
 
 # --- run checks shared by the siblings ---------------------------------------------------------
 
-REFERENCE_GRID_STEP = 0.01     # [s] spacing of the grid on which a reference is checked
-_BLOCK = 512                   # grid points per compiled evaluation (one compilation per controller)
+REFERENCE_GRID_STEP = 0.01  # [s] spacing of the grid on which a reference is checked
+_BLOCK = 512  # grid points per compiled evaluation (one compilation per controller)
 # the check's program runs a few times per problem: compiled at XLA's lowest backend
 # optimization level, which halves its compile (its values differ at most by rounding, far
 # below the check's floor and kink tolerance)
 CHECK_COMPILE = {"xla_backend_optimization_level": 0}
-KINK_TOLERANCE = 1e-3          # relative jump of a derivative (per unit step) flagged as a kink
+KINK_TOLERANCE = 1e-3  # relative jump of a derivative (per unit step) flagged as a kink
 
 # RK4's stability function R(s) = 1 + s + s^2/2 + s^3/6 + s^4/24; |R| <= 1 on its region
 _RK4 = np.array([1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0])
@@ -400,7 +413,7 @@ def rk4_max_step(poles) -> float:
     """Largest dt with every ``dt * pole`` in RK4's stability region (poles with Re < 0) [s]."""
     hi = 3.0 / max(float(np.max(np.abs(poles))), 1e-300)
     lo = 0.0
-    for _ in range(60):                 # the region is star-shaped along these rays: bisect
+    for _ in range(60):  # the region is star-shaped along these rays: bisect
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if np.all(rk4_amplification(mid * np.asarray(poles)) <= 1.0) else (lo, mid)
     return lo
@@ -418,14 +431,14 @@ def reference_profile(ctrl, params, t0: float, t_final: float, step: float = REF
     """``(ts, jets, level, branch)`` as NumPy arrays on a uniform grid of spacing <= ``step``
     over [t0, t_final], evaluated in fixed-size compiled blocks; None if ``params`` are traced."""
     if any(not is_concrete(x) for x in jax.tree_util.tree_leaves(params)):
-        return None                             # traced (inside vmap/shard_map): checked by the caller
+        return None  # traced (inside vmap/shard_map): checked by the caller
     n = max(2, int(np.ceil((t_final - t0) / step - 1e-9)) + 1)
     ts = np.linspace(t0, t_final, n)
     blocks = []
     for i in range(0, n, _BLOCK):
-        tb = ts[i:i + _BLOCK]
+        tb = ts[i : i + _BLOCK]
         pad = np.concatenate([tb, np.full(_BLOCK - tb.size, tb[-1])])
-        with jax.ensure_compile_time_eval():    # concrete params inside an outer jit: still checked
+        with jax.ensure_compile_time_eval():  # concrete params inside an outer jit: still checked
             out = _reference_profile(ctrl, jnp.asarray(pad, dtype=jnp.result_type(float)), params)
         out = [concrete(x) for x in out]
         if any(x is None for x in out):
@@ -471,15 +484,21 @@ def kink_cause(ts, jets) -> str:
     """The likeliest cause of a failed kink test, for its message: float32 round-off, times
     that are clock readings, a path that stops, or else a kink or corner."""
     if jnp.result_type(float) == jnp.float32:
-        return ("float32 round-off: JAX runs in single precision, and the test's finite differences need "
-                "double; enable it with jax.config.update('jax_enable_x64', True) before building anything")
+        return (
+            "float32 round-off: JAX runs in single precision, and the test's finite differences need "
+            "double; enable it with jax.config.update('jax_enable_x64', True) before building anything"
+        )
     if np.max(np.abs(ts)) > CLOCK_TIME_S:
-        return (f"times up to {np.max(np.abs(ts)):.4g} s look like clock readings (epoch seconds), where the "
-                "path's polynomials lose their digits: subtract the first sample time so the path starts at 0")
+        return (
+            f"times up to {np.max(np.abs(ts)):.4g} s look like clock readings (epoch seconds), where the "
+            "path's polynomials lose their digits: subtract the first sample time so the path starts at 0"
+        )
     speed = np.linalg.norm(jets[:, 1, :2], axis=-1)
     if speed.size and np.min(speed) < STOP_FRACTION * max(np.max(speed), 1e-300):
-        return (f"the path stops: its speed falls to {np.min(speed):.3g} m/s at t = {ts[int(np.argmin(speed))]:.4g} s "
-                "(a stop or a turn on the spot); plan a path that keeps moving")
+        return (
+            f"the path stops: its speed falls to {np.min(speed):.3g} m/s at t = {ts[int(np.argmin(speed))]:.4g} s "
+            "(a stop or a turn on the spot); plan a path that keeps moving"
+        )
     return "a kink or corner in the path"
 
 
@@ -497,12 +516,14 @@ def check_regular(ctrl, z, params, name: str, law_name: str, table: str, regular
     check_shape(name, zc, (ctrl.n_state,), " ".join(ctrl.state_names))
     check_finite(name, zc)
     m = concrete(margin_at(ctrl, jnp.asarray(zc), params))
-    if m is None:           # traced parameters (e.g. vmap over geometry): checked by the caller's caller
+    if m is None:  # traced parameters (e.g. vmap over geometry): checked by the caller's caller
         return
     m = float(m)
     if not m > 1e3 * DET_FLOOR:
-        raise ValueError(f"{name} is on the singular set of the {law_name} for type {ctrl.robot.name}: "
-                         f"margin |det K| = {m:.3g}; {table} requires {regularity}")
+        raise ValueError(
+            f"{name} is on the singular set of the {law_name} for type {ctrl.robot.name}: "
+            f"margin |det K| = {m:.3g}; {table} requires {regularity}"
+        )
 
 
 class LinearizingController:
@@ -516,8 +537,8 @@ class LinearizingController:
     Methods take ``(t, z, params)`` or ``(z, params)``.
     """
 
-    _law_name = ""      # for messages: "dynamic linearizing law", "static linearizing law"
-    _table = ""         # "Table 4", "Table 3"
+    _law_name = ""  # for messages: "dynamic linearizing law", "static linearizing law"
+    _table = ""  # "Table 4", "Table 3"
 
     @property
     def law(self) -> LinearizingLaw:
@@ -598,13 +619,17 @@ class LinearizingController:
         """ValueError unless ``params`` are this controller's (type, gain shape, reference type)."""
         want = self._params_type
         if not isinstance(params, want):
-            raise ValueError(f"params must be the {want.__name__} of this {self._law_name} (type {self.robot.name}, "
-                             f"{self.level} level; build them with its .params()), got {type(params).__name__}")
+            raise ValueError(
+                f"params must be the {want.__name__} of this {self._law_name} (type {self.robot.name}, "
+                f"{self.level} level; build them with its .params()), got {type(params).__name__}"
+            )
         shape = tuple(params.gains.shape)
         if shape[-2:] != (self.m, self.relative_degree):
-            raise ValueError(f"params.gains.coeffs must have shape ({self.m}, {self.relative_degree}) for this "
-                             f"{self._law_name} (type {self.robot.name}, {self.level} level: m = {self.m} outputs, "
-                             f"relative degree {self.relative_degree}), got {shape}: parameters of another controller?")
+            raise ValueError(
+                f"params.gains.coeffs must have shape ({self.m}, {self.relative_degree}) for this "
+                f"{self._law_name} (type {self.robot.name}, {self.level} level: m = {self.m} outputs, "
+                f"relative degree {self.relative_degree}), got {shape}: parameters of another controller?"
+            )
         check_reference_type(params.reference)
 
     def error_poles(self, gains: Gains):
@@ -612,7 +637,7 @@ class LinearizingController:
         c = concrete(gains.coefficient_samples())
         if c is None or np.ndim(c) != 3:
             return None
-        c = np.asarray(c).reshape(-1, np.shape(c)[-1])   # every output (at every knot of a schedule)
+        c = np.asarray(c).reshape(-1, np.shape(c)[-1])  # every output (at every knot of a schedule)
         # the roots of each output's polynomial s^r + k_{r-1} s^{r-1} + ... + k_0 (NumPy: also
         # concrete inside a jit trace, where jnp would stage the computation)
         return np.concatenate([np.roots(np.concatenate([[1.0], row[::-1]])) for row in np.asarray(c, float)])
@@ -625,10 +650,12 @@ class LinearizingController:
         amp = rk4_amplification(float(dtv) * poles)
         if np.any(amp > 1.0):
             i = int(np.argmax(amp))
-            raise ValueError(f"dt = {float(dtv):.4g} s is outside RK4's stability region for this closed loop: "
-                             f"its error dynamics have a pole at {complex(poles[i]):.4g} 1/s, and |R(dt * pole)| = "
-                             f"{amp[i]:.3g} > 1, so the run would diverge numerically; use dt <= "
-                             f"{rk4_max_step(poles):.4g} s (and much smaller for accuracy)")
+            raise ValueError(
+                f"dt = {float(dtv):.4g} s is outside RK4's stability region for this closed loop: "
+                f"its error dynamics have a pole at {complex(poles[i]):.4g} 1/s, and |R(dt * pole)| = "
+                f"{amp[i]:.3g} > 1, so the run would diverge numerically; use dt <= "
+                f"{rk4_max_step(poles):.4g} s (and much smaller for accuracy)"
+            )
 
     def check_reference(self, params, t_final, *, t0=0.0, floor: float = 1e-6) -> None:
         """ValueError if the reference is unusable on [t0, t_final]: it reaches the singular set
@@ -657,19 +684,28 @@ class LinearizingController:
             raise ValueError(
                 f"reference {params.reference.name!r} reaches the singular set of the {self._law_name} (type "
                 f"{self.robot.name}) at t = {ts[i]:.4g} s (regularity {level[i]:.3g}); {self._table} requires "
-                f"{self._reference_requirement} on [{t0:g}, {t_final:g}] s (it must not stop or reverse)")
+                f"{self._reference_requirement} on [{t0:g}, {t_final:g}] s (it must not stop or reverse)"
+            )
         if not np.all(np.isfinite(jets)):
             i = int(np.argmax(~np.isfinite(jets).reshape(len(ts), -1).all(axis=1)))
             raise ValueError(f"reference {params.reference.name!r} has a non-finite derivative at t = {ts[i]:.4g} s")
-        found = [k for k in (find_kink(ts[i::2], jets[i::2], self.row.extension.angle_outputs)
-                             for i in ((0, 1) if len(ts) > 3 else (0,))) if k is not None]
-        kink = min(found, key=lambda k: (k[2], k[0])) if found else None    # the lowest order, the earliest
+        found = [
+            k
+            for k in (
+                find_kink(ts[i::2], jets[i::2], self.row.extension.angle_outputs)
+                for i in ((0, 1) if len(ts) > 3 else (0,))
+            )
+            if k is not None
+        ]
+        kink = min(found, key=lambda k: (k[2], k[0])) if found else None  # the lowest order, the earliest
         if kink is not None:
             a, b, j, res = kink
-            raise ValueError(f"reference {params.reference.name!r} is not smooth enough for the {self._law_name}: its "
-                             f"derivative of order {j} jumps between t = {a:.4g} and {b:.4g} s (trapezoid residual "
-                             f"{res:.3g}); the law uses derivatives up to order {self.relative_degree}, which must be "
-                             f"continuous ({kink_cause(ts, jets)})")
+            raise ValueError(
+                f"reference {params.reference.name!r} is not smooth enough for the {self._law_name}: its "
+                f"derivative of order {j} jumps between t = {a:.4g} and {b:.4g} s (trapezoid residual "
+                f"{res:.3g}); the law uses derivatives up to order {self.relative_degree}, which must be "
+                f"continuous ({kink_cause(ts, jets)})"
+            )
 
     def _reference_level(self, raw, params):
         """The regularity level (>= 0, 0 singular) from what ``reference_regularity`` returned."""

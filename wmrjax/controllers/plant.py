@@ -113,11 +113,16 @@ class PlantLoop:
             a = np.asarray(v, float) if concrete(v) is not None else None
             if a is not None:
                 if a.ndim > 1 or (a.ndim == 1 and a.shape[0] != nu):
-                    raise ValueError(f"{name} must be a scalar or have {nu} entries (one per input of type "
-                                     f"{self.robot.name}), got shape {a.shape}")
+                    raise ValueError(
+                        f"{name} must be a scalar or have {nu} entries (one per input of type "
+                        f"{self.robot.name}), got shape {a.shape}"
+                    )
                 if np.any(np.isnan(a)) or np.any(a <= 0) or (name == "input_scale" and not np.all(np.isfinite(a))):
-                    raise ValueError(f"{name} must be > 0 per input" + (" (inf: no limit)" if name == "input_limit"
-                                                                         else " and finite") + f", got {a.tolist()}")
+                    raise ValueError(
+                        f"{name} must be > 0 per input"
+                        + (" (inf: no limit)" if name == "input_limit" else " and finite")
+                        + f", got {a.tolist()}"
+                    )
             out.append(jnp.broadcast_to(jnp.asarray(v, dtype), (nu,)))
         g = law_params.geometry if geometry is None else geometry
         robots.check_geometry(g)
@@ -140,7 +145,7 @@ class PlantLoop:
         n, nl = self.robot.n_state, ctrl.n_state
         zl = z[:nl]
         if self._plant_velocity_state and self.velocity_feedback == "measured":
-            zl = law.lift_measured(zl, z[nl:], g)     # the law measures the wheel velocities
+            zl = law.lift_measured(zl, z[nl:], g)  # the law measures the wheel velocities
         U, reg = ctrl.control_and_regularity(t, zl, params.law)
         scale, limit = params.input_scale, params.input_limit
 
@@ -154,11 +159,11 @@ class PlantLoop:
             zdot = jnp.concatenate([xdot, cdot]) if law.extension.n_comp else xdot
             return zdot, Aux(u, jnp.abs(reg), reg)
         v = actuate(law.plant_control(zl, U, g))
-        if not self._plant_velocity_state:         # static: (X, u) is the plant's own state
+        if not self._plant_velocity_state:  # static: (X, u) is the plant's own state
             zdot = robots.dynamic(self.robot, zl, v, params.geometry)
             return zdot, Aux(v, jnp.abs(reg), reg)
         u_plant = z[nl:]
-        zdot_law = law.field(zl, U, g)             # the law's compensator and commanded velocities
+        zdot_law = law.field(zl, U, g)  # the law's compensator and commanded velocities
         xdot = robots.kinematic(self.robot, zl[:n], u_plant, params.geometry)
         return jnp.concatenate([xdot, zdot_law[n:], v]), Aux(v, jnp.abs(reg), reg)
 
@@ -169,8 +174,10 @@ class PlantLoop:
     def check_run(self, params, *, t0, dt, n_steps: int) -> None:
         """The controller's checks on ``params.law`` (and that these are :class:`PlantParams`)."""
         if not isinstance(params, PlantParams):
-            raise ValueError(f"params must be the PlantParams of this loop (build them with its .params()), "
-                             f"got {type(params).__name__}")
+            raise ValueError(
+                f"params must be the PlantParams of this loop (build them with its .params()), "
+                f"got {type(params).__name__}"
+            )
         self.ctrl.check_run(params.law, t0=t0, dt=dt, n_steps=n_steps)
 
 

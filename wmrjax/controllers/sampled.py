@@ -125,8 +125,9 @@ class SampledLoop:
         """The controller's state ``(X, controller)`` (true X, no noise); batched states keep their axes."""
         return jnp.concatenate([z.plant[..., : self.robot.n_state], z.controller], axis=-1)
 
-    def params(self, law_params, *, input_limit=None, input_scale=1.0, geometry: Geometry | None = None,
-               noise=None) -> SampledParams:
+    def params(
+        self, law_params, *, input_limit=None, input_scale=1.0, geometry: Geometry | None = None, noise=None
+    ) -> SampledParams:
         """Build and validate :class:`SampledParams`.
 
         Args:
@@ -138,8 +139,9 @@ class SampledLoop:
         Raises:
           ValueError: bad limits, scales or geometry; noise of the wrong width or not finite.
         """
-        plant = PlantLoop(self.ctrl).params(law_params, input_limit=input_limit, input_scale=input_scale,
-                                            geometry=geometry)
+        plant = PlantLoop(self.ctrl).params(
+            law_params, input_limit=input_limit, input_scale=input_scale, geometry=geometry
+        )
         nX = self.robot.n_state
         if noise is None:
             noise = jnp.zeros((1, nX), jnp.result_type(float))
@@ -147,8 +149,10 @@ class SampledLoop:
         if nv is not None:
             nv = np.asarray(nv)
             if nv.ndim != 2 or nv.shape[1] != nX or nv.shape[0] < 1:
-                raise ValueError(f"noise must have shape (n_samples, {nX}) (one row of measurement noise on X = "
-                                 f"({', '.join(self.ctrl.state_names[:nX])}) per sample), got {nv.shape}")
+                raise ValueError(
+                    f"noise must have shape (n_samples, {nX}) (one row of measurement noise on X = "
+                    f"({', '.join(self.ctrl.state_names[:nX])}) per sample), got {nv.shape}"
+                )
             if not np.all(np.isfinite(nv)):
                 raise ValueError("noise must be finite")
         return SampledParams(plant, jnp.asarray(noise, jnp.result_type(float)))
@@ -168,8 +172,9 @@ class SampledLoop:
         c = z_law[nX:]
         nu, ne = self.robot.n_input, self.ctrl.m * self.ctrl.relative_degree
         zero = jnp.zeros((), z_law.dtype)
-        return SampledState(plant, c, jnp.zeros_like(c), zero, jnp.zeros(nu, z_law.dtype), zero,
-                            jnp.zeros(ne, z_law.dtype))
+        return SampledState(
+            plant, c, jnp.zeros_like(c), zero, jnp.zeros(nu, z_law.dtype), zero, jnp.zeros(ne, z_law.dtype)
+        )
 
     def applied(self, z: SampledState, params: SampledParams):
         """The plant's true input: the held command scaled and saturated."""
@@ -201,17 +206,18 @@ class SampledLoop:
         nX = self.robot.n_state
         g = params.plant.law.geometry
         noise = jax.lax.dynamic_index_in_dim(params.noise, jnp.minimum(k, params.noise.shape[0] - 1), keepdims=False)
-        c = z.controller + (t - z.t_sample) * z.rate           # the digital integrator's step
+        c = z.controller + (t - z.t_sample) * z.rate  # the digital integrator's step
         z = z._replace(controller=c)
         zm = jnp.concatenate([z.plant[:nX] + noise, c])
         if self._torque:
-            zm = law.lift_measured(zm, z.plant[nX:], g)     # measured wheel velocities
+            zm = law.lift_measured(zm, z.plant[nX:], g)  # measured wheel velocities
         U, regularity, error = ctrl.control_and_error(t, zm, self.law_state(z), params.plant.law)
         command = law.plant_control(zm, U, g)
         rate = law.field(zm, U, g)[nX:]
         error = error.reshape(-1)
-        return SampledState(z.plant, zm[nX:], rate, jnp.asarray(t, zm.dtype), command,
-                            jnp.asarray(regularity, zm.dtype), error)
+        return SampledState(
+            z.plant, zm[nX:], rate, jnp.asarray(t, zm.dtype), command, jnp.asarray(regularity, zm.dtype), error
+        )
 
     def final_report(self, t, z, params: SampledParams):
         report = getattr(self.ctrl, "final_report", None)
@@ -220,11 +226,14 @@ class SampledLoop:
     def check_run(self, params, *, t0, dt, n_steps: int) -> None:
         """The controller's checks on its parameters, and a whole number of periods."""
         if not isinstance(params, SampledParams):
-            raise ValueError(f"params must be the SampledParams of this loop (build them with its .params()), "
-                             f"got {type(params).__name__}")
+            raise ValueError(
+                f"params must be the SampledParams of this loop (build them with its .params()), "
+                f"got {type(params).__name__}"
+            )
         if n_steps % self.steps_per_sample:
-            raise ValueError(f"n_steps = {n_steps} is not a whole number of controller periods of "
-                             f"{self.steps_per_sample} steps")
+            raise ValueError(
+                f"n_steps = {n_steps} is not a whole number of controller periods of {self.steps_per_sample} steps"
+            )
         self.ctrl.check_run(params.plant.law, t0=t0, dt=dt, n_steps=n_steps)
 
 
@@ -241,7 +250,8 @@ def measurement_noise(key, std, n_samples: int, n_state: int):
     std = jnp.asarray(std, jnp.result_type(float))
     full = jnp.zeros(n_state, std.dtype).at[: std.shape[0]].set(std)
     draws = jax.vmap(lambda k: jax.random.normal(jax.random.fold_in(key, k), (n_state,), std.dtype))(
-        jnp.arange(n_samples))
+        jnp.arange(n_samples)
+    )
     return full * draws
 
 
@@ -262,6 +272,8 @@ def sampled(ctrl, steps_per_sample: int) -> SampledLoop:
     if not hasattr(ctrl, "law") or not hasattr(ctrl, "control_and_regularity"):
         raise ValueError(f"sampled wraps a static or dynamic linearizing controller, got {type(ctrl).__name__}")
     if ctrl.level == Level.TORQUE and ctrl.law.extension.n_comp == 0:
-        raise ValueError("a sampled-data loop at torque level needs a dynamic law (its state carries the measured "
-                         "wheel velocities); a static law's torque-level state is the plant's own")
+        raise ValueError(
+            "a sampled-data loop at torque level needs a dynamic law (its state carries the measured "
+            "wheel velocities); a static law's torque-level state is the plant's own"
+        )
     return SampledLoop(ctrl, check_int("steps_per_sample", steps_per_sample, 1))

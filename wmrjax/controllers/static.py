@@ -41,15 +41,24 @@ import numpy as np
 
 from wmrjax import _math, robots
 from wmrjax._validate import concrete
-from wmrjax.controllers.law import (Extension, Level, LinearizingController, Requirement, check_level,
-                                    check_reference_type, check_requirements, make_gains, physical_state_names,
-                                    validated_physical)
+from wmrjax.controllers.law import (
+    Extension,
+    Level,
+    LinearizingController,
+    Requirement,
+    check_level,
+    check_reference_type,
+    check_requirements,
+    make_gains,
+    physical_state_names,
+    validated_physical,
+)
 from wmrjax.gains import Gains
 from wmrjax.references import Reference, taylor
 from wmrjax.robots import Geometry, RobotType
 
-
 # --- steering references -------------------------------------------------------------
+
 
 def _const(t, params):
     return params + 0.0 * t
@@ -78,6 +87,7 @@ def steering_constant(value) -> Steering:
 
 
 # --- Table 3 --------------------------------------------------------------------------
+
 
 def _h_30(X, g):
     del g
@@ -161,25 +171,67 @@ class Table3Row:
 
 
 def _row(kind, outputs, **facts) -> Table3Row:
-    return Table3Row(extension=Extension(robot=robots.TYPES[kind], outputs=outputs, relative_degree=1,
-                                         angle_outputs=facts.pop("angle_outputs", ())), **facts)
+    return Table3Row(
+        extension=Extension(
+            robot=robots.TYPES[kind], outputs=outputs, relative_degree=1, angle_outputs=facts.pop("angle_outputs", ())
+        ),
+        **facts,
+    )
 
 
-TABLE3: dict[str, Table3Row] = {row.robot.name: row for row in (
-    _row("(3,0)", _h_30, angle_outputs=(2,), tracks="posture", regularity="always regular (K = R^T(theta))"),
-    _row("(2,0)", _h_20, z3=(2,), regularity="e != 0, delta != k pi (det K = e sin(delta))",
-         requires=(_E, Requirement("delta", "sin_nonzero", "Table 3: det K = e sin(delta); the point must not lie "
-                                                            "on the fixed-wheel axle")),
-         default_geometry=Geometry(e=0.3, delta=0.5 * math.pi)),
-    _row("(2,1)", _h_21, z3=(2,), regularity="e != 0, delta != beta mod pi (det K = -e sin(beta - delta))",
-         requires=(_E,), steering_index=2, default_steering=_steer_21, steering_level=_steer_level_21,
-         steering_condition="delta != beta mod pi", default_geometry=Geometry(e=0.3, delta=0.5 * math.pi)),
-    _row("(1,1)", _h_11, z3=(2, 3), regularity="e != 0 (det K = e L; L != 0 too)", requires=(_E, _L),
-         default_geometry=Geometry(L=1.0, e=0.3)),
-    _row("(1,2)", _h_12, z3=(2, 3), regularity="e sin(beta2) != 0 (det K = 2 e L sin(beta2); L != 0 too)",
-         requires=(_E, _L), steering_index=2, default_steering=_steer_12, steering_level=_steer_level_12,
-         steering_condition="sin(beta2) != 0", default_geometry=Geometry(L=0.5, e=0.3)),
-)}
+TABLE3: dict[str, Table3Row] = {
+    row.robot.name: row
+    for row in (
+        _row("(3,0)", _h_30, angle_outputs=(2,), tracks="posture", regularity="always regular (K = R^T(theta))"),
+        _row(
+            "(2,0)",
+            _h_20,
+            z3=(2,),
+            regularity="e != 0, delta != k pi (det K = e sin(delta))",
+            requires=(
+                _E,
+                Requirement(
+                    "delta",
+                    "sin_nonzero",
+                    "Table 3: det K = e sin(delta); the point must not lie on the fixed-wheel axle",
+                ),
+            ),
+            default_geometry=Geometry(e=0.3, delta=0.5 * math.pi),
+        ),
+        _row(
+            "(2,1)",
+            _h_21,
+            z3=(2,),
+            regularity="e != 0, delta != beta mod pi (det K = -e sin(beta - delta))",
+            requires=(_E,),
+            steering_index=2,
+            default_steering=_steer_21,
+            steering_level=_steer_level_21,
+            steering_condition="delta != beta mod pi",
+            default_geometry=Geometry(e=0.3, delta=0.5 * math.pi),
+        ),
+        _row(
+            "(1,1)",
+            _h_11,
+            z3=(2, 3),
+            regularity="e != 0 (det K = e L; L != 0 too)",
+            requires=(_E, _L),
+            default_geometry=Geometry(L=1.0, e=0.3),
+        ),
+        _row(
+            "(1,2)",
+            _h_12,
+            z3=(2, 3),
+            regularity="e sin(beta2) != 0 (det K = 2 e L sin(beta2); L != 0 too)",
+            requires=(_E, _L),
+            steering_index=2,
+            default_steering=_steer_12,
+            steering_level=_steer_level_12,
+            steering_condition="sin(beta2) != 0",
+            default_geometry=Geometry(L=0.5, e=0.3),
+        ),
+    )
+}
 
 
 def default_steering(robot, geometry: Geometry) -> Steering | None:
@@ -285,8 +337,15 @@ class StaticLinearization(LinearizingController):
         return self.internal_dynamics(t, z, params)
 
     # -- parameters, initial states, checks --
-    def params(self, reference: Reference, poles=1.0, geometry: Geometry = Geometry(), steering=None, *,
-               gains: Gains | None = None) -> StaticParams:
+    def params(
+        self,
+        reference: Reference,
+        poles=1.0,
+        geometry: Geometry = Geometry(),
+        steering=None,
+        *,
+        gains: Gains | None = None,
+    ) -> StaticParams:
         """Build and validate :class:`StaticParams`.
 
         Args:
@@ -337,9 +396,11 @@ class StaticLinearization(LinearizingController):
         lev = self.row.steering_level(b, float(delta))
         if not np.all(np.isfinite(lev)) or lev.min() < 1e-6:
             i = int(np.nanargmin(lev))
-            raise ValueError(f"Table 3, type {self.robot.name}: the steering reference violates "
-                             f"{self.row.steering_condition} at t = {float(ts[i]):.3g} s (steering {b[i]:.3g} rad); "
-                             "choose another steering reference")
+            raise ValueError(
+                f"Table 3, type {self.robot.name}: the steering reference violates "
+                f"{self.row.steering_condition} at t = {float(ts[i]):.3g} s (steering {b[i]:.3g} rad); "
+                "choose another steering reference"
+            )
 
     def physical_state(self, X, u, params):
         """State X (velocity level) or (X, u) (torque level), no checks (pure)."""
