@@ -6,6 +6,7 @@ at build time, the API pages are generated from the Google-style docstrings by n
 and MathJax is served from the build itself so that the pages render offline.
 """
 
+import importlib.util
 import os
 import sys
 from pathlib import Path
@@ -24,7 +25,7 @@ copyright = "2026, the wmrjax developers"
 release = wmrjax.__version__
 version = release
 
-extensions = ["myst_nb", "sphinx.ext.autodoc", "sphinx.ext.napoleon", "sphinx.ext.mathjax", "sphinx-mathjax-offline"]
+extensions = ["myst_nb", "sphinx.ext.autodoc", "sphinx.ext.napoleon", "sphinx.ext.mathjax"]
 
 exclude_patterns = ["_build", "**.ipynb_checkpoints", "README.md"]
 source_suffix = {".md": "myst-nb", ".rst": "restructuredtext"}
@@ -54,7 +55,11 @@ napoleon_use_ivar = True
 
 html_theme = "furo"
 html_title = f"wmrjax {release}"
-html_static_path = []
+# MathJax from the build itself (the files of the sphinx-mathjax-offline package, copied into
+# _static/mathjax), so that pages render their equations with no network
+_MATHJAX = Path(importlib.util.find_spec("sphinx-mathjax-offline").origin).parent / "static"
+html_static_path = [str(_MATHJAX)]
+mathjax_path = "mathjax/tex-chtml.js"
 html_show_sourcelink = False
 
 
