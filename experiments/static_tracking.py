@@ -122,9 +122,9 @@ def run_case(kind, level, n_random, t_final, dt, seed, tol):
 
     import wmrjax as w
 
-    task = "posture" if w.robot_type(kind).omnidirectional else "point"
+    task = w.Task.POSTURE if w.robot_type(kind).omnidirectional else w.Task.POINT
     ctrl = w.controller(kind, level, task)
-    posture = ctrl.task == "posture"  # (3,0): the heading is an output too
+    posture = ctrl.task == w.Task.POSTURE  # (3,0): the heading is an output too
     g = ctrl.row.default_geometry
     n_steps = int(round(t_final / dt))
     out = {"task": task, "geometry": g._asdict(), "poles": 1.0, "outputs": ctrl.row.regularity}

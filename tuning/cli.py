@@ -276,9 +276,9 @@ def _law_values(a, problem, values) -> dict:
     if a.task is None and a.robot is None:
         return {}
     robot = w.robot_type(values.get("controller.robot", problem.data["controller"]["robot"])).name
-    task = a.task or problem.data["controller"].get("task", "posture")
-    law = "static" if task == "point" or robot not in w.controllers.TABLE4 else "dynamic"  # (3,0): Prop 3
-    out = {"controller.law": law, "controller.task": task}
+    task = w.Task(a.task or problem.data["controller"].get("task", w.Task.POSTURE))
+    law = "static" if task == w.Task.POINT or robot not in w.controllers.TABLE4 else "dynamic"  # (3,0): Prop 3
+    out = {"controller.law": law, "controller.task": str(task)}
     ini = problem.data["initial"]
     if law == "static" and ini.get("space", "output") == "output":
         out["initial"] = {"space": "physical", **{k: v for k, v in ini.items() if k in ("random", "x", "y")}}

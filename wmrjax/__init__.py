@@ -20,6 +20,7 @@ from wmrjax.controllers import (  # noqa: F401
     SampledParams,
     SampledState,
     StaticLinearization,
+    Task,
     controller,
     dynamic_linearization,
     hybrid_parking,

@@ -64,7 +64,7 @@ import jax
 import numpy as np
 
 from wmrjax import io, resources
-from wmrjax.controllers.law import Level
+from wmrjax.controllers.law import Level, Task
 
 SECTIONS = (
     "title",
@@ -90,13 +90,6 @@ class Law(enum.StrEnum):
 
     DYNAMIC = "dynamic"
     STATIC = "static"
-
-
-class Task(enum.StrEnum):
-    """What is tracked: the whole posture, or a point (Table 3's static laws)."""
-
-    POSTURE = "posture"
-    POINT = "point"
 
 
 class Space(enum.StrEnum):
@@ -767,7 +760,7 @@ def _settings(data: dict, base: Path, case) -> list:
     for what, values in (("robot", kinds), ("level", levels)):
         if len(set(values)) != len(values):
             raise ProblemError(f"[controller] {what}: listed twice in {[str(v) for v in values]}")
-    task = c.get("task", "posture" if law == Law.DYNAMIC else "point")
+    task = c.get("task", Task.POSTURE if law == Law.DYNAMIC else Task.POINT)
     task = choice("controller", "task", task, Task)
     if law == Law.DYNAMIC:
         if task != Task.POSTURE:

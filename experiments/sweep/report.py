@@ -82,6 +82,8 @@ def quantiles(a) -> dict:
 
 
 def summarize(plan: S.Plan, table: dict, certified: dict) -> dict:
+    from wmrjax.problem import Task  # here: JAX is imported after the device options are set
+
     n = len(table["run"])
     counts = {o: int(np.sum(table["outcome"] == o)) for o in OUTCOMES}
     ok = ~table["failed"]
@@ -91,7 +93,7 @@ def summarize(plan: S.Plan, table: dict, certified: dict) -> dict:
         "fractions": {o: (c / n if n else None) for o, c in counts.items()},
         "converged_definition": (
             f"regular run with final position error <= {plan.position_tol} m"
-            + (f" and heading error <= {plan.heading_tol} rad" if plan.task == "posture" else "")
+            + (f" and heading error <= {plan.heading_tol} rad" if plan.task == Task.POSTURE else "")
         ),
         "quantiles_regular_runs": {
             "final_position_error_m": quantiles(table["final_position_error"][ok]),

@@ -408,9 +408,11 @@ OUTCOMES = ("converged", "not_converged", "singular", "failed")
 def classify(plan: S.Plan, res: dict) -> dict:
     """``converged`` (regular, final errors within the tolerances), ``singular`` (flagged
     singular), ``failed`` (non-finite or inaccurate), else ``not_converged``."""
+    from wmrjax.problem import Task  # here: JAX is imported after the device options are set
+
     pos_ok = res["final_position_error"] <= plan.position_tol
     head_ok = res["final_heading_error"] <= plan.heading_tol
-    conv = ~res["failed"] & pos_ok & (head_ok if plan.task == "posture" else True)
+    conv = ~res["failed"] & pos_ok & (head_ok if plan.task == Task.POSTURE else True)
     outcome = np.where(
         res["singular"], "singular", np.where(res["failed"], "failed", np.where(conv, "converged", "not_converged"))
     )

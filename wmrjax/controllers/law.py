@@ -56,6 +56,14 @@ class Level(enum.StrEnum):
     TORQUE = "torque"
 
 
+class Task(enum.StrEnum):
+    """What a law tracks: the whole posture (dynamic laws; (3,0) by Prop 3), or a point of the
+    robot (Table 3's static laws). A string enumeration, like :class:`Level`."""
+
+    POSTURE = "posture"
+    POINT = "point"
+
+
 def check_level(level) -> Level:
     """``level`` (a :class:`Level` or its name) as a :class:`Level`; ValueError otherwise."""
     try:

@@ -46,6 +46,7 @@ from wmrjax.controllers.law import (
     Level,
     LinearizingController,
     Requirement,
+    Task,
     check_level,
     check_reference_type,
     check_requirements,
@@ -143,7 +144,7 @@ class Table3Row:
 
     Attributes:
       extension: the outputs :math:`z_1 = h(\\xi, \\beta)` (no compensator, U = u).
-      tracks: "posture" ((3,0), Prop 3) or "point" (Table 3).
+      tracks: :class:`Task`: the posture ((3,0), Prop 3) or a point (Table 3).
       z3: state indices of the nonlinear coordinates :math:`z_3 = k(\\xi, \\beta)`.
       regularity: Table 3's last column (errata determinant).
       requires: geometry :class:`Requirement` s of that condition.
@@ -155,7 +156,7 @@ class Table3Row:
     """
 
     extension: Extension
-    tracks: str = "point"
+    tracks: Task = Task.POINT
     z3: tuple = ()
     regularity: str
     requires: tuple = ()
@@ -182,7 +183,7 @@ def _row(kind, outputs, **facts) -> Table3Row:
 TABLE3: dict[str, Table3Row] = {
     row.robot.name: row
     for row in (
-        _row("(3,0)", _h_30, angle_outputs=(2,), tracks="posture", regularity="always regular (K = R^T(theta))"),
+        _row("(3,0)", _h_30, angle_outputs=(2,), tracks=Task.POSTURE, regularity="always regular (K = R^T(theta))"),
         _row(
             "(2,0)",
             _h_20,
@@ -283,7 +284,7 @@ class StaticLinearization(LinearizingController):
     _params_type = StaticParams
 
     @property
-    def task(self) -> str:
+    def task(self) -> Task:
         return self.row.tracks
 
     @property
@@ -302,7 +303,7 @@ class StaticLinearization(LinearizingController):
     def reference_outputs(self, t, params: StaticParams):
         """:math:`z_{1,ref}(t)`: the point's path (and steering), or the posture for (3,0)."""
         ref = params.reference
-        if self.row.tracks == "posture":
+        if self.row.tracks == Task.POSTURE:
             return ref.posture(t)
         p = ref.position(t)
         if self.row.steering_index is None:
@@ -452,10 +453,15 @@ def static_linearization(robot, level: Level | str = Level.VELOCITY) -> StaticLi
     return StaticLinearization(TABLE3[rt.name], check_level(level))
 
 
-TASKS = ("posture", "point")
+def check_task(task) -> Task:
+    """``task`` (a :class:`Task` or its name) as a :class:`Task`; ValueError otherwise."""
+    try:
+        return Task(task)
+    except (ValueError, TypeError):
+        raise ValueError(f"task must be one of {tuple(str(t) for t in Task)}, got {task!r}") from None
 
 
-def controller(robot, level: Level | str = Level.VELOCITY, task: str = "posture"):
+def controller(robot, level: Level | str = Level.VELOCITY, task: Task | str = Task.POSTURE):
     """The uniform entry point: a closed loop for (robot type, level, task).
 
     * ``task="posture"``: (3,0) -> static linearization (Prop 3, eqs 12/14); restricted types
@@ -470,11 +476,9 @@ def controller(robot, level: Level | str = Level.VELOCITY, task: str = "posture"
     from wmrjax.controllers.dynamic import dynamic_linearization
 
     rt = robots.robot_type(robot)
-    if task not in TASKS:
-        raise ValueError(f"task must be one of {TASKS}, got {task!r}")
-    level = check_level(level)
+    task, level = check_task(task), check_level(level)
     if rt.omnidirectional:
-        if task == "point":
+        if task == Task.POINT:
             raise ValueError("type (3,0) is omnidirectional: use task='posture' (Prop 3), which includes the point")
         return static_linearization(rt, level)
-    return dynamic_linearization(rt, level) if task == "posture" else static_linearization(rt, level)
+    return dynamic_linearization(rt, level) if task == Task.POSTURE else static_linearization(rt, level)
