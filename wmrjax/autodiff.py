@@ -130,6 +130,28 @@ def _batch_size(args: tuple, nums: tuple) -> int:
     return jnp.shape(leaves[0])[0]
 
 
+def _spread(args, nums, b):
+    """``args`` with the shared arguments (``nums``) broadcast along a batch of ``b``: how they
+    enter :func:`wmrjax.batch_map`."""
+    return [
+        jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + jnp.shape(x)), v) if i in nums else v
+        for i, v in enumerate(args)
+    ]
+
+
+def _scalar_checked(fun, has_aux):
+    """``fun``, with a ValueError (at trace time) when its per-example loss is not a scalar."""
+
+    def checked(*a):
+        out = fun(*a)
+        value = out[0] if has_aux else out
+        if jnp.ndim(value) != 0:
+            raise ValueError(f"batch_value_and_grad needs a scalar per-example loss, got shape {jnp.shape(value)}")
+        return out
+
+    return checked
+
+
 def batch_value_and_grad(
     fun: Callable,
     argnums: int | Sequence[int] = 0,
@@ -181,21 +203,9 @@ def batch_value_and_grad(
 
     def wrapped(*args):
         b = _batch_size(args, nums)
-
-        def spread(a):  # shared arguments enter batch_map broadcast along the batch
-            return [
-                jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + jnp.shape(x)), v) if i in nums else v
-                for i, v in enumerate(a)
-            ]
-
+        checked = _scalar_checked(fun, has_aux)
+        spread = lambda a: _spread(a, nums, b)
         n_par = ravel_pytree(tuple(args[i] for i in nums))[0].size
-
-        def checked(*a):
-            out = fun(*a)
-            value = out[0] if has_aux else out
-            if jnp.ndim(value) != 0:
-                raise ValueError(f"batch_value_and_grad needs a scalar per-example loss, got shape {jnp.shape(value)}")
-            return out
 
         if choose_mode(n_par, mode, BATCH_FORWARD_MAX_PARAMETERS) == "forward":
 
@@ -205,12 +215,9 @@ def batch_value_and_grad(
 
             return value_and_grad(mean_loss, argnums, has_aux=has_aux, mode="forward")(*args)
 
-        out, grads = batch_map(
-            jax.value_and_grad(checked, nums, has_aux=has_aux),
-            *spread(args),
-            chunk=BATCH_REVERSE_CHUNK if chunk is None else chunk,
-            mesh=mesh,
-        )
+        per_example = jax.value_and_grad(checked, nums, has_aux=has_aux)
+        reverse_chunk = BATCH_REVERSE_CHUNK if chunk is None else chunk
+        out, grads = batch_map(per_example, *spread(args), chunk=reverse_chunk, mesh=mesh)
         grads = jax.tree_util.tree_map(lambda g: jnp.mean(g, axis=0), grads)
         grads = grads[0] if single else grads
         value = (jnp.mean(out[0]), out[1]) if has_aux else jnp.mean(out)

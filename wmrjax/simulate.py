@@ -463,6 +463,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     params_parts, rebuild_params = scalar_parts(params)
 
     loop = _Loop(system, field_s, dt, estimate, stage_loop, post_step, sample, sample_every, rebuild_params)
+    carry_k4 = estimate and sample is None  # the continuous loops carry the last stage for the next estimate
 
     def step_on_scalars(carry, i, parts):
         zt, alive, diag, sign_prev, k4_prev, est_ok = carry  # est_ok is None without discrete transitions
@@ -474,16 +475,9 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
             z = sample(i // sample_every, t, z, p)
         z_next, aux, est, k4, jumped = _advance(loop, t, z, i, p, parts, k4_prev, est_ok)
         margin = jnp.asarray(aux.margin, dtype)
-        flags = _classify(
-            alive,
-            aux.control,
-            margin,
-            getattr(aux, "regularity", None),
-            sign_prev,
-            est if estimate else None,
-            margin_floor,
-            error_tol,
-        )  # the state z at time t
+        reg, step_est = getattr(aux, "regularity", None), est if estimate else None
+        # classify the state z at time t
+        flags = _classify(alive, aux.control, margin, reg, sign_prev, step_est, margin_floor, error_tol)
         finite_next = _all_finite(z_next)
         ok = flags.ok & finite_next  # may we go on from z?
         # reverse mode stores these two flags (the step's checkpoint policy, below), so that
@@ -494,14 +488,8 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         z_keep = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, jnp.where(finite_next, a, b), b), z_next, z_in)
         zt_next = _to_scalars(z_keep)
         sign_next = jnp.where(flags.sign != 0, flags.sign, sign_prev)
-        carry = (
-            zt_next,
-            ok,
-            diag,
-            sign_next,
-            _continuous(k4) if estimate and sample is None else (),
-            None if est_ok is None else ~jumped,
-        )
+        k4_next = _continuous(k4) if carry_k4 else ()
+        carry = (zt_next, ok, diag, sign_next, k4_next, None if est_ok is None else ~jumped)
         return carry, (z if save_fn is None else save_fn(t, z, aux), aux.control, margin, flags.ok)
 
     # One step as operations on scalars: under vmap, elementwise on batch vectors, with no
@@ -511,36 +499,16 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # jet of the linearizing law has hundreds); the backward pass then stays in cache. It
     # stores the step's two flags that select the next state: the recomputation is then the
     # RK4 stages alone, a faster gradient.
-    step = jax.checkpoint(
-        lambda carry, i: step_on_scalars(carry, i, params_parts),
-        prevent_cse=False,
-        policy=jax.checkpoint_policies.save_only_these_names(*_SAVED_FLAGS),
-    )
+    policy = jax.checkpoint_policies.save_only_these_names(*_SAVED_FLAGS)
+    step = jax.checkpoint(lambda carry, i: step_on_scalars(carry, i, params_parts), prevent_cse=False, policy=policy)
     if sample is not None:
         # a sampled-data period holds one evaluation of the law among plant steps: reverse mode
         # stores its residuals instead of recomputing the period
         step = lambda carry, i: step_on_scalars(carry, i, params_parts)
 
-    carry, rec0 = _initial_carry(
-        field, z0, t0, dt, save_fn, estimate and sample is None, post_step is not None and estimate
-    )
+    carry, rec0 = _initial_carry(field, z0, t0, dt, save_fn, carry_k4, post_step is not None and estimate)
     carry, recs = _scan_steps(step, carry, rec0, n_steps, save_every, 1 if sample is None else sample_every)
-    return _finish(
-        system,
-        field,
-        carry,
-        recs,
-        z0,
-        params,
-        t0,
-        dt,
-        n_steps,
-        save_every,
-        margin_floor,
-        error_tol,
-        estimate and sample is None,
-        save_fn,
-    )
+    return _finish(loop, field, carry, recs, z0, params, t0, n_steps, save_every, margin_floor, error_tol, save_fn)
 
 
 class _Loop(NamedTuple):
@@ -708,13 +676,13 @@ def _scan_steps(step, carry, rec0, n_steps, save_every, unit):
     return carry, recs
 
 
-def _finish(
-    system, field, carry, recs, z0, params, t0, dt, n_steps, save_every, margin_floor, error_tol, estimate_last, save_fn
-):
+def _finish(loop: _Loop, field, carry, recs, z0, params, t0, n_steps, save_every, margin_floor, error_tol, save_fn):
     """The run's end: the failure rule applied at the final state too (its margin, sign, finite
-    values and -- ``estimate_last``, the continuous loops -- the last step's error estimate), the
+    values and -- the continuous loops -- the last step's error estimate), the
     diagnostics completed (``inaccurate``, the system's ``final_report``) and the
     :class:`Trajectory` assembled from the saved records."""
+    system, dt = loop.system, loop.dt
+    estimate_last = loop.estimate and loop.sample is None
     dtype = dt.dtype
     zt, alive, diag, sign_prev, k4_prev, est_ok = carry
     z_final = _from_scalars(zt, z0)
@@ -896,6 +864,24 @@ def simulate(
         what the system's ``check_run`` refuses, or a ``WMRJAX_JAXPR_REWRITES`` other than 0 or 1
         (all checked before compilation).
     """
+    n_steps, save_every = _check_steps(system, n_steps, save_every)
+    dtv, t0v = _check_scalars(dt, t0, margin_floor, error_tol)
+    z0, size = _prepared_state(system, z0)
+    # the reference check runs (and takes memory) only with concrete times
+    horizon = n_steps * float(dtv) if dtv is not None and t0v is not None else 0.0
+    _check_memory(system, n_steps, save_every, size, jnp.result_type(float), horizon)
+    check_run = getattr(system, "check_run", None)
+    if check_run is not None:
+        check_run(params, t0=t0, dt=dt, n_steps=n_steps)
+    if save_fn is not None and not callable(save_fn):
+        raise ValueError(f"save_fn must be a function (t, z, aux) -> pytree, got {type(save_fn).__name__}")
+    rewrites = _simplify.rewrites_enabled()
+    return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn, rewrites)
+
+
+def _check_steps(system, n_steps, save_every):
+    """``(n_steps, save_every)`` as ints; ValueError for counts below 1, ``save_every > n_steps``,
+    a system both hybrid and sampled, or a sampled-data run that is not whole controller periods."""
     n_steps = check_int("n_steps", n_steps, 1)
     save_every = check_int("save_every", save_every, 1)
     if save_every > n_steps:
@@ -910,19 +896,7 @@ def simulate(
             f"a sampled-data loop runs whole controller periods of {every} steps: n_steps ({n_steps}) "
             f"and save_every ({save_every}) must be multiples of {every}"
         )
-    dtv, t0v = _check_scalars(dt, t0, margin_floor, error_tol)
-    z0, size = _prepared_state(system, z0)
-    # the reference check runs (and takes memory) only with concrete times
-    horizon = n_steps * float(dtv) if dtv is not None and t0v is not None else 0.0
-    _check_memory(system, n_steps, save_every, size, jnp.result_type(float), horizon)
-    check_run = getattr(system, "check_run", None)
-    if check_run is not None:
-        check_run(params, t0=t0, dt=dt, n_steps=n_steps)
-    if save_fn is not None and not callable(save_fn):
-        raise ValueError(f"save_fn must be a function (t, z, aux) -> pytree, got {type(save_fn).__name__}")
-    return _simulate(
-        system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn, _simplify.rewrites_enabled()
-    )
+    return n_steps, save_every
 
 
 def _check_scalars(dt, t0, margin_floor, error_tol):

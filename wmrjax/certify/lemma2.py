@@ -349,6 +349,15 @@ def lemma2(
         for i in (int(np.argmin(np.asarray(c.F))) for c in certs if c is not None)
     ]
     refined = certificates(jnp.asarray(np.concatenate([0.5 * (tg[1:] + tg[:-1])] + local)))
+    certs = _refined(certs, refined, n_t, t_final)
+    closed = "closed form (Lemma 3)" if ctrl.row.singular_set_is_linear else "closed form (1-D search over theta)"
+    return Lemma2Report(*certs, closed if m1 == "closed" else "numerical (Remark 16)")
+
+
+def _refined(certs, refined, n_t, t_final):
+    """The grid's certificates (paper, Lyapunov, exact norm; None where absent) with the radius
+    and argmin of ``refined`` (the same certificates between the grid's points) where it is
+    smaller; ValueError when it is smaller by more than ``GRID_RTOL``: the grid is too coarse."""
     out = []
     for name, c, c2 in zip(("paper", "lyapunov", "exact_norm"), certs, refined):
         if c is None:
@@ -363,6 +372,4 @@ def lemma2(
                 f"{4 * n_t - 3} or more)"
             )
         out.append(c._replace(radius=c2.radius, argmin=c2.argmin) if fine < coarse else c)
-    certs = tuple(out)
-    closed = "closed form (Lemma 3)" if ctrl.row.singular_set_is_linear else "closed form (1-D search over theta)"
-    return Lemma2Report(*certs, closed if m1 == "closed" else "numerical (Remark 16)")
+    return tuple(out)
