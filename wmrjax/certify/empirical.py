@@ -369,14 +369,9 @@ def empirical_radius(
     Returns:
       :class:`EmpiricalRadius`.
     """
-    check_dynamic(ctrl, params)
-    check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
-    n_steps_for(t_final, dt)
-    check_positive("r_max", r_max)
-    n_grid = check_int("n_grid", n_grid, 2)
-    for k, v in (("n_dips", n_dips), ("n_golden", n_golden), ("n_bisect", n_bisect)):
-        check_int(k, v, 1)
-    dirs = check_vectors("directions", directions, error_width(ctrl), "unit directions of initial errors", nonzero=True)
+    dirs, n_grid = _check_radius_args(
+        ctrl, params, t_final, eps, directions, r_max, dt, n_grid, n_dips=n_dips, n_golden=n_golden, n_bisect=n_bisect
+    )
     D = dirs.shape[0]
     g = np.linspace(0.0, r_max, n_grid + 1)[1:]
     runs = 0
@@ -388,26 +383,9 @@ def empirical_radius(
         return np.where(np.asarray(s), 0.0, np.asarray(d))
 
     m = m_of(np.repeat(dirs, n_grid, axis=0), np.tile(g, D)).reshape(D, n_grid)
-    padded = np.concatenate([np.full((D, 1), np.inf), m, np.full((D, 1), np.inf)], axis=1)
-    is_min = (padded[:, 1:-1] <= padded[:, :-2]) & (padded[:, 1:-1] <= padded[:, 2:])
-    # brackets [lo, hi] around the n_dips deepest local minima of each ray (padding repeats one)
-    lo = np.zeros((D, n_dips))
-    hi = np.zeros((D, n_dips))
-    for k in range(D):
-        idx = np.where(is_min[k])[0]
-        idx = list(idx[np.argsort(m[k, idx])][:n_dips])
-        idx += [idx[-1]] * (n_dips - len(idx))
-        lo[k] = [g[j - 1] if j > 0 else 0.0 for j in idx]
-        hi[k] = [g[min(j + 1, n_grid - 1)] for j in idx]
+    lo, hi = _dip_brackets(m, g, n_dips)
     dd = np.repeat(dirs, n_dips, axis=0)
-    a, b = lo.reshape(-1), hi.reshape(-1)
-    gr = 0.5 * (math.sqrt(5.0) - 1.0)
-    for _ in range(n_golden):
-        x1, x2 = b - gr * (b - a), a + gr * (b - a)
-        m12 = m_of(np.concatenate([dd, dd]), np.concatenate([x1, x2]))
-        left = m12[: len(a)] <= m12[len(a) :]
-        a, b = np.where(left, a, x1), np.where(left, x2, b)
-    r_star = 0.5 * (a + b)
+    r_star = _golden_minima(m_of, dd, lo.reshape(-1), hi.reshape(-1), n_golden)
     dips = m_of(dd, r_star) < eps
     # first crossing of eps: below every failing dip, and below the first failing grid radius
     first = np.where((m < eps).any(axis=1), (m < eps).argmax(axis=1), -1)
@@ -426,3 +404,49 @@ def empirical_radius(
     np.minimum.at(per, owner[live], ch)
     k = int(np.argmin(per))
     return EmpiricalRadius(per, float(per[k]), dirs[k], runs)
+
+
+def _check_radius_args(ctrl, params, t_final, eps, directions, r_max, dt, n_grid, **rounds) -> tuple[np.ndarray, int]:
+    """ValueError for a bad argument of :func:`empirical_radius`; returns ``(directions, n_grid)``
+    checked (``rounds``: ``n_dips``, ``n_golden``, ``n_bisect``, each at least 1)."""
+    check_dynamic(ctrl, params)
+    check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
+    n_steps_for(t_final, dt)
+    check_positive("r_max", r_max)
+    n_grid = check_int("n_grid", n_grid, 2)
+    for k, v in rounds.items():
+        check_int(k, v, 1)
+    dirs = check_vectors("directions", directions, error_width(ctrl), "unit directions of initial errors", nonzero=True)
+    return dirs, n_grid
+
+
+def _dip_brackets(m, g, n_dips: int) -> tuple[np.ndarray, np.ndarray]:
+    """Brackets ``(lo, hi)``, each (D, n_dips), of grid radii around the ``n_dips`` deepest local
+    minima of each ray's sampled distances ``m`` (D, n_grid) on the radii ``g`` (a ray with fewer
+    local minima repeats its last one)."""
+    D, n_grid = m.shape
+    padded = np.concatenate([np.full((D, 1), np.inf), m, np.full((D, 1), np.inf)], axis=1)
+    is_min = (padded[:, 1:-1] <= padded[:, :-2]) & (padded[:, 1:-1] <= padded[:, 2:])
+    lo = np.zeros((D, n_dips))
+    hi = np.zeros((D, n_dips))
+    for k in range(D):
+        idx = np.where(is_min[k])[0]
+        idx = list(idx[np.argsort(m[k, idx])][:n_dips])
+        idx += [idx[-1]] * (n_dips - len(idx))
+        lo[k] = [g[j - 1] if j > 0 else 0.0 for j in idx]
+        hi[k] = [g[min(j + 1, n_grid - 1)] for j in idx]
+    return lo, hi
+
+
+GOLDEN_FRACTION = 0.5 * (math.sqrt(5.0) - 1.0)  # golden section: the bracket shrinks by this per round
+
+
+def _golden_minima(m_of, dd, a, b, n_golden: int) -> np.ndarray:
+    """Golden-section minimisation of ``m_of`` along each ray ``dd[i]`` inside ``[a[i], b[i]]``, all
+    brackets in one batch per round: the centres of the final brackets."""
+    for _ in range(n_golden):
+        x1, x2 = b - GOLDEN_FRACTION * (b - a), a + GOLDEN_FRACTION * (b - a)
+        m12 = m_of(np.concatenate([dd, dd]), np.concatenate([x1, x2]))
+        left = m12[: len(a)] <= m12[len(a) :]
+        a, b = np.where(left, a, x1), np.where(left, x2, b)
+    return 0.5 * (a + b)

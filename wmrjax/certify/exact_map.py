@@ -329,6 +329,10 @@ def _split_in_four(t_lo, t_hi, p_lo, p_hi):
     )
 
 
+# points of the grid on which the reference's acceleration is maximised (G, the bound on it, is twice that maximum)
+ACCEL_GRID = 4001
+
+
 def curved_exact_map_radius(
     ctrl: DynamicLinearization,
     params: DynamicParams,
@@ -382,29 +386,50 @@ def curved_exact_map_radius(
         raise ValueError(f"type {ctrl.robot.name} has a linear singular set: use exact_map_radius")
     P = slice_basis(ctrl, basis)
     eps_a = jnp.asarray(eps, jnp.result_type(float))
-    tg = jnp.linspace(0.0, t_final, 4001)
+    tg = jnp.linspace(0.0, t_final, ACCEL_GRID)
     m1 = m1_closed_form(ctrl, params, tg)
     check_lemma2_args(t_final=t_final, eps=eps, m1=m1)
     G = 2.0 * float(jnp.max(_zeta_ref_accel(ctrl, params, tg)))
-    # a first upper bound from box centres over a full turn of headings around theta_ref
+    t_c, theta_c, ub0, found = _first_upper_bound(ctrl, params, P, eps_a, t_final, n_t, phi_width)
+    if not np.isfinite(found[0]):
+        raise ValueError("no initial error in this slice brings zeta within eps of the singular set over the horizon")
+    # boxes: per time box, headings within reach of theta(t) for errors up to the first upper bound
+    reach = np.asarray(_heading_reach(ctrl, params, P, jnp.asarray(t_c), t_final / (2 * n_t), found[0], G))
+    half = float(np.max(reach)) + eps + phi_width
+    boxes = _heading_boxes(t_c, theta_c, t_final / n_t, half, phi_width)
+    limits = dict(rtol=rtol, max_rounds=max_rounds, max_boxes=max_boxes)
+    (rho_up, t_best, x_best), lower, evaluated = _branch_and_bound(ctrl, params, P, eps_a, G, boxes, found, **limits)
+    worst = jnp.asarray(np.asarray(P) @ x_best)
+    grid = (jnp.asarray(t_c), jnp.asarray(ub0.min(axis=1)))
+    gap = (rho_up - lower) / rho_up
+    return ExactMapRadius(*grid, jnp.asarray(rho_up), jnp.asarray(t_best), worst, lower, gap, evaluated)
+
+
+def _first_upper_bound(ctrl, params, P, eps_a, t_final: float, n_t: int, phi_width: float):
+    """A first upper bound of :func:`curved_exact_map_radius` from box centres over a full turn of
+    headings around theta_ref: ``(t_c, theta_c, rho, best)``, the ``n_t`` time centres, the
+    reference's heading at them, the attained radius per (time, heading) centre, and the best
+    ``(radius, time, slice coordinates)``."""
     t_c = (np.arange(n_t) + 0.5) * (t_final / n_t)
     theta_c = np.asarray(_reference_heading(ctrl, params, jnp.asarray(t_c)))
     ub0, x0 = _turn_of_headings(ctrl, params, P, eps_a, t_c, theta_c, phi_width)
     best = np.unravel_index(int(np.argmin(ub0)), ub0.shape)
-    rho_up, t_best, x_best = float(ub0[best]), float(t_c[best[0]]), np.asarray(x0[best])
-    if not np.isfinite(rho_up):
-        raise ValueError("no initial error in this slice brings zeta within eps of the singular set over the horizon")
-    # boxes: per time box, headings within reach of theta(t) for errors up to rho_up
-    reach = np.asarray(_heading_reach(ctrl, params, P, jnp.asarray(t_c), t_final / (2 * n_t), rho_up, G))
-    t_lo, t_hi, p_lo, p_hi = _heading_boxes(
-        t_c, theta_c, t_final / n_t, float(np.max(reach)) + eps + phi_width, phi_width
-    )
+    return t_c, theta_c, ub0, (float(ub0[best]), float(t_c[best[0]]), np.asarray(x0[best]))
+
+
+def _branch_and_bound(ctrl, params, P, eps_a, G, boxes, best, *, rtol, max_rounds, max_boxes):
+    """The branch and bound of :func:`curved_exact_map_radius` over the (t, phi) ``boxes``
+    ``(t_lo, t_hi, p_lo, p_hi)``, from ``best``, the best attained ``(radius, time, slice
+    coordinates)`` so far: boxes whose lower bound reaches ``(1 - rtol)`` times the best radius
+    are closed, the others split in four, for at most ``max_rounds`` rounds and while the next
+    round has at most ``max_boxes`` boxes. Returns ``(best, lower bound, boxes evaluated)``."""
+    rho_up, t_best, x_best = best
+    t_lo, t_hi, p_lo, p_hi = boxes
     closed_min = np.inf  # smallest lower bound of the closed boxes
     evaluated = 0
     for _ in range(max_rounds):
-        lb, ub, xs = _curved_boxes(
-            ctrl, params, P, eps_a, jnp.asarray(rho_up), jnp.asarray(G), *map(jnp.asarray, (t_lo, t_hi, p_lo, p_hi))
-        )
+        box = map(jnp.asarray, (t_lo, t_hi, p_lo, p_hi))
+        lb, ub, xs = _curved_boxes(ctrl, params, P, eps_a, jnp.asarray(rho_up), jnp.asarray(G), *box)
         lb, ub = np.asarray(lb), np.asarray(ub)
         evaluated += len(lb)
         k = int(np.argmin(ub))
@@ -418,17 +443,7 @@ def curved_exact_map_radius(
             break
         t_lo, t_hi, p_lo, p_hi = _split_in_four(*(x[open_] for x in (t_lo, t_hi, p_lo, p_hi)))
     lower = min(closed_min, float(lb[open_].min()) if open_.any() else np.inf, rho_up)
-    worst = np.asarray(P) @ x_best
-    return ExactMapRadius(
-        jnp.asarray(t_c),
-        jnp.asarray(ub0.min(axis=1)),
-        jnp.asarray(rho_up),
-        jnp.asarray(t_best),
-        jnp.asarray(worst),
-        lower,
-        (rho_up - lower) / rho_up,
-        evaluated,
-    )
+    return (rho_up, t_best, x_best), lower, evaluated
 
 
 @functools.partial(jax.jit, static_argnums=0)

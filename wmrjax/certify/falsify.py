@@ -228,36 +228,14 @@ def falsified_radius(
     Returns:
       :class:`FalsifiedRadius` (radius None if nothing failed up to 16 times the first radius).
     """
+    # the settings the checks and the search share
+    settings = dict(
+        n_starts=n_starts, steps=steps, n_samples=n_samples, learning_rate=learning_rate, n_windows=n_windows
+    )
     r_hi = _check_falsifier_args(
-        ctrl,
-        params,
-        t_final=t_final,
-        eps=eps,
-        r_lo=r_lo,
-        r_hi=r_hi,
-        n_starts=n_starts,
-        steps=steps,
-        n_samples=n_samples,
-        n_bisect=n_bisect,
-        n_windows=n_windows,
-        learning_rate=learning_rate,
-        rtol=rtol,
+        ctrl, params, t_final=t_final, eps=eps, r_lo=r_lo, r_hi=r_hi, n_bisect=n_bisect, rtol=rtol, **settings
     )
-    search = _Search(
-        ctrl,
-        params,
-        t_final=t_final,
-        eps=eps,
-        key=key,
-        dt=dt,
-        basis=basis,
-        n_starts=n_starts,
-        steps=steps,
-        n_samples=n_samples,
-        learning_rate=learning_rate,
-        n_windows=n_windows,
-        r_lo=r_lo,
-    )
+    search = _Search(ctrl, params, t_final=t_final, eps=eps, key=key, dt=dt, basis=basis, r_lo=r_lo, **settings)
     rad, found, warm = float(r_hi), None, None
     for _ in range(5):
         found, warm = search.attempt(rad, warm)
@@ -267,29 +245,11 @@ def falsified_radius(
         search.lo, rad = rad, 2.0 * rad
     if found is None:
         return FalsifiedRadius(None, None, None, search.rollouts(), None, rad / 2.0, search.counts, None)
-    step = 0.02
-    for _ in range(n_bisect):
-        lo, hi = search.lo, found[0]
-        if hi - lo <= rtol * hi:
-            break
-        # a step below the smallest failure that doubles while failures keep being found, and
-        # halving once one is not: the bracket shrinks fast whether or not its lower end (often
-        # a loose certified radius) is near the answer
-        mid = max(0.5 * (lo + hi), (1.0 - step) * hi)
-        new, warm = search.attempt(mid, warm)
-        if new is not None:
-            found, step = new, min(2.0 * step, 0.5)
-        else:
-            search.lo = mid
+    radius, error, distance, t_failure = search.bisect(found, warm, n_bisect, rtol)
+    bracket = (search.lo, float(radius))
+    rollouts = search.rollouts()
     return FalsifiedRadius(
-        float(found[0]),
-        np.asarray(found[1]),
-        found[2],
-        search.rollouts(),
-        (search.lo, float(found[0])),
-        searched,
-        search.counts,
-        found[3],
+        float(radius), np.asarray(error), distance, rollouts, bracket, searched, search.counts, t_failure
     )
 
 
@@ -320,6 +280,9 @@ def _check_falsifier_args(
 
 
 N_INSTANTANEOUS = 64  # random starts of the instantaneous stage (no rollout)
+# the bisection's first step below the smallest failure, relative to it, and its largest: at 0.5
+# the step reaches no lower than the bracket's midpoint (its lower end is >= 0), i.e. plain halving
+FIRST_STEP, MAX_STEP = 0.02, 0.5
 
 
 class _Search:
@@ -417,6 +380,26 @@ class _Search:
         )
         self.counts["sampling"] += self.n_samples
         return u_inst, d_inst, dirs, per_win
+
+    def bisect(self, found, warm, n_bisect: int, rtol: float):
+        """At most ``n_bisect`` attempts between the largest radius known safe (``lo``, moved up
+        by them) and the smallest confirmed failure ``found`` (from :meth:`settle`), until the
+        bracket is narrower than ``rtol`` times its upper end: the smallest failure found."""
+        step = FIRST_STEP
+        for _ in range(n_bisect):
+            lo, hi = self.lo, found[0]
+            if hi - lo <= rtol * hi:
+                break
+            # a step below the smallest failure that doubles while failures keep being found, and
+            # halving once one is not: the bracket shrinks fast whether or not its lower end (often
+            # a loose certified radius) is near the answer
+            mid = max(0.5 * (lo + hi), (1.0 - step) * hi)
+            new, warm = self.attempt(mid, warm)
+            if new is not None:
+                found, step = new, min(2.0 * step, MAX_STEP)
+            else:
+                self.lo = mid
+        return found
 
     def attempt(self, rad, warm):
         """The three stages at one radius: ((radius <= rad, error, distance) or None, warm directions).

@@ -192,8 +192,47 @@ def analyse(
     """
     check_dynamic(ctrl, params)
     t0 = time.time()
-    n_steps = n_steps_for(t_final, dt)
+    elapsed = lambda: f"({time.time() - t0:.0f} s)"
     falsifier_dt = dt if falsifier_dt is None else falsifier_dt
+    n_steps = _check_analyse_args(t_final, dt, falsifier_dt, n_empirical, n_directions, n_starts, seed, log)
+    horizon = dict(t_final=t_final, eps=eps)
+    cert = _lemma2_on_grid(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_steps=n_steps)
+    radii = {n: float(c.radius) for n, c in cert.certificates().items()}
+    certified = max(radii.values())
+    log("  Lemma 2 radii " + ", ".join(f"{n} {r:.4f}" for n, r in radii.items()) + f"  {elapsed()}")
+    exact = _exact_maps(ctrl, params, n_t=4 * n_steps + 1, log=log, elapsed=elapsed, **horizon)
+    r_top = max([certified] + [float(e.radius) for e in exact.values()])
+
+    # -- empirical: (53) and regularity inside every ball
+    kd, kr, kf1, kf2 = jax.random.split(jax.random.PRNGKey(seed), 4)
+    r_max = 2.0 * r_top
+    sampling = {"n_runs": n_empirical, "radius_range": [0.0, r_max], "sampling": "uniform direction, uniform radius"}
+    emp, alarms = {}, []
+    if n_empirical:
+        errs = _sampled_errors(ctrl, params, kd, kr, n_empirical, r_max)
+        emp, alarms = _empirical_checks(ctrl, params, cert, radii, errs, t_final=t_final, dt=dt, log=log)
+
+    # -- empirical safe radius per direction of the position slice
+    directions = _position_directions(ctrl, n_directions, exact["position"].worst_error)
+    er = empirical_radius(ctrl, params, **horizon, directions=directions, r_max=r_max, dt=dt)
+    log(f"  empirical safe radius (position slice, {len(directions)} rays): {er.radius:.4f}  {elapsed()}")
+
+    # -- gradient falsifier, full and position slice
+    keys = (kf1, kf2) if n_starts else ()
+    fs = _falsifiers(
+        ctrl, params, keys, dt=falsifier_dt, n_starts=n_starts, r_lo=certified, log=log, elapsed=elapsed, **horizon
+    )
+    below, disagree = consistency(radii, exact, fs)
+    _raise_alarms(disagree, log)
+    alarms += disagree
+    stages = (exact["full"], exact["position"], emp, sampling, er, fs.get("full"), fs.get("position"))
+    return CertificationReport(eps, t_final, cert, zeta0_norm, *stages, below, tuple(alarms), time.time() - t0)
+
+
+def _check_analyse_args(t_final, dt, falsifier_dt, n_empirical, n_directions, n_starts, seed, log) -> int:
+    """ValueError for a bad argument of :func:`analyse` (``falsifier_dt`` with its default filled
+    in); returns the number of RK4 steps of the empirical checks."""
+    n_steps = n_steps_for(t_final, dt)
     n_steps_for(t_final, falsifier_dt, "falsifier_dt")
     for name, v, lo in (
         ("n_empirical", n_empirical, 0),
@@ -204,14 +243,14 @@ def analyse(
         check_int(name, v, lo)
     if not callable(log):
         raise ValueError(f"log must be a function of one message, got {type(log).__name__}")
-    cert = _lemma2_on_grid(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_steps=n_steps)
-    radii = {n: float(c.radius) for n, c in cert.certificates().items()}
-    certified = max(radii.values())
-    log("  Lemma 2 radii " + ", ".join(f"{n} {r:.4f}" for n, r in radii.items()) + f"  ({time.time() - t0:.0f} s)")
+    return n_steps
 
+
+def _exact_maps(ctrl, params, *, t_final: float, eps: float, n_t: int, log, elapsed) -> dict:
+    """The exact-map radius of the full error and of the position slice (keys ``"full"`` and
+    ``"position"``) on ``n_t`` times, logged with the time ``elapsed()`` since the start."""
     exact = {
-        b: exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=b, n_t=4 * n_steps + 1)
-        for b in ("full", "position")
+        b: exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=b, n_t=n_t) for b in ("full", "position")
     }
     gaps = "".join(
         f" (proved lower bound {exact[b].lower_bound:.4f})" if exact[b].lower_bound is not None else ""
@@ -219,64 +258,44 @@ def analyse(
     )
     log(
         f"  exact-map radius full {float(exact['full'].radius):.4f}{gaps}, position slice "
-        f"{float(exact['position'].radius):.4f}  ({time.time() - t0:.0f} s)"
+        f"{float(exact['position'].radius):.4f}  {elapsed()}"
     )
-    r_top = max([certified] + [float(e.radius) for e in exact.values()])
+    return exact
 
-    # -- empirical: (53) and regularity inside every ball
-    kd, kr, kf1, kf2 = jax.random.split(jax.random.PRNGKey(seed), 4)
-    sampling = {
-        "n_runs": n_empirical,
-        "radius_range": [0.0, 2.0 * r_top],
-        "sampling": "uniform direction, uniform radius",
-    }
-    emp, alarms = {}, []
-    if n_empirical:
-        errs = (
-            sample_sphere(kd, n_empirical, ctrl.error_matrix(params.gains).shape[0])
-            * (2.0 * r_top * jax.random.uniform(kr, (n_empirical,)))[:, None]
-        )
-        emp, alarms = _empirical_checks(ctrl, params, cert, radii, errs, t_final=t_final, dt=dt, log=log)
 
-    # -- empirical safe radius per direction of the position slice
+def _sampled_errors(ctrl, params, key_direction, key_radius, n: int, r_max: float):
+    """(n, r m) initial errors of the empirical check: uniform direction, uniform radius in [0, r_max]."""
+    width = ctrl.error_matrix(params.gains).shape[0]
+    return sample_sphere(key_direction, n, width) * (r_max * jax.random.uniform(key_radius, (n,)))[:, None]
+
+
+def _position_directions(ctrl, n: int, worst_error) -> np.ndarray:
+    """(n + 1, r m) directions of initial errors in the position slice: :func:`_rays` through the
+    exact map's worst error of that slice ``worst_error`` (full coordinates)."""
     P = slice_basis(ctrl, "position")
-    ring = _rays(n_directions, np.asarray(P.T @ exact["position"].worst_error))
-    er = empirical_radius(
-        ctrl, params, t_final=t_final, eps=eps, directions=ring @ np.asarray(P).T, r_max=2.0 * r_top, dt=dt
-    )
-    log(f"  empirical safe radius (position slice, {len(ring)} rays): {er.radius:.4f}  ({time.time() - t0:.0f} s)")
+    ring = _rays(n, np.asarray(P.T @ worst_error))
+    return ring @ np.asarray(P).T
 
-    # -- gradient falsifier, full and position slice
+
+def _falsifiers(ctrl, params, keys, *, t_final, eps, dt, n_starts, r_lo, log, elapsed) -> dict:
+    """:func:`falsified_radius` on the full error and the position slice (keys ``"full"`` and
+    ``"position"``), from the PRNG ``keys`` (one each; none: the falsifier is skipped) and the
+    largest Lemma 2 radius ``r_lo``, logged with the time ``elapsed()`` since the start."""
     fs = {}
-    for b, kf in (("full", kf1), ("position", kf2)) if n_starts else ():
+    for b, kf in zip(("full", "position"), keys):
         fs[b] = falsified_radius(
-            ctrl, params, t_final=t_final, eps=eps, key=kf, dt=falsifier_dt, basis=b, n_starts=n_starts, r_lo=certified
+            ctrl, params, t_final=t_final, eps=eps, key=kf, dt=dt, basis=b, n_starts=n_starts, r_lo=r_lo
         )
-        log(
-            f"  falsifier ({b}): smallest failing radius {fs[b].radius} after {fs[b].rollouts} rollouts  "
-            f"({time.time() - t0:.0f} s)"
-        )
-    below, disagree = consistency(radii, exact, fs)
-    alarms += disagree
-    for msg in disagree:
+        log(f"  falsifier ({b}): smallest failing radius {fs[b].radius} after {fs[b].rollouts} rollouts  {elapsed()}")
+    return fs
+
+
+def _raise_alarms(disagreements: list, log) -> None:
+    """Log each message of :func:`consistency` (in capitals for a certified radius above a
+    falsified one) and warn it, at the caller of :func:`analyse`."""
+    for msg in disagreements:
         log(msg.upper() if msg.startswith("a certified") else msg)
-        warnings.warn(msg, RuntimeWarning, stacklevel=2)
-    return CertificationReport(
-        eps,
-        t_final,
-        cert,
-        zeta0_norm,
-        exact["full"],
-        exact["position"],
-        emp,
-        sampling,
-        er,
-        fs.get("full"),
-        fs.get("position"),
-        below,
-        tuple(alarms),
-        time.time() - t0,
-    )
+        warnings.warn(msg, RuntimeWarning, stacklevel=3)
 
 
 def _lemma2_on_grid(ctrl, params, *, t_final: float, eps: float, dt: float, n_steps: int):
