@@ -1,10 +1,22 @@
 """Test configuration: float64 everywhere, strict dtype promotion (no silent int/float or
 float32/float64 mixing), shared (module-scoped) closed loops."""
 
+import os
+import tempfile
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+# One compilation cache for this test session, shared by the xdist workers and by the command
+# lines the tests start (through XDG_CACHE_HOME, where they keep it): a program compiled once
+# in the session is loaded after that, and the tests never touch the user's own cache.
+_SESSION = os.environ.get("PYTEST_XDIST_TESTRUNUID") or f"pid{os.getpid()}"
+_CACHE_HOME = os.path.join(tempfile.gettempdir(), f"wmrjax-tests-{_SESSION}")
+os.environ["XDG_CACHE_HOME"] = _CACHE_HOME
+jax.config.update("jax_compilation_cache_dir", os.path.join(_CACHE_HOME, "wmrjax", "xla"))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)  # the expensive programs only
 
 import math  # noqa: E402
 

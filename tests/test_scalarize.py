@@ -342,14 +342,15 @@ def _rollouts(ctrl, params, z0s):
 def test_rewrites_can_be_switched_off_with_the_same_values(paper61, monkeypatch):
     """WMRJAX_JAXPR_REWRITES=0: simulate runs the plain JAX program (its loop assembles the law's
     arrays, and is larger) with the rewritten program's values (1e-12 relative)
-    and gradient, on the section 6.1 velocity-level loop and a torque-level loop; another value
+    and gradient, on the section 6.1 velocity-level loop and (3,0)'s torque-level static law; another value
     is refused."""
     from wmrjax import references
 
     ctrl, params, z0 = paper61[:3]
-    torque = w.dynamic_linearization("(2,1)", "torque")
+    # a torque-level law too: (3,0)'s static law (Prop 3), the smallest torque-level program
+    torque = w.controller("(3,0)", "torque", "posture")
     tparams = torque.params(references.circle(radius=2.0, omega=0.4), poles=1.5, geometry=torque.row.default_geometry)
-    tz0 = torque.reference_state(0.0, tparams)
+    tz0 = torque.initial_state_from_physical(jnp.array([2.0, 0.0, jnp.pi / 2]), jnp.array([0.8, 0.0, 0.4]), tparams)
     cases = [
         (ctrl, params, z0 + jnp.array([[0.0], [0.05], [-0.05]]) * jnp.ones_like(z0)),
         (torque, tparams, tz0 + jnp.array([[0.0], [0.02], [-0.02]]) * jnp.ones_like(tz0)),
