@@ -34,10 +34,7 @@ def test_benchmark_cli_smoke(tmp_path):
             "1",
             "--devices",
             "2",
-            "--tuner-problems",
-            "section_6_1",
-            "--tuner-rounds",
-            "1",
+            "--tuner-problems",  # none: the tuner's timing is the benchmark's, not this smoke's
         ],
         cwd=ROOT,
         env=env,
@@ -60,5 +57,4 @@ def test_benchmark_cli_smoke(tmp_path):
     assert g["abs_diff_value_vs_forward_pass"] < 1e-15
     assert (g["mode"], g["n_parameters"], many["mode"], many["n_parameters"]) == ("reverse", 4, "reverse", 64)
     assert many["grad_finite"] and set(s["gradient_by_batch"]) == {"8"} and "compile" not in s and "memory" not in s
-    tuner = s["tuner"]["section_6_1"]["this"]  # the tuner's gradient program, timed in a fresh process
-    assert tuner["compile_s"] > 0 and tuner["step_s"] > 0 and abs(tuner["loss"] - 0.0793064690573937) < 1e-12
+    assert "tuner" not in s
