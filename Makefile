@@ -1,7 +1,7 @@
 # Two commands do everything on a fresh machine with Python >= 3.11 and make:
 #   make demo   -- create .venv if missing, install, run section 6.1 and its position-grid sweep into results/
 #   make test   -- create .venv if missing, install with the test, cli and docs extras, then ruff (lint and
-#                  format), then the documentation build (warnings as errors, tutorials executed) beside the suite
+#                  format), the documentation build (warnings as errors, tutorials executed), the whole suite
 #   make docs   -- the documentation site into docs/_build/html
 PYTHON ?= python3
 VENV   := .venv
@@ -25,14 +25,8 @@ demo: $(STAMP)
 	$(PY) -m experiments.section_6_1 --out results/section_6_1
 	$(PY) -m experiments.sweep experiments/sweeps/section_6_1_position_grid.toml --out results/sweeps/section_6_1_position_grid
 
-# The documentation builds while the suite runs: its tutorials execute one after the other (one
-# core), so the two share the machine's cores; a failed build prints its log and fails the target.
-test: lint $(STAMP)
-	@mkdir -p docs/_build; \
-	$(SPHINX) > docs/_build/build.log 2>&1 & docs=$$!; \
-	$(PY) -m pytest -q -n auto --dist loadfile; tests=$$?; \
-	if ! wait $$docs; then cat docs/_build/build.log; echo "make test: the documentation build failed"; exit 1; fi; \
-	exit $$tests
+test: lint docs
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 lint: $(STAMP)
 	$(PY) -m ruff check .

@@ -45,3 +45,35 @@ def paper61():
     zeta0 = jnp.array([[zref[0] - 0.54, zref[1] + 0.54], [vel, vel]])
     z0 = ctrl.initial_state(zeta0, params)
     return ctrl, params, z0
+
+
+# pytest-xdist (--dist loadfile) hands whole files to the workers in collection order, and the
+# run ends when the last file does: the files that compile the most go first, so that the two
+# workers finish together instead of one waiting for a long file started last.
+HEAVY_FIRST = (
+    "test_tuning_certified.py",
+    "test_resources.py",
+    "test_sweep.py",
+    "test_scalarize.py",
+    "test_certify.py",
+    "test_tuning.py",
+    "test_experiments_bench.py",
+    "test_experiments.py",
+    "test_autodiff.py",
+    "test_certify_tightness.py",
+    "test_tuning_study.py",
+    "test_experiments_tracking.py",
+    "test_simulate.py",
+    "test_tuning_problems.py",
+    "test_guards.py",
+    "test_samples.py",
+    "test_static.py",
+    "test_dynamic.py",
+    "test_hybrid.py",
+    "test_cli.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(HEAVY_FIRST)))  # stable: file order kept
