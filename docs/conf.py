@@ -17,6 +17,8 @@ sys.path.insert(0, str(ROOT))
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 os.environ.setdefault("JAX_ENABLE_X64", "1")
 
+from sphinx.util.parallel import make_chunks  # noqa: E402
+
 import wmrjax  # noqa: E402
 
 project = "wmrjax"
@@ -73,5 +75,36 @@ def _skip_namedtuple_aliases(app, what, name, obj, skip, options):
     return None
 
 
+def _spread_notebooks(app, env, docnames):
+    """Sphinx reads documents in parallel by consecutive chunks of the (sorted) list, so the
+    tutorials, which execute and are neighbours by name, would run one after the other in one
+    process: deal them out over the chunks read first, lightest pages after."""
+    nproc = max(1, app.parallel)
+    chunks = make_chunks(list(docnames), nproc)
+    if nproc == 1 or len(chunks) < 2:
+        return
+    notebooks = [d for d in docnames if d.startswith("tutorials/") and d != "tutorials/index"]
+    pages = [d for d in docnames if d not in notebooks]
+    size = len(chunks[0])
+    dealt = [notebooks[i::nproc] for i in range(nproc)]
+    order = []
+    for i in range(len(chunks)):
+        mine = dealt[i] if i < nproc else []
+        while pages and len(mine) < size:
+            mine.append(pages.pop(0))
+        order += mine
+    docnames[:] = order + pages
+
+
+def _create_execution_cache(app):
+    """Create the notebooks' execution cache before the parallel readers start, which would
+    otherwise race to create its database."""
+    from jupyter_cache import get_cache
+
+    get_cache(nb_execution_cache_path).list_cache_records()
+
+
 def setup(app):
+    app.connect("builder-inited", _create_execution_cache)
     app.connect("autodoc-skip-member", _skip_namedtuple_aliases)
+    app.connect("env-before-read-docs", _spread_notebooks)
