@@ -680,9 +680,8 @@ def tuner_times(problems, baseline: Path | None, rounds: int = 3, progress=print
     return out
 
 
-def main(argv=None) -> int:
-    import json
-
+def _parser():
+    """The command's options (the workers' hidden ones included)."""
     from wmrjax_cli import options
 
     p = common.parser(__doc__.splitlines()[0], "results/benchmark", compile_cache=False)  # it times compilation
@@ -724,6 +723,17 @@ def main(argv=None) -> int:
         default=os.cpu_count() or 1,
         help="JAX host devices (one per core; sets XLA_FLAGS for this process before JAX starts its backend)",
     )
+    _tuner_options(p)
+    p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
+    p.add_argument("--case", help=argparse.SUPPRESS)
+    p.add_argument("--worker-batch", type=options.count, default=256, help=argparse.SUPPRESS)
+    return p
+
+
+def _tuner_options(p) -> None:
+    """The C ceiling's source and the tuner timing's options."""
+    from wmrjax_cli import options
+
     here = Path(__file__).resolve().parent.parent
     p.add_argument(
         "--c-source",
@@ -746,19 +756,83 @@ def main(argv=None) -> int:
         default=None,
         help="a checkout of another commit: its tuner is timed side by side with this one's",
     )
-    p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
-    p.add_argument("--case", help=argparse.SUPPRESS)
-    p.add_argument("--worker-batch", type=options.count, default=256, help=argparse.SUPPRESS)
+
+
+def _run_worker(a) -> int:
+    """A fresh-process worker: its measurement printed as JSON."""
+    import json
+
+    from wmrjax_cli import options
+
+    options.use_compilation_cache(a)
+    res = (
+        compile_worker(a.case, a.worker_batch)
+        if a.worker == "compile"
+        else memory_worker(a.memory_steps, a.memory_batch)
+    )
+    print(json.dumps(res))
+    return 0
+
+
+def _compile_summary(a) -> dict:
+    """Compile times in fresh processes: the section 6.1 loss, and every type x level with ``all``."""
+    sec = compile_table(["section_6_1"], a.grad_batch, a.devices)["section_6_1"]
+    return {
+        "what": "first call (trace + compile) in a fresh process with an empty persistent cache; "
+        "cached: a later process reading JAX's persistent compilation cache",
+        "forward_s": sec["forward_s"],
+        "gradient_s": sec["gradient_s"],
+        "forward_cached_s": sec["forward_cached_s"],
+        "gradient_cached_s": sec["gradient_cached_s"],
+        "gradient_mode": sec["mode"],
+        "gradient_method": "wmrjax.batch_value_and_grad (section 6.1); wmrjax.value_and_grad (by_type)",
+        "by_type_loss": f"mean squared output error of a vmapped {N_STEPS}-step rollout (dt 0.01) on "
+        "a circle, gradient with respect to the Hurwitz coefficients (m x r)",
+        "by_type": compile_table(_compile_cases(), 64, a.devices) if a.compile_types == "all" else {},
+    }
+
+
+def _memory_summary(a, env: dict) -> dict:
+    """The gradient's peak memory, measured in a fresh process, and printed."""
+    m = _worker(
+        [
+            "--worker",
+            "memory",
+            "--memory-steps",
+            str(a.memory_steps),
+            "--memory-batch",
+            str(a.memory_batch),
+            "--no-compile-cache",
+        ],
+        dict(env),
+    )
+    print(
+        f"memory: gradient of {a.memory_steps} steps x {a.memory_batch} trajectories: peak RSS "
+        f"{m['peak_rss_gb']:.2f} GB ({m['mode']}, {m['wall_s']:.1f} s)",
+        flush=True,
+    )
+    return m
+
+
+def _print_summary(s: dict, out: Path) -> None:
+    """The summary's headline figures and where it was written."""
+    g = s["gradient"]
+    print(
+        f"scipy solve_ivp: {s['scipy_solve_ivp_one_at_a_time']['equivalent_traj_steps_per_s'] / 1e6:.4f} M/s; "
+        f"gradient/forward = {g['ratio_grad_over_forward']:.2f} ({g['mode']}; B = {g['batch']}, "
+        f"{g['n_parameters']} parameters), {s['gradient_many']['ratio_grad_over_forward']:.2f} with "
+        f"{s['gradient_many']['n_parameters']} ({s['gradient_many']['mode']})"
+    )
+    print(f"wrote {out}/summary.json")
+
+
+def main(argv=None) -> int:
+    from wmrjax_cli import options
+
+    p = _parser()
     a = p.parse_args(argv)
     if a.worker:
-        options.use_compilation_cache(a)
-        res = (
-            compile_worker(a.case, a.worker_batch)
-            if a.worker == "compile"
-            else memory_worker(a.memory_steps, a.memory_batch)
-        )
-        print(json.dumps(res))
-        return 0
+        return _run_worker(a)
     options.prepare_output(p, a.out)
     options.use_compilation_cache(a)
     flag = f"--xla_force_host_platform_device_count={a.devices}"
@@ -776,50 +850,13 @@ def main(argv=None) -> int:
     # compile times and memory in fresh processes (nothing compiled or cached beforehand)
     env = dict(os.environ)
     if a.compile_types != "none":
-        sec = compile_table(["section_6_1"], a.grad_batch, a.devices)["section_6_1"]
-        s["compile"] = {
-            "what": "first call (trace + compile) in a fresh process with an empty persistent cache; "
-            "cached: a later process reading JAX's persistent compilation cache",
-            "forward_s": sec["forward_s"],
-            "gradient_s": sec["gradient_s"],
-            "forward_cached_s": sec["forward_cached_s"],
-            "gradient_cached_s": sec["gradient_cached_s"],
-            "gradient_mode": sec["mode"],
-            "gradient_method": "wmrjax.batch_value_and_grad (section 6.1); wmrjax.value_and_grad (by_type)",
-            "by_type_loss": f"mean squared output error of a vmapped {N_STEPS}-step rollout (dt 0.01) on "
-            "a circle, gradient with respect to the Hurwitz coefficients (m x r)",
-            "by_type": compile_table(_compile_cases(), 64, a.devices) if a.compile_types == "all" else {},
-        }
+        s["compile"] = _compile_summary(a)
     if a.memory_batch > 0:
-        m = _worker(
-            [
-                "--worker",
-                "memory",
-                "--memory-steps",
-                str(a.memory_steps),
-                "--memory-batch",
-                str(a.memory_batch),
-                "--no-compile-cache",
-            ],
-            dict(env),
-        )
-        s["memory"] = m
-        print(
-            f"memory: gradient of {a.memory_steps} steps x {a.memory_batch} trajectories: peak RSS "
-            f"{m['peak_rss_gb']:.2f} GB ({m['mode']}, {m['wall_s']:.1f} s)",
-            flush=True,
-        )
+        s["memory"] = _memory_summary(a, env)
     if a.tuner_problems:
         s["tuner"] = tuner_times(a.tuner_problems, a.tuner_baseline, a.tuner_rounds)
     common.write_json(a.out / "summary.json", s)
-    g = s["gradient"]
-    print(
-        f"scipy solve_ivp: {s['scipy_solve_ivp_one_at_a_time']['equivalent_traj_steps_per_s'] / 1e6:.4f} M/s; "
-        f"gradient/forward = {g['ratio_grad_over_forward']:.2f} ({g['mode']}; B = {g['batch']}, "
-        f"{g['n_parameters']} parameters), {s['gradient_many']['ratio_grad_over_forward']:.2f} with "
-        f"{s['gradient_many']['n_parameters']} ({s['gradient_many']['mode']})"
-    )
-    print(f"wrote {a.out}/summary.json")
+    _print_summary(s, a.out)
     return 0
 
 

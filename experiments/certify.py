@@ -244,7 +244,8 @@ def problem_from_args(a):
     return problem.with_values(values) if values else problem
 
 
-def main(argv=None) -> int:
+def _parser():
+    """The command's options."""
     from wmrjax import references as R
     from wmrjax_cli import options
 
@@ -270,6 +271,14 @@ def main(argv=None) -> int:
         help="a tuned-gains file (gains.json of python -m tuning): complex poles, schedules",
     )
     p.add_argument("--t-final", type=options.positive, default=None, help="horizon [s]")
+    _check_options(p)
+    return p
+
+
+def _check_options(p) -> None:
+    """Options of the checks, the heading offset, the geometry and the devices."""
+    from wmrjax_cli import options
+
     p.add_argument("--eps", type=options.positive, default=None, help="Lemma 2's margin eps [zeta units: m, m/s]")
     p.add_argument("--dt", type=options.positive, default=None, help="RK4 step of the empirical checks [s]")
     p.add_argument(
@@ -306,6 +315,32 @@ def main(argv=None) -> int:
         help="JAX host devices the batch simulations are spread over (one per core; sets XLA_FLAGS "
         "before JAX starts its backend)",
     )
+
+
+def _report(s: dict, out: Path) -> int:
+    """Prints the radii, the falsified ones and the alarms; the exit status (1 on an alarm)."""
+    keys = [
+        "radius_paper",
+        "radius_lyapunov",
+        "radius_exact_norm",
+        "radius_exact_map",
+        "radius_exact_map_position_slice",
+        "empirical_radius_position_slice",
+    ]
+    print("  ".join(f"{k} {s[k]:.4f}" for k in keys if s.get(k) is not None))
+    print(
+        f"falsified full {s['falsified_full']['radius']}, position slice {s['falsified_position_slice']['radius']}; "
+        f"wrote {out}/summary.json and slice_map.png in {s['wall_time_s']:.0f} s"
+    )
+    for msg in s["alarms"]:  # a result that contradicts the theory is an error, not a certificate
+        print(f"error: {msg}", file=sys.stderr)
+    return 1 if s["alarms"] else 0
+
+
+def main(argv=None) -> int:
+    from wmrjax_cli import options
+
+    p = _parser()
     a = p.parse_args(argv)
     flag = f"--xla_force_host_platform_device_count={a.devices}"
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()  # read when the backend starts
@@ -321,22 +356,7 @@ def main(argv=None) -> int:
     batch = max(cfg["n_empirical"], cfg["map_grid"] ** 2, (cfg["n_directions"] + 1) * EMPIRICAL_GRID)
     options.check_horizon(p, t_final=setting.t_final, dt=setting.dt, batch=batch, saved_every=10)
     s = options.work(p, a, lambda progress: run(a.out, problem, a.case, progress=progress))
-    keys = [
-        "radius_paper",
-        "radius_lyapunov",
-        "radius_exact_norm",
-        "radius_exact_map",
-        "radius_exact_map_position_slice",
-        "empirical_radius_position_slice",
-    ]
-    print("  ".join(f"{k} {s[k]:.4f}" for k in keys if s.get(k) is not None))
-    print(
-        f"falsified full {s['falsified_full']['radius']}, position slice {s['falsified_position_slice']['radius']}; "
-        f"wrote {a.out}/summary.json and slice_map.png in {s['wall_time_s']:.0f} s"
-    )
-    for msg in s["alarms"]:  # a result that contradicts the theory is an error, not a certificate
-        print(f"error: {msg}", file=sys.stderr)
-    return 1 if s["alarms"] else 0
+    return _report(s, a.out)
 
 
 if __name__ == "__main__":
