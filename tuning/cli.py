@@ -28,13 +28,27 @@ from pathlib import Path
 
 from wmrjax_cli import files
 
+_S = "(default: the file's)"
+
 
 def parser():
-    from tuning.losses import LossWeights
-    from tuning.problems import PROBLEMS
     from wmrjax_cli import options
 
     p = options.parser(__doc__.splitlines()[0], "results/tuning")
+    _add_problem_options(p)
+    _add_tuning_options(p)
+    _add_plant_options(p)
+    _add_loss_and_baseline_options(p)
+    _add_requirement_and_run_options(p)
+    return p
+
+
+def _add_problem_options(p) -> None:
+    """The problem file or shipped problem, the robot, the task, the reference and the initial errors."""
+    from tuning.problems import PROBLEMS
+    from wmrjax_cli import options
+
+    S = _S
     p.add_argument("file", type=Path, nargs="?", default=None, help="a problem file (TOML) with a [tune] section")
     p.add_argument(
         "--problem",
@@ -42,7 +56,6 @@ def parser():
         choices=sorted(PROBLEMS),
         help="a shipped problem instead of a file (default: section_6_1)",
     )
-    S = "(default: the file's)"
     p.add_argument("--robot", default=None, help=f"robot type: (3,0), (2,0), (2,1), (1,1) or (1,2) {S}")
     p.add_argument(
         "--task",
@@ -80,6 +93,13 @@ def parser():
         default=None,
         help="initial velocity errors vx, vy uniform in +-B [m/s] (output space)",
     )
+
+
+def _add_tuning_options(p) -> None:
+    """The scenario counts, the optimizer and the gain family."""
+    from wmrjax_cli import options
+
+    S = _S
     p.add_argument("--n-train", type=options.count, default=None, help=f"training scenarios per step {S}")
     p.add_argument(
         "--n-validation", type=options.count, default=None, help=f"validation scenarios (early stopping, selection) {S}"
@@ -127,6 +147,13 @@ def parser():
         choices=["damping", "poles"],
         help=f"damping: (omega, zeta) factors (real or complex poles); poles: real poles only {S}",
     )
+
+
+def _add_plant_options(p) -> None:
+    """The plant's mismatch, actuator limits, noise, controller period and horizon."""
+    from wmrjax_cli import options
+
+    S = _S
     p.add_argument(
         "--mismatch",
         type=options.fraction,
@@ -152,6 +179,14 @@ def parser():
         "--control-dt", type=options.positive, default=None, help=f"controller period (zero-order hold) [s] {S}"
     )
     p.add_argument("--t-final", type=options.positive, default=None, help=f"horizon of every scenario [s] {S}")
+
+
+def _add_loss_and_baseline_options(p) -> None:
+    """The loss weights, the baselines and the seed."""
+    from tuning.losses import LossWeights
+    from wmrjax_cli import options
+
+    S = _S
     for f in LossWeights._fields:
         p.add_argument(
             f"--w-{f}", type=options.nonnegative, default=None, help=f"weight of the {f} loss term (>= 0) {S}"
@@ -172,6 +207,11 @@ def parser():
     p.add_argument(
         "--seed", type=options.seed, default=None, help=f"PRNG seed of the scenarios (and the baselines) {S}"
     )
+
+
+def _add_requirement_and_run_options(p) -> None:
+    """The certified-radius requirement, the falsifier and a fresh start."""
+    S = _S
     p.add_argument(
         "--require-radius",
         type=_required,
@@ -192,7 +232,6 @@ def parser():
         help="also falsify the initial and tuned gains' exact-map radii by rollouts (slower)",
     )
     p.add_argument("--fresh", action="store_true", help="ignore (delete) an existing checkpoint in --out")
-    return p
 
 
 def _required(text: str):
@@ -304,10 +343,8 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
 
     jax.config.update("jax_enable_x64", True)  # this entry point runs in float64
     import jax.numpy as jnp
-    import numpy as np
 
     from tuning import config, loop
-    from wmrjax.problem import gains_file_dict
 
     say = progress or log
     setting = problem.setting("tuning")
@@ -318,6 +355,47 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
         (out / "checkpoint.json").unlink()
     t0 = time.perf_counter()
     say(f"problem {problem.title}: drawing scenarios; compiling the batched rollout and its gradient (first step)")
+    res, programs = _gradient(problem, setting, settings, family, out, log)
+    grad_wall = time.perf_counter() - t0
+    ctx = res.context
+    paper_raw = loop.initial_raw(setting, family)
+    tuned_raw = jnp.asarray(res.best_raw)
+    evaluate_on = programs["evaluate_on"]
+    train_eval = functools.partial(evaluate_on, scenarios=ctx.sets.train)
+    heldout_eval = functools.partial(evaluate_on, scenarios=ctx.sets.heldout)
+
+    train, held, ho_ok, ho_m = _evaluate(train_eval, heldout_eval, paper_raw, tuned_raw, say, log)
+    base, runs, match = _baselines(settings, family, train_eval, heldout_eval, paper_raw, res.history, say, log)
+    say("certifying the initial and the tuned gains (Lemma 2, exact map" + (", falsifier)" if falsify else ")"))
+    radius = _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify)
+    summary = _summary(
+        problem,
+        setting,
+        settings,
+        family,
+        res,
+        paper_raw,
+        tuned_raw,
+        train,
+        held,
+        ho_ok,
+        ho_m,
+        base,
+        match,
+        radius,
+        grad_wall,
+    )
+    say("writing gains, history, figures and summary")
+    _write(out, problem, setting, family, res, runs, paper_raw, tuned_raw, programs, radius)
+    summary["wall_time_s"] = time.perf_counter() - t0
+    files.write_json(out / "summary.json", summary)
+    return summary
+
+
+def _gradient(problem, setting, settings, family, out: Path, log):
+    """The gradient loop, with the later programs compiled on a second thread: ``(result, programs)``."""
+    from tuning import loop
+
     programs = {}
     second = ThreadPoolExecutor(max_workers=1)
 
@@ -352,13 +430,13 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
         second.shutdown(wait=False, cancel_futures=True)  # a failed run does not wait for them
         raise
     second.shutdown()
-    grad_wall = time.perf_counter() - t0
-    ctx = res.context
-    paper_raw = loop.initial_raw(setting, family)
-    tuned_raw = jnp.asarray(res.best_raw)
-    evaluate_on = programs["evaluate_on"]
-    train_eval = functools.partial(evaluate_on, scenarios=ctx.sets.train)
-    heldout_eval = functools.partial(evaluate_on, scenarios=ctx.sets.heldout)
+    return res, programs
+
+
+def _evaluate(train_eval, heldout_eval, paper_raw, tuned_raw, say, log):
+    """The initial and the tuned gains on the training and held-out scenarios:
+    ``((train initial, train tuned), (held-out initial, held-out tuned), held-out validity, metrics)``."""
+    import numpy as np
 
     say("evaluating the initial and the tuned gains on the held-out scenarios")
     both = np.stack([np.asarray(paper_raw), np.asarray(tuned_raw)])
@@ -369,27 +447,13 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
         f"held-out loss: initial gains {ho_paper:.5g}, tuned {ho_tuned:.5g} (ratio {ho_paper / ho_tuned:.2f}); "
         f"singular events {int(np.sum(ho_m.singular[0]))} -> {int(np.sum(ho_m.singular[1]))}"
     )
-    base, runs, match = _baselines(settings, family, train_eval, heldout_eval, paper_raw, res.history, say, log)
-    say("certifying the initial and the tuned gains (Lemma 2, exact map" + (", falsifier)" if falsify else ")"))
-    radius = _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify)
-    summary = _summary(
-        problem,
-        setting,
-        settings,
-        family,
-        res,
-        paper_raw,
-        tuned_raw,
-        (tr_paper, tr_tuned),
-        (ho_paper, ho_tuned),
-        ho_ok,
-        ho_m,
-        base,
-        match,
-        radius,
-        grad_wall,
-    )
-    say("writing gains, history, figures and summary")
+    return (tr_paper, tr_tuned), (ho_paper, ho_tuned), ho_ok, ho_m
+
+
+def _write(out: Path, problem, setting, family, res, runs, paper_raw, tuned_raw, programs, radius) -> None:
+    """Write ``gains.json``, ``history.json`` and the figures."""
+    from wmrjax.problem import gains_file_dict
+
     files.write_json(out / "gains.json", gains_file_dict(family.gains(tuned_raw), setting.ctrl))
     files.write_json(
         out / "history.json",
@@ -407,9 +471,6 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
     _figures(out, problem.title, setting, family, res.history, runs, paper_raw, tuned_raw, programs)
     if "initial" in radius:
         _radii_figure(out, problem.title, radius)
-    summary["wall_time_s"] = time.perf_counter() - t0
-    files.write_json(out / "summary.json", summary)
-    return summary
 
 
 def baseline_budget(settings, family) -> int:
@@ -429,13 +490,30 @@ def baseline_budget(settings, family) -> int:
 
 def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say, log):
     """Random search and CMA-ES, every seed: ``(report, runs, gradient rollouts to match)``."""
-    import numpy as np
-
-    from tuning import baselines
-
     b = settings.baselines
     budget = baseline_budget(settings, family)
     pop = b.population(family.size)
+    runs, t_base = _baseline_runs(settings, family, train_eval, paper_raw, budget, pop, say)
+    base, match = {}, {}
+    for name, rs in runs.items():
+        base[name], match[name] = _baseline_report(name, rs, heldout_eval, hist, budget, t_base[name], log)
+    base["cma_es"].update(
+        population=pop,
+        sigma0=b.cma_sigma,
+        implementation="cmaes (CyberAgent) CMA, ask/tell; candidates simulated in batched jit calls",
+    )
+    base["random_search"]["box"] = (
+        f"log-uniform: rates in [{b.search_low}, {b.search_high}] 1/s, dampings in "
+        f"[{max(0.3, 1.01 * family.min_damping):g}, 3], every knot independently"
+    )
+    return base, runs, match
+
+
+def _baseline_runs(settings, family, train_eval, paper_raw, budget: int, pop: int, say):
+    """Run random search and CMA-ES for every seed: ``(runs by name, wall time by name)``."""
+    from tuning import baselines
+
+    b = settings.baselines
     runs = {"random_search": [], "cma_es": []}
     t_base = {"random_search": 0.0, "cma_es": 0.0}
     n_train = settings.scenarios.train
@@ -470,49 +548,47 @@ def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say,
         )
         t_base["random_search"] += t2 - t1
         t_base["cma_es"] += time.perf_counter() - t2
-    base, match = {}, {}
-    for name, rs in runs.items():
-        held = heldout_eval(np.stack([np.asarray(r.best_raw) for r in rs]))
-        reach = [baselines.rollouts_to_reach(hist, r.best_loss) for r in rs]
-        base[name] = {
-            "best_loss": float(np.median([r.best_loss for r in rs])),
-            "best_heldout_loss": float(np.median(held)),
-            "rollouts_to_best": float(np.median([r.rollouts_to_best for r in rs])),
-            "statistic": f"median over {len(rs)} seeds",
-            "per_seed": [
-                {
-                    "seed": r.seed,
-                    "best_loss": r.best_loss,
-                    "best_heldout_loss": float(h),
-                    "rollouts_to_best": r.rollouts_to_best,
-                    "rollouts": r.rollouts,
-                    "gradient_rollouts_to_match": m,
-                }
-                for r, h, m in zip(rs, held, reach)
-            ],
-            "rollouts_budget": budget,
-            "wall_time_s": t_base[name],
-        }
-        med = float(np.median([np.inf if m is None else m for m in reach]))  # a seed never matched counts as inf
-        match[name] = med if np.isfinite(med) else None
-        ratio = float(np.median([r.rollouts_to_best / m if m is not None else 0.0 for r, m in zip(rs, reach)]))
-        base[name]["rollout_ratio_baseline_over_gradient"] = ratio if match[name] is not None else None
-        base[name]["seeds_matched_by_gradient"] = sum(m is not None for m in reach)
-        log(
-            f"{name}: median best train loss {base[name]['best_loss']:.5g} after {base[name]['rollouts_to_best']:.0f} "
-            f"rollouts, held-out {base[name]['best_heldout_loss']:.5g}; gradient reached it after {match[name]} "
-            f"rollouts ({base[name]['seeds_matched_by_gradient']}/{len(reach)} seeds)"
-        )
-    base["cma_es"].update(
-        population=pop,
-        sigma0=b.cma_sigma,
-        implementation="cmaes (CyberAgent) CMA, ask/tell; candidates simulated in batched jit calls",
+    return runs, t_base
+
+
+def _baseline_report(name: str, rs, heldout_eval, hist, budget: int, wall: float, log):
+    """One baseline's report over its seeds and the gradient rollouts to match it (None: never)."""
+    import numpy as np
+
+    from tuning import baselines
+
+    held = heldout_eval(np.stack([np.asarray(r.best_raw) for r in rs]))
+    reach = [baselines.rollouts_to_reach(hist, r.best_loss) for r in rs]
+    rep = {
+        "best_loss": float(np.median([r.best_loss for r in rs])),
+        "best_heldout_loss": float(np.median(held)),
+        "rollouts_to_best": float(np.median([r.rollouts_to_best for r in rs])),
+        "statistic": f"median over {len(rs)} seeds",
+        "per_seed": [
+            {
+                "seed": r.seed,
+                "best_loss": r.best_loss,
+                "best_heldout_loss": float(h),
+                "rollouts_to_best": r.rollouts_to_best,
+                "rollouts": r.rollouts,
+                "gradient_rollouts_to_match": m,
+            }
+            for r, h, m in zip(rs, held, reach)
+        ],
+        "rollouts_budget": budget,
+        "wall_time_s": wall,
+    }
+    med = float(np.median([np.inf if m is None else m for m in reach]))  # a seed never matched counts as inf
+    match = med if np.isfinite(med) else None
+    ratio = float(np.median([r.rollouts_to_best / m if m is not None else 0.0 for r, m in zip(rs, reach)]))
+    rep["rollout_ratio_baseline_over_gradient"] = ratio if match is not None else None
+    rep["seeds_matched_by_gradient"] = sum(m is not None for m in reach)
+    log(
+        f"{name}: median best train loss {rep['best_loss']:.5g} after {rep['rollouts_to_best']:.0f} "
+        f"rollouts, held-out {rep['best_heldout_loss']:.5g}; gradient reached it after {match} "
+        f"rollouts ({rep['seeds_matched_by_gradient']}/{len(reach)} seeds)"
     )
-    base["random_search"]["box"] = (
-        f"log-uniform: rates in [{b.search_low}, {b.search_high}] 1/s, dampings in "
-        f"[{max(0.3, 1.01 * family.min_damping):g}, 3], every knot independently"
-    )
-    return base, runs, match
+    return rep, match
 
 
 def _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify: bool):

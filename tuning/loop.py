@@ -435,6 +435,23 @@ def tune(
     Returns:
       :class:`TuneResult`.
     """
+    ctx, cert_vg, raw, opt_state, run_id = _begin(
+        setting, family, optimizer, scenarios, loss, seed, run_id, requirement, log
+    )
+
+    update = _update_program(optimizer)
+    fp = fingerprint(setting, family, scenarios, loss, stopping, steps, seed, run_id)
+    ckpt = Path(out_dir) / "checkpoint.json" if out_dir is not None else None
+    start = _start(ckpt, fp, steps, raw, opt_state, log)
+    if on_built is not None:
+        on_built(ctx)
+    return _gradient_loop(
+        ctx, setting, family, (update, cert_vg), (ckpt, fp), start, steps, scenarios, stopping, seed, log, stop_after
+    )
+
+
+def _begin(setting, family: GainSpec, optimizer, scenarios, loss, seed: int, run_id: str, requirement, log):
+    """The scenarios, the certificate's gradient and the starting point: ``(ctx, cert_vg, raw, opt_state, run_id)``."""
     check_memory(setting, scenarios)
     ctx = prepare(setting, family, scenarios, loss, seed)
     cert_vg = (
@@ -448,13 +465,17 @@ def tune(
         run_id += repr(tuple(requirement))
         raw, _ = certified.restore(raw, ctx.kept.radius, ctx.kept.required, log)
     opt_state = optimizer.init(raw)
+    return ctx, cert_vg, raw, opt_state, run_id
 
-    update = _update_program(optimizer)
-    fp = fingerprint(setting, family, scenarios, loss, stopping, steps, seed, run_id)
-    ckpt = Path(out_dir) / "checkpoint.json" if out_dir is not None else None
-    step, raw, opt_state, state = _start(ckpt, fp, steps, raw, opt_state, log)
-    if on_built is not None:
-        on_built(ctx)
+
+def _gradient_loop(
+    ctx, setting, family, programs, checkpoint, start, steps, scenarios, stopping, seed, log, stop_after
+) -> TuneResult:
+    """The gradient loop from ``start`` (``(step, raw, opt_state, state)`` of :func:`_start`) on;
+    ``programs``: ``(update, cert_vg)``, ``checkpoint``: ``(path or None, fingerprint)``."""
+    update, cert_vg = programs
+    step, raw, opt_state, state = start
+    ckpt, fp = checkpoint
     t0 = time.perf_counter() - state["wall_time_s"]
     done_here = 0
     stream = jax.random.fold_in(jax.random.PRNGKey(seed), 3)
