@@ -79,10 +79,37 @@ def run(
     ref = params.tracking.reference
     ref_post = np.asarray(jax.vmap(ref.posture)(jnp.asarray(np.minimum(t, 10.0))))
     eta1_ref = np.asarray(jax.vmap(lambda s: jnp.linalg.norm(ref.velocity(s)))(jnp.asarray(np.minimum(t, 10.0))))
+    summary = _summary(params, z0, tr, fin, t, st, u, switched, t_sw, dt, t_final, tol_pos, tol_head)
+    if switched:
+        say("Lemma 2 up to the switch")
+        summary["lemma2"] = _lemma2_to_switch(hy, params, z0, t_sw, dt, eps)
+    batch = None
+    if n_batch:
+        say(f"compiling and running a batch of {n_batch} initial conditions")
+        summary["batch"], batch = _batch(hy, params, zeta0, n_batch, seed, dt, n_steps, tol_pos, tol_head)
+    out.mkdir(parents=True, exist_ok=True)
+    _figures(out, t, st, u, ref_post, eta1_ref, t_sw, float(params.r_switch), batch)
+    common.write_npz(
+        out / "trajectory.npz",
+        t=t,
+        state=st,
+        control=u,
+        reference=ref_post,
+        mode=np.asarray(tr.state.mode),
+        state_names=np.array(hy.state_names[:4]),
+    )
+    common.write_json(out / "summary.json", summary)
+    return summary
+
+
+def _summary(params, z0, tr, fin, t, st, u, switched, t_sw, dt, t_final, tol_pos, tol_head) -> dict:
+    """summary.json without the lemma2 and batch blocks, from the hybrid run."""
+    import numpy as np
+
     before = t < (t_sw if switched else np.inf)
     i_sw = int(np.searchsorted(t, t_sw - 0.5 * dt)) if switched else None
     d_fin, h_fin, _ = _parked(np.asarray(fin.tracking), tol_pos, tol_head)
-    summary = {
+    return {
         "experiment": "section_6_2",
         "paper": "d'Andrea-Novel, Campion & Bastin, IJRR 14(6) 1995, section 6.2",
         "robot": "(2,0)",
@@ -112,26 +139,6 @@ def run(
         "nonfinite": bool(tr.diagnostics.nonfinite),
         "failed": bool(tr.diagnostics.failed),
     }
-    if switched:
-        say("Lemma 2 up to the switch")
-        summary["lemma2"] = _lemma2_to_switch(hy, params, z0, t_sw, dt, eps)
-    batch = None
-    if n_batch:
-        say(f"compiling and running a batch of {n_batch} initial conditions")
-        summary["batch"], batch = _batch(hy, params, zeta0, n_batch, seed, dt, n_steps, tol_pos, tol_head)
-    out.mkdir(parents=True, exist_ok=True)
-    _figures(out, t, st, u, ref_post, eta1_ref, t_sw, float(params.r_switch), batch)
-    common.write_npz(
-        out / "trajectory.npz",
-        t=t,
-        state=st,
-        control=u,
-        reference=ref_post,
-        mode=np.asarray(tr.state.mode),
-        state_names=np.array(hy.state_names[:4]),
-    )
-    common.write_json(out / "summary.json", summary)
-    return summary
 
 
 def _lemma2_to_switch(hy, params, z0, t_sw: float, dt: float, eps: float) -> dict:

@@ -244,9 +244,23 @@ def _run(p, a, pid: int, n_proc: int) -> int:
     certified = report.certified_radii(plan)
     summary = report.summarize(plan, table, certified)
     procs = [json.loads((a.out / "blocks" / f"process_{i}.json").read_text()) for i in range(n_proc)]
-    computed = sum(s["runs_computed"] for s in procs)
-    compute_wall = max(s["wall_s"] for s in procs)
-    summary = {
+    summary = _header(a, plan) | summary
+    summary["execution"] = _execution(plan, n_proc, len(jax.local_devices()), procs)
+    summary["figures"] = report.figures(plan, table, certified, a.out)
+    summary["wall_time_s"] = time.perf_counter() - t_start
+    files.write_json(a.out / "summary.json", summary)
+    c = summary["counts"]
+    print(
+        f"{plan.n_runs} runs: {c['converged']} converged, {c['not_converged']} not converged, {c['singular']} "
+        f"singular, {c['failed']} failed; wrote {a.out}/runs.parquet, summary.json and "
+        f"{len(summary['figures'])} figures ({summary['wall_time_s']:.0f} s)"
+    )
+    return 0
+
+
+def _header(a, plan) -> dict:
+    """The sweep's identifying fields, which lead summary.json."""
+    return {
         "sweep": str(a.spec),
         "title": plan.spec.get("title", a.spec.stem),
         "law": str(plan.law),
@@ -259,10 +273,16 @@ def _run(p, a, pid: int, n_proc: int) -> int:
         "n_steps": plan.n_steps,
         "cases": [c for c, _ in plan.problem.cases() if c is not None],
         "problem": plan.problem.resolved(),
-    } | summary
-    summary["execution"] = {
+    }
+
+
+def _execution(plan, n_proc: int, n_devices: int, procs: list) -> dict:
+    """The execution block of summary.json, from the per-process block stats."""
+    computed = sum(s["runs_computed"] for s in procs)
+    compute_wall = max(s["wall_s"] for s in procs)
+    return {
         "processes": n_proc,
-        "devices_per_process": len(jax.local_devices()),
+        "devices_per_process": n_devices,
         "block": plan.block,
         "blocks": len(plan.blocks()),
         "runs_computed": computed,
@@ -274,13 +294,3 @@ def _run(p, a, pid: int, n_proc: int) -> int:
         if compute_wall > 0 and computed
         else None,
     }
-    summary["figures"] = report.figures(plan, table, certified, a.out)
-    summary["wall_time_s"] = time.perf_counter() - t_start
-    files.write_json(a.out / "summary.json", summary)
-    c = summary["counts"]
-    print(
-        f"{plan.n_runs} runs: {c['converged']} converged, {c['not_converged']} not converged, {c['singular']} "
-        f"singular, {c['failed']} failed; wrote {a.out}/runs.parquet, summary.json and "
-        f"{len(summary['figures'])} figures ({summary['wall_time_s']:.0f} s)"
-    )
-    return 0
