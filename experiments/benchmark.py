@@ -338,6 +338,85 @@ def _rollout_rows(ctrl, params, batches, reps: int, source: Path):
     return rows, c_note
 
 
+# sampling rates of the reference-family rows: the §6.1 reference sampled, then interpolated
+REFERENCE_RATES_HZ = (10, 100)
+
+
+def _reference_cases(level: str):
+    """The §6.1 loop at ``level`` with its built-in reference (62) and the same path sampled at
+    :data:`REFERENCE_RATES_HZ` over the horizon: ``(ctrl, {name: params}, z0s_of(batch))``."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import wmrjax as w
+    from wmrjax import references
+
+    ctrl = w.dynamic_linearization("(2,0)", level)
+    builtin = references.paper_62()
+    params = ctrl.params(builtin, poles=1.0, geometry=w.Geometry(e=0.0))
+    cases = {"builtin": params}
+    for rate in REFERENCE_RATES_HZ:
+        ts = np.linspace(0.0, N_STEPS * DT, int(round(N_STEPS * DT * rate)) + 1)
+        xy = np.asarray(jax.vmap(builtin.position)(jnp.asarray(ts)))
+        cases[f"samples_{rate}hz"] = params._replace(reference=references.from_samples(ts, xy))
+    z_ref = ctrl.reference_state(0.0, params)
+    spread = np.zeros(z_ref.shape[0])
+    spread[0] = 1.0  # x spread by +-5 cm around the reference, as the rollout rows
+
+    def z0s_of(batch):
+        b = np.arange(batch)
+        return jnp.asarray(np.asarray(z_ref) + 0.1 * ((b % 97) / 97.0 - 0.5)[:, None] * spread)
+
+    return ctrl, cases, z0s_of
+
+
+def reference_rows(batch: int, reps: int, levels=("velocity", "torque")) -> dict:
+    """Per level: compile time and run time of a ``jit(vmap)`` batch rollout of the §6.1 loop with
+    the built-in reference and with the same path sampled (quintic spline), side by side, and
+    their ratios to the built-in one."""
+    import jax
+    import numpy as np
+
+    import wmrjax as w
+
+    out = {}
+    for level in levels:
+        ctrl, cases, z0s_of = _reference_cases(level)
+        z0s = z0s_of(batch)
+        fns = {
+            name: jax.jit(jax.vmap(lambda z, p=p: w.simulate(ctrl, z, p, dt=DT, n_steps=N_STEPS, save_every=N_STEPS)))
+            for name, p in cases.items()
+        }
+        compile_s = {name: _first_call(fn, z0s) for name, fn in fns.items()}
+        # run times in alternating rounds: a slow spell of the machine slows every case alike
+        best, trs = _best_times({n: (lambda fn=fn: jax.block_until_ready(fn(z0s))) for n, fn in fns.items()}, reps, 3)
+        rows = {}
+        for name in fns:
+            final = np.asarray(trs[name].final_state)
+            rows[name] = {
+                "compile_s": compile_s[name],
+                "run_s": best[name],
+                "traj_steps_per_s": batch * N_STEPS / best[name],
+                "run_over_builtin": best[name] / best["builtin"],
+                "compile_over_builtin": compile_s[name] / compile_s["builtin"],
+                "max_abs_diff_final_state_vs_builtin": float(
+                    np.max(np.abs(final - np.asarray(trs["builtin"].final_state)))
+                ),
+                "failed": int(np.sum(np.asarray(trs[name].diagnostics.failed))),
+            }
+        out[level] = rows
+        print(
+            f"references ({level}, B={batch}): "
+            + ", ".join(
+                f"{n} run {r['run_over_builtin']:.2f}x compile {r['compile_over_builtin']:.2f}x"
+                for n, r in rows.items()
+            ),
+            flush=True,
+        )
+    return out
+
+
 def _scipy_rate(scipy_trajs: int):
     """``(equivalent trajectory-steps per second, right-hand-side evaluations)`` of SciPy."""
     import numpy as np
@@ -723,6 +802,19 @@ def _parser():
         default=os.cpu_count() or 1,
         help="JAX host devices (one per core; sets XLA_FLAGS for this process before JAX starts its backend)",
     )
+    p.add_argument(
+        "--reference-batch",
+        type=int,
+        default=1024,
+        help="batch of the reference-family rows: the §6.1 loop with its built-in reference and sampled (0: skip)",
+    )
+    p.add_argument(
+        "--reference-levels",
+        nargs="+",
+        choices=("velocity", "torque"),
+        default=["velocity", "torque"],
+        help="levels of the reference-family rows",
+    )
     _tuner_options(p)
     p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
     p.add_argument("--case", help=argparse.SUPPRESS)
@@ -847,6 +939,14 @@ def main(argv=None) -> int:
         a.c_source,
         many_forward=a.compile_types != "none",
     )
+    if a.reference_batch > 0:
+        s["reference_families"] = {
+            "what": "jit(vmap) rollout of the §6.1 loop (dynamic law, e = 0, poles -1, dt 0.01, 1000 steps) with "
+            "its built-in reference (62) and the same path sampled at 10 and 100 Hz (quintic spline): first-call "
+            "compile seconds, best run seconds of 3 alternating rounds, ratios to the built-in reference",
+            "batch": a.reference_batch,
+            "levels": reference_rows(a.reference_batch, a.reps, tuple(a.reference_levels)),
+        }
     # compile times and memory in fresh processes (nothing compiled or cached beforehand)
     env = dict(os.environ)
     if a.compile_types != "none":

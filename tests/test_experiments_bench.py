@@ -34,6 +34,10 @@ def test_benchmark_cli_smoke(tmp_path):
             "1",
             "--devices",
             "2",
+            "--reference-batch",
+            "4",
+            "--reference-levels",
+            "velocity",
             "--tuner-problems",  # none: the tuner's timing is the benchmark's, not this smoke's
         ],
         cwd=ROOT,
@@ -44,6 +48,10 @@ def test_benchmark_cli_smoke(tmp_path):
     )
     assert r.returncode == 0, r.stderr[-2000:]
     s = json.loads((tmp_path / "summary.json").read_text())
+    refs = s["reference_families"]["levels"]["velocity"]
+    assert set(refs) == {"builtin", "samples_10hz", "samples_100hz"} and refs["builtin"]["run_over_builtin"] == 1.0
+    for r in refs.values():  # the sampled path is the built-in one to interpolation error, no run fails
+        assert r["max_abs_diff_final_state_vs_builtin"] < 1e-9 and r["failed"] == 0
     row = s["rollout"]["64"]
     assert row["max_abs_diff_wmrjax_vs_numpy"] < 1e-9  # same closed loop as the NumPy oracle
     assert row["wmrjax_batch_map"] > 0 and row["numpy_vectorised"] > 0

@@ -2,6 +2,8 @@
 path, its derivatives, its gradients, its errors; a sampled polynomial plan tracked as well
 as the exact one."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -47,6 +49,25 @@ def test_same_spline_as_scipy(circle):
     ts = np.linspace(0.0, 20.0, 501)
     np.testing.assert_allclose(_jets(ref, ts, 0)[:, 0], sp(ts), atol=1e-13)
     np.testing.assert_allclose(_jets(ref, ts, 3)[:, 3], sp.derivative(3)(ts), atol=1e-8)
+
+
+def test_piece_lookup_on_an_even_grid_equals_the_search():
+    """Samples at a nearly constant rate take the grid's piece index (corrected by one comparison
+    each side) instead of a binary search: the same piece, so the same jets to the last bit, at
+    the samples themselves, between them and past both ends; jittered times (a tenth of a step)
+    still count as even, a sample out of place by half a step does not."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 10.0 + 1e-9, 0.05) + rng.uniform(-0.005, 0.005, 201)
+    xy = np.stack([np.cos(t), np.sin(2 * t)], axis=1)
+    even = R.from_samples(t, xy, extrapolate=True)
+    assert even.path is R._path_spline_uniform_extrapolated
+    searched = dataclasses.replace(even, path=R._path_spline_extrapolated)
+    ts = np.concatenate([t, (t[:-1] + t[1:]) / 2, np.nextafter(t, -np.inf), [-0.3, 10.4]])
+    np.testing.assert_array_equal(_jets(even, ts, 4), _jets(searched, ts, 4))
+    uneven = t.copy()
+    uneven[100] += 0.5 * 0.05 * 0.9  # the grid's guess can be off by one here, the search is used
+    uneven[101] += 0.5 * 0.05
+    assert R.from_samples(uneven, xy).path is R._path_spline
 
 
 def test_gradient_wrt_samples_and_times_matches_finite_differences():

@@ -342,17 +342,79 @@ def _spline_value(knots, coef, s):
     return b @ jax.lax.dynamic_slice_in_dim(coef, l - k, k + 1, axis=0)
 
 
+def _piece(ts, s, uniform: bool):
+    """Index ``j`` of the sample interval ``[ts[j], ts[j + 1])`` holding ``s``, clamped to
+    ``[0, N - 2]`` (the end pieces extend).
+
+    The index is piecewise constant in ``s``: no derivative flows through it. On samples at a
+    nearly constant rate (``uniform``: every sample within a quarter step of its place on the
+    grid), the grid's index is off by at most one, which two comparisons correct: a few
+    operations instead of a binary search, inside a loop that evaluates the reference at every
+    stage of every step.
+    """
+    s = jax.lax.stop_gradient(s)
+    ts = jax.lax.stop_gradient(ts)
+    n = ts.shape[-1]
+    int_type = jnp.result_type(int)
+    if uniform:
+        guess = jnp.floor((s - ts[0]) * ((n - 1) / (ts[-1] - ts[0]))).astype(int_type)
+        j = jnp.clip(guess, 0, n - 2)
+        j = j - (s < ts[j]).astype(int_type) + (s >= ts[jnp.minimum(j + 1, n - 1)]).astype(int_type)
+    else:
+        j = jnp.searchsorted(ts, s, side="right").astype(int_type) - 1
+    return jnp.clip(j, 0, n - 2)
+
+
+def _horner(pp, ts, s, uniform: bool):
+    """The piecewise polynomial ``sum_i pp[j, i] (s - ts[j])^i`` on the piece ``j`` holding ``s``."""
+    j = _piece(ts, s, uniform)
+    c = jax.lax.dynamic_index_in_dim(pp, j, axis=0, keepdims=False)  # (k + 1, 2)
+    u = s - ts[j]
+    v = c[SPLINE_DEGREE]
+    for i in range(SPLINE_DEGREE - 1, -1, -1):
+        v = v * u + c[i]
+    return v
+
+
 def _path_spline(t, params):
-    return _spline_value(params["knots"], params["coef"], t)
+    return _horner(params["pp"], params["t"], t, uniform=False)
+
+
+def _path_spline_uniform(t, params):
+    return _horner(params["pp"], params["t"], t, uniform=True)
 
 
 def _path_spline_extrapolated(t, params):
     """:func:`_path_spline`, extended past its samples on request (``extrapolate=True``)."""
-    return _spline_value(params["knots"], params["coef"], t)
+    return _horner(params["pp"], params["t"], t, uniform=False)
 
 
-# a sampled path is defined by its data on [first sample, last sample] (the spline's end knots)
-_path_spline.domain = lambda params: (params["knots"][..., 0], params["knots"][..., -1])
+def _path_spline_uniform_extrapolated(t, params):
+    """:func:`_path_spline_uniform`, extended past its samples on request."""
+    return _horner(params["pp"], params["t"], t, uniform=True)
+
+
+# a sampled path is defined by its data on [first sample, last sample]
+_path_spline.domain = _path_spline_uniform.domain = lambda params: (params["t"][..., 0], params["t"][..., -1])
+
+_SPLINE_PATHS = {  # (uniform, extrapolate) -> path
+    (False, False): _path_spline,
+    (True, False): _path_spline_uniform,
+    (False, True): _path_spline_extrapolated,
+    (True, True): _path_spline_uniform_extrapolated,
+}
+# samples count as uniform when each lies within this fraction of a step of its place on the grid
+UNIFORM_TOLERANCE = 0.25
+
+
+def _is_uniform(t) -> bool:
+    """Whether concrete sample times lie within a quarter step of an even grid (False if traced)."""
+    tv = concrete(t)
+    if tv is None:
+        return False
+    tv = np.asarray(tv, float)
+    grid = np.linspace(tv[0], tv[-1], tv.shape[0])
+    return bool(np.max(np.abs(tv - grid)) <= UNIFORM_TOLERANCE * (tv[-1] - tv[0]) / (tv.shape[0] - 1))
 
 
 def _spline_knots(ts):
@@ -397,6 +459,31 @@ def _check_samples(t, xy):
             raise ValueError("from_samples: xy has non-finite values")
 
 
+@jax.jit
+def _interpolant(t, xy):
+    """The quintic interpolating spline through ``(t, xy)`` as polynomial pieces: (N - 1, 6, 2),
+    ``[j, i]`` the i-th Taylor coefficient at ``t[j]`` (from the right) of the spline on
+    ``[t[j], t[j + 1]]``.
+
+    The spline is solved in B-spline form (not-a-knot knots, collocation at the samples) and
+    its pieces are read off by Taylor mode at each sample: evaluating a piece is then a lookup
+    and Horner's rule, where the B-spline form runs the Cox-de Boor recursion (15 divisions)
+    and its derivatives at every evaluation.
+    """
+    knots = _spline_knots(t)
+    k = SPLINE_DEGREE
+    n = t.shape[0]
+
+    def row(s):
+        l = _span(knots, s, n, k)
+        return jnp.zeros(n, t.dtype).at[l - k + jnp.arange(k + 1)].set(_basis(knots, l, s, k))
+
+    coef = jnp.linalg.solve(jax.vmap(row)(t), xy)
+    factorials = jnp.asarray([math.factorial(i) for i in range(k + 1)], t.dtype)
+    jets = jax.vmap(lambda s: taylor(lambda u: _spline_value(knots, coef, u), s, k))(t[:-1])  # (N - 1, k + 1, 2)
+    return jets / factorials[:, None]
+
+
 def from_samples(
     t, xy, *, min_speed: float | None = None, heading_offset=0.0, name: str = "samples", extrapolate: bool = False
 ) -> Reference:
@@ -422,7 +509,9 @@ def from_samples(
       extrapolate: allow times outside ``[t[0], t[-1]]`` (the end pieces extended).
 
     Returns:
-      A :class:`Reference` whose params are ``{"knots": (N + 6,), "coef": (N, 2)}``.
+      A :class:`Reference` whose params are ``{"t": (N,), "pp": (N - 1, 6, 2)}``: the sample
+      times and the spline's polynomial pieces (``pp[j, i]``: the i-th Taylor coefficient at
+      ``t[j]`` of the piece on ``[t[j], t[j + 1]]``).
 
     Raises:
       ValueError: times not strictly increasing, fewer than 6 samples, wrong shapes,
@@ -433,21 +522,10 @@ def from_samples(
     _check_samples(t, xy)
     dtype = jnp.result_type(float)
     t = jnp.asarray(t, dtype)
-    xy = jnp.asarray(xy, dtype)
-    knots = _spline_knots(t)
-    k = SPLINE_DEGREE
-    n = t.shape[0]
-
-    def row(s):
-        l = _span(knots, s, n, k)
-        return jnp.zeros(n, dtype).at[l - k + jnp.arange(k + 1)].set(_basis(knots, l, s, k))
-
-    collocation = jax.vmap(row)(t)
-    coef = jnp.linalg.solve(collocation, xy)
     ref = Reference(
-        params=dict(knots=knots, coef=coef),
+        params=dict(t=t, pp=_interpolant(t, jnp.asarray(xy, dtype))),
         heading_offset=_as_array(heading_offset),
-        path=_path_spline_extrapolated if extrapolate else _path_spline,
+        path=_SPLINE_PATHS[_is_uniform(t), extrapolate],
         name=name,
     )
     if min_speed is not None:
