@@ -265,7 +265,10 @@ class LinearizingLaw:
         nc = nv - n
         pi = lambda w: self.extension.plant_input(X, w[:nc], w[nc:], g)
         J = _math.jacfwd_small(pi, w)
-        dw = J.T @ jnp.linalg.solve(J @ J.T, u_measured - pi(w))
+        # J J^T is m x m (m <= 3): the explicit adjugate keeps the step elementwise (no LAPACK call,
+        # which is slow under vmap on CPU and has no counterpart in the exported C step)
+        num, det = _math.adjugate_solve(J @ J.T, u_measured - pi(w))
+        dw = J.T @ (num / det)
         return jnp.concatenate([X, w + dw])
 
     def outputs(self, z, g):
