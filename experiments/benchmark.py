@@ -371,17 +371,18 @@ def _reference_cases(level: str):
     return ctrl, cases, z0s_of
 
 
-def reference_rows(batch: int, reps: int, levels=("velocity", "torque")) -> dict:
+def reference_rows(batch: int, reps: int, levels=None) -> dict:
     """Per level: compile time and run time of a ``jit(vmap)`` batch rollout of the §6.1 loop with
     the built-in reference and with the same path sampled (quintic spline), side by side, and
-    their ratios to the built-in one."""
+    their ratios to the built-in one (``levels``: :class:`wmrjax.Level` values, default both)."""
     import jax
     import numpy as np
 
     import wmrjax as w
+    from wmrjax import Level
 
     out = {}
-    for level in levels:
+    for level in list(Level) if levels is None else [Level(x) for x in levels]:
         ctrl, cases, z0s_of = _reference_cases(level)
         z0s = z0s_of(batch)
         fns = {
@@ -405,7 +406,7 @@ def reference_rows(batch: int, reps: int, levels=("velocity", "torque")) -> dict
                 ),
                 "failed": int(np.sum(np.asarray(trs[name].diagnostics.failed))),
             }
-        out[level] = rows
+        out[str(level)] = rows
         print(
             f"references ({level}, B={batch}): "
             + ", ".join(
@@ -811,8 +812,8 @@ def _parser():
     p.add_argument(
         "--reference-levels",
         nargs="+",
-        choices=("velocity", "torque"),
-        default=["velocity", "torque"],
+        choices=[str(x) for x in _levels()],
+        default=[str(x) for x in _levels()],
         help="levels of the reference-family rows",
     )
     _tuner_options(p)
@@ -820,6 +821,12 @@ def _parser():
     p.add_argument("--case", help=argparse.SUPPRESS)
     p.add_argument("--worker-batch", type=options.count, default=256, help=argparse.SUPPRESS)
     return p
+
+
+def _levels():
+    from wmrjax import Level
+
+    return list(Level)
 
 
 def _tuner_options(p) -> None:

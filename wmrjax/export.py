@@ -32,10 +32,11 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from typing import Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from wmrjax import _cgen
 from wmrjax.controllers.law import Level
@@ -204,3 +205,87 @@ def generate_c(step: ControlStep) -> dict[str, str]:
     ``math.h`` only (link with ``-lm``).
     """
     return _cgen.generate(program(step), _cgen.Signature.of(step))
+
+
+class Run(NamedTuple):
+    """A sampled-data run of the simulator, as the robot's controller sees it.
+
+    Attributes:
+      t: (n,) sample times [s].
+      measured: (n, n_measured) what the controller measures at each sample.
+      command: (n, n_command) the command the simulator's controller held after each sample.
+      initial_state: (n_state,) the controller's state before the first sample.
+      state: (n, n_state) the simulator's controller state before each sample (its own, which a
+        driven step's state may leave by rounding: a per-sample comparison starts from it).
+      complete: the run did not fail (:class:`wmrjax.Diagnostics`); a failed run is cut at its
+        last valid sample (its states are frozen from the failure on).
+    """
+
+    t: Any
+    measured: Any
+    command: Any
+    initial_state: Any
+    state: Any
+    complete: bool
+
+
+def reference_run(step: ControlStep, ctrl, params, z0, *, period: float, n_samples: int, steps_per_sample: int = 5):
+    """The simulator's run the exported step must reproduce: the law run by a digital controller
+    at ``period`` (:func:`wmrjax.sampled`, no noise, no limits; a static law at torque level, whose
+    state is the plant's: its continuous loop sampled at the period), from ``z0``.
+
+    Args:
+      step: the exported step (for its sizes).
+      ctrl, params: the law and its parameters (those of ``step``).
+      z0: (ctrl.n_state,) the law's initial state (X, compensator...).
+      period: controller period [s]; n_samples: samples of the run; steps_per_sample: RK4 steps
+        of the plant per period.
+
+    Returns:
+      :class:`Run`.
+    """
+    from wmrjax.controllers.sampled import sampled
+    from wmrjax.simulate import simulate
+
+    dt = period / steps_per_sample
+    n_steps = n_samples * steps_per_sample
+    z0 = jnp.asarray(z0, jnp.result_type(float))
+    nX = ctrl.robot.n_state
+    if step.n_compensator == 0 and ctrl.level == Level.TORQUE:
+        tr = simulate(ctrl, z0, params, dt=dt, n_steps=n_steps, save_every=steps_per_sample)
+        n = tr.t.shape[0] - 1
+        empty = jnp.zeros((n, 0), tr.t.dtype)
+        return _cut(Run(tr.t[:-1], tr.state[:-1], tr.control[:-1], step.initial_state(tr.t[0]), empty, True), tr)
+    loop = sampled(ctrl, steps_per_sample)
+    sp = loop.params(params)
+    zs = loop.initial_state(z0, sp)
+    tr = simulate(loop, zs, sp, dt=dt, n_steps=n_steps, save_every=steps_per_sample)
+    # a state saved at a sample's time follows that sample, but the first (the initial state)
+    # precedes it: the first command is the simulator's sample of the initial state
+    first = loop.sample(0, tr.t[0], zs, sp).command
+    command = jnp.concatenate([first[None], tr.state.command[1:-1]])
+    s0 = step.initial_state(tr.t[0], z0[nX:])
+    held = jnp.concatenate([tr.state.controller, tr.state.rate, tr.state.t_sample[:, None]], axis=1)[:-2]
+    state = jnp.concatenate([s0[None], held]) if step.n_state else held
+    return _cut(Run(tr.t[:-1], tr.state.plant[:-1], command, s0, state, True), tr)
+
+
+def _cut(run: Run, tr) -> Run:
+    """``run`` up to the trajectory's last valid sample (all of it when the run did not fail)."""
+    valid = np.asarray(tr.valid)
+    if valid.all():
+        return run
+    n = int(np.argmin(valid)) - 1  # samples before the first invalid saved state, less the one it follows
+    return Run(run.t[:n], run.measured[:n], run.command[:n], run.initial_state, run.state[:n], False)
+
+
+def drive(step_fn, run: Run):
+    """The commands, states and regularity of ``step_fn(t, measured, state)`` driven over ``run``'s
+    samples in order (NumPy arrays): ``(command (n, n_command), state (n, n_state), regularity (n,))``.
+    ``step_fn`` may be the JAX step, a reloaded artifact's ``call`` or a wrapped C function."""
+    state = np.asarray(run.initial_state, np.float64)
+    commands, states, regs = [], [], []
+    for t, m in zip(np.asarray(run.t), np.asarray(run.measured)):
+        c, state, r = (np.asarray(x, np.float64) for x in step_fn(np.float64(t), np.asarray(m, np.float64), state))
+        commands.append(c), states.append(state), regs.append(float(r))
+    return np.stack(commands), np.stack(states), np.asarray(regs)

@@ -709,7 +709,9 @@ def _finish(loop: _Loop, field, carry, recs, z0, params, t0, n_steps, save_every
         diag = diag._replace(internal=final_report(t_final, z_final, params))
     states, controls, margins, valids = recs
     n_saves = n_steps // save_every
-    t_saved = t0 + dt * jnp.arange(n_saves + 1, dtype=dtype) * save_every
+    # the loop's own times, t0 + i dt (i the step index), to the last bit: a sampled reference or a
+    # schedule evaluated at a saved time then sees the time the step saw
+    t_saved = t0 + (jnp.arange(n_saves + 1) * save_every).astype(dtype) * dt
     t_saved = t_saved.at[-1].set(t_final)
     traj = Trajectory(
         t=t_saved,
