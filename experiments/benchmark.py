@@ -418,6 +418,69 @@ def reference_rows(batch: int, reps: int, levels=None) -> dict:
     return out
 
 
+# the exported control step's rows: controller period [s] and RK4 steps of the plant per period
+EXPORT_PERIOD = 0.01
+EXPORT_STEPS_PER_PERIOD = 5
+
+
+def _example_setup(case: str):
+    """``(ctrl, params, z0)`` of a ``family/type/level`` case: the table row's example set-up on a
+    circle (as the compile-time rows), started near the reference."""
+    import jax.numpy as jnp
+
+    import wmrjax as w
+    from wmrjax import references
+    from wmrjax.problem import place
+
+    family, kind, level = case.split("/")
+    ctrl = (w.dynamic_linearization if family == "dynamic" else w.static_linearization)(kind, level)
+    offset = getattr(ctrl.row, "default_heading_offset", 0.0)
+    ref = references.circle(radius=2.0, omega=0.4, heading_offset=offset)
+    params = ctrl.params(ref, poles=1.5, geometry=ctrl.row.default_geometry)
+    if family == "dynamic":
+        z = ctrl.reference_state(0.0, params).at[0].add(0.05)
+    else:  # the problems' placement: 5 cm off in x, on the reference otherwise
+        error = jnp.zeros(ctrl.robot.n_state).at[0].set(0.05)
+        z = place(ctrl, params, error, "physical", ctrl.task, 1.0)
+    return ctrl, params, z
+
+
+def export_rows(n_samples: int, cc: str | None, cases=None) -> dict:
+    """Per ``family/type/level``: the exported control step checked over a closed-loop run of
+    ``n_samples`` periods (:func:`experiments.export.verify`: JAX step vs the simulator, the C and
+    the reloaded artifact vs the JAX step) and the C step's time per call."""
+    import tempfile
+
+    from experiments import export as E
+    from wmrjax import export as X
+
+    rows = {}
+    for case in cases or _compile_cases():
+        ctrl, params, z0 = _example_setup(case)
+        step = X.control_step(ctrl, params)
+        with tempfile.TemporaryDirectory() as d:
+            E.write_export(step, Path(d))
+            run = X.reference_run(
+                step,
+                ctrl,
+                params,
+                z0,
+                period=EXPORT_PERIOD,
+                n_samples=n_samples,
+                steps_per_sample=EXPORT_STEPS_PER_PERIOD,
+            )
+            row = E.verify(step, run, period=EXPORT_PERIOD, directory=Path(d), cc=cc)
+            row["c_lines"] = (Path(d) / f"{step.name}.c").read_text().count("\n")
+        rows[case] = row
+        ns = f"{row['c_seconds_per_step'] * 1e9:.0f} ns" if "c_seconds_per_step" in row else "no C"
+        print(
+            f"export {case}: {ns}, C vs JAX {row.get('c_vs_jax', float('nan')):.1e}, artifact {row['artifact_vs_jax']:.1e}, "
+            f"JAX vs simulator {row['jax_vs_simulator']:.1e} ({row['samples']} periods{'' if row['run_complete'] else ', cut at a failure'})",
+            flush=True,
+        )
+    return rows
+
+
 def _scipy_rate(scipy_trajs: int):
     """``(equivalent trajectory-steps per second, right-hand-side evaluations)`` of SciPy."""
     import numpy as np
@@ -816,6 +879,13 @@ def _parser():
         default=[str(x) for x in _levels()],
         help="levels of the reference-family rows",
     )
+    p.add_argument(
+        "--export-samples",
+        type=int,
+        default=200,
+        help="periods of the closed-loop run each exported control step (every type x level x law) is checked over (0: skip)",
+    )
+    p.add_argument("--cc", default="cc", help="the C compiler of the exported steps ('none': skip their C)")
     _tuner_options(p)
     p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
     p.add_argument("--case", help=argparse.SUPPRESS)
@@ -953,6 +1023,17 @@ def main(argv=None) -> int:
             "compile seconds, best run seconds of 3 alternating rounds, ratios to the built-in reference",
             "batch": a.reference_batch,
             "levels": reference_rows(a.reference_batch, a.reps, tuple(a.reference_levels)),
+        }
+    if a.export_samples > 0:
+        cc = None if a.cc == "none" or shutil.which(a.cc) is None else a.cc
+        s["export"] = {
+            "what": f"the exported control step (wmrjax.export) of every type x level x law, checked over a "
+            f"closed-loop run of {a.export_samples} periods of {EXPORT_PERIOD} s of the simulator's digital "
+            "controller (circle, the row's example geometry, poles -1.5): largest differences relative to each "
+            "output's largest magnitude; the C step's seconds per call, timed from C (best of 5 loops of "
+            "20 000 calls), compiled with "
+            + (f"{cc} " + " ".join(__import__("experiments.export").export.C_FLAGS) if cc else "no compiler"),
+            "rows": export_rows(a.export_samples, cc),
         }
     # compile times and memory in fresh processes (nothing compiled or cached beforehand)
     env = dict(os.environ)

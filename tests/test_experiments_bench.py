@@ -34,6 +34,8 @@ def test_benchmark_cli_smoke(tmp_path):
             "1",
             "--devices",
             "2",
+            "--export-samples",
+            "0",  # the exported steps: tests/test_export.py
             "--reference-batch",
             "4",
             "--reference-levels",

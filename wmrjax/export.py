@@ -265,8 +265,11 @@ def reference_run(step: ControlStep, ctrl, params, z0, *, period: float, n_sampl
     first = loop.sample(0, tr.t[0], zs, sp).command
     command = jnp.concatenate([first[None], tr.state.command[1:-1]])
     s0 = step.initial_state(tr.t[0], z0[nX:])
-    held = jnp.concatenate([tr.state.controller, tr.state.rate, tr.state.t_sample[:, None]], axis=1)[:-2]
-    state = jnp.concatenate([s0[None], held]) if step.n_state else held
+    if step.n_state:
+        held = jnp.concatenate([tr.state.controller, tr.state.rate, tr.state.t_sample[:, None]], axis=1)[:-2]
+        state = jnp.concatenate([s0[None], held])
+    else:  # a static law keeps no state of its own
+        state = jnp.zeros((tr.t.shape[0] - 1, 0), tr.t.dtype)
     return _cut(Run(tr.t[:-1], tr.state.plant[:-1], command, s0, state, True), tr)
 
 
