@@ -16,6 +16,7 @@ Writes ``summary.json`` (trajectory-steps per second and ratios). No figure: num
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import platform
@@ -445,14 +446,20 @@ def _example_setup(case: str):
     return ctrl, params, z
 
 
+def _c_flags():
+    from wmrjax_cli.export_check import C_FLAGS
+
+    return C_FLAGS
+
+
 def export_rows(n_samples: int, cc: str | None, cases=None) -> dict:
     """Per ``family/type/level``: the exported control step checked over a closed-loop run of
     ``n_samples`` periods (:func:`experiments.export.verify`: JAX step vs the simulator, the C and
     the reloaded artifact vs the JAX step) and the C step's time per call."""
     import tempfile
 
-    from experiments import export as E
     from wmrjax import export as X
+    from wmrjax_cli import export_check as E
 
     rows = {}
     for case in cases or _compile_cases():
@@ -823,6 +830,129 @@ def tuner_times(problems, baseline: Path | None, rounds: int = 3, progress=print
     return out
 
 
+# --- the memory model against measured peaks ------------------------------------------------
+# The predicted memory of wmrjax.simulate, a tuning step and a sweep block, each measured in a
+# fresh process as the growth of the peak resident memory (VmHWM) over a warm baseline, must lie
+# above the measured peak and within resources.ESTIMATE_FACTOR of it (GRADIENT_ESTIMATE_FACTOR for
+# the tuning step): measurements at scale (10^5 to 10^6 steps, 2048 scenarios), the benchmark's;
+# the test suite checks the refusals the model drives (tests/test_resources.py).
+
+# the peak resident memory of this process image (VmHWM): ru_maxrss would carry the parent's peak
+# over fork and exec (a pytest worker's 2 GB hid the child's growth)
+PEAK = (
+    "def peak():\n"
+    "    for line in open('/proc/self/status'):\n"
+    "        if line.startswith('VmHWM:'):\n"
+    "            return int(line.split()[1]) * 1024\n"
+)
+
+SIMULATE = (
+    PEAK
+    + """
+import sys, json, jax
+jax.config.update("jax_enable_x64", True)
+import numpy as np
+import wmrjax as w
+from wmrjax import references as R, resources
+from wmrjax.simulate import _check_memory
+n, dt = int(sys.argv[1]), float(sys.argv[2])
+ctrl = w.dynamic_linearization("(2,0)", "velocity")
+p = ctrl.params(R.circle(radius=3.0, omega=0.5), poles=1.0)
+z0 = ctrl.initial_state(ctrl.reference_jet(0.0, p)[:2] + 0.05, p)
+w.simulate(ctrl, z0, p, dt=0.01, n_steps=10)
+base = peak()
+jax.block_until_ready(w.simulate(ctrl, z0, p, dt=dt, n_steps=n))
+est = resources.run_estimate(ctrl, n_steps=n, save_every=1, n_state=4, itemsize=8, horizon=n * dt)
+print(json.dumps({"measured": peak() - base, "predicted": est.total}))
+"""
+)
+
+TUNE = (
+    PEAK
+    + """
+import sys, json, jax
+jax.config.update("jax_enable_x64", True)
+from wmrjax import resources
+from wmrjax.problem import Problem
+from tuning import config, loop
+prob = Problem.load("tuning/problems/section_6_1.toml")
+setting = prob.setting("tuning")
+ts = config.read(prob.section("tune"))
+fam = ts.gain_spec(setting)
+out = []
+for n in (64, 2048):
+    sc = ts.scenarios._replace(train=n, validation=4, heldout=4)
+    loop.tune(setting, fam, ts.optimizer.build(1), steps=1, scenarios=sc, loss=ts.loss, stopping=ts.stopping,
+              log=lambda *_: None)
+    out.append(peak())
+n_state = setting.system().n_state
+pred = resources.gradient_bytes(2048, setting.n_steps, n_state) - resources.gradient_bytes(64, setting.n_steps, n_state)
+print(json.dumps({"measured": out[1] - out[0], "predicted": pred}))
+"""
+)
+
+
+SWEEP = (
+    PEAK
+    + """
+import sys
+from experiments.sweep import cli
+rc = cli.main([sys.argv[1], "--out", sys.argv[2], "--devices", "1", "--no-compile-cache"])
+import json, jax
+from experiments.sweep import spec as S, run
+est = run.estimate(S.load(sys.argv[1]), 1)
+print(json.dumps({"measured": peak(), "predicted": est.total, "rc": rc}))
+"""
+)
+# (name, script, arguments): the reference check dominates the first simulate, the saved samples the second
+CASES = (
+    ("simulate_500000_steps_dt_0.02", "SIMULATE", (500_000, 0.02)),
+    ("simulate_2000000_steps_dt_1e-4", "SIMULATE", (2_000_000, 1e-4)),
+    ("tuning_step_64_to_2048_scenarios", "TUNE", ()),
+    ("sweep_block_256_runs_10000_steps", "SWEEP", ()),
+)
+SWEEP_FILE = Path(__file__).resolve().parent / "bench" / "memory_sweep.toml"
+
+
+def measure(script: str, *args) -> dict:
+    """Run a measuring script in a fresh process: its ``{"measured", "predicted", ...}``."""
+    r = subprocess.run(
+        [sys.executable, "-c", script, *map(str, args)],
+        cwd=Path(__file__).resolve().parents[1],
+        capture_output=True,
+        text=True,
+        timeout=1200,
+    )
+    if r.returncode:
+        raise RuntimeError(f"memory measurement failed:\n{r.stderr[-3000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def memory_estimates(progress=print) -> dict:
+    """Every case of :data:`CASES`: measured and predicted bytes, their ratio, and whether the
+    prediction bounds the peak within its factor."""
+    from wmrjax import resources
+
+    scripts = {"SIMULATE": SIMULATE, "TUNE": TUNE, "SWEEP": SWEEP}
+    rows = {}
+    for name, key, args in CASES:
+        if key == "SWEEP":
+            with tempfile.TemporaryDirectory() as d:
+                m = measure(SWEEP, SWEEP_FILE, Path(d) / "out")
+        else:
+            m = measure(scripts[key], *args)
+        factor = resources.GRADIENT_ESTIMATE_FACTOR if key == "TUNE" else resources.ESTIMATE_FACTOR
+        m["ratio"] = m["predicted"] / m["measured"]
+        m["factor"] = factor
+        m["within"] = bool(m["measured"] <= m["predicted"] <= factor * m["measured"])
+        rows[name] = m
+        progress(
+            f"memory {name}: predicted {m['predicted'] / 1e6:.1f} MB, measured {m['measured'] / 1e6:.1f} MB, "
+            f"ratio {m['ratio']:.2f} ({'within' if m['within'] else 'OUTSIDE'} [1, {factor}])"
+        )
+    return rows
+
+
 def _parser():
     """The command's options (the workers' hidden ones included)."""
     from wmrjax_cli import options
@@ -886,6 +1016,12 @@ def _parser():
         help="periods of the closed-loop run each exported control step (every type x level x law) is checked over (0: skip)",
     )
     p.add_argument("--cc", default="cc", help="the C compiler of the exported steps ('none': skip their C)")
+    p.add_argument(
+        "--memory-estimates",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the memory model against measured peaks in fresh processes (minutes)",
+    )
     _tuner_options(p)
     p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
     p.add_argument("--case", help=argparse.SUPPRESS)
@@ -1031,8 +1167,7 @@ def main(argv=None) -> int:
             f"closed-loop run of {a.export_samples} periods of {EXPORT_PERIOD} s of the simulator's digital "
             "controller (circle, the row's example geometry, poles -1.5): largest differences relative to each "
             "output's largest magnitude; the C step's seconds per call, timed from C (best of 5 loops of "
-            "20 000 calls), compiled with "
-            + (f"{cc} " + " ".join(__import__("experiments.export").export.C_FLAGS) if cc else "no compiler"),
+            "20 000 calls), compiled with " + (f"{cc} " + " ".join(_c_flags()) if cc else "no compiler"),
             "rows": export_rows(a.export_samples, cc),
         }
     # compile times and memory in fresh processes (nothing compiled or cached beforehand)
@@ -1043,8 +1178,14 @@ def main(argv=None) -> int:
         s["memory"] = _memory_summary(a, env)
     if a.tuner_problems:
         s["tuner"] = tuner_times(a.tuner_problems, a.tuner_baseline, a.tuner_rounds)
+    if a.memory_estimates:
+        s["memory_estimates"] = memory_estimates()
     common.write_json(a.out / "summary.json", s)
     _print_summary(s, a.out)
+    outside = [k for k, m in s.get("memory_estimates", {}).items() if not m["within"]]
+    if outside:  # the model no longer bounds what it predicts: the refusals it drives are wrong
+        print(f"error: memory estimates outside their factor: {', '.join(outside)}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -34,6 +34,7 @@ def test_benchmark_cli_smoke(tmp_path):
             "1",
             "--devices",
             "2",
+            "--no-memory-estimates",  # minutes of measurements at scale
             "--export-samples",
             "0",  # the exported steps: tests/test_export.py
             "--reference-batch",

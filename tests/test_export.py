@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import wmrjax as w
-from experiments import export as E
 from wmrjax import _cgen
 from wmrjax import export as X
 from wmrjax import references as R
+from wmrjax_cli import export_check as E
 
 ROOT = Path(__file__).resolve().parent.parent
 CC = shutil.which("cc")
@@ -51,10 +51,11 @@ def test_section_6_1_step_c_and_artifact_agree_over_a_run(tmp_path):
 @needs_cc
 @pytest.mark.parametrize("kind", ["static", "dynamic"])
 def test_torque_level_steps_agree_on_a_sampled_path(tmp_path, kind):
-    """Torque level on a path sampled at 10 Hz (the spline's pieces as a constant table): the
-    largest law ((1,1) dynamic, 1031 equations) and a static law (whose state is the plant's)."""
+    """Torque level on a path sampled at 10 Hz (the spline's pieces as a constant table): a
+    dynamic law ((2,1): its compensator and new inputs carried by the step) and a static law (whose
+    state is the plant's). Every type x level x law: the benchmark's export block."""
     ctrl = (
-        w.dynamic_linearization("(1,1)", "torque") if kind == "dynamic" else w.static_linearization("(2,0)", "torque")
+        w.dynamic_linearization("(2,1)", "torque") if kind == "dynamic" else w.static_linearization("(2,0)", "torque")
     )
     circle = R.circle(radius=2.0, omega=0.4, heading_offset=getattr(ctrl.row, "default_heading_offset", 0.0))
     ts = np.linspace(0.0, 12.0, 121)
@@ -68,7 +69,7 @@ def test_torque_level_steps_agree_on_a_sampled_path(tmp_path, kind):
         X0 = jnp.array([2.05, 0.0, jnp.pi / 2])
         z0 = ctrl.initial_state_from_physical(X0, jnp.array([0.8, 0.4]), params)
     step, c = _checked(tmp_path, ctrl, params, z0, 0.05, 200)
-    assert step.n_state == (0 if kind == "static" else 2 * 4 + 1)
+    assert step.n_state == (0 if kind == "static" else 2 * 5 + 1)
     assert "static const double table" in (tmp_path / f"{step.name}.c").read_text()
     assert c["jax_vs_simulator"] <= 1e-12 and c["c_vs_jax"] <= 1e-12 and c["artifact_vs_jax"] <= 1e-14
 
