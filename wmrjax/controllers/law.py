@@ -33,6 +33,7 @@ from typing import Any, Callable, NamedTuple, Protocol, runtime_checkable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax._src import core as jax_core  # trace_state_clean: whether a call happens inside a trace
 
 from wmrjax import _math, linearize, robots
 from wmrjax._validate import check_finite, check_real, check_shape, concrete, is_concrete
@@ -449,8 +450,11 @@ def reference_profile(ctrl, params, t0: float, t_final: float, step: float = REF
     for i in range(0, n, _BLOCK):
         tb = ts[i : i + _BLOCK]
         pad = np.concatenate([tb, np.full(_BLOCK - tb.size, tb[-1])])
-        with jax.ensure_compile_time_eval():  # concrete params inside an outer jit: still checked
+        if jax_core.trace_state_clean():  # the compiled program, called as it is
             out = _reference_profile(ctrl, jnp.asarray(pad, dtype=jnp.result_type(float)), params)
+        else:  # concrete params inside an outer jit: still checked (slower: the call is traced each time)
+            with jax.ensure_compile_time_eval():
+                out = _reference_profile(ctrl, jnp.asarray(pad, dtype=jnp.result_type(float)), params)
         out = [concrete(x) for x in out]
         if any(x is None for x in out):
             return None
