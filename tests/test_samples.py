@@ -70,6 +70,15 @@ def test_piece_lookup_on_an_even_grid_equals_the_search():
     assert R.from_samples(uneven, xy).path is R._path_spline
 
 
+def test_a_sampled_path_held_as_numpy_arrays_evaluates_under_jit(circle):
+    """A problem holds its references' params as NumPy arrays (the tuner did, and indexing them by
+    a traced piece index raised TracerArrayConversionError): the same values as the JAX-held path."""
+    _, _, ref = circle
+    held = dataclasses.replace(ref, params=jax.tree_util.tree_map(np.asarray, ref.params))
+    ts = np.linspace(0.0, 20.0, 41)
+    np.testing.assert_array_equal(_jets(held, ts, 3), _jets(ref, ts, 3))
+
+
 def test_gradient_wrt_samples_and_times_matches_finite_differences():
     t = np.linspace(0.0, 5.0, 12)
     xy = np.stack([t, np.sin(t)], axis=1)

@@ -367,6 +367,7 @@ def _piece(ts, s, uniform: bool):
 
 def _horner(pp, ts, s, uniform: bool):
     """The piecewise polynomial ``sum_i pp[j, i] (s - ts[j])^i`` on the piece ``j`` holding ``s``."""
+    ts, pp = jnp.asarray(ts), jnp.asarray(pp)  # params held as NumPy arrays (a problem's) index by tracers too
     j = _piece(ts, s, uniform)
     c = jax.lax.dynamic_index_in_dim(pp, j, axis=0, keepdims=False)  # (k + 1, 2)
     u = s - ts[j]
