@@ -67,10 +67,6 @@ class Signature:
     robot: str
     level: str
 
-    @classmethod
-    def of(cls, step) -> "Signature":
-        return cls(**{f.name: getattr(step, f.name) for f in dataclasses.fields(cls)})
-
 
 @dataclasses.dataclass
 class _Table:

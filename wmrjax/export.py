@@ -45,31 +45,26 @@ from wmrjax.controllers.sampled import SampledLoop, SampledParams, SampledState
 
 
 @dataclasses.dataclass(frozen=True)
-class ControlStep:
-    """One period of a digital controller (see the module's docstring for the signature).
+class ControlStep(_cgen.Signature):
+    """One period of a digital controller (see the module's docstring for the signature): its
+    C interface (:class:`wmrjax._cgen.Signature`: sizes and labels) and the function.
 
     Attributes:
-      fn: ``(t, measured, state) -> (command, state_next, regularity)``, pure and jittable;
-        shapes ``()``, ``(n_measured,)``, ``(n_state,)`` -> ``(n_command,)``, ``(n_state,)``, ``()``.
+      name: a C identifier prefixing the generated functions.
       n_measured: X's components, plus the wheel velocities at torque level.
       n_state: the controller's own state, ``2 n_c + 1`` for a dynamic law (0 for a static one).
       n_command: the plant's inputs.
       n_compensator: n_c, the compensator's components (with the new inputs at torque level).
-      measured_names, command_names, compensator_names: labels, for generated code and reports.
-      robot, level, name: what it controls (static labels).
+      measured_names: labels of ``measured`` (for generated code and reports).
+      command_names: labels of ``command``.
+      compensator_names: labels of the compensator.
+      robot: the robot type it controls, e.g. ``"(2,0)"``.
+      level: ``"velocity"`` or ``"torque"``.
+      fn: ``(t, measured, state) -> (command, state_next, regularity)``, pure and jittable;
+        shapes ``()``, ``(n_measured,)``, ``(n_state,)`` -> ``(n_command,)``, ``(n_state,)``, ``()``.
     """
 
-    fn: Callable = dataclasses.field(repr=False)
-    n_measured: int
-    n_state: int
-    n_command: int
-    n_compensator: int
-    measured_names: tuple
-    command_names: tuple
-    compensator_names: tuple
-    robot: str
-    level: str
-    name: str
+    fn: Callable = dataclasses.field(repr=False, kw_only=True)
 
     def initial_state(self, t0, compensator=()):
         """The controller's state before its first sample at ``t0`` [s]: the compensator's initial
@@ -127,8 +122,8 @@ def control_step(ctrl, params, *, name: str | None = None) -> ControlStep:
     n_c = len(comp)
     fn = _static_step(ctrl, params) if n_c == 0 else _dynamic_step(ctrl, params)
     return ControlStep(
-        fn, len(measured), 2 * n_c + 1 if n_c else 0, len(command), n_c, measured, command, comp,
-        robot, str(ctrl.level), name,
+        name, len(measured), 2 * n_c + 1 if n_c else 0, len(command), n_c, measured, command, comp,
+        robot, str(ctrl.level), fn=fn,
     )  # fmt: skip
 
 
@@ -204,7 +199,7 @@ def generate_c(step: ControlStep) -> dict[str, str]:
     runs one period (``state`` is updated in place), and the sizes as macros. The source needs
     ``math.h`` only (link with ``-lm``).
     """
-    return _cgen.generate(program(step), _cgen.Signature.of(step))
+    return _cgen.generate(program(step), step)
 
 
 class Run(NamedTuple):
