@@ -49,27 +49,18 @@ def test_section_6_1_step_c_and_artifact_agree_over_a_run(tmp_path):
 
 
 @needs_cc
-@pytest.mark.parametrize("kind", ["static"])  # every dynamic torque-level law: the benchmark's export block
-def test_torque_level_steps_agree_on_a_sampled_path(tmp_path, kind):
-    """Torque level on a path sampled at 10 Hz (the spline's pieces as a constant table): a
-    dynamic law ((2,1): its compensator and new inputs carried by the step) and a static law (whose
-    state is the plant's). Every type x level x law: the benchmark's export block."""
-    ctrl = (
-        w.dynamic_linearization("(2,1)", "torque") if kind == "dynamic" else w.static_linearization("(2,0)", "torque")
-    )
-    circle = R.circle(radius=2.0, omega=0.4, heading_offset=getattr(ctrl.row, "default_heading_offset", 0.0))
+def test_torque_level_static_step_agrees_on_a_sampled_path(tmp_path):
+    """Torque level on a path sampled at 10 Hz (the spline's pieces as a constant table), a static
+    law, whose state is the plant's (every dynamic torque-level law: the benchmark's export block)."""
+    ctrl = w.static_linearization("(2,0)", "torque")
+    circle = R.circle(radius=2.0, omega=0.4)
     ts = np.linspace(0.0, 12.0, 121)
-    ref = R.from_samples(
-        ts, np.asarray(jax.vmap(circle.position)(jnp.asarray(ts))), heading_offset=circle.heading_offset
-    )
+    ref = R.from_samples(ts, np.asarray(jax.vmap(circle.position)(jnp.asarray(ts))))
     params = ctrl.params(ref, poles=1.5, geometry=ctrl.row.default_geometry)
-    if kind == "dynamic":
-        z0 = ctrl.reference_state(0.0, params).at[0].add(0.05)
-    else:
-        X0 = jnp.array([2.05, 0.0, jnp.pi / 2])
-        z0 = ctrl.initial_state_from_physical(X0, jnp.array([0.8, 0.4]), params)
+    X0 = jnp.array([2.05, 0.0, jnp.pi / 2])
+    z0 = ctrl.initial_state_from_physical(X0, jnp.array([0.8, 0.4]), params)
     step, c = _checked(tmp_path, ctrl, params, z0, 0.05, 200)
-    assert step.n_state == (0 if kind == "static" else 2 * 5 + 1)
+    assert step.n_state == 0
     assert "static const double table" in (tmp_path / f"{step.name}.c").read_text()
     assert c["jax_vs_simulator"] <= 1e-12 and c["c_vs_jax"] <= 1e-12 and c["artifact_vs_jax"] <= 1e-14
 

@@ -26,8 +26,9 @@ from jax.extend import core as jex_core
 
 # C type of each supported dtype
 _CTYPES = {"float64": "double", "int64": "long long", "int32": "int", "bool": "int", "uint32": "unsigned int"}
-# tables with more elements than this are static const arrays; smaller constants are literals
-TABLE_MIN_ELEMENTS = 2
+# constants with more elements than this (the scalarizer's limit, wmrjax._scalarize.MAX_ELEMENTS:
+# larger arrays stay arrays in the step) are static const tables; smaller ones are literals
+TABLE_MAX_LITERALS = 64
 
 _BINARY = {"add": "({a} + {b})", "add_any": "({a} + {b})", "sub": "({a} - {b})", "mul": "({a} * {b})",
            "div": "({a} / {b})", "lt": "({a} < {b})", "le": "({a} <= {b})", "gt": "({a} > {b})",
@@ -43,7 +44,7 @@ _UNARY_FLOAT = {"neg": "(-{a})", "abs": "fabs({a})", "floor": "floor({a})", "cei
 _IDENTITY = frozenset({"stop_gradient", "copy", "copy_p", "optimization_barrier", "reduce_precision"})
 _INLINE = {"jit": "jaxpr", "pjit": "jaxpr", "closed_call": "call_jaxpr", "core_call": "call_jaxpr",
            "custom_jvp_call": "call_jaxpr", "custom_vjp_call": "call_jaxpr", "custom_vjp_call_jaxpr": "fun_jaxpr",
-           "remat": "jaxpr", "checkpoint": "jaxpr", "custom_lin": None}  # fmt: skip
+           "remat": "jaxpr", "checkpoint": "jaxpr"}  # fmt: skip
 
 _HELPERS = """static double wmr_max(double a, double b) { return (a != a || b != b) ? a + b : (a > b ? a : b); }
 static double wmr_min(double a, double b) { return (a != a || b != b) ? a + b : (a < b ? a : b); }
@@ -124,7 +125,7 @@ class _Emitter:
     def constant(self, value) -> _Val:
         a = np.asarray(value)
         ctype = _ctype(a.dtype)
-        if a.size >= TABLE_MIN_ELEMENTS and a.size > 64:
+        if a.size > TABLE_MAX_LITERALS:
             cname = self.fresh("table")
             self.tables[cname] = (ctype, [self.literal(x, a.dtype) for x in a.reshape(-1)])
             return _Val(a.shape, ctype, table=_Table(cname, a.shape, ctype))
@@ -302,7 +303,7 @@ def _eqn(em: _Emitter, eqn, invals):
     prim, params = eqn.primitive, eqn.params
     name = prim.name
     avals = [v.aval for v in eqn.outvars]
-    if name in _INLINE and _INLINE[name] and _INLINE[name] in params:
+    if name in _INLINE and _INLINE[name] in params:
         sub = params[_INLINE[name]]
         closed = sub if hasattr(sub, "jaxpr") else jex_core.ClosedJaxpr(sub, ())
         return _eval(em, closed.jaxpr, closed.consts, invals)
