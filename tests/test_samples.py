@@ -189,6 +189,28 @@ def test_sampled_plan_is_tracked_as_well_as_the_exact_one():
     assert abs(err_sampled - err_exact) < 1e-5
 
 
+def test_a_traced_horizon_outside_the_samples_fails_the_run():
+    """Under jit or vmap the horizon is not known before compiling, so simulate cannot refuse it:
+    a run whose [t0, t0 + n dt] leaves the samples fails at t0 instead (it ran past them without a
+    word before: failed = False, 0.2 m off the sampled circle). Runs inside the samples in the same
+    batch are unchanged (the same final state as an eager run), and an extrapolated path runs on."""
+    circ = R.circle(radius=2.0, omega=0.5)
+    ts = np.linspace(0.0, 4.0, 81)
+    xy = np.asarray(jax.vmap(circ.position)(jnp.asarray(ts)))
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    p = ctrl.params(R.from_samples(ts, xy), poles=1.0, geometry=w.Geometry())
+    z0 = ctrl.reference_state(0.0, p)
+    run = lambda t0, dt, pp=p: w.simulate(ctrl, z0, pp, dt=dt, n_steps=400, save_every=400, t0=t0)
+    past = jax.jit(run)(0.0, 0.02)  # to 8 s
+    assert bool(past.diagnostics.failed) and float(past.diagnostics.t_failure) == 0.0
+    np.testing.assert_array_equal(past.final_state, z0)  # frozen at the start
+    both = jax.vmap(run, in_axes=(0, None))(jnp.array([0.0, 4.0, -0.5]), 0.01)  # [0, 4], [4, 8], [-0.5, 3.5]
+    assert np.asarray(both.diagnostics.failed).tolist() == [False, True, True]
+    np.testing.assert_allclose(both.final_state[0], run(0.0, 0.01).final_state, rtol=0, atol=1e-13)
+    pe = ctrl.params(R.from_samples(ts, xy, extrapolate=True), poles=1.0, geometry=w.Geometry())
+    assert not bool(jax.jit(lambda dt: run(0.0, dt, pe))(0.02).diagnostics.failed)
+
+
 def test_a_horizon_outside_the_samples_is_refused_unless_extrapolated(tmp_path):
     """Circle samples on [0, 4] s: a run to 8 s, a run from t0 = -1 s, the reference check and a
     Lemma 2 certificate over 8 s are refused by name; with extrapolate=True the run goes on (the

@@ -508,7 +508,8 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
         # stores its residuals instead of recomputing the period
         step = lambda carry, i: step_on_scalars(carry, i, params_parts)
 
-    carry, rec0 = _initial_carry(field, z0, t0, dt, save_fn, carry_k4, post_step is not None and estimate)
+    outside = _outside_samples(params, t0, t0 + n_steps * dt)
+    carry, rec0 = _initial_carry(field, z0, t0, dt, save_fn, carry_k4, post_step is not None and estimate, outside)
     carry, recs = _scan_steps(step, carry, rec0, n_steps, save_every, 1 if sample is None else sample_every)
     return _finish(loop, field, carry, recs, z0, params, t0, n_steps, save_every, margin_floor, error_tol, save_fn)
 
@@ -609,7 +610,27 @@ def _running_update(diag, t, alive, ok, flags: _Flags, finite_next, margin, est)
     )
 
 
-def _initial_carry(field, z0, t0, dt, save_fn, carry_k4: bool, carry_jumps: bool):
+def _outside_samples(params, t0, t_final):
+    """True when [t0, t_final] leaves the samples of a sampled reference in ``params`` (a path
+    defined by data, :meth:`wmrjax.references.Reference.domain`, not extrapolated). A horizon known
+    when ``simulate`` is called is refused before compiling (the controllers' ``check_run``); one
+    traced under jit or vmap is known only here, and fails the run at t0 (False for paths defined
+    at every time)."""
+    from wmrjax.references import DOMAIN_RTOL, Reference
+
+    is_ref = lambda x: isinstance(x, Reference)
+    outside = jnp.zeros((), bool)
+    for ref in (x for x in jax.tree_util.tree_leaves(params, is_leaf=is_ref) if is_ref(x)):
+        dom = ref.domain()
+        if dom is None:
+            continue
+        lo, hi = jnp.max(dom[0]), jnp.min(dom[1])
+        tol = DOMAIN_RTOL * (1.0 + jnp.maximum(jnp.abs(lo), jnp.abs(hi)))
+        outside = outside | (t0 < lo - tol) | (t_final > hi + tol)
+    return outside
+
+
+def _initial_carry(field, z0, t0, dt, save_fn, carry_k4: bool, carry_jumps: bool, outside=False):
     """``(carry, rec0)``: the loop's first carry (scalars of z0, alive, diagnostics, the sign of
     det K, the previous step's last stage when ``carry_k4``, a jump flag when ``carry_jumps``)
     and a record shaped like a step's (zeros), for steps that are not saved."""
@@ -617,8 +638,9 @@ def _initial_carry(field, z0, t0, dt, save_fn, carry_k4: bool, carry_jumps: bool
     first = _first_float(z0)
     bad0 = ~jnp.isfinite(first)
     # a traced dt (under jit or vmap) cannot be refused before compiling: one that is not a
-    # finite number > 0 fails the run at t0 instead of integrating backwards
-    failed0 = bad0 | ~(jnp.isfinite(dt) & (dt > 0))
+    # finite number > 0 fails the run at t0 instead of integrating backwards; so does a traced
+    # horizon that leaves a sampled reference's samples (``outside``)
+    failed0 = bad0 | ~(jnp.isfinite(dt) & (dt > 0)) | outside
     inf = jnp.where(bad0, jnp.inf, jnp.inf * jnp.ones_like(first))
     zero = 0.0 * jnp.where(bad0, 0.0, first)
     diag0 = _Running(bad0, bad0 & False, failed0, jnp.where(failed0, t0, inf), inf, t0 + zero, zero)
