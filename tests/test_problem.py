@@ -143,6 +143,14 @@ def test_cases_pair_settings_and_jobs_take_one():
         Problem.from_dict({**BASE, "case": [{"name": "a"}, {"name": "a"}]})
     with pytest.raises(ProblemError, match=r"\[controller\] robot: listed twice"):
         Problem.from_dict({**BASE, "controller": {"law": "dynamic", "robot": ["(2,0)", "(2,0)"]}})
+    # a value listed twice on any axis ran and counted its runs twice (the probe's BAD cases)
+    with pytest.raises(ProblemError, match=r"\[gains\] poles: 1.0 listed twice in \[1.0, 1.0\]"):
+        Problem.from_dict({**BASE, "gains": {"poles": [1.0, 1.0]}})
+    with pytest.raises(ProblemError, match=r"\[initial\] x: 0.0 listed twice"):
+        Problem.from_dict({**BASE, "initial": {"space": "output", "x": [0.0, 0.0, 0.7]}})
+    with pytest.raises(ProblemError, match=r"\[plant\] input_limit: \[2.0, 1.0\] listed twice"):
+        Problem.from_dict({**BASE, "plant": {"input_limit": [[2.0, 1.0], [2.0, 1.0]]}})
+    assert Problem.from_dict({**BASE, "plant": {"input_limit": [2.0, 2.0]}}).setting("x").plant  # one vector
     q = Problem.from_dict(BASE).with_values({"plant.input_limit": [1.0, 2.0], "geometry.e": 0.2})
     assert q.data["plant"] == {"input_limit": [1.0, 2.0]} and q.setting("x").plant
     with pytest.raises(ProblemError, match=r"\[plant\] control_period = 0.013 s is not a whole number of steps"):

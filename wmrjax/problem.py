@@ -115,9 +115,18 @@ def _is_number(v) -> bool:
 
 
 def axis_values(
-    section: str, key: str, v, *, vector: int | None = None, positive: bool = False, allow_inf: bool = False
+    section: str,
+    key: str,
+    v,
+    *,
+    vector: int | None = None,
+    positive: bool = False,
+    allow_inf: bool = False,
+    axis: bool = True,
 ) -> np.ndarray:
-    """A fixed value, a list (axis) or a ``{min, max, num}`` table -> (n,) or (n, vector) values."""
+    """A fixed value, a list (axis) or a ``{min, max, num}`` table -> (n,) or (n, vector) values.
+    An axis lists each value once; ``axis=False`` reads a list of data (samples) instead, where
+    values may repeat."""
     where = _where(section, key)
     form = (
         "a number, a list of numbers or { min = a, max = b, num = n }"
@@ -147,7 +156,8 @@ def axis_values(
         for r in rows:
             if len(r) != vector:
                 raise ProblemError(f"{where}: expected {form}, got a vector of {len(r)}: {r!r}")
-        return np.array([[number(x) for x in r] for r in rows], float)
+        rows = np.array([[number(x) for x in r] for r in rows], float)
+        return _once(where, rows) if axis else rows
     if isinstance(v, dict):
         if set(v) != {"min", "max", "num"}:
             raise ProblemError(f"{where}: a grid table needs exactly min, max, num; got keys {sorted(v)}")
@@ -161,8 +171,21 @@ def axis_values(
     if isinstance(v, list):
         if not v:
             raise ProblemError(f"{where}: an empty list; expected {form}")
-        return np.array([number(x) for x in v], float)
+        values = np.array([number(x) for x in v], float)
+        return _once(where, values) if axis else values
     return np.array([number(v)], float)
+
+
+def _once(where: str, values: np.ndarray) -> np.ndarray:
+    """``values`` (an axis: (n,) or (n, k)) if no value is listed twice; a value listed twice would
+    run (and count) the same runs twice."""
+    _, first, counts = np.unique(values, axis=0, return_index=True, return_counts=True)
+    if np.any(counts > 1):
+        twice = values[first[np.argmax(counts > 1)]]
+        raise ProblemError(
+            f"{where}: {twice.tolist()!r} listed twice in {values.tolist()!r}: an axis lists each value once"
+        )
+    return values
 
 
 def check_keys(section: str, table, allowed, required=()) -> None:
@@ -1056,7 +1079,7 @@ def _data_reference(fam, rs, base, law):
         data = _read_csv(base / f, cols)
         name = Path(f).stem
     else:
-        data = {c: axis_values("reference", c, rs.get(c, [])) for c in cols}
+        data = {c: axis_values("reference", c, rs.get(c, []), axis=False) for c in cols}
         n = {len(v) for v in data.values()}
         if len(n) != 1:
             raise ProblemError(
