@@ -427,3 +427,19 @@ def test_histogram_of_a_constant_margin():
     counts, edges = np.histogram(*_hist_args(x))
     assert counts.tolist() == [10] and edges[0] < x.min() <= x.max() < edges[1]
     assert _hist_args(np.arange(5.0))[1] == 50
+
+
+def test_a_directory_where_the_sweep_writes_a_file_is_refused_by_name(tmp_path):
+    """A directory named like the state file or a block (the probe of #34: a raw IsADirectoryError
+    traceback) is refused naming it, and left in place: it is not the sweep's to remove."""
+    from experiments.sweep import run as sweep_run
+
+    (tmp_path / sweep_run.STATE_FILE).mkdir()
+    with pytest.raises(ValueError, match=r"sweep_state.json is not a regular file"):
+        sweep_run.read_state(tmp_path)
+    with pytest.raises(ValueError, match=r"sweep_state.json is not a regular file"):
+        sweep_run.prepare(None, tmp_path, fresh=True)
+    sweep_run.block_path(tmp_path, 1).mkdir(parents=True)
+    with pytest.raises(ValueError, match=r"block_000001.npz is not a regular file"):
+        sweep_run.block_done(None, tmp_path, 1)
+    assert sweep_run.block_path(tmp_path, 1).is_dir()

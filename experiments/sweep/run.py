@@ -245,6 +245,7 @@ def block_problem(plan: S.Plan, out: Path, b: int) -> str | None:
 def block_done(plan: S.Plan, out: Path, b: int, log=None) -> bool:
     """Whether block ``b`` is on disk and usable; an unusable file is named (``log``), removed
     and so recomputed."""
+    _check_is_a_file(block_path(out, b))
     why = block_problem(plan, out, b)
     if why is not None:
         (log or (lambda m: print(m, file=sys.stderr, flush=True)))(f"recomputing: {why}")
@@ -253,10 +254,18 @@ def block_done(plan: S.Plan, out: Path, b: int, log=None) -> bool:
     return block_path(out, b).exists()
 
 
+def _check_is_a_file(path: Path) -> None:
+    """ValueError if something that is not a regular file (a directory, a pipe) stands where the
+    sweep writes one of its files: it is not the sweep's to remove."""
+    if path.exists() and not path.is_file():
+        raise ValueError(f"{path} is not a regular file (a directory?): the sweep writes its file there; remove it")
+
+
 def read_state(out: Path):
     p = out / STATE_FILE
     if not p.exists():
         return None
+    _check_is_a_file(p)
     try:
         return json.loads(p.read_text())
     except ValueError as err:
@@ -271,6 +280,7 @@ def prepare(plan: S.Plan, out: Path, fresh: bool) -> int:
     """
     from wmrjax_cli import files
 
+    _check_is_a_file(out / STATE_FILE)  # not even --fresh replaces a directory
     state = None if fresh else read_state(out)  # --fresh discards even a corrupt state file
     blocks = plan.blocks()
     want = {"fingerprint": plan.fingerprint, "n_runs": plan.n_runs, "n_blocks": len(blocks), "block": plan.block}
