@@ -110,6 +110,10 @@ def test_mismatched_parameters_are_refused(paper61):
     p11 = d11.params(R.circle(), poles=1.0, geometry=w.Geometry(L=1.0, e=0.3))
     with pytest.raises(ValueError, match=r"gains.coeffs must have shape \(2, 2\).*got \(2, 3\)"):
         w.simulate(ctrl, z0, p11, dt=0.01, n_steps=10)
+    # complex coefficients: a raw TypeError from inside the law before (the probe of #34)
+    cx = w.Gains(jnp.asarray([[1.0 + 0.5j, 2.0], [1.0, 2.0]]))
+    with pytest.raises(ValueError, match="gains.coeffs must be real.*complex128.*Gains.from_damping"):
+        ctrl.params(R.paper_62(), gains=cx, geometry=w.Geometry(e=0.0))
     stat20 = w.static_linearization("(2,0)")
     sp = stat20.params(R.circle(), geometry=w.Geometry(e=0.3, delta=np.pi / 2))
     with pytest.raises(ValueError, match="params must be the DynamicParams"):

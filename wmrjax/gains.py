@@ -145,6 +145,11 @@ class Gains(NamedTuple):
             return self
         if c.shape != (m, r):
             raise ValueError(f"gains.coeffs must have shape ({m}, {r}) (outputs, relative degree), got {c.shape}")
+        if np.iscomplexobj(c):  # a complex pole pair is two real coefficients (Gains.from_poles)
+            raise ValueError(
+                f"gains.coeffs must be real (the coefficients of real polynomials), got dtype {c.dtype}; "
+                "give complex closed-loop poles with Gains.from_damping (natural frequency and damping)"
+            )
         check_finite("gains.coeffs", c)
         bad = [i for i in range(m) if not np.all(np.roots(np.concatenate([[1.0], c[i, ::-1]])).real < 0)]
         if bad:
