@@ -10,6 +10,11 @@ batch tracking loss with respect to the gains relative to the forward pass.
 
     python -m experiments.benchmark --out results/benchmark [--batches 1024 16384 65536]
 
+On a GPU (``--dtype float32`` for single precision): ``--chunk`` at least the largest batch
+(one chunk: ``batch_map`` is then ``vmap``; its 512-example chunks are for CPU caches) and
+``--baseline-max-batch`` to keep the NumPy and C rows to the batches a CPU finishes quickly;
+``experiments/bench/gpu_benchmark.sh`` is the command the benchmarks page's GPU table ran.
+
 Writes ``summary.json`` (trajectory-steps per second and ratios). No figure: numbers only.
 """
 
@@ -108,6 +113,7 @@ def c_ceiling(batches, source: Path):
 
 
 N_GROUPS = 16  # gradient_many: 16 groups x 4 pole parameters = 64 parameters
+CPU_CHUNK = 512  # batch_map's default: a chunk's working set stays in a core's cache
 
 
 def section_6_1_per_example(ctrl, params, n_steps, groups=None):
@@ -130,7 +136,7 @@ def section_6_1_per_example(ctrl, params, n_steps, groups=None):
     return one
 
 
-def section_6_1_loss(ctrl, params, n_steps, groups=None):
+def section_6_1_loss(ctrl, params, n_steps, groups=None, chunk: int = CPU_CHUNK):
     """Mean squared position error of the section 6.1 loop over a batch of initial states.
 
     ``loss(poles, z0s)``: the mean over the batch of :func:`section_6_1_per_example` (shared
@@ -146,7 +152,7 @@ def section_6_1_loss(ctrl, params, n_steps, groups=None):
     def loss(poles, z0s):
         b = z0s.shape[0]
         pb = jnp.broadcast_to(poles, (b,) + poles.shape)
-        return jnp.mean(w.batch_map(one, pb, z0s, jnp.arange(b), chunk=512))
+        return jnp.mean(w.batch_map(one, pb, z0s, jnp.arange(b), chunk=chunk))
 
     return loss
 
@@ -239,24 +245,33 @@ def run(
     scipy_trajs: int,
     source: Path,
     many_forward: bool = True,
+    dtype: str = "float64",
+    chunk: int = CPU_CHUNK,
+    baseline_max_batch: int | None = None,
 ) -> dict:
-    common.enable_x64()
+    if dtype == "float64":
+        common.enable_x64()
     import jax
 
     ctrl, params, _, _ = common.section_6_1_setup()
-    rows, c_note = _rollout_rows(ctrl, params, batches, reps, source)
+    baselines = [b for b in batches if baseline_max_batch is None or b <= baseline_max_batch]
+    rows, c_note = _rollout_rows(ctrl, params, batches, reps, source, chunk, baselines)
     scipy_rate, nfev = _scipy_rate(scipy_trajs)
-    gradient, gradient_many, by_batch = _gradients(ctrl, params, reps, grad_batch, grad_batches, many_forward)
+    gradient, gradient_many, by_batch = _gradients(ctrl, params, reps, grad_batch, grad_batches, many_forward, chunk)
     summary = {
         "experiment": "benchmark",
         "closed_loop": "section 6.1: (2,0) robot, e = 0, dynamic FL (eq 39), poles -1, reference (62)",
-        "integration": {"method": "RK4", "dt": DT, "steps": N_STEPS, "dtype": "float64"},
+        "integration": {"method": "RK4", "dt": DT, "steps": N_STEPS, "dtype": dtype},
+        "batch_map_chunk": chunk,
+        "baselines": "NumPy, C and SciPy compute in float64 whatever the dtype; NumPy and C rows for batches "
+        + ("of every size" if baseline_max_batch is None else f"up to {baseline_max_batch} trajectories"),
         "machine": {
             "cpu_count": os.cpu_count(),
             "jax_devices": len(jax.devices()),
             "platform": platform.platform(),
             "jax_version": jax.__version__,
             "backend": jax.default_backend(),
+            "device_kind": jax.devices()[0].device_kind,
         },
         "units": "trajectory-steps per second (batch size x 1000 steps / wall time, best of reps, compile excluded)",
         "gradient_timing": "seconds, best of reps x rounds: the forward pass and the gradients timed alternately, "
@@ -278,14 +293,16 @@ def run(
     }
     for b, row in rows.items():
         row["ratio_wmrjax_over_scipy"] = row["wmrjax_batch_map"] / scipy_rate
+        row["ratio_jit_vmap_1_device_over_scipy"] = row["wmrjax_jit_vmap_1_device"] / scipy_rate
     common.write_json(out / "summary.json", summary)
     return summary
 
 
-def _rollout_rows(ctrl, params, batches, reps: int, source: Path):
-    """Per batch size: trajectory-steps per second of wmrjax (batch_map with and without the error
-    estimate, jit(vmap) on one device), vectorised NumPy and the C ceiling, with their ratios;
-    ``(rows, the C ceiling's note)``."""
+def _rollout_rows(ctrl, params, batches, reps: int, source: Path, chunk: int = None, baselines=None):
+    """Per batch size: trajectory-steps per second of wmrjax (batch_map in chunks of ``chunk`` with
+    and without the error estimate, jit(vmap) on one device), vectorised NumPy and the C ceiling
+    (for the ``baselines`` batch sizes, default all), with their ratios; ``(rows, the C ceiling's
+    note)``."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -293,15 +310,17 @@ def _rollout_rows(ctrl, params, batches, reps: int, source: Path):
     import wmrjax as w
 
     sim_final = lambda z: w.simulate(ctrl, z, params, dt=DT, n_steps=N_STEPS, save_every=N_STEPS).final_state
-    fast = jax.jit(lambda z: w.batch_map(sim_final, z, chunk=512))
+    chunk = CPU_CHUNK if chunk is None else chunk
+    baselines = list(batches) if baselines is None else list(baselines)
+    fast = jax.jit(lambda z: w.batch_map(sim_final, z, chunk=chunk))
     # the same loop without the per-step error estimate (error_tol=None): what the guard costs
     sim_bare = lambda z: (
         w.simulate(ctrl, z, params, dt=DT, n_steps=N_STEPS, save_every=N_STEPS, error_tol=None).final_state
     )
-    bare = jax.jit(lambda z: w.batch_map(sim_bare, z, chunk=512))
+    bare = jax.jit(lambda z: w.batch_map(sim_bare, z, chunk=chunk))
     plain = jax.jit(jax.vmap(sim_final))
     rows = {}
-    c_res, c_note = c_ceiling(batches, source)
+    c_res, c_note = c_ceiling(baselines, source) if baselines else (None, "no batch within --baseline-max-batch")
     for b in batches:
         S = initial_states_numpy(b)
         Z = jnp.asarray(S)
@@ -318,10 +337,11 @@ def _rollout_rows(ctrl, params, batches, reps: int, source: Path):
         plain(jax.device_put(Z, jax.devices()[0])).block_until_ready()
         t1, _ = _best_time(lambda: plain(Z).block_until_ready(), reps)
         row["wmrjax_jit_vmap_1_device"] = b * N_STEPS / t1
-        tn, zn = _best_time(lambda: numpy_rollout(S), 1 if b > 20000 else 2)
-        row["numpy_vectorised"] = b * N_STEPS / tn
-        row["max_abs_diff_wmrjax_vs_numpy"] = float(np.max(np.abs(np.asarray(zf) - zn)))
-        if c_res:
+        if b in baselines:
+            tn, zn = _best_time(lambda: numpy_rollout(S), 1 if b > 20000 else 2)
+            row["numpy_vectorised"] = b * N_STEPS / tn
+            row["max_abs_diff_wmrjax_vs_numpy"] = float(np.max(np.abs(np.asarray(zf) - zn)))
+        if c_res and b in c_res:
             row["c_simd_ceiling"] = c_res[b]
             row["ratio_wmrjax_over_c"] = row["wmrjax_batch_map"] / c_res[b]
             row["ratio_wmrjax_no_error_estimate_over_c"] = row["wmrjax_batch_map_no_error_estimate"] / c_res[b]
@@ -331,8 +351,11 @@ def _rollout_rows(ctrl, params, batches, reps: int, source: Path):
         print(
             f"B={b}: wmrjax {row['wmrjax_batch_map'] / 1e6:.2f} M/s (without the error estimate "
             f"{row['wmrjax_batch_map_no_error_estimate'] / 1e6:.2f}; jit(vmap) 1 device "
-            f"{row['wmrjax_jit_vmap_1_device'] / 1e6:.2f}), numpy {row['numpy_vectorised'] / 1e6:.2f}"
-            + (f", C {c_res[b] / 1e6:.2f} -> ratio {row['ratio_wmrjax_over_c']:.2f}" if c_res else ""),
+            f"{row['wmrjax_jit_vmap_1_device'] / 1e6:.2f})"
+            + (f", numpy {row['numpy_vectorised'] / 1e6:.2f}" if "numpy_vectorised" in row else "")
+            + (
+                f", C {c_res[b] / 1e6:.2f} -> ratio {row['ratio_wmrjax_over_c']:.2f}" if "c_simd_ceiling" in row else ""
+            ),
             flush=True,
         )
 
@@ -509,14 +532,14 @@ def _scipy_rate(scipy_trajs: int):
     return scipy_trajs * N_STEPS / ts, nfev
 
 
-def _gradients(ctrl, params, reps: int, grad_batch: int, grad_batches, many_forward: bool):
+def _gradients(ctrl, params, reps: int, grad_batch: int, grad_batches, many_forward: bool, chunk: int = CPU_CHUNK):
     """The gradient timings: 4 shared poles, per-group poles, and by batch size; ``(gradient,
     gradient_many, gradient_by_batch)``."""
     import jax.numpy as jnp
 
     # Gradients: value and gradient of a batch tracking loss relative to its forward pass
     zg = jnp.asarray(initial_states_numpy(grad_batch))
-    loss = section_6_1_loss(ctrl, params, N_STEPS)
+    loss = section_6_1_loss(ctrl, params, N_STEPS, chunk=chunk)
     loss_vg = section_6_1_batch_value_and_grad(ctrl, params, N_STEPS)
     poles = jnp.ones((2, 2))
     compiled = {}
@@ -535,7 +558,7 @@ def _gradients(ctrl, params, reps: int, grad_batch: int, grad_batches, many_forw
     )
     many_poles = jnp.ones((N_GROUPS, 2, 2))
     gradient_many = gradient_ratios(
-        section_6_1_loss(ctrl, params, N_STEPS, groups=N_GROUPS),
+        section_6_1_loss(ctrl, params, N_STEPS, groups=N_GROUPS, chunk=chunk),
         section_6_1_batch_value_and_grad(ctrl, params, N_STEPS, groups=N_GROUPS),
         many_poles,
         zg,
@@ -966,6 +989,24 @@ def _parser():
         help="batch sizes of the rollout comparison [trajectories]",
     )
     p.add_argument("--reps", type=options.count, default=5, help="timed repetitions (best kept)")
+    p.add_argument(
+        "--dtype",
+        choices=("float64", "float32"),
+        default="float64",
+        help="precision of wmrjax's rollouts and gradients (the NumPy, C and SciPy baselines stay float64)",
+    )
+    p.add_argument(
+        "--chunk",
+        type=options.count,
+        default=CPU_CHUNK,
+        help="batch_map's examples per chunk (CPU: cache-sized; GPU: at least the largest batch) [trajectories]",
+    )
+    p.add_argument(
+        "--baseline-max-batch",
+        type=options.count,
+        default=None,
+        help="NumPy and C rows only for batches up to this size (default: every batch) [trajectories]",
+    )
     p.add_argument("--grad-batch", type=options.count, default=1024, help="batch of the gradient timing [trajectories]")
     p.add_argument(
         "--grad-batches",
@@ -1151,6 +1192,9 @@ def main(argv=None) -> int:
         a.scipy_trajectories,
         a.c_source,
         many_forward=a.compile_types != "none",
+        dtype=a.dtype,
+        chunk=a.chunk,
+        baseline_max_batch=a.baseline_max_batch,
     )
     if a.reference_batch > 0:
         s["reference_families"] = {
