@@ -58,3 +58,53 @@ def test_oversized_tuning_and_sweeps_are_refused_before_compiling(monkeypatch):
     sweep_run.check_memory(plan, 1)
     with pytest.raises(ValueError, match=r"2 process\(es\) x 2 device\(s\), each running a block of 256 runs"):
         sweep_run.check_memory(dataclasses.replace(plan, n_steps=400_000), 2, 2)
+
+
+def test_a_reference_check_larger_than_memory_is_refused_before_it_starts(monkeypatch):
+    """The probe's sweep-t-final-1e6: a problem over 1e6 s checked its reference on 2e8 grid points
+    (36 GB) in 512-point blocks, with no estimate and no answer within minutes; the check now
+    estimates itself first (the same model as simulate's) and evaluates nothing."""
+    import wmrjax as w
+    from wmrjax import references as R
+    from wmrjax.controllers import law
+
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    p = ctrl.params(R.circle(radius=2.0, omega=0.5), poles=1.0)
+
+    def no_work(*a, **k):
+        raise AssertionError("the reference was evaluated before the estimate refused the check")
+
+    monkeypatch.setattr(law, "reference_profile", no_work)
+    monkeypatch.setattr(resources, "available_bytes", lambda: 24 * 10**9)
+    expected = resources.check_bytes(1e6, 6) / 1e9  # (r + 1) m = 3 x 2 jet floats per grid point
+    assert expected == pytest.approx(36.0, rel=0.01)
+    with pytest.raises(ValueError, match=r"reference check over \[0, 1e\+06\] s .* needs about 36 GB"):
+        ctrl.check_reference(p, 1e6)
+    with pytest.raises(ValueError, match=r"needs about 36 GB"):
+        w.simulate(ctrl, ctrl.reference_state(0.0, p), p, dt=0.02, n_steps=5 * 10**7, save_every=5 * 10**7)
+
+
+def test_the_long_horizon_check_program_agrees_with_the_block_program(monkeypatch):
+    """Grids above law.LONG_CHECK_POINTS are evaluated by an optimized program in larger blocks:
+    the same jets, regularity and branch as the 512-point blocks (to rounding), and the same kink
+    found on a path with a corner."""
+    import numpy as np
+
+    import wmrjax as w
+    from wmrjax import references as R
+    from wmrjax.controllers import law
+
+    ctrl = w.dynamic_linearization("(2,0)", "velocity")
+    p = ctrl.params(R.circle(radius=2.0, omega=0.5), poles=1.0)
+    short = law.reference_profile(ctrl, p, 0.0, 12.0, 0.005)
+    monkeypatch.setattr(law, "LONG_CHECK_POINTS", 1000)
+    monkeypatch.setattr(law, "LONG_BLOCK", 1024)
+    long = law.reference_profile(ctrl, p, 0.0, 12.0, 0.005)
+    assert long[0].size == short[0].size == 2401
+    for a, b in zip(short, long):
+        np.testing.assert_allclose(b, a, rtol=1e-13, atol=1e-13)
+    import refpaths
+
+    pk = ctrl.params(R.from_function(refpaths.kink, name="kinked"), poles=1.0)  # its speed jumps at t = 2 s
+    with pytest.raises(ValueError, match=r"order 1 jumps between t = .* and 2 s"):
+        ctrl.check_reference(pk, 5.0)

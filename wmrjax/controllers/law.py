@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax._src import core as jax_core  # trace_state_clean: whether a call happens inside a trace
 
-from wmrjax import _math, linearize, robots
+from wmrjax import _math, linearize, resources, robots
 from wmrjax._validate import check_finite, check_real, check_shape, concrete, is_concrete
 from wmrjax.gains import Gains, GainSchedule
 from wmrjax.references import Reference, check_domain
@@ -410,6 +410,13 @@ _BLOCK = 512  # grid points per compiled evaluation (one compilation per control
 # optimization level, which halves its compile (its values differ at most by rounding, far
 # below the check's floor and kink tolerance)
 CHECK_COMPILE = {"xla_backend_optimization_level": 0}
+# Long horizons: that program computes a grid point several times slower than an optimized one
+# and pays a call per 512 points, so a grid of more than LONG_CHECK_POINTS points (a horizon of
+# about 1300 s) is evaluated by a second program, compiled at the default level, in blocks of
+# LONG_BLOCK points: its one extra compile is then smaller than what it saves (the benchmarks
+# page has the per-point costs).
+LONG_CHECK_POINTS = 2**18
+LONG_BLOCK = 2**16
 KINK_TOLERANCE = 1e-3  # relative jump of a derivative (per unit step) flagged as a kink
 
 # RK4's stability function R(s) = 1 + s + s^2/2 + s^3/6 + s^4/24; |R| <= 1 on its region
@@ -431,12 +438,15 @@ def rk4_max_step(poles) -> float:
     return lo
 
 
-@functools.partial(jax.jit, static_argnums=0, compiler_options=CHECK_COMPILE)
-def _reference_profile(ctrl, ts, params):
+def _profile_on(ctrl, ts, params):
     """The reference jet (n, r + 1, m) and the controller's regularity of the reference on ``ts``."""
     jets = jax.vmap(lambda t: ctrl.reference_jet(t, params))(ts)
     level, branch = jax.vmap(lambda t: ctrl.reference_regularity(t, params))(ts)
     return jets, level, branch
+
+
+_reference_profile = functools.partial(jax.jit, static_argnums=0, compiler_options=CHECK_COMPILE)(_profile_on)
+_reference_profile_long = functools.partial(jax.jit, static_argnums=0)(_profile_on)
 
 
 def reference_profile(ctrl, params, t0: float, t_final: float, step: float = REFERENCE_GRID_STEP):
@@ -446,15 +456,16 @@ def reference_profile(ctrl, params, t0: float, t_final: float, step: float = REF
         return None  # traced (inside vmap/shard_map): checked by the caller
     n = max(2, int(np.ceil((t_final - t0) / step - 1e-9)) + 1)
     ts = np.linspace(t0, t_final, n)
+    block, program = (_BLOCK, _reference_profile) if n <= LONG_CHECK_POINTS else (LONG_BLOCK, _reference_profile_long)
     blocks = []
-    for i in range(0, n, _BLOCK):
-        tb = ts[i : i + _BLOCK]
-        pad = np.concatenate([tb, np.full(_BLOCK - tb.size, tb[-1])])
+    for i in range(0, n, block):
+        tb = ts[i : i + block]
+        pad = np.concatenate([tb, np.full(block - tb.size, tb[-1])])
         if jax_core.trace_state_clean():  # the compiled program, called as it is
-            out = _reference_profile(ctrl, jnp.asarray(pad, dtype=jnp.result_type(float)), params)
+            out = program(ctrl, jnp.asarray(pad, dtype=jnp.result_type(float)), params)
         else:  # concrete params inside an outer jit: still checked (slower: the call is traced each time)
             with jax.ensure_compile_time_eval():
-                out = _reference_profile(ctrl, jnp.asarray(pad, dtype=jnp.result_type(float)), params)
+                out = program(ctrl, jnp.asarray(pad, dtype=jnp.result_type(float)), params)
         out = [concrete(x) for x in out]
         if any(x is None for x in out):
             return None
@@ -686,6 +697,11 @@ class LinearizingController:
         if not t_final > t0:
             raise ValueError(f"the horizon must end after it starts: t0 = {t0} s, t_final = {t_final} s")
         check_domain(params.reference, t0, t_final)
+        resources.check_fits(
+            resources.Estimate(0.0, resources.check_bytes(t_final - t0, resources.jet_floats(self))),
+            f"the reference check over [{t0:g}, {t_final:g}] s (its derivatives every {REFERENCE_GRID_STEP / 2:g} s)",
+            "shorten the horizon",
+        )
         # a grid of half the spacing: the kink test runs on its even and its odd points, so a jump
         # in the middle of an interval of one lies on a point of the other (residual >= J h / 4)
         prof = reference_profile(self, params, t0, t_final, REFERENCE_GRID_STEP / 2)
