@@ -10,10 +10,10 @@ batch tracking loss with respect to the gains relative to the forward pass.
 
     python -m experiments.benchmark --out results/benchmark [--batches 1024 16384 65536]
 
-On a GPU (``--dtype float32`` for single precision): ``--chunk`` at least the largest batch
-(one chunk: ``batch_map`` is then ``vmap``; its 512-example chunks are for CPU caches) and
-``--baseline-max-batch`` to keep the NumPy and C rows to the batches a CPU finishes quickly;
-``experiments/bench/gpu_benchmark.sh`` is the command the benchmarks page's GPU table ran.
+On a GPU (``--dtype float32`` for single precision): ``batch_map`` and
+``batch_value_and_grad`` run one chunk per device there by default (their 512- and 256-example
+chunks are for CPU caches), and ``--baseline-max-batch`` keeps the NumPy and C rows to the
+batches a CPU finishes quickly; ``experiments/bench/gpu_benchmark.sh`` is the command the benchmarks page's GPU table ran.
 
 Writes ``summary.json`` (trajectory-steps per second and ratios). No figure: numbers only.
 """
@@ -113,7 +113,6 @@ def c_ceiling(batches, source: Path):
 
 
 N_GROUPS = 16  # gradient_many: 16 groups x 4 pole parameters = 64 parameters
-CPU_CHUNK = 512  # batch_map's default: a chunk's working set stays in a core's cache
 
 
 def section_6_1_per_example(ctrl, params, n_steps, groups=None):
@@ -136,7 +135,7 @@ def section_6_1_per_example(ctrl, params, n_steps, groups=None):
     return one
 
 
-def section_6_1_loss(ctrl, params, n_steps, groups=None, chunk: int = CPU_CHUNK):
+def section_6_1_loss(ctrl, params, n_steps, groups=None, chunk: int | None = None):
     """Mean squared position error of the section 6.1 loop over a batch of initial states.
 
     ``loss(poles, z0s)``: the mean over the batch of :func:`section_6_1_per_example` (shared
@@ -157,7 +156,7 @@ def section_6_1_loss(ctrl, params, n_steps, groups=None, chunk: int = CPU_CHUNK)
     return loss
 
 
-def section_6_1_batch_value_and_grad(ctrl, params, n_steps, groups=None, mode="auto"):
+def section_6_1_batch_value_and_grad(ctrl, params, n_steps, groups=None, mode="auto", chunk: int | None = None):
     """``vg(poles, z0s) -> (loss, grad)`` of :func:`section_6_1_loss` by
     :func:`wmrjax.batch_value_and_grad` (per-example reverse mode above
     ``wmrjax.autodiff.BATCH_FORWARD_MAX_PARAMETERS`` = 1 parameter)."""
@@ -165,7 +164,7 @@ def section_6_1_batch_value_and_grad(ctrl, params, n_steps, groups=None, mode="a
 
     import wmrjax as w
 
-    vg = w.batch_value_and_grad(section_6_1_per_example(ctrl, params, n_steps, groups), mode=mode)
+    vg = w.batch_value_and_grad(section_6_1_per_example(ctrl, params, n_steps, groups), mode=mode, chunk=chunk)
     return lambda poles, z0s: vg(poles, z0s, jnp.arange(z0s.shape[0]))
 
 
@@ -246,7 +245,7 @@ def run(
     source: Path,
     many_forward: bool = True,
     dtype: str = "float64",
-    chunk: int = CPU_CHUNK,
+    chunk: int | None = None,
     baseline_max_batch: int | None = None,
 ) -> dict:
     if dtype == "float64":
@@ -262,7 +261,10 @@ def run(
         "experiment": "benchmark",
         "closed_loop": "section 6.1: (2,0) robot, e = 0, dynamic FL (eq 39), poles -1, reference (62)",
         "integration": {"method": "RK4", "dt": DT, "steps": N_STEPS, "dtype": dtype},
-        "batch_map_chunk": chunk,
+        "batch_map_chunk": chunk
+        if chunk is not None
+        else "the library's default (512 on CPUs, 256 for "
+        "per-example reverse mode; one chunk per device on accelerators)",
         "baselines": "NumPy, C and SciPy compute in float64 whatever the dtype; NumPy and C rows for batches "
         + ("of every size" if baseline_max_batch is None else f"up to {baseline_max_batch} trajectories"),
         "machine": {
@@ -298,7 +300,7 @@ def run(
     return summary
 
 
-def _rollout_rows(ctrl, params, batches, reps: int, source: Path, chunk: int = None, baselines=None):
+def _rollout_rows(ctrl, params, batches, reps: int, source: Path, chunk: int | None = None, baselines=None):
     """Per batch size: trajectory-steps per second of wmrjax (batch_map in chunks of ``chunk`` with
     and without the error estimate, jit(vmap) on one device), vectorised NumPy and the C ceiling
     (for the ``baselines`` batch sizes, default all), with their ratios; ``(rows, the C ceiling's
@@ -310,7 +312,6 @@ def _rollout_rows(ctrl, params, batches, reps: int, source: Path, chunk: int = N
     import wmrjax as w
 
     sim_final = lambda z: w.simulate(ctrl, z, params, dt=DT, n_steps=N_STEPS, save_every=N_STEPS).final_state
-    chunk = CPU_CHUNK if chunk is None else chunk
     baselines = list(batches) if baselines is None else list(baselines)
     fast = jax.jit(lambda z: w.batch_map(sim_final, z, chunk=chunk))
     # the same loop without the per-step error estimate (error_tol=None): what the guard costs
@@ -532,7 +533,7 @@ def _scipy_rate(scipy_trajs: int):
     return scipy_trajs * N_STEPS / ts, nfev
 
 
-def _gradients(ctrl, params, reps: int, grad_batch: int, grad_batches, many_forward: bool, chunk: int = CPU_CHUNK):
+def _gradients(ctrl, params, reps: int, grad_batch: int, grad_batches, many_forward: bool, chunk: int | None = None):
     """The gradient timings: 4 shared poles, per-group poles, and by batch size; ``(gradient,
     gradient_many, gradient_by_batch)``."""
     import jax.numpy as jnp
@@ -540,7 +541,7 @@ def _gradients(ctrl, params, reps: int, grad_batch: int, grad_batches, many_forw
     # Gradients: value and gradient of a batch tracking loss relative to its forward pass
     zg = jnp.asarray(initial_states_numpy(grad_batch))
     loss = section_6_1_loss(ctrl, params, N_STEPS, chunk=chunk)
-    loss_vg = section_6_1_batch_value_and_grad(ctrl, params, N_STEPS)
+    loss_vg = section_6_1_batch_value_and_grad(ctrl, params, N_STEPS, chunk=chunk)
     poles = jnp.ones((2, 2))
     compiled = {}
     gradient = gradient_ratios(loss, loss_vg, poles, zg, reps, ("forward", "reverse"), compiled)
@@ -559,7 +560,7 @@ def _gradients(ctrl, params, reps: int, grad_batch: int, grad_batches, many_forw
     many_poles = jnp.ones((N_GROUPS, 2, 2))
     gradient_many = gradient_ratios(
         section_6_1_loss(ctrl, params, N_STEPS, groups=N_GROUPS, chunk=chunk),
-        section_6_1_batch_value_and_grad(ctrl, params, N_STEPS, groups=N_GROUPS),
+        section_6_1_batch_value_and_grad(ctrl, params, N_STEPS, groups=N_GROUPS, chunk=chunk),
         many_poles,
         zg,
         reps,
@@ -998,8 +999,9 @@ def _parser():
     p.add_argument(
         "--chunk",
         type=options.count,
-        default=CPU_CHUNK,
-        help="batch_map's examples per chunk (CPU: cache-sized; GPU: at least the largest batch) [trajectories]",
+        default=None,
+        help="batch_map's examples per chunk (default: the library's, 512 on CPUs and one chunk on a GPU) "
+        "[trajectories]",
     )
     p.add_argument(
         "--baseline-max-batch",

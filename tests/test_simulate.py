@@ -306,3 +306,18 @@ def test_bad_controller_arguments(paper61):
         w.dynamic_linearization("(2,0)", level="acceleration")
     with pytest.raises(ValueError, match="geometry.L must be != 0"):
         w.dynamic_linearization("(1,1)").params(params.reference, geometry=w.Geometry(L=0.0))
+
+
+def test_batch_map_chunks_for_cpu_caches_and_not_on_accelerators():
+    """On a GPU, batch_value_and_grad's 256-example reverse chunks ran 65 536 examples as 256
+    sequential programs: 518x the forward pass (docs/benchmarks.md, H100). The default chunk is
+    now the CPU's cache-sized one on CPU devices only, one chunk per device elsewhere."""
+    from types import SimpleNamespace
+
+    from wmrjax.autodiff import BATCH_REVERSE_CHUNK
+    from wmrjax.simulate import CPU_CHUNK, batch_mesh, default_chunk
+
+    gpus = SimpleNamespace(devices=np.array([SimpleNamespace(platform="gpu")] * 2))
+    assert default_chunk(gpus) is None and default_chunk(gpus, BATCH_REVERSE_CHUNK) is None
+    assert default_chunk(batch_mesh()) == CPU_CHUNK == 512
+    assert default_chunk(batch_mesh(), BATCH_REVERSE_CHUNK) == 256

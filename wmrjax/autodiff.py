@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
-from wmrjax.simulate import batch_map
+from wmrjax.simulate import batch_map, batch_mesh, default_chunk
 
 MODES = ("auto", "forward", "reverse")
 
@@ -181,8 +181,10 @@ def batch_value_and_grad(
       argnums: the shared argument(s) to differentiate (pytrees of floating arrays).
       has_aux: ``fun`` also returns auxiliary data; it comes back per example, stacked (B, ...).
       mode: ``"auto"``, ``"forward"`` or ``"reverse"``.
-      chunk: examples per chunk of :func:`wmrjax.batch_map` (default: 512 in forward mode,
-        :data:`BATCH_REVERSE_CHUNK` in reverse mode, whose chunks also hold their residuals).
+      chunk: examples per chunk of :func:`wmrjax.batch_map` (default on CPUs: 512 in forward
+        mode, :data:`BATCH_REVERSE_CHUNK` in reverse mode, whose chunks also hold their
+        residuals; on accelerators one chunk per device, as :func:`wmrjax.batch_map`'s default:
+        give a chunk there to bound the residuals' memory of a very large batch).
       mesh: as in :func:`wmrjax.batch_map`.
 
     Returns:
@@ -210,13 +212,15 @@ def batch_value_and_grad(
         if choose_mode(n_par, mode, BATCH_FORWARD_MAX_PARAMETERS) == "forward":
 
             def mean_loss(*a):
-                out = batch_map(checked, *spread(a), chunk=512 if chunk is None else chunk, mesh=mesh)
+                out = batch_map(checked, *spread(a), chunk=chunk, mesh=mesh)
                 return (jnp.mean(out[0]), out[1]) if has_aux else jnp.mean(out)
 
             return value_and_grad(mean_loss, argnums, has_aux=has_aux, mode="forward")(*args)
 
         per_example = jax.value_and_grad(checked, nums, has_aux=has_aux)
-        reverse_chunk = BATCH_REVERSE_CHUNK if chunk is None else chunk
+        reverse_chunk = (
+            default_chunk(batch_mesh() if mesh is None else mesh, BATCH_REVERSE_CHUNK) if chunk is None else chunk
+        )
         out, grads = batch_map(per_example, *spread(args), chunk=reverse_chunk, mesh=mesh)
         grads = jax.tree_util.tree_map(lambda g: jnp.mean(g, axis=0), grads)
         grads = grads[0] if single else grads

@@ -2,7 +2,7 @@
 # The benchmark on one GPU, float64 then float32: the command behind the GPU table of
 # docs/benchmarks.md. Usage: bash experiments/bench/gpu_benchmark.sh OUT [SECONDS_PER_DTYPE]
 # Run from the repository root in an environment with jax[cuda] and the cli extra. Only the
-# blocks a GPU changes: the rollout (batch_map in one chunk, i.e. vmap), the gradients and the
+# blocks a GPU changes: the rollout (batch_map: one chunk on a GPU by default), the gradients and the
 # reference families; compile tables, memory (host RSS), tuner and exported C steps are CPU work.
 # If the jaxpr rewriters fail on the installed JAX, the run is repeated without them
 # (WMRJAX_JAXPR_REWRITES=0) and the log says so.
@@ -21,7 +21,7 @@ bench() {  # dtype; the sampled-reference rows need float64 (its smoothness chec
     local refs=65536
     [ "$1" = float64 ] || refs=0
     timeout "$limit" python3 -m experiments.benchmark --out "$out/$1" --dtype "$1" \
-        --batches 1024 16384 262144 1048576 --baseline-max-batch 16384 --chunk 1048576 \
+        --batches 1024 16384 262144 1048576 --baseline-max-batch 16384 \
         --grad-batch 1024 --grad-batches 1024 65536 --reps 5 --scipy-trajectories 2 \
         --reference-batch "$refs" --compile-types none --memory-batch 0 --no-memory-estimates \
         --export-samples 0 --tuner-problems
