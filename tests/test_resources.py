@@ -108,3 +108,27 @@ def test_the_long_horizon_check_program_agrees_with_the_block_program(monkeypatc
     pk = ctrl.params(R.from_function(refpaths.kink, name="kinked"), poles=1.0)  # its speed jumps at t = 2 s
     with pytest.raises(ValueError, match=r"order 1 jumps between t = .* and 2 s"):
         ctrl.check_reference(pk, 5.0)
+
+
+def test_the_memory_available_respects_the_processes_own_limits():
+    """A process under an address-space limit (``ulimit -v``, as a batch job or the probe runs it)
+    took the machine's free memory for its own: a 1e8-run grid passed the estimate and failed with
+    a raw MemoryError. The limit now bounds the memory available, so the refusal comes first."""
+    import subprocess
+    import sys
+
+    script = (
+        "import resource\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (3 * 10**9, resource.RLIM_INFINITY))\n"
+        "from wmrjax import resources\n"
+        "a = resources.available_bytes()\n"
+        "assert 0 < a <= 3 * 10**9, a\n"
+        "assert resources._machine_available() > a\n"
+        "try:\n"
+        "    resources.check_fits(resources.Estimate(0.0, 2.9e9), 'two point nine GB', 'less')\n"
+        "except ValueError as err:\n"
+        "    print(err)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "two point nine GB needs about 2.9 GB" in r.stdout and "available now" in r.stdout

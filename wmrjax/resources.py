@@ -71,8 +71,16 @@ class Estimate(NamedTuple):
 
 
 def available_bytes() -> int | None:
-    """Memory available to a new allocation now [bytes] (``MemAvailable`` on Linux, else the
-    physical memory), None where unknown."""
+    """Memory available to a new allocation now [bytes], None where unknown: the least of the
+    machine's (``MemAvailable`` on Linux, else the physical memory), what the process's control
+    group may still take (cgroup v2 ``memory.max`` or v1 ``memory.limit_in_bytes``, less its
+    current use: a container's or a batch job's limit) and what its address-space limit
+    (``ulimit -v``) leaves beside the address space it holds."""
+    found = [x for x in (_machine_available(), _cgroup_available(), _address_space_available()) if x is not None]
+    return min(found) if found else None
+
+
+def _machine_available() -> int | None:
     try:
         with open("/proc/meminfo") as fh:
             for line in fh:
@@ -84,6 +92,63 @@ def available_bytes() -> int | None:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (AttributeError, ValueError, OSError):  # pragma: no cover - non-POSIX
         return None
+
+
+def _read_int(path: str) -> int | None:
+    try:
+        with open(path) as fh:
+            text = fh.read().strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None  # "max": no limit
+
+
+# a cgroup v1 memory limit at or above this is the kernel's "unlimited" (a page-rounded 2^63)
+_CGROUP_V1_UNLIMITED = 2**62
+
+
+def _cgroup_available() -> int | None:
+    """The process's control group's memory limit less its use [bytes], None without a limit."""
+    try:
+        with open("/proc/self/cgroup") as fh:
+            lines = fh.read().splitlines()
+    except OSError:
+        return None
+    for line in lines:
+        hier, controllers, path = (line.split(":", 2) + ["", ""])[:3]
+        if hier == "0" and controllers == "":  # v2: one unified hierarchy
+            base = "/sys/fs/cgroup" + path.rstrip("/")
+            limit, used = _read_int(base + "/memory.max"), _read_int(base + "/memory.current")
+        elif "memory" in controllers.split(","):  # v1: the memory controller's hierarchy
+            base = "/sys/fs/cgroup/memory" + path.rstrip("/")
+            limit, used = _read_int(base + "/memory.limit_in_bytes"), _read_int(base + "/memory.usage_in_bytes")
+            limit = None if limit is not None and limit >= _CGROUP_V1_UNLIMITED else limit
+        else:
+            continue
+        if limit is not None:
+            return max(0, limit - (used or 0))
+    return None
+
+
+def _address_space_available() -> int | None:
+    """``RLIMIT_AS`` less the address space the process holds (``VmSize``) [bytes], None if unlimited."""
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    except (ImportError, OSError, ValueError):  # pragma: no cover - non-POSIX
+        return None
+    if soft == resource.RLIM_INFINITY or soft < 0:
+        return None
+    held = 0
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmSize:"):
+                    held = int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return max(0, soft - held)
 
 
 def samples_bytes(n_samples: int, n_state: int, itemsize: int = 8, runs: int = 1) -> float:
