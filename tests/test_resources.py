@@ -54,6 +54,10 @@ def test_oversized_tuning_and_sweeps_are_refused_before_compiling(monkeypatch):
         r"130 GB .* lower the training scenarios \(--n-train\)",
     ):
         loop.check_memory(setting, sc._replace(train=10**6))
+    # the probe's tuning-n-heldout-1e8: every scenario set is drawn at once (no estimate: the
+    # process ran into the memory limit, its heartbeat printing "still working")
+    with pytest.raises(ValueError, match=r"drawing 100000\d+ scenarios .* held-out 100000000\) .* --n-heldout"):
+        loop.check_memory(setting, sc._replace(heldout=10**8))
     plan = S.load(M.SWEEP_FILE)
     sweep_run.check_memory(plan, 1)
     with pytest.raises(ValueError, match=r"2 process\(es\) x 2 device\(s\), each running a block of 256 runs"):

@@ -372,6 +372,11 @@ def _check_state(path: Path, step: int, state: dict, n_params: int) -> None:
 # --- the loop --------------------------------------------------------------------------------------
 
 
+# copies of the scenario sets alive while they are drawn: their keys, the drawn batch, its slices
+SCENARIO_COPIES = 3
+KEY_BYTES = 8  # a PRNG key per scenario (two uint32)
+
+
 def check_memory(setting, scenarios: Scenarios) -> None:
     """ValueError before anything compiles when a gradient step over ``scenarios.train`` runs
     (reverse mode through every step) would not fit in memory (:mod:`wmrjax.resources`)."""
@@ -383,6 +388,17 @@ def check_memory(setting, scenarios: Scenarios) -> None:
         est,
         f"a gradient step over {scenarios.train} training scenarios of {setting.n_steps} steps",
         "lower the training scenarios (--n-train) or the horizon, or raise dt",
+    )
+    # every scenario set is drawn at once and held for the whole tuning (a held-out set of 1e8
+    # scenarios ran into the memory limit with no estimate): its arrays, sized from one scenario
+    n_all = scenarios.train + scenarios.validation + scenarios.heldout
+    one = jax.eval_shape(lambda k: draw_set(setting, scenarios.mismatch, k), jax.random.split(jax.random.PRNGKey(0), 1))
+    per = sum(int(np.prod(x.shape[1:])) * np.dtype(x.dtype).itemsize for x in jax.tree_util.tree_leaves(one))
+    resources.check_fits(
+        resources.Estimate(SCENARIO_COPIES * n_all * (per + KEY_BYTES), 0.0),
+        f"drawing {n_all} scenarios (training {scenarios.train}, validation {scenarios.validation}, "
+        f"held-out {scenarios.heldout}) of {per} bytes each",
+        "lower --n-train, --n-validation or --n-heldout",
     )
 
 
