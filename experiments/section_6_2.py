@@ -301,7 +301,11 @@ def main(argv=None) -> int:
             f"argument --t-final: must exceed 10 s (the reference (66) stops at t = 10 s and parking follows), "
             f"got {a.t_final}"
         )
-    options.check_horizon(p, t_final=a.t_final, dt=a.dt, n_state=10)  # the single run keeps every step
+    n = options.check_horizon(p, t_final=a.t_final, dt=a.dt, n_state=10)  # the single run keeps every step
+    if a.n_batch:  # the batch keeps each run's first and last state
+        options.check_horizon(
+            p, t_final=a.t_final, dt=a.dt, batch=a.n_batch, n_state=10, saved_every=n, fix="lower --n-batch"
+        )
     s = options.work(
         p,
         a,

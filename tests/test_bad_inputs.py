@@ -417,6 +417,7 @@ CROSS_CASES = [  # (cli, argv, what the message must say)
     ("section_6_1", ["--dt", "1e-9"], "GB of memory available now"),
     ("section_6_2", ["--t-final", "5"], "must exceed 10 s"),
     ("section_6_2", ["--dt", "1e-9"], "GB of memory available now"),
+    ("section_6_2", ["--n-batch", "100000000"], "memory available now: lower --n-batch"),
     ("posture_tracking", ["--types", "(9,9)"], "argument --types: unknown robot type"),
     ("posture_tracking", ["--types", "(3,0)"], "not among"),
     ("posture_tracking", ["--t-final", "inf"], "argument --t-final: must be finite"),

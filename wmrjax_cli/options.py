@@ -193,10 +193,12 @@ def check_horizon(
     saved_every: int = 1,
     t_name: str = "--t-final",
     dt_name: str = "--dt",
+    fix: str | None = None,
 ) -> int:
     """Steps of a run of ``t_final`` in steps of ``dt``; exits if the step exceeds the horizon,
     the horizon is not a whole number of steps (to 1e-6), or the saved samples of ``batch``
-    runs would not fit in the memory available now (:mod:`wmrjax.resources`)."""
+    runs would not fit in the memory available now (:mod:`wmrjax.resources`; ``fix``: what the
+    message tells the user to change, by default the step or the horizon)."""
     if dt > t_final:
         fail(p, f"{dt_name} = {dt} s is longer than the horizon {t_name} = {t_final} s")
     steps = t_final / dt
@@ -207,7 +209,7 @@ def check_horizon(
     est = resources.Estimate(resources.samples_bytes(n // saved_every + 1, n_state, 8, batch), 0.0)
     try:
         resources.check_fits(
-            est, f"{t_name} / {dt_name} = {n} steps for {batch} runs", f"raise {dt_name} or shorten {t_name}"
+            est, f"{t_name} / {dt_name} = {n} steps for {batch} runs", fix or f"raise {dt_name} or shorten {t_name}"
         )
     except ValueError as err:
         fail(p, str(err))
