@@ -186,6 +186,31 @@ def _api_cases():
         lambda c, p, z: jax.jit(lambda q: C.lemma2(c, q, t_final=10.0, eps=0.01).exact_norm.radius)(p),
         "lemma2 runs eagerly",
     )
+    # the probe's POOR cases of session 21: raw TracerArrayConversionErrors and a raw TypeError
+    add(
+        "exact-map-under-jit",
+        lambda c, p, z: jax.jit(lambda q: C.exact_map_radius(c, q, t_final=10.0, eps=0.01).radius)(p),
+        "exact_map_radius runs eagerly",
+    )
+    add(
+        "gain-schedule-traced-knots",
+        lambda c, p, z: jax.jit(
+            lambda ts: w.GainSchedule.from_damping(ts, jnp.ones((2, 2, 1)), jnp.ones((2, 2, 1))).omega
+        )(jnp.array([0.0, 5.0])),
+        "knot times, which must be concrete",
+    )
+    add(
+        "complex-path-from-function",
+        lambda c, p, z: c.params(
+            R.from_function(
+                lambda t, q: jnp.stack(
+                    [jax.lax.complex(2 * jnp.cos(0.5 * t), 0.1 * t), jax.lax.complex(2 * jnp.sin(0.5 * t), 0.0 * t)]
+                )
+            ),
+            poles=1.0,
+        ),
+        "returns complex numbers",
+    )
     for v in ("(4,0)", "(2,2)", "abc", None):
         add(f"robot-type-{v!r}", lambda c, p, z, v=v: w.dynamic_linearization(v), "type")
     add("level", lambda c, p, z: w.dynamic_linearization("(2,0)", "acceleration"), "level must be one of")

@@ -324,3 +324,17 @@ def test_reference_checked_under_an_outer_jit(ctrl61):
     z0 = ctrl61.reference_state(0.0, params)
     with pytest.raises(ValueError, match="not smooth enough"):
         jax.jit(lambda z: w.simulate(ctrl61, z, params, dt=0.01, n_steps=500).final_state)(z0)
+
+
+def test_check_reference_with_a_traced_horizon_says_it_checked_nothing(ctrl61):
+    """It returned without a word (the probe's check-reference-traced-horizon): a user who calls
+    it under jit believes the reference was checked."""
+    p66 = ctrl61.params(R.paper_66(), poles=1.0, geometry=w.Geometry(e=0.0))  # stops at t = 10 s
+    with pytest.warns(UserWarning, match=r"t_final is traced .* not checked"):
+        jax.jit(lambda T: ctrl61.check_reference(p66, T))(15.0)
+    import warnings
+
+    with warnings.catch_warnings():  # simulate under jit checks with its concrete horizon, silently
+        warnings.simplefilter("error")
+        z0 = ctrl61.reference_state(0.0, p66)
+        jax.jit(lambda z: w.simulate(ctrl61, z, p66, dt=0.01, n_steps=50).final_state)(z0)

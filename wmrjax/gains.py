@@ -271,10 +271,16 @@ class GainSchedule(NamedTuple):
         """A checked schedule from knot values (see the class attributes for the shapes).
 
         Raises:
-          ValueError: fewer than 2 knots, knot times not strictly increasing or not finite,
-            a non-positive parameter, or shapes that disagree.
+          ValueError: fewer than 2 knots, knot times not strictly increasing or not finite or
+            traced (under ``jax.jit``), a non-positive parameter, or shapes that disagree.
         """
-        ts = np.asarray(times, float)
+        ts = concrete(times)
+        if ts is None:
+            raise ValueError(
+                "GainSchedule.from_damping checks its knot times, which must be concrete (NumPy or a "
+                "list): build the schedule outside jax.jit / jax.vmap; its omega, zeta and lam may be traced"
+            )
+        ts = np.asarray(ts, float)
         if ts.ndim != 1 or ts.size < 2:
             raise ValueError(
                 f"a gain schedule needs at least 2 knot times (a (K,) array, K >= 2), got shape {ts.shape}"

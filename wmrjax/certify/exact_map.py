@@ -23,7 +23,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import _math, linearize
-from wmrjax.certify.lemma2 import TRANSITION_STEP, check_dynamic, check_lemma2_args, m1_closed_form, transition_steps
+from wmrjax.certify.lemma2 import (
+    TRANSITION_STEP,
+    check_dynamic,
+    check_eager,
+    check_lemma2_args,
+    m1_closed_form,
+    transition_steps,
+)
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 
 
@@ -172,6 +179,7 @@ def exact_map_radius(
       ValueError: bad eps/horizon or a reference within eps of the singular set.
     """
     check_dynamic(ctrl, params)
+    check_eager("exact_map_radius", params, "its grid over t and golden-section refinement need values")
     check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
     rows = singular_rows(ctrl)
     scheduled = params.gains.time_varying

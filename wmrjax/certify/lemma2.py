@@ -37,6 +37,20 @@ from wmrjax.references import check_domain
 # --- M1 -------------------------------------------------------------------------------
 
 
+def check_eager(name: str, params, why: str) -> None:
+    """ValueError when ``params`` are traced (inside ``jax.jit`` or ``jax.vmap``): ``name`` runs
+    eagerly (``why``); a raw TracerArrayConversionError otherwise."""
+    if any(concrete(x) is None for x in jax.tree_util.tree_leaves(params)):
+        raise ValueError(
+            f"{name} runs eagerly ({why}): call it outside jax.jit / jax.vmap, with concrete params"
+            + (
+                "; differentiable_exact_map_radius is the version that runs under jit, grad and vmap"
+                if name == "exact_map_radius"
+                else ""
+            )
+        )
+
+
 def check_dynamic(ctrl, params=None) -> None:
     """ValueError unless ``ctrl`` is a dynamic linearizing law (the only one Lemma 2 is about)
     and ``params`` (when given) are its parameters."""
@@ -312,11 +326,7 @@ def lemma2(
         min F, or a reference within eps of the singular set.
     """
     check_dynamic(ctrl, params)
-    if any(concrete(x) is None for x in jax.tree_util.tree_leaves(params)):
-        raise ValueError(
-            "lemma2 runs eagerly (its grid search and refinement need values): call it outside "
-            "jax.jit / jax.vmap, with concrete params (a raw TracerArrayConversionError before)"
-        )
+    check_eager("lemma2", params, "its grid search and refinement need values")
     if not isinstance(m1, str) or m1 not in M1_METHODS:
         raise ValueError(f"m1 must be one of {M1_METHODS}, got {m1!r}")
     if isinstance(n_t, bool) or not isinstance(n_t, (int, np.integer)) or n_t < MIN_GRID:

@@ -28,6 +28,7 @@ import dataclasses
 import enum
 import functools
 import math
+import warnings
 from typing import Any, Callable, NamedTuple, Protocol, runtime_checkable
 
 import jax
@@ -394,6 +395,11 @@ def check_reference_type(reference) -> None:
             f"reference {reference.name!r}: its path(t, params) cannot be traced by JAX ({type(exc).__name__}: "
             f"{str(exc).splitlines()[0][:200]}); write it with jax.numpy so that its derivatives exist"
         ) from None
+    if getattr(out, "dtype", None) is not None and jnp.issubdtype(out.dtype, jnp.complexfloating):
+        raise ValueError(
+            f"reference {reference.name!r}: path(t, params) returns complex numbers ({out.dtype}); a "
+            "position (x, y) must be real [m]"
+        )
     if getattr(out, "shape", None) != (2,):
         raise ValueError(
             f"reference {reference.name!r}: path(t, params) must return the position (x, y) of shape (2,) "
@@ -686,10 +692,16 @@ class LinearizingController:
     def check_reference(self, params, t_final, *, t0=0.0, floor: float = 1e-6) -> None:
         """ValueError if the reference is unusable on [t0, t_final]: it reaches the singular set
         (a stop, a reversal, the wrong branch) or has a kink (a jump in a derivative the law
-        uses), checked on a grid of spacing <= :data:`REFERENCE_GRID_STEP`. No-op for traced params."""
+        uses), checked on a grid of spacing <= :data:`REFERENCE_GRID_STEP`. No-op for traced params;
+        with a traced ``t0`` or ``t_final`` it warns that nothing was checked (checks are eager)."""
         for name, v in (("t0", t0), ("t_final", t_final)):
             c = concrete(v)
-            if c is None:
+            if c is None:  # simulate calls it with concrete times only: this is a user's own call
+                warnings.warn(
+                    f"check_reference: {name} is traced (inside jax.jit or jax.vmap), so the reference is "
+                    "not checked; call check_reference outside the trace with concrete times",
+                    stacklevel=2,
+                )
                 return
             if not (np.ndim(c) == 0 and np.isfinite(c)):
                 raise ValueError(f"{name} must be a finite time [s], got {v!r}")
