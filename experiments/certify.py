@@ -132,7 +132,14 @@ def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title="
 
 def run(out, problem, case=None, progress=None) -> dict:
     """Certify the problem's closed loop; writes ``summary.json`` and ``slice_map.png`` in ``out``."""
-    say = progress or (lambda msg: print(msg, flush=True))
+    report_progress = progress or (lambda msg: print(msg, flush=True))
+    stages = []  # (message, time): the timing block charges each stretch to the message ending it
+    started = time.perf_counter()
+
+    def say(msg):
+        stages.append((msg, time.perf_counter()))
+        report_progress(msg)
+
     common.enable_x64()
     t0 = time.time()
     cfg = settings(problem)
@@ -190,8 +197,18 @@ def run(out, problem, case=None, progress=None) -> dict:
         title=f"{ctrl.robot.name} along {setting.reference.name}: initial position errors",
     )
     summary["wall_time_s"] = time.time() - t0
+    summary["timing"] = _timing(stages, started, time.perf_counter())
     common.write_json(out / "summary.json", summary)
     return summary
+
+
+def _timing(stages, start: float, end: float) -> list:
+    """Seconds between consecutive progress messages, each charged to the later one (the
+    pipeline reports a stage when it ends: the time is the work behind that line, compiling
+    included); a last entry for what follows the last message."""
+    times = [start] + [t for _, t in stages] + [end]
+    names = [msg for msg, _ in stages] + ["after the last message (figure, summary)"]
+    return [{"stage": m, "seconds": round(b - a, 3)} for m, a, b in zip(names, times[:-1], times[1:])]
 
 
 # option -> dotted key of the problem file it sets

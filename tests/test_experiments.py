@@ -72,5 +72,9 @@ def test_certify_cli(tmp_path):
     assert on_disk["alarms"] == []
     assert Problem.from_dict(on_disk["problem"]).resolved() == problem.resolved()
     assert on_disk["geometry"] == {"L": 1.0, "e": 0.0, "delta": 0.0} and on_disk["heading_offset"] == 0.3
+    timing = on_disk["timing"]  # where the time went, stage by stage, adding up to the whole run
+    assert len(timing) >= 5 and all(t["seconds"] >= 0 and t["stage"] for t in timing)
+    assert any("Lemma 2" in t["stage"] for t in timing) and timing[-1]["stage"].startswith("after the last")
+    assert sum(t["seconds"] for t in timing) == pytest.approx(on_disk["wall_time_s"], abs=0.5)
     with pytest.raises(SystemExit):
         certify.main(["--robot", "(9,9)", "--out", str(tmp_path)])
