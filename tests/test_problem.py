@@ -111,6 +111,17 @@ def test_gains_in_every_form_and_files_of_another_controller(tmp_path):
     (tmp_path / "summary.json").write_text(json.dumps(summary))
     with pytest.raises(ProblemError, match="gains tuned for type \\(1,1\\)"):
         Problem.from_dict({**BASE, "gains": {"file": "summary.json"}}, base=tmp_path)
+    # the probe's gains-summary-own-robot: a summary of a problem that left the level to its
+    # default was refused as not saying whose gains they are; the level defaults as the file's did
+    # (and a current summary says robot, level and law itself)
+    summary["problem"]["controller"] = {"law": "dynamic", "robot": "(2,0)"}
+    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    p = Problem.from_dict({**BASE, "gains": {"file": "summary.json"}}, base=tmp_path)
+    np.testing.assert_array_equal(np.asarray(p.setting("t").gains().coeffs), np.asarray(tuned.coeffs))
+    summary.update(robot="(1,1)", level="velocity", law="dynamic")
+    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(ProblemError, match="gains tuned for type \\(1,1\\)"):
+        Problem.from_dict({**BASE, "gains": {"file": "summary.json"}}, base=tmp_path)
     (tmp_path / "anon.json").write_text(
         json.dumps({k: v for k, v in same_shape.items() if k not in ("robot", "level")})
     )

@@ -382,6 +382,7 @@ def test_cli_writes_summary_and_gains(tmp_path):
     gains = json.loads((out / "gains.json").read_text())
     assert (gains["kind"], gains["robot"], gains["level"]) == ("wmrjax.gains", "(2,0)", "velocity")
     np.testing.assert_allclose(gains["coefficients"], on_disk["tuned_gains"]["coefficients_k0_to_kr-1"], rtol=1e-15)
+    assert [on_disk[k] for k in ("robot", "level", "law")] == [gains[k] for k in ("robot", "level", "law")]
     # every reported radius is the certify module's for the same gains, read back from gains.json
     from wmrjax import certify
 

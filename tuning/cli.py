@@ -660,6 +660,10 @@ def _summary(
         "problem": problem.resolved(),
         "tune": settings.as_dict(),
         "controller": f"{type(ctrl).__name__} of type {ctrl.robot.name}, {ctrl.level} level",
+        # whose gains these are, as gains.json says it (this summary is a gains file too)
+        "robot": ctrl.robot.name,
+        "level": str(ctrl.level),
+        "law": "dynamic" if ctrl.law.extension.n_comp else "static",
         "n_parameters": family.size,
         "gain_family": (
             "gain schedule, knots at " + ", ".join(f"{t:g}" for t in family.knots) + " s"

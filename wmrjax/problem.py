@@ -1285,6 +1285,22 @@ def gains_file_dict(gains, ctrl) -> dict:
     }
 
 
+def _summary_controller(data: dict) -> tuple:
+    """``(robot, level, law)`` a tuning summary says it tuned (None where it does not): its own
+    keys, else its resolved problem's controller, whose level defaults as a problem file's does
+    (a summary of a problem that left the level out was refused as saying nothing), else the
+    older summaries' config."""
+    if isinstance(data.get("robot"), str) and isinstance(data.get("level"), str):
+        return data["robot"], data["level"], data.get("law")
+    prob = data.get("problem") if isinstance(data.get("problem"), dict) else {}
+    if isinstance(prob.get("controller"), dict):
+        cfg = prob["controller"]
+        level = cfg.get("level", str(Level.VELOCITY) if isinstance(cfg.get("robot"), str) else None)
+        return cfg.get("robot"), level, cfg.get("law")
+    cfg = data.get("config") if isinstance(data.get("config"), dict) else {}
+    return cfg.get("robot"), cfg.get("level"), cfg.get("law")
+
+
 def read_gains_file(path: Path, ctrl=None) -> GainsFile:
     """A tuned-gains file: ``gains.json`` of ``python -m tuning`` (kind ``wmrjax.gains``), or a
     tuning ``summary.json`` (its ``tuned_gains``). With ``ctrl``: refused unless tuned for this
@@ -1304,14 +1320,7 @@ def read_gains_file(path: Path, ctrl=None) -> GainsFile:
         robot, level, law = data.get("robot"), data.get("level"), data.get("law")
     elif isinstance(data.get("tuned_gains"), dict) and "coefficients_k0_to_kr-1" in data["tuned_gains"]:
         body = {"coefficients": data["tuned_gains"]["coefficients_k0_to_kr-1"]}
-        # where the summary says what it tuned: its resolved problem (older summaries: config)
-        prob = data.get("problem") if isinstance(data.get("problem"), dict) else {}
-        cfg = (
-            prob.get("controller")
-            if isinstance(prob.get("controller"), dict)
-            else (data.get("config") if isinstance(data.get("config"), dict) else {})
-        )
-        robot, level, law = cfg.get("robot"), cfg.get("level"), cfg.get("law")
+        robot, level, law = _summary_controller(data)
     else:
         raise ProblemError(
             f'{where}: neither a gains file (kind = "{GAIN_FILE_KIND}") nor a tuning summary '
