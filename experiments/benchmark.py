@@ -977,6 +977,65 @@ def memory_estimates(progress=print) -> dict:
     return rows
 
 
+# --- cold starts: every default job in a fresh process, empty compilation cache (#36) ----------
+
+_S_PATH = "experiments/problems/s_path.toml"
+
+
+def cold_start_jobs() -> dict:
+    """The default jobs a user starts, by name: ``python -m`` arguments before ``--out``."""
+    root = Path(__file__).resolve().parent.parent
+    jobs = {"section_6_1": ["experiments.section_6_1"], "section_6_2": ["experiments.section_6_2"]}
+    for t in ("(2,0)", "(2,1)", "(1,1)", "(1,2)"):
+        jobs[f"certify_{t}_figure_eight"] = ["experiments.certify", "--robot", t, "--reference", "figure_eight"]
+    for f in sorted((root / "tuning" / "problems").glob("*.toml")):
+        jobs[f"tuning_{f.stem}"] = ["tuning", "--problem", f.stem]
+    for f in sorted((root / "experiments" / "sweeps").glob("*.toml")):
+        jobs[f"sweep_{f.stem}"] = ["experiments.sweep", str(f.relative_to(root))]
+    for job, module in (("sweep", "experiments.sweep"), ("tuning", "tuning"), ("certify", "experiments.certify")):
+        jobs[f"s_path_{job}"] = [module, _S_PATH]
+    return jobs
+
+
+def _timed_job(argv: list, out: Path, cache: Path) -> dict:
+    """One run of ``python -m ARGV --out OUT --compile-cache CACHE`` from the repository root."""
+    root = Path(__file__).resolve().parent.parent
+    t0 = time.perf_counter()
+    r = subprocess.run(
+        [sys.executable, "-m", *argv, "--out", str(out), "--compile-cache", str(cache)],
+        cwd=root,
+        env=dict(os.environ, PYTHONPATH=str(root)),
+        capture_output=True,
+        text=True,
+    )
+    row = {"wall_s": round(time.perf_counter() - t0, 2), "exit": r.returncode}
+    if r.returncode:
+        row["stderr_tail"] = r.stderr[-500:]
+    return row
+
+
+def cold_start_rows(jobs: dict, progress=print) -> dict:
+    """Per job: wall time in a fresh process with an empty persistent compilation cache (cold),
+    then again reading the cache that run wrote (warm), and the compile share ``1 - warm / cold``
+    (what a second start saves: compiling, not computing; tracing is in both)."""
+    rows = {}
+    for name, argv in jobs.items():
+        with tempfile.TemporaryDirectory() as d:
+            cold = _timed_job(argv, Path(d) / "cold", Path(d) / "cache")
+            warm = _timed_job(argv, Path(d) / "warm", Path(d) / "cache")
+        row = {"command": "python -m " + " ".join(argv), "cold_s": cold["wall_s"], "warm_s": warm["wall_s"]}
+        row["compile_share"] = round(1.0 - warm["wall_s"] / cold["wall_s"], 3) if cold["wall_s"] > 0 else None
+        row["exit"] = max(cold["exit"], warm["exit"])
+        if "stderr_tail" in cold or "stderr_tail" in warm:
+            row["stderr_tail"] = cold.get("stderr_tail") or warm.get("stderr_tail")
+        rows[name] = row
+        progress(
+            f"cold start {name}: {row['cold_s']:.1f} s cold, {row['warm_s']:.1f} s warm "
+            f"(compile share {row['compile_share']}), exit {row['exit']}"
+        )
+    return rows
+
+
 def _parser():
     """The command's options (the workers' hidden ones included)."""
     from wmrjax_cli import options
@@ -1064,6 +1123,14 @@ def _parser():
         action=argparse.BooleanOptionalAction,
         default=True,
         help="the memory model against measured peaks in fresh processes (minutes)",
+    )
+    p.add_argument(
+        "--cold-start",
+        nargs="*",
+        default=[],
+        metavar="JOB",
+        help="default jobs timed in fresh processes, cold (empty compilation cache) and warm: names from "
+        "experiments.benchmark.cold_start_jobs(), or 'all' (tens of minutes); none: skip",
     )
     _tuner_options(p)
     p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
@@ -1181,6 +1248,9 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     if a.worker:
         return _run_worker(a)
+    unknown = [n for n in a.cold_start if n not in cold_start_jobs() and a.cold_start != ["all"]]
+    if unknown:  # before any work
+        p.error(f"argument --cold-start: unknown job(s) {unknown}; expected 'all' or some of {list(cold_start_jobs())}")
     options.prepare_output(p, a.out)
     options.use_compilation_cache(a)
     flag = f"--xla_force_host_platform_device_count={a.devices}"
@@ -1226,6 +1296,14 @@ def main(argv=None) -> int:
         s["tuner"] = tuner_times(a.tuner_problems, a.tuner_baseline, a.tuner_rounds)
     if a.memory_estimates:
         s["memory_estimates"] = memory_estimates()
+    if a.cold_start:
+        jobs = cold_start_jobs()
+        names = list(jobs) if a.cold_start == ["all"] else a.cold_start
+        s["cold_start"] = {
+            "what": "wall seconds of each default job in a fresh process: cold (empty persistent compilation "
+            "cache), then warm (the cache the cold run wrote); compile_share = 1 - warm / cold",
+            "jobs": cold_start_rows({n: jobs[n] for n in names}),
+        }
     common.write_json(a.out / "summary.json", s)
     _print_summary(s, a.out)
     outside = [k for k, m in s.get("memory_estimates", {}).items() if not m["within"]]

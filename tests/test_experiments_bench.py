@@ -4,6 +4,11 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
+
+import pytest
+
+from experiments import benchmark as M
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -69,3 +74,21 @@ def test_benchmark_cli_smoke(tmp_path):
     assert (g["mode"], g["n_parameters"], many["mode"], many["n_parameters"]) == ("reverse", 4, "reverse", 64)
     assert many["grad_finite"] and set(s["gradient_by_batch"]) == {"8"} and "compile" not in s and "memory" not in s
     assert "tuner" not in s
+
+
+def test_cold_start_rows_time_fresh_processes_and_refuse_unknown_jobs(tmp_path, capsys):
+    """The cold-start block (#36): each job twice in a fresh process, the second reading the
+    compilation cache the first wrote; a job name it does not know is refused before any work."""
+    jobs = M.cold_start_jobs()
+    assert {"section_6_1", "section_6_2", "s_path_certify", "tuning_car_schedule", "certify_(1,2)_figure_eight"} <= set(
+        jobs
+    )
+    assert {n for n in jobs if n.startswith("sweep_")} == {
+        "sweep_" + f.stem for f in (Path(ROOT) / "experiments" / "sweeps").glob("*.toml")
+    }
+    rows = M.cold_start_rows({"help": ["experiments.benchmark", "--help"]}, progress=lambda m: None)
+    r = rows["help"]
+    assert r["exit"] == 0 and r["cold_s"] > 0 and r["warm_s"] > 0 and r["compile_share"] < 1
+    with pytest.raises(SystemExit):
+        M.main(["--out", str(tmp_path / "b"), "--cold-start", "section_6_9"])
+    assert "unknown job(s) ['section_6_9']" in capsys.readouterr().err and not (tmp_path / "b").exists()
