@@ -986,7 +986,9 @@ def cold_start_jobs() -> dict:
     """The default jobs a user starts, by name: ``python -m`` arguments before ``--out``."""
     root = Path(__file__).resolve().parent.parent
     jobs = {"section_6_1": ["experiments.section_6_1"], "section_6_2": ["experiments.section_6_2"]}
-    for t in ("(2,0)", "(2,1)", "(1,1)", "(1,2)"):
+    from wmrjax.controllers import TABLE4  # the types with a dynamic linearizing law: certify's
+
+    for t in sorted(TABLE4):
         jobs[f"certify_{t}_figure_eight"] = ["experiments.certify", "--robot", t, "--reference", "figure_eight"]
     for f in sorted((root / "tuning" / "problems").glob("*.toml")):
         jobs[f"tuning_{f.stem}"] = ["tuning", "--problem", f.stem]
