@@ -1051,25 +1051,7 @@ def _parser():
         help="batch sizes of the rollout comparison [trajectories]",
     )
     p.add_argument("--reps", type=options.count, default=5, help="timed repetitions (best kept)")
-    p.add_argument(
-        "--dtype",
-        choices=("float64", "float32"),
-        default="float64",
-        help="precision of wmrjax's rollouts and gradients (the NumPy, C and SciPy baselines stay float64)",
-    )
-    p.add_argument(
-        "--chunk",
-        type=options.count,
-        default=None,
-        help="batch_map's examples per chunk (default: the library's, 512 on CPUs and one chunk on a GPU) "
-        "[trajectories]",
-    )
-    p.add_argument(
-        "--baseline-max-batch",
-        type=options.count,
-        default=None,
-        help="NumPy and C rows only for batches up to this size (default: every batch) [trajectories]",
-    )
+    _device_options(p)
     p.add_argument("--grad-batch", type=options.count, default=1024, help="batch of the gradient timing [trajectories]")
     p.add_argument(
         "--grad-batches",
@@ -1120,6 +1102,41 @@ def _parser():
         help="periods of the closed-loop run each exported control step (every type x level x law) is checked over (0: skip)",
     )
     p.add_argument("--cc", default="cc", help="the C compiler of the exported steps ('none': skip their C)")
+    _slow_block_options(p)
+    _tuner_options(p)
+    p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
+    p.add_argument("--case", help=argparse.SUPPRESS)
+    p.add_argument("--worker-batch", type=options.count, default=256, help=argparse.SUPPRESS)
+    return p
+
+
+def _device_options(p) -> None:
+    """The precision, the chunking and the baselines' reach: what a GPU run sets."""
+    from wmrjax_cli import options
+
+    p.add_argument(
+        "--dtype",
+        choices=("float64", "float32"),
+        default="float64",
+        help="precision of wmrjax's rollouts and gradients (the NumPy, C and SciPy baselines stay float64)",
+    )
+    p.add_argument(
+        "--chunk",
+        type=options.count,
+        default=None,
+        help="batch_map's examples per chunk (default: the library's, 512 on CPUs and one chunk on a GPU) "
+        "[trajectories]",
+    )
+    p.add_argument(
+        "--baseline-max-batch",
+        type=options.count,
+        default=None,
+        help="NumPy and C rows only for batches up to this size (default: every batch) [trajectories]",
+    )
+
+
+def _slow_block_options(p) -> None:
+    """The blocks that take minutes: the memory model's calibration and the cold starts."""
     p.add_argument(
         "--memory-estimates",
         action=argparse.BooleanOptionalAction,
@@ -1134,11 +1151,6 @@ def _parser():
         help="default jobs timed in fresh processes, cold (empty compilation cache) and warm: names from "
         "experiments.benchmark.cold_start_jobs(), or 'all' (tens of minutes); none: skip",
     )
-    _tuner_options(p)
-    p.add_argument("--worker", choices=("compile", "memory"), help=argparse.SUPPRESS)
-    p.add_argument("--case", help=argparse.SUPPRESS)
-    p.add_argument("--worker-batch", type=options.count, default=256, help=argparse.SUPPRESS)
-    return p
 
 
 def _levels():

@@ -189,17 +189,23 @@ def test_sampled_plan_is_tracked_as_well_as_the_exact_one():
     assert abs(err_sampled - err_exact) < 1e-5
 
 
-def test_a_traced_horizon_outside_the_samples_fails_the_run():
-    """Under jit or vmap the horizon is not known before compiling, so simulate cannot refuse it:
-    a run whose [t0, t0 + n dt] leaves the samples fails at t0 instead (it ran past them without a
-    word before: failed = False, 0.2 m off the sampled circle). Runs inside the samples in the same
-    batch are unchanged (the same final state as an eager run), and an extrapolated path runs on."""
+def _circle_on_0_4():
+    """A circle sampled at 20 Hz on [0, 4] s and the (2,0) velocity-level loop on it:
+    ``(circle, ts, xy, ctrl, params, z0 on the reference)``."""
     circ = R.circle(radius=2.0, omega=0.5)
     ts = np.linspace(0.0, 4.0, 81)
     xy = np.asarray(jax.vmap(circ.position)(jnp.asarray(ts)))
     ctrl = w.dynamic_linearization("(2,0)", "velocity")
     p = ctrl.params(R.from_samples(ts, xy), poles=1.0, geometry=w.Geometry())
-    z0 = ctrl.reference_state(0.0, p)
+    return circ, ts, xy, ctrl, p, ctrl.reference_state(0.0, p)
+
+
+def test_a_traced_horizon_outside_the_samples_fails_the_run():
+    """Under jit or vmap the horizon is not known before compiling, so simulate cannot refuse it:
+    a run whose [t0, t0 + n dt] leaves the samples fails at t0 instead (it ran past them without a
+    word before: failed = False, 0.2 m off the sampled circle). Runs inside the samples in the same
+    batch are unchanged (the same final state as an eager run), and an extrapolated path runs on."""
+    circ, ts, xy, ctrl, p, z0 = _circle_on_0_4()
     run = lambda t0, dt, pp=p: w.simulate(ctrl, z0, pp, dt=dt, n_steps=400, save_every=400, t0=t0)
     past = jax.jit(run)(0.0, 0.02)  # to 8 s
     assert bool(past.diagnostics.failed) and float(past.diagnostics.t_failure) == 0.0
@@ -219,12 +225,7 @@ def test_a_horizon_outside_the_samples_is_refused_unless_extrapolated(tmp_path):
     from wmrjax import certify as C
     from wmrjax.problem import Problem, ProblemError
 
-    circ = R.circle(radius=2.0, omega=0.5)
-    ts = np.linspace(0.0, 4.0, 81)
-    xy = np.asarray(jax.vmap(circ.position)(jnp.asarray(ts)))
-    ctrl = w.dynamic_linearization("(2,0)", "velocity")
-    p = ctrl.params(R.from_samples(ts, xy), poles=1.0, geometry=w.Geometry())
-    z0 = ctrl.reference_state(0.0, p)
+    circ, ts, xy, ctrl, p, z0 = _circle_on_0_4()
     lo, hi = p.reference.domain()
     assert float(lo) == 0.0 and float(hi) == 4.0 and circ.domain() is None
     with pytest.raises(

@@ -649,6 +649,7 @@ def _summary(
     import numpy as np
 
     from tuning import loop
+    from wmrjax.problem import gains_owner
 
     hist = res.history
     m_paper, m_tuned = (jax.tree_util.tree_map(lambda x: x[i], ho_m) for i in (0, 1))
@@ -660,10 +661,7 @@ def _summary(
         "problem": problem.resolved(),
         "tune": settings.as_dict(),
         "controller": f"{type(ctrl).__name__} of type {ctrl.robot.name}, {ctrl.level} level",
-        # whose gains these are, as gains.json says it (this summary is a gains file too)
-        "robot": ctrl.robot.name,
-        "level": str(ctrl.level),
-        "law": "dynamic" if ctrl.law.extension.n_comp else "static",
+        **gains_owner(ctrl),  # whose gains, as gains.json says it: this summary is a gains file too
         "n_parameters": family.size,
         "gain_family": (
             "gain schedule, knots at " + ", ".join(f"{t:g}" for t in family.knots) + " s"

@@ -1270,14 +1270,22 @@ class GainsFile:
         return {"coefficients": jax.tree_util.tree_map(lambda x: np.asarray(x).tolist(), self.gains.coeffs)}
 
 
+def gains_owner(ctrl) -> dict:
+    """Whose gains a file holds, as gains files and tuning summaries say it: ``robot``, ``level``
+    and ``law`` (``"dynamic"`` or ``"static"``) of ``ctrl``."""
+    return {
+        "robot": ctrl.robot.name,
+        "level": str(ctrl.level),
+        "law": "dynamic" if ctrl.law.extension.n_comp else "static",
+    }
+
+
 def gains_file_dict(gains, ctrl) -> dict:
     """The JSON of a tuned-gains file for ``gains`` (:class:`wmrjax.Gains` or a schedule) of ``ctrl``."""
     body = GainsFile(gains, None, None, None).to_problem()
     return {
         "kind": GAIN_FILE_KIND,
-        "robot": ctrl.robot.name,
-        "level": str(ctrl.level),
-        "law": "dynamic" if ctrl.law.extension.n_comp else "static",
+        **gains_owner(ctrl),
         **body,
         "poles_re_im": [[[float(p.real), float(p.imag)] for p in row] for row in np.atleast_2d(gains.poles())]
         if not getattr(gains, "time_varying", False)
