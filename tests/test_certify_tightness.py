@@ -102,3 +102,30 @@ def test_curved_exact_map_12_is_bracketed_by_a_proved_lower_bound(curved12):
             dt=0.002,
         )
         assert float(d[0]) > 1e-2 and not bool(sing[0]) and (float(d[1]) < 1e-2 or bool(sing[1]))
+
+
+def test_certifier_programs_call_no_lapack(curved12):
+    """The certifier's batched programs hold no LAPACK call. jaxlib's CPU LAPACK kernels split a
+    large batch over XLA's thread pool and block a pool thread until it is done; two of them at once
+    on a 2-thread pool waited for each other forever (the (1,2) figure-eight certification hung in
+    every run in its branch and bound, two batched SVDs of one program)."""
+    import importlib
+
+    X = importlib.import_module("wmrjax.certify.exact_map")
+    L2 = importlib.import_module("wmrjax.certify.lemma2")  # the package exports a function of that name
+
+    c12, params, _ = curved12
+    P = C.slice_basis(c12, "full")
+    f64 = jnp.result_type(float)
+    one, box = jnp.asarray(0.5, f64), jnp.linspace(0.0, 1.0, 64, dtype=f64)
+    programs = {
+        "curved boxes": X._curved_boxes.lower(c12, params, P, one, one, one, box, box + 0.1, box, box + 0.1),
+        "curved centres": X._curved_centres.lower(c12, params, P, one, box, box),
+        "heading reach": X._heading_reach.lower(c12, params, P, box, 0.1, one, one),
+        "k2 exact": L2._k2_exact.lower(c12.error_matrix(params.gains), box),
+        "k2 transition": jax.jit(lambda g: L2.k2_transition(g, np.linspace(0.0, 1.0, 64))).lower(params.gains),
+    }
+    for name, lowered in programs.items():
+        text = lowered.as_text()
+        assert "lapack" not in text.lower(), name
+        assert "custom_call" not in text, name

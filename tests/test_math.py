@@ -67,3 +67,57 @@ def test_taylor_rules_of_sincos_and_atan2_match_nested_jvp(t):
         rtol=0,
         atol=0,
     )
+
+
+@pytest.mark.parametrize("shape", [(2, 2), (2, 6), (4, 4), (6, 6), (3, 5), (5, 2), (1, 3), (3, 1)])
+def test_svd_small_against_numpy(shape, rng):
+    """Singular values to 2e-15 of the largest (NumPy's LAPACK SVD), U diag(s) Vt = M, orthonormal
+    factors, at magnitudes from 1e-3 to 1e3 and at 1e-217 (a long horizon's expm(A t))."""
+    for scale in (1e-3, 1.0, 1e3, 1e-217):
+        M = rng.normal(size=shape) * scale
+        U, s, Vt = jax.jit(_math.svd_small)(jnp.asarray(M))
+        ref = np.linalg.svd(M, compute_uv=False)
+        np.testing.assert_allclose(np.asarray(s), ref, rtol=0, atol=2e-15 * ref[0])
+        assert np.all(np.diff(np.asarray(s)) <= 0)
+        np.testing.assert_allclose(np.asarray(U) @ np.diag(np.asarray(s)) @ np.asarray(Vt), M, atol=1e-14 * ref[0])
+        k = min(shape)
+        np.testing.assert_allclose(np.asarray(U).T @ np.asarray(U), np.eye(k), atol=1e-14)
+        np.testing.assert_allclose(np.asarray(Vt) @ np.asarray(Vt).T, np.eye(k), atol=1e-14)
+        np.testing.assert_allclose(float(_math.spectral_norm(jnp.asarray(M))), ref[0], rtol=2e-15)
+
+
+def test_svd_small_of_a_rank_deficient_matrix_has_finite_factors():
+    """A zero singular value gets a zero row of Vt (not NaN): the exact map multiplies it by zero."""
+    M = jnp.asarray([[1.0, 2.0, 3.0], [2.0, 4.0, 6.0]])
+    U, s, Vt = _math.svd_small(M)
+    np.testing.assert_allclose(np.asarray(s), np.linalg.svd(np.asarray(M), compute_uv=False), atol=1e-15)
+    assert np.all(np.isfinite(np.asarray(Vt))) and float(s[1]) < 1e-15
+
+
+def test_spectral_norm_gradient_matches_lapack(rng):
+    """Its gradient is u1 v1^T (the largest singular pair): equal to the LAPACK norm's, both modes."""
+    M = jnp.asarray(rng.normal(size=(4, 4)))
+    ref = jax.grad(lambda m: jnp.linalg.norm(m, 2))(M)
+    np.testing.assert_allclose(np.asarray(jax.grad(_math.spectral_norm)(M)), np.asarray(ref), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(jax.jacfwd(_math.spectral_norm)(M)), np.asarray(ref), atol=1e-12)
+
+
+def test_expm_small_against_scipy_and_its_derivatives(rng):
+    """Against SciPy's expm (Al-Mohy and Higham) from ||A|| = 0 to 1e3 (companion matrices of the
+    error dynamics included), and its derivatives in both modes against jax.scipy.linalg.expm's."""
+    from scipy.linalg import expm
+
+    from wmrjax import linearize
+
+    A3 = np.asarray(linearize.companion(jnp.asarray([[1.0, 3.0, 3.0], [1.0, 3.0, 3.0]])))  # poles -1 (x3)
+    cases = [np.zeros((3, 3)), rng.normal(size=(4, 4)), 30.0 * rng.normal(size=(2, 2))]
+    cases += [A3 * t for t in (0.01, 1.0, 5.0, 20.0)]
+    for A in cases:
+        ref = expm(A)
+        np.testing.assert_allclose(np.asarray(jax.jit(_math.expm_small)(jnp.asarray(A))), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    A = jnp.asarray(0.7 * rng.normal(size=(3, 3)))
+    f = lambda a: jnp.sum(jnp.sin(_math.expm_small(a)))
+    g = lambda a: jnp.sum(jnp.sin(jax.scipy.linalg.expm(a)))
+    np.testing.assert_allclose(np.asarray(jax.grad(f)(A)), np.asarray(jax.grad(g)(A)), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(jax.jacfwd(f)(A)), np.asarray(jax.grad(g)(A)), atol=1e-12)
+    assert np.isnan(np.asarray(_math.expm_small(jnp.asarray([[2.0**41]])))).all()

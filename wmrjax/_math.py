@@ -254,3 +254,119 @@ def golden_section(f, lo, hi, iters: int):
 
     (lo, hi), _ = jax.lax.scan(step, (lo, hi), None, length=iters)
     return lo, hi
+
+
+# --- small dense linear algebra without LAPACK ----------------------------------------
+# jaxlib's CPU LAPACK kernels split a large batch of matrices over XLA's intra-op thread pool
+# and then block a pool thread until the pieces are done (``ParallelBatchMap``). When two such
+# calls run at once -- two independent batched SVDs of one program, which XLA's thunk executor
+# starts concurrently -- on a pool of two threads (a 2-core machine), each waits for work that
+# only the other's thread could run: the process hangs with every thread parked. The (1,2)
+# certification's branch and bound hung so on every run. The certifier's matrices are tiny
+# ((r m) x (r m) at most), so these kernels compute them with plain array operations, which
+# XLA fuses and vectorises under ``vmap`` and never hands to the pool.
+
+JACOBI_SWEEPS = 8  # cyclic sweeps for three rows or more (quadratic convergence: rounding level for p <= 12)
+TAYLOR_DEGREE = 18  # exp(X) for ||X||_1 <= 1: truncation below 1/19! < 1e-17 relative
+MAX_SQUARINGS = 40  # ||A||_1 up to 2^40; beyond, expm_small returns NaN (as jax.scipy.linalg.expm does past its limit)
+
+
+def _power_of_two_scale(x):
+    """``2**-e`` with ``max|x|`` in [1/2, 1) after scaling by it (exact; 1 for a zero ``x``)."""
+    big = jnp.max(jnp.abs(x))
+    _, e = jnp.frexp(jnp.where(big > 0, big, 1.0))
+    return jnp.ldexp(jnp.ones((), x.dtype), -e)
+
+
+def _jacobi_rotate(W, Q, i: int, j: int):
+    """Rows i and j of ``W`` (and of the accumulated rotation ``Q``) rotated to be orthogonal."""
+    wi, wj = W[i], W[j]
+    alpha, beta, gamma = jnp.sum(wi * wi), jnp.sum(wj * wj), jnp.sum(wi * wj)
+    rotate = gamma != 0
+    zeta = (beta - alpha) / (2.0 * jnp.where(rotate, gamma, 1.0))
+    t = jnp.where(zeta >= 0, 1.0, -1.0) / (jnp.abs(zeta) + jnp.hypot(1.0, zeta))
+    t = jnp.where(rotate, t, 0.0)
+    c = 1.0 / jnp.sqrt(1.0 + t * t)
+    s = c * t
+    W = W.at[i].set(c * wi - s * wj).at[j].set(s * wi + c * wj)
+    qi, qj = Q[i], Q[j]
+    return W, Q.at[i].set(c * qi - s * qj).at[j].set(s * qi + c * qj)
+
+
+def _orthogonal_rows(M):
+    """``(Q, W)`` with ``Q`` orthogonal, ``W = Q M`` having mutually orthogonal rows (one-sided Jacobi)."""
+    p = M.shape[0]
+    pairs = [(i, j) for i in range(p) for j in range(i + 1, p)]
+
+    def sweep(_, c):
+        W, Q = c
+        for i, j in pairs:
+            W, Q = _jacobi_rotate(W, Q, i, j)
+        return W, Q
+
+    # two rows are made orthogonal by one rotation, exactly
+    sweeps = 1 if p <= 2 else JACOBI_SWEEPS
+    W, Q = jax.lax.fori_loop(0, sweeps, sweep, (M, jnp.eye(p, dtype=M.dtype)))
+    return Q, W
+
+
+def svd_small(M):
+    r"""Thin SVD ``(U, s, Vt)`` of a small (p, q) matrix, as ``jnp.linalg.svd(M, full_matrices=False)``.
+
+    One-sided Jacobi (Hestenes) on the shorter side, after an exact power-of-two scaling: the
+    singular values carry high relative accuracy, the smallest included (a long horizon's
+    :math:`e^{At}` reaches 1e-217). ``s`` is descending; the row of ``Vt`` (column of ``U`` for
+    a tall ``M``) that belongs to a zero singular value is zero rather than an arbitrary unit
+    vector. Differentiable; the singular values' derivatives are exact where they are simple.
+
+    Args:
+      M: (p, q) real matrix, p and q small (the work grows as min(p, q)^2 max(p, q)).
+
+    Returns:
+      ``U`` (p, k), ``s`` (k,), ``Vt`` (k, q) with k = min(p, q) and ``M = U diag(s) Vt``.
+    """
+    if M.shape[0] > M.shape[1]:
+        V, s, Ut = svd_small(M.T)
+        return Ut.T, s, V.T
+    scale = _power_of_two_scale(M)
+    Q, W = _orthogonal_rows(M * scale)
+    s = jnp.sqrt(jnp.sum(W * W, axis=1))
+    order = jnp.argsort(-s)
+    s, W, U = s[order], W[order], Q[order].T
+    Vt = W / jnp.where(s > 0, s, 1.0)[:, None]
+    return U, s / scale, Vt
+
+
+def spectral_norm(M):
+    """Largest singular value of a small (p, q) matrix (``jnp.linalg.norm(M, 2)`` without LAPACK)."""
+    if M.shape[0] > M.shape[1]:
+        M = M.T
+    scale = _power_of_two_scale(M)
+    _, W = _orthogonal_rows(M * scale)
+    return jnp.sqrt(jnp.max(jnp.sum(W * W, axis=1))) / scale
+
+
+def expm_small(A):
+    r"""Matrix exponential of a small (n, n) matrix without LAPACK: Taylor and squaring.
+
+    :math:`e^{A} = (e^{A / 2^s})^{2^s}` with :math:`s = \lceil \log_2 \|A\|_1 \rceil` (at least 0),
+    :math:`e^{X}` by its Taylor polynomial of degree :data:`TAYLOR_DEGREE` (Horner), exact to
+    rounding for :math:`\|X\|_1 \le 1`. The squarings run a fixed :data:`MAX_SQUARINGS` masked
+    steps so that reverse mode works; NaN beyond that many (:math:`\|A\|_1 > 2^{40}`).
+    Agrees with ``jax.scipy.linalg.expm`` to rounding (``tests/test_math.py``).
+    """
+    n = A.shape[0]
+    eye = jnp.eye(n, dtype=A.dtype)
+    norm1 = jnp.max(jnp.sum(jnp.abs(A), axis=0))
+    _, e = jnp.frexp(jnp.where(norm1 > 0, norm1, 1.0))
+    s = jnp.clip(e, 0, None)  # 2^s >= ||A||_1, exactly
+    X = A * jnp.ldexp(jnp.ones((), A.dtype), -s)
+    E = eye
+    for k in range(TAYLOR_DEGREE, 0, -1):
+        E = eye + (X @ E) / k
+
+    def square(E, i):
+        return jnp.where(i < s, E @ E, E), None
+
+    E, _ = jax.lax.scan(square, E, jnp.arange(MAX_SQUARINGS, dtype=s.dtype))
+    return jnp.where(s <= MAX_SQUARINGS, E, jnp.nan)

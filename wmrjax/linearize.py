@@ -173,7 +173,7 @@ def transition_matrix(gains, t, *, n_steps: int | None = None):
                 "expm(A t) holds for constant gains only"
             )
         A = companion(gains.coeffs_at(0.0))
-        return jax.scipy.linalg.expm(A * t)
+        return _math.expm_small(A * t)
     if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
         raise ValueError(f"n_steps must be an integer >= 1 (RK4 steps over [0, t]), got {n_steps!r}")
     t = jnp.asarray(t)

@@ -86,7 +86,7 @@ def min_norm_to_ball(M, a, eps, iters: int = 200):
     fixed bracket failed on long horizons, where :math:`s_i(e^{At})` decays like
     :math:`t e^{-pt}` and the root left it: the radius collapsed (2.8e-13 at t = 50 s).
     """
-    U, s, Vt = jnp.linalg.svd(M, full_matrices=False)
+    U, s, Vt = _math.svd_small(M)  # no LAPACK: see wmrjax._math
     ap = U.T @ a
     out2 = jnp.maximum(jnp.sum(a**2) - jnp.sum(ap**2), 0.0)
     kept = s > RANK_TOLERANCE * jnp.max(s)
@@ -491,7 +491,7 @@ def _centre_problem(ctrl, params, P, t, phi):
     """(M, a, zeta_ref, zeta_ref', expm(A t)) of the QCQP at (t, phi)."""
     A = ctrl.error_matrix(params.gains)
     zr, zd, e_th, n_phi = _curved_rows(ctrl, params, t, phi)
-    E = jax.scipy.linalg.expm(A * t)
+    E = _math.expm_small(A * t)
     Phi = E @ P
     M = jnp.stack([e_th @ Phi, n_phi @ Phi])
     a = jnp.stack([e_th @ zr - phi, n_phi @ zr])
@@ -513,11 +513,11 @@ def _curved_centres(ctrl, params, P, eps, ts, phis):
 def _heading_reach(ctrl, params, P, ts, ht, rho_up, G):
     """Per time box: how far theta(t) can move from theta_ref(t_c) for errors up to rho_up."""
     A = ctrl.error_matrix(params.gains)
-    nA = jnp.linalg.norm(A, 2)
+    nA = _math.spectral_norm(A)
 
     def one(t):
         M, _, _, zd, E = _centre_problem(ctrl, params, P, t, 0.0)
-        dt_ = ht * jnp.linalg.norm(zd) + 0.5 * ht**2 * G + jnp.linalg.norm(E, 2) * jnp.expm1(nA * ht) * rho_up
+        dt_ = ht * jnp.linalg.norm(zd) + 0.5 * ht**2 * G + _math.spectral_norm(E) * jnp.expm1(nA * ht) * rho_up
         return jnp.linalg.norm(M[0]) * rho_up + dt_
 
     return jax.vmap(one)(ts)
@@ -527,7 +527,7 @@ def _heading_reach(ctrl, params, P, ts, ht, rho_up, G):
 def _curved_boxes(ctrl, params, P, eps, rho_up, G, t_lo, t_hi, p_lo, p_hi):
     """Per box: (lower bound, attained radius at the centre, its slice coordinates)."""
     A = ctrl.error_matrix(params.gains)
-    nA = jnp.linalg.norm(A, 2)
+    nA = _math.spectral_norm(A)
     g = params.geometry
     c2 = 1.0 + (g.e * jnp.sin(g.delta)) ** 2
     m = ctrl.m
@@ -536,8 +536,8 @@ def _curved_boxes(ctrl, params, P, eps, rho_up, G, t_lo, t_hi, p_lo, p_hi):
         tc, ht, pc, hp = 0.5 * (t0 + t1), 0.5 * (t1 - t0), 0.5 * (p0 + p1), 0.5 * (p1 - p0)
         M, a, zr, zd, E = _centre_problem(ctrl, params, P, tc, pc)
         ub, x = min_norm_to_ball(M, a, eps)
-        move = ht * jnp.linalg.norm(zd) + 0.5 * ht**2 * G + jnp.linalg.norm(E, 2) * jnp.expm1(nA * ht) * rho_up
-        speed = jnp.linalg.norm(zr[m : m + 2]) + jnp.linalg.norm((E @ P)[m : m + 2], 2) * rho_up + move
+        move = ht * jnp.linalg.norm(zd) + 0.5 * ht**2 * G + _math.spectral_norm(E) * jnp.expm1(nA * ht) * rho_up
+        speed = jnp.linalg.norm(zr[m : m + 2]) + _math.spectral_norm((E @ P)[m : m + 2]) * rho_up + move
         lb, _ = min_norm_to_ball(M, a, eps + move + hp * jnp.sqrt(1.0 + speed**2 / c2))
         return jnp.minimum(lb, rho_up), ub, x
 

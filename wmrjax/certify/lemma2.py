@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wmrjax import _math
 from wmrjax._validate import concrete
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 from wmrjax.references import check_domain
@@ -200,7 +201,7 @@ def k2_exact(A, ts):
 
 @jax.jit
 def _k2_exact(A, ts):
-    return jax.vmap(lambda t: jnp.linalg.norm(jax.scipy.linalg.expm(A * t), ord=2))(ts)
+    return jax.vmap(lambda t: _math.spectral_norm(_math.expm_small(A * t)))(ts)
 
 
 TRANSITION_STEP = 1e-2  # [s] largest RK4 step of Phi(t, 0) for scheduled gains (error ~1e-10 at poles ~ -5)
@@ -224,7 +225,7 @@ def k2_transition(gains, ts):
     from wmrjax import linearize
 
     Phi = linearize.transition_matrices(gains, np.asarray(ts), max_step=TRANSITION_STEP)
-    return jnp.linalg.norm(Phi, ord=2, axis=(1, 2))
+    return jax.vmap(_math.spectral_norm)(Phi)
 
 
 # --- F, radii, condition (52) -------------------------------------------------------
