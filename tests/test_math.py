@@ -114,7 +114,9 @@ def test_expm_small_against_scipy_and_its_derivatives(rng):
     cases += [A3 * t for t in (0.01, 1.0, 5.0, 20.0)]
     for A in cases:
         ref = expm(A)
-        np.testing.assert_allclose(np.asarray(jax.jit(_math.expm_small)(jnp.asarray(A))), ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+        np.testing.assert_allclose(
+            np.asarray(jax.jit(_math.expm_small)(jnp.asarray(A))), ref, rtol=0, atol=1e-12 * np.abs(ref).max()
+        )
     A = jnp.asarray(0.7 * rng.normal(size=(3, 3)))
     f = lambda a: jnp.sum(jnp.sin(_math.expm_small(a)))
     g = lambda a: jnp.sum(jnp.sin(jax.scipy.linalg.expm(a)))
