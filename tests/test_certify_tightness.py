@@ -1,6 +1,8 @@
 """Tight certification: one batch for every K2 bound, the falsifier that finds the full-ball
 radius on its own, and (1,2)'s exact-map radius with a proved lower bound."""
 
+import importlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -59,7 +61,12 @@ def test_falsifier_finds_the_full_ball_radius_without_the_exact_map(paper61):
 def curved12():
     c12 = w.dynamic_linearization("(1,2)")
     params = c12.params(R.figure_eight(heading_offset=0.5), geometry=w.Geometry(L=0.5, e=0.3, delta=0.5))
-    return c12, params, {"full": C.exact_map_radius(c12, params, t_final=3.0, eps=1e-2)}
+    boxes = importlib.import_module("wmrjax.certify.exact_map")._curved_boxes
+    boxes.clear_cache()
+    radii = {"full": C.exact_map_radius(c12, params, t_final=3.0, eps=1e-2)}
+    # every round of the branch and bound has its own number of boxes: one program for all of them
+    assert boxes._cache_size() == 1
+    return c12, params, radii
 
 
 def test_curved_exact_map_12_is_bracketed_by_a_proved_lower_bound(curved12):
@@ -109,8 +116,6 @@ def test_certifier_programs_call_no_lapack(curved12):
     large batch over XLA's thread pool and block a pool thread until it is done; two of them at once
     on a 2-thread pool waited for each other forever (the (1,2) figure-eight certification hung in
     every run in its branch and bound, two batched SVDs of one program)."""
-    import importlib
-
     X = importlib.import_module("wmrjax.certify.exact_map")
     L2 = importlib.import_module("wmrjax.certify.lemma2")  # the package exports a function of that name
 
