@@ -18,8 +18,8 @@ the gains (:func:`wmrjax.certify.differentiable_exact_map_radius`). The tuner
 
 Every accepted point therefore holds the requirement, not just the last. For (1,2), whose
 singular set is curved, the radius is a branch and bound over (t, heading) with a proved lower
-bound (:func:`wmrjax.certify.curved_exact_map_radius`): not differentiable, and slow to
-evaluate at every step (every round's box count is a new compiled shape, compiled anew), so a
+bound (:func:`wmrjax.certify.curved_exact_map_radius`): not differentiable, and far too slow
+to evaluate at every step (thousands of boxes per round, a dozen rounds), so a
 requirement on (1,2) is refused; tune without it and
 certify the result (``python -m experiments.certify ... --gains``), or require a Lemma 2 radius
 through the certificate term of the loss.

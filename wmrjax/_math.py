@@ -365,8 +365,6 @@ def expm_small(A):
     for k in range(TAYLOR_DEGREE, 0, -1):
         E = eye + (X @ E) / k
 
-    def square(E, i):
-        return jnp.where(i < s, E @ E, E), None
-
-    E, _ = jax.lax.scan(square, E, jnp.arange(MAX_SQUARINGS, dtype=s.dtype))
+    # static bounds: fori_loop runs as a scan, which reverse mode differentiates
+    E = jax.lax.fori_loop(0, MAX_SQUARINGS, lambda i, E: jnp.where(i < s, E @ E, E), E)
     return jnp.where(s <= MAX_SQUARINGS, E, jnp.nan)
