@@ -29,9 +29,12 @@ def test_verify_all_checks_every_bound_on_one_batch(paper61):
 
 def test_falsifier_finds_the_full_ball_radius_without_the_exact_map(paper61):
     """Section 6.1, full error space: the worst case is at t = 0 (a velocity error cancelling the
-    reference's, chi1(0) = eps). From the Lemma 2 radius alone, the falsifier ends within 1 % of
-    the exact-map radius 4.99 and above it (its failures are confirmed), and every certified radius
-    lies below it."""
+    reference's, chi1(0) = eps). From the Lemma 2 radius alone, with PRNGKey(0), the falsifier ends
+    within 1 % of the exact-map radius 4.99 and above it (its failures are confirmed), and every
+    certified radius lies below it. How close it gets depends on its random draws: PRNGKeys 1 to 4
+    stop at 7.29, 15.6, none and 6.97 with these settings (7.13, 7.93, 15.5 and 4.990 with the
+    defaults; measured 2026-11-27), which is why the certification pipeline raises an alarm when
+    its falsifier ends more than 1 % from the exact map."""
     ctrl, params, _ = paper61
     cert = C.lemma2(ctrl, params, t_final=3.0, eps=1e-2, n_t=301)
     exact = C.exact_map_radius(ctrl, params, t_final=3.0, eps=1e-2)

@@ -165,12 +165,14 @@ class FalsifiedRadius(NamedTuple):
     """Result of :func:`falsified_radius` (fixed fields; None where nothing failed).
 
     Attributes:
-      radius: smallest radius at which a confirmed failure was found (None: none).
+      radius: smallest radius at which a confirmed failure was found (None: none): an upper
+        bound of the safe radius, whose distance to it depends on the search's random draws.
       initial_error: (r m,) that failure's initial error (None: none).
       distance: its confirmed min_t distance to the singular set (None: none).
       rollouts: simulations used: sampled, gradient (one per start and iteration), confirming
         and ray runs (a fine confirming run counts one).
-      bracket: (lo, hi): the last bisection bracket (None: nothing failed).
+      bracket: (lo, hi): the last bisection bracket (None: nothing failed). ``lo`` is the
+        largest radius at which the search found no failure, not a proof that none exists.
       searched_up_to: the largest radius searched.
       rollouts_by_stage: ``{"sampling", "gradient", "confirmation"}`` -> simulations, and
         ``"instantaneous"`` -> evaluations of the distance at t = 0 (no simulation).
