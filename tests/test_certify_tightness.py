@@ -29,33 +29,32 @@ def test_verify_all_checks_every_bound_on_one_batch(paper61):
 
 def test_falsifier_finds_the_full_ball_radius_without_the_exact_map(paper61):
     """Section 6.1, full error space: the worst case is at t = 0 (a velocity error cancelling the
-    reference's, chi1(0) = eps). From the Lemma 2 radius alone, with PRNGKey(0), the falsifier ends
-    within 1 % of the exact-map radius 4.99 and above it (its failures are confirmed), and every
-    certified radius lies below it. How close it gets depends on its random draws: PRNGKeys 1 to 4
-    stop at 7.29, 15.6, none and 6.97 with these settings (7.13, 7.93, 15.5 and 4.990 with the
-    defaults; measured 2026-11-27), which is why the certification pipeline raises an alarm when
-    its falsifier ends more than 1 % from the exact map."""
+    reference's, chi1(0) = eps). From the Lemma 2 radius alone, with each of four PRNG keys, the
+    falsifier ends within 1 % of the exact-map radius 4.99 and above it (its failures are
+    confirmed), and every certified radius lies below it. Its instantaneous stage descended a
+    distance capped at 1, flat beyond the cap: keys 1 to 3 stopped at 7.29, 15.6 and nowhere."""
     ctrl, params, _ = paper61
     cert = C.lemma2(ctrl, params, t_final=3.0, eps=1e-2, n_t=301)
     exact = C.exact_map_radius(ctrl, params, t_final=3.0, eps=1e-2)
     np.testing.assert_allclose(float(exact.radius), 4.99, rtol=1e-9)
-    f = C.falsified_radius(
-        ctrl,
-        params,
-        t_final=3.0,
-        eps=1e-2,
-        key=jax.random.PRNGKey(0),
-        dt=0.02,
-        r_lo=float(cert.exact_norm.radius),
-        n_starts=4,
-        steps=6,
-        n_samples=64,
-    )
-    assert 4.99 - 1e-6 <= f.radius <= 1.01 * 4.99
-    assert f.distance < 1e-2 and abs(float(np.linalg.norm(f.initial_error)) - f.radius) < 1e-9
-    assert f.t_failure == 0.0  # found where it happens: at the initial state
-    assert set(f.rollouts_by_stage) == {"instantaneous", "sampling", "gradient", "confirmation"}
-    assert f.rollouts == sum(v for k, v in f.rollouts_by_stage.items() if k != "instantaneous")
+    for seed in range(4):
+        f = C.falsified_radius(
+            ctrl,
+            params,
+            t_final=3.0,
+            eps=1e-2,
+            key=jax.random.PRNGKey(seed),
+            dt=0.02,
+            r_lo=float(cert.exact_norm.radius),
+            n_starts=4,
+            steps=6,
+            n_samples=64,
+        )
+        assert f.radius is not None and 4.99 - 1e-6 <= f.radius <= 1.01 * 4.99, (seed, f.radius)
+        assert f.distance < 1e-2 and abs(float(np.linalg.norm(f.initial_error)) - f.radius) < 1e-9
+        assert f.t_failure == 0.0  # found where it happens: at the initial state
+        assert set(f.rollouts_by_stage) == {"instantaneous", "sampling", "gradient", "confirmation"}
+        assert f.rollouts == sum(v for k, v in f.rollouts_by_stage.items() if k != "instantaneous")
     for c in cert.certificates().values():
         assert float(c.radius) <= f.radius
 
