@@ -20,6 +20,18 @@ jax.config.update("jax_compilation_cache_dir", os.path.join(_CACHE_HOME, "wmrjax
 # workers' (tests/test_experiments.py, test_tuning.py, test_export.py, test_problem.py: 163 -> 155 s)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
+# XLA's lowest backend (LLVM) optimization level for the programs of the test session: the tests
+# check values, not speed, and this suite is mostly compiling (test_autodiff.py and
+# test_static.py: 185 -> 145 CPU s; the whole of it 1563 -> 1206 CPU s). Values agree with the
+# default level to rounding (the library compiles some programs at levels 0 and 1 itself); the
+# tests that compare such a program with a default-level one pin that side to DEFAULT_OPT_LEVEL,
+# and tests/test_experiments_bench.py runs the benchmark (rollout, gradients, the NumPy oracle)
+# in a process of its own at the default level. WMRJAX_TEST_OPT_LEVEL=default runs the whole
+# session at the default level (docs/development.md).
+DEFAULT_OPT_LEVEL = {"xla_backend_optimization_level": 3}  # XLA's default (its DebugOptions)
+if os.environ.get("WMRJAX_TEST_OPT_LEVEL", "0") != "default":
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+
 import math  # noqa: E402
 
 import jax.numpy as jnp  # noqa: E402

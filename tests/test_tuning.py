@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import DEFAULT_OPT_LEVEL
 from scipy.optimize import minimize_scalar
 
 import tuning
@@ -120,7 +121,9 @@ def test_quickly_compiled_programs_match_the_default_ones(tiny):
 
     setting, spec, ctx = tiny
     raw = spec.init(1.3)
-    v, ok, m = mean_loss(raw, ctx.sets.validation, setting, spec, ctx.weights)
+    # the default programs at XLA's default level (the test session compiles at level 0: conftest.py)
+    default_loss = jax.jit(loop._mean_loss, static_argnums=(2, 3), compiler_options=DEFAULT_OPT_LEVEL)
+    v, ok, m = default_loss(raw, ctx.sets.validation, setting, spec, ctx.weights)
     vq, okq, mq = loop.validation_loss(raw, ctx.sets.validation, setting, spec, ctx.weights)
     np.testing.assert_allclose(float(vq), float(v), rtol=1e-13)
     np.testing.assert_array_equal(np.asarray(okq), np.asarray(ok))
@@ -131,7 +134,11 @@ def test_quickly_compiled_programs_match_the_default_ones(tiny):
     # the sets (one quickly compiled program) against a draw of each set, set by set
     key = jax.random.PRNGKey(TS.seed)
     k_train, k_heldout = jax.random.split(key)
-    draw = jax.jit(lambda k, n: draw_set(setting, TS.scenarios.mismatch, jax.random.split(k, n)), static_argnums=1)
+    draw = jax.jit(
+        lambda k, n: draw_set(setting, TS.scenarios.mismatch, jax.random.split(k, n)),
+        static_argnums=1,
+        compiler_options=DEFAULT_OPT_LEVEL,
+    )
     for got, k, n in (
         (ctx.sets.train, k_train, 3),
         (ctx.sets.validation, jax.random.fold_in(key, 2), 2),
@@ -160,7 +167,8 @@ def test_resume_gives_the_same_gains(tmp_path, tiny):
     assert isinstance(full, tuning.TuneResult) and full.finished
     # the loop's gradient program (its own top-level copy, at LOOP_COMPILE) gives the public
     # function's numbers: the first step's training objective
-    loss, _, ok, _ = mean_loss_and_grad(spec.init(1.0), ctx.sets.train, setting, spec, ctx.weights)
+    default_grad = jax.jit(loop._mean_loss_and_grad, static_argnums=(2, 3), compiler_options=DEFAULT_OPT_LEVEL)
+    loss, _, ok, _ = default_grad(spec.init(1.0), ctx.sets.train, setting, spec, ctx.weights)
     np.testing.assert_allclose(full.history[0]["train_loss"], float(objective(loss, ok)), rtol=1e-13)
     part = run_tiny(setting, out=tmp_path, stop_after=3)
     assert not part.finished and json.loads((tmp_path / "checkpoint.json").read_text())["step"] == 3
