@@ -394,3 +394,19 @@ def test_differentiable_exact_map_radius_refuses_the_curved_set():
     params = ctrl.params(R.circle(), poles=1.0)
     with pytest.raises(ValueError, match="curved singular set"):
         C.differentiable_exact_map_radius(ctrl, params, t_final=2.0, eps=0.01)
+
+
+def test_rollout_statistics_compile_one_program_for_every_batch_size(paper61):
+    """Small and large batches share one compiled block program (a block shrunk to a small batch
+    was a second program of the same closed loop, ~5 s of compiling per certification)."""
+    import importlib
+
+    E = importlib.import_module("wmrjax.certify.empirical")
+    ctrl, params, _ = paper61
+    errs = 0.05 * np.asarray(jax.random.normal(jax.random.PRNGKey(0), (300, 4)))
+    E._rollout_stats.clear_cache()
+    few = E.window_distances(ctrl, params, errs[:3], dt=0.02, n_steps=20)
+    many = E.window_distances(ctrl, params, errs, dt=0.02, n_steps=20)
+    assert E._rollout_stats._cache_size() == 1
+    for a, b in zip(few, many):
+        np.testing.assert_array_equal(a, b[:3])  # padding changes nothing

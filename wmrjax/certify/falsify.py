@@ -312,8 +312,9 @@ class _Search:
         return sum(v for n, v in self.counts.items() if n != "instantaneous")
 
     def confirm(self, errs):
-        """Fine runs (blocks of 32) of initial errors: (failed, distance, time of the closest approach)."""
-        per, s, t = window_distances(self.ctrl, self.params, errs, dt=self.fine, n_steps=self.n_fine, block=32)
+        """Fine runs (blocks of 16: most calls confirm 8 candidates or fewer) of initial errors:
+        (failed, distance, time of the closest approach)."""
+        per, s, t = window_distances(self.ctrl, self.params, errs, dt=self.fine, n_steps=self.n_fine, block=16)
         self.counts["confirmation"] += len(per)
         d = per.min(axis=1)
         return (d < self.eps) | s, np.where(s, 0.0, d), t
