@@ -473,7 +473,7 @@ def _instantaneous(ctrl, params, radius, P, us, steps, learning_rate):
         e0 = radius * (P @ (u / jnp.linalg.norm(u)))
         # the whole distance, not one capped at 1: beyond a cap the objective is flat, and the
         # starts that began farther than it from the singular set never moved (on section 6.1's
-        # full ball at twice the Lemma 2 radius, 63 of 64 starts, for most seeds)
+        # full ball at twice the Lemma 2 radius, 63 or 64 of the 64 starts for each of five seeds)
         return ctrl.singular_distance(jet0 + e0.reshape(jet0.shape), params)
 
     opt = optax.adam(optax.exponential_decay(learning_rate, steps, 0.01))
