@@ -789,6 +789,25 @@ def default_chunk(mesh, cpu_chunk: int = CPU_CHUNK) -> int | None:
     return cpu_chunk if all(d.platform == "cpu" for d in np.asarray(mesh.devices).flat) else None
 
 
+def fixed_blocks(fn, arrays, block: int) -> tuple:
+    """``fn`` over blocks of ``block`` rows of ``arrays`` (the last padded with copies of the first
+    row), so that a compiled ``fn`` sees one shape whatever the number of rows.
+
+    Args:
+      fn: ``fn(*blocks) -> tuple`` of arrays with a leading row axis (a jitted program).
+      arrays: sequence of NumPy arrays sharing their leading length N >= 1.
+      block: rows per call.
+
+    Returns:
+      ``fn``'s outputs for the N rows, as NumPy arrays (the padding cut off).
+    """
+    n = len(arrays[0])
+    pad = -n % block
+    padded = [np.concatenate([a, np.repeat(a[:1], pad, axis=0)]) for a in arrays]
+    out = [fn(*(jnp.asarray(a[i : i + block]) for a in padded)) for i in range(0, n + pad, block)]
+    return tuple(np.concatenate([np.asarray(o[k]) for o in out])[:n] for k in range(len(out[0])))
+
+
 def batch_map(fn, *args, chunk: int | None = None, mesh=None):
     """Map a per-example function over the leading axis of ``args``, fast on CPUs and GPUs.
 

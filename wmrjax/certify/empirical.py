@@ -17,7 +17,7 @@ from wmrjax.certify.exact_map import singular_rows
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 from wmrjax.problem import Space, Task, place
-from wmrjax.simulate import batch_map, simulate
+from wmrjax.simulate import batch_map, fixed_blocks, simulate
 
 # Runs per compiled block, whatever the batch: a block shrunk to fit small batches was a second
 # program of the same closed loop (a 256-run block beside the 512-run one: ~5 s of compiling in
@@ -278,31 +278,17 @@ def _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, n_windows, b
     """:func:`_rollout_stats` over fixed-size blocks (the last padded): one compiled program per
     (closed loop, dt, n_steps, save_every, block), whatever the batch size and the bounds."""
     errs = np.asarray(initial_errors, dtype=np.result_type(float))
-    n = len(errs)
     n_saved = n_steps // save_every + 1
     bounds = np.full((_N_BOUNDS, n_saved), np.inf)
     if k2v is not None:
         bounds[: len(k2v)] = k2v
     branch = jnp.asarray(float(ctrl.reference_branch(params)))
-    out = []
-    for i in range(0, n, block):
-        e = errs[i : i + block]
-        e = np.concatenate([e, np.repeat(e[:1], block - len(e), axis=0)])
-        out.append(
-            _rollout_stats(
-                ctrl,
-                params,
-                jnp.asarray(e),
-                jnp.asarray(bounds),
-                jnp.asarray(tol, e.dtype),
-                branch,
-                dt,
-                n_steps,
-                save_every,
-                n_windows,
-            )
-        )
-    return _Stats(*(np.concatenate([np.asarray(o[j]) for o in out])[:n] for j in range(len(_Stats._fields))))
+    bounds, tol = jnp.asarray(bounds), jnp.asarray(tol, errs.dtype)
+
+    def stats(e):
+        return _rollout_stats(ctrl, params, e, bounds, tol, branch, dt, n_steps, save_every, n_windows)
+
+    return _Stats(*fixed_blocks(stats, [errs], block))
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9))

@@ -32,6 +32,7 @@ from wmrjax.certify.lemma2 import (
     transition_steps,
 )
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
+from wmrjax.simulate import fixed_blocks
 
 
 def singular_rows(ctrl: DynamicLinearization):
@@ -458,16 +459,9 @@ def _branch_and_bound(ctrl, params, P, eps_a, G, boxes, best, *, rtol, max_round
 
 def _boxes_in_blocks(ctrl, params, P, eps_a, rho_up: float, G: float, boxes):
     """:func:`_curved_boxes` over any number of boxes through one compiled program: blocks of
-    :data:`BOX_BLOCK` boxes, the last padded with copies of the first box. NumPy results."""
-    n = len(boxes[0])
-    pad = -n % BOX_BLOCK
-    padded = [np.concatenate([b, np.full(pad, b[0])]) for b in boxes]
+    :data:`BOX_BLOCK` boxes (:func:`wmrjax.simulate.fixed_blocks`). NumPy results."""
     rho, g = jnp.asarray(rho_up), jnp.asarray(G)
-    out = []
-    for i in range(0, n + pad, BOX_BLOCK):
-        block = [jnp.asarray(b[i : i + BOX_BLOCK]) for b in padded]
-        out.append(_curved_boxes(ctrl, params, P, eps_a, rho, g, *block))
-    return tuple(np.concatenate([np.asarray(o[k]) for o in out])[:n] for k in range(3))
+    return fixed_blocks(lambda *box: _curved_boxes(ctrl, params, P, eps_a, rho, g, *box), boxes, BOX_BLOCK)
 
 
 @functools.partial(jax.jit, static_argnums=0)
