@@ -44,8 +44,10 @@ from wmrjax import references  # noqa: E402
 S2 = math.sqrt(2.0)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture
 def rng():
+    """A fresh generator per test: its draws do not depend on which tests ran before it in the
+    same worker (pytest-xdist distributes them differently from run to run)."""
     return np.random.default_rng(12345)
 
 
