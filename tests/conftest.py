@@ -24,9 +24,8 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 # check values, not speed, and this suite is mostly compiling (test_autodiff.py and
 # test_static.py: 185 -> 145 CPU s; make test from a fresh clone 26:18 -> 23:06 CPU min). Values agree with the
 # default level to rounding (the library compiles some programs at levels 0 and 1 itself); the
-# tests that compare such a program with a default-level one pin that side to DEFAULT_OPT_LEVEL,
-# and tests/test_experiments_bench.py runs the benchmark (rollout, gradients, the NumPy oracle)
-# in a process of its own at the default level. WMRJAX_TEST_OPT_LEVEL=default runs the whole
+# tests that compare such a program with a default-level one pin that side to DEFAULT_OPT_LEVEL.
+# The command lines the tests start inherit the level through XLA_FLAGS. WMRJAX_TEST_OPT_LEVEL=default runs the whole
 # session at the default level (docs/development.md).
 DEFAULT_OPT_LEVEL = {"xla_backend_optimization_level": 3}  # XLA's default (its DebugOptions)
 if os.environ.get("WMRJAX_TEST_OPT_LEVEL", "0") != "default":

@@ -14,8 +14,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_benchmark_cli_smoke(tmp_path):
+    # the session's XLA flags (tests/conftest.py: optimization level 0; the benchmark appends its
+    # device count): this checks the benchmark's values, not its speed (80 -> 55 s at level 0)
     env = dict(os.environ, PYTHONPATH=ROOT)
-    env.pop("XLA_FLAGS", None)
     r = subprocess.run(
         [
             sys.executable,
