@@ -338,3 +338,36 @@ def test_check_reference_with_a_traced_horizon_says_it_checked_nothing(ctrl61):
         warnings.simplefilter("error")
         z0 = ctrl61.reference_state(0.0, p66)
         jax.jit(lambda z: w.simulate(ctrl61, z, p66, dt=0.01, n_steps=50).final_state)(z0)
+
+
+def test_reference_errors_batch_gives_check_references_verdicts(ctrl61, monkeypatch):
+    """reference_errors (a problem's references checked together) gives check_reference's verdict
+    and message for each parameter set: paths sampled at the same times stack into one batched
+    program (the one-at-a-time program is never called), a set that does not stack (another
+    family) is checked on its own."""
+    from wmrjax.controllers import law
+
+    g = w.Geometry(e=0.0)
+    t = np.linspace(0.0, 12.0, 121)
+    sources = (R.circle(radius=2.0, omega=0.4), R.paper_66(), R.figure_eight())  # paper_66 stops at t = 10 s
+    params = [
+        ctrl61.params(R.from_samples(t, np.asarray(jax.vmap(r.position)(t))), geometry=g, poles=1.0) for r in sources
+    ]
+    expected = []
+    for p in params:
+        try:
+            ctrl61.check_reference(p, 11.0)
+            expected.append(None)
+        except ValueError as err:
+            expected.append(str(err))
+    assert expected[0] is None and expected[2] is None and "reaches the singular set" in expected[1]
+
+    def one_at_a_time(*args, **kwargs):
+        raise AssertionError("stacked references are checked by the batched program")
+
+    with monkeypatch.context() as m:
+        m.setattr(law, "reference_profile", one_at_a_time)
+        assert ctrl61.reference_errors(params, 11.0) == expected
+    mixed = [ctrl61.params(R.circle(radius=2.0, omega=0.4), poles=1.0, geometry=g), params[1]]
+    assert ctrl61.reference_errors(mixed, 11.0) == [None, expected[1]]
+    assert ctrl61.reference_errors([], 11.0) == []

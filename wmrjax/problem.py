@@ -826,6 +826,13 @@ def simulation(sim) -> tuple:
     return t_final, dt, n_steps
 
 
+def _reference_error(ref, j: int, g, kind: str, level: str, err) -> ProblemError:
+    """The error of the ``j``-th reference of a problem, unusable with geometry ``g``."""
+    return ProblemError(
+        f"[reference] {ref.name} (#{j}) with geometry {g._asdict()} for type {kind}, {level} level: {err}"
+    )
+
+
 def _setting(ctrl, data, base, case, law, task, space, t_final, dt, n_steps) -> Setting:
     import wmrjax as w
 
@@ -846,15 +853,17 @@ def _setting(ctrl, data, base, case, law, task, space, t_final, dt, n_steps) -> 
     branch = np.ones(len(refs), int)
     for i in range(geometry.size):
         g = w.Geometry(**{k: float(geo[k][i]) for k in GEOMETRY_KEYS})
+        params = []
         for j, ref in enumerate(refs):
             try:
-                params = ctrl.params(ref, poles=1.0, geometry=g)
-                ctrl.check_reference(params, t_final)
+                params.append(ctrl.params(ref, poles=1.0, geometry=g))
             except ValueError as err:
-                raise ProblemError(
-                    f"[reference] {ref.name} (#{j}) with geometry {g._asdict()} for type {kind}, {level} level: {err}"
-                ) from None
-            branch[j] = ctrl.reference_branch(params)
+                raise _reference_error(ref, j, g, kind, level, err) from None
+        # every reference of the group in one batched evaluation (one program, not one call each)
+        for j, err in enumerate(ctrl.reference_errors(params, t_final)):
+            if err is not None:
+                raise _reference_error(refs[j], j, g, kind, level, err)
+            branch[j] = ctrl.reference_branch(params[j])
     g0 = w.Geometry(**{k: float(geo[k][0]) for k in GEOMETRY_KEYS})
     step = dt if period is None else period
     for i in range(gains.size):

@@ -408,6 +408,26 @@ def check_reference_type(reference) -> None:
         )
 
 
+def _concrete_horizon(t0, t_final):
+    """``(t0, t_final)`` as floats, checked (finite, ordered); None with a warning where either is
+    traced (the reference checks are eager: a user's own call inside jax.jit or jax.vmap)."""
+    for name, v in (("t0", t0), ("t_final", t_final)):
+        c = concrete(v)
+        if c is None:  # simulate calls it with concrete times only: this is a user's own call
+            warnings.warn(
+                f"check_reference: {name} is traced (inside jax.jit or jax.vmap), so the reference is "
+                "not checked; call check_reference outside the trace with concrete times",
+                stacklevel=3,  # the caller of check_reference
+            )
+            return None
+        if not (np.ndim(c) == 0 and np.isfinite(c)):
+            raise ValueError(f"{name} must be a finite time [s], got {v!r}")
+    t0, t_final = float(t0), float(t_final)
+    if not t_final > t0:
+        raise ValueError(f"the horizon must end after it starts: t0 = {t0} s, t_final = {t_final} s")
+    return t0, t_final
+
+
 # --- run checks shared by the siblings ---------------------------------------------------------
 
 REFERENCE_GRID_STEP = 0.01  # [s] spacing of the grid on which a reference is checked
@@ -451,20 +471,27 @@ def _profile_on(ctrl, ts, params):
     return jets, level, branch
 
 
+def _profiles_on(ctrl, ts, stacked):
+    """:func:`_profile_on` of every parameter set of ``stacked`` (leaves with a leading axis)."""
+    return jax.vmap(lambda p: _profile_on(ctrl, ts, p))(stacked)
+
+
 _reference_profile = functools.partial(jax.jit, static_argnums=0, compiler_options=CHECK_COMPILE)(_profile_on)
 _reference_profile_long = functools.partial(jax.jit, static_argnums=0)(_profile_on)
+_reference_profiles = functools.partial(jax.jit, static_argnums=0, compiler_options=CHECK_COMPILE)(_profiles_on)
 
 
-def reference_profile(ctrl, params, t0: float, t_final: float, step: float = REFERENCE_GRID_STEP):
-    """``(ts, jets, level, branch)`` as NumPy arrays on a uniform grid of spacing <= ``step``
-    over [t0, t_final], evaluated in fixed-size compiled blocks; None if ``params`` are traced."""
-    if any(not is_concrete(x) for x in jax.tree_util.tree_leaves(params)):
-        return None  # traced (inside vmap/shard_map): checked by the caller
+def _check_grid(t0: float, t_final: float, step: float) -> np.ndarray:
+    """The uniform grid of spacing <= ``step`` over [t0, t_final] (at least its two ends)."""
     n = max(2, int(np.ceil((t_final - t0) / step - 1e-9)) + 1)
-    ts = np.linspace(t0, t_final, n)
-    block, program = (_BLOCK, _reference_profile) if n <= LONG_CHECK_POINTS else (LONG_BLOCK, _reference_profile_long)
+    return np.linspace(t0, t_final, n)
+
+
+def _evaluate_blocks(program, ctrl, params, ts, block: int, batched: bool = False):
+    """``(jets, level, branch)`` of ``program(ctrl, times, params)`` over ``ts`` in padded blocks of
+    ``block`` times (after a leading axis of parameter sets where ``batched``); None if traced."""
     blocks = []
-    for i in range(0, n, block):
+    for i in range(0, ts.size, block):
         tb = ts[i : i + block]
         pad = np.concatenate([tb, np.full(block - tb.size, tb[-1])])
         if jax_core.trace_state_clean():  # the compiled program, called as it is
@@ -475,8 +502,53 @@ def reference_profile(ctrl, params, t0: float, t_final: float, step: float = REF
         out = [concrete(x) for x in out]
         if any(x is None for x in out):
             return None
-        blocks.append([x[: tb.size] for x in out])
-    return (ts,) + tuple(np.concatenate([b[k] for b in blocks]) for k in range(3))
+        blocks.append(out)
+    axis = int(batched)
+    cut = (slice(None),) * axis + (slice(0, ts.size),)
+    return tuple(np.concatenate([b[k] for b in blocks], axis=axis)[cut] for k in range(3))
+
+
+def reference_profile(ctrl, params, t0: float, t_final: float, step: float = REFERENCE_GRID_STEP):
+    """``(ts, jets, level, branch)`` as NumPy arrays on a uniform grid of spacing <= ``step``
+    over [t0, t_final], evaluated in fixed-size compiled blocks; None if ``params`` are traced."""
+    if any(not is_concrete(x) for x in jax.tree_util.tree_leaves(params)):
+        return None  # traced (inside vmap/shard_map): checked by the caller
+    ts = _check_grid(t0, t_final, step)
+    long = ts.size > LONG_CHECK_POINTS
+    block, program = (LONG_BLOCK, _reference_profile_long) if long else (_BLOCK, _reference_profile)
+    out = _evaluate_blocks(program, ctrl, params, ts, block)
+    return None if out is None else (ts,) + out
+
+
+def _stacked(params_list):
+    """The parameter sets as one pytree with a leading axis, or None where they do not stack
+    (another structure, static field or leaf shape)."""
+    flat = [jax.tree_util.tree_flatten(p) for p in params_list]
+    treedef = flat[0][1]
+    if any(d != treedef for _, d in flat) or any(not is_concrete(x) for leaves, _ in flat for x in leaves):
+        return None
+    columns = list(zip(*(leaves for leaves, _ in flat)))
+    if any(len({(np.shape(x), np.asarray(x).dtype) for x in col}) > 1 for col in columns):
+        return None
+    return jax.tree_util.tree_unflatten(treedef, [np.stack([np.asarray(x) for x in col]) for col in columns])
+
+
+def reference_profiles(ctrl, params_list, t0: float, t_final: float, step: float = REFERENCE_GRID_STEP):
+    """:func:`reference_profile` of each parameter set of one controller, yielded in order: one
+    batched program for all of them (a sweep group's references) where they stack and the grid
+    is short, one after the other otherwise. At most ``LONG_CHECK_POINTS`` grid points of
+    profiles are held at a time (sets beyond that go in further batches of the same size)."""
+    params_list = list(params_list)
+    ts = _check_grid(t0, t_final, step)
+    size = min(len(params_list), max(1, LONG_CHECK_POINTS // ts.size))
+    if size < 2 or _stacked(params_list) is None:
+        yield from (reference_profile(ctrl, p, t0, t_final, step) for p in params_list)
+        return
+    for i in range(0, len(params_list), size):
+        chunk = params_list[i : i + size]
+        padded = chunk + [chunk[-1]] * (size - len(chunk))  # one batch size: one compiled program
+        out = _evaluate_blocks(_reference_profiles, ctrl, _stacked(padded), ts, _BLOCK, batched=True)
+        yield from ((None if out is None else (ts,) + tuple(x[j] for x in out)) for j in range(len(chunk)))
 
 
 def find_kink(ts, jets, angle_outputs=()):
@@ -694,31 +766,54 @@ class LinearizingController:
         (a stop, a reversal, the wrong branch) or has a kink (a jump in a derivative the law
         uses), checked on a grid of spacing <= :data:`REFERENCE_GRID_STEP`. No-op for traced params;
         with a traced ``t0`` or ``t_final`` it warns that nothing was checked (checks are eager)."""
-        for name, v in (("t0", t0), ("t_final", t_final)):
-            c = concrete(v)
-            if c is None:  # simulate calls it with concrete times only: this is a user's own call
-                warnings.warn(
-                    f"check_reference: {name} is traced (inside jax.jit or jax.vmap), so the reference is "
-                    "not checked; call check_reference outside the trace with concrete times",
-                    stacklevel=2,
-                )
-                return
-            if not (np.ndim(c) == 0 and np.isfinite(c)):
-                raise ValueError(f"{name} must be a finite time [s], got {v!r}")
-        t0, t_final = float(t0), float(t_final)
-        if not t_final > t0:
-            raise ValueError(f"the horizon must end after it starts: t0 = {t0} s, t_final = {t_final} s")
+        horizon = _concrete_horizon(t0, t_final)
+        if horizon is None:
+            return
+        self._check_reference_domain(params, *horizon)
+        # a grid of half the spacing: the kink test runs on its even and its odd points, so a jump
+        # in the middle of an interval of one lies on a point of the other (residual >= J h / 4)
+        prof = reference_profile(self, params, *horizon, REFERENCE_GRID_STEP / 2)
+        if prof is not None:
+            self._judge_reference(params, prof, *horizon, floor)
+
+    def reference_errors(self, params_list, t_final, *, t0=0.0, floor: float = 1e-6) -> list:
+        """:meth:`check_reference` of several parameter sets (a sweep group's references): their
+        profiles evaluated by one batched program where they stack. Returns, for each set, the
+        message of the ValueError :meth:`check_reference` would raise, or None."""
+        horizon = _concrete_horizon(t0, t_final)
+        params_list = list(params_list)
+        if horizon is None:
+            return [None] * len(params_list)
+        errors = []
+        for p in params_list:
+            try:
+                self._check_reference_domain(p, *horizon)
+                errors.append(None)
+            except ValueError as err:
+                errors.append(str(err))
+        ok = [p for p, e in zip(params_list, errors) if e is None]
+        profiles = reference_profiles(self, ok, *horizon, REFERENCE_GRID_STEP / 2)
+        for j in (j for j, e in enumerate(errors) if e is None):
+            prof = next(profiles)
+            try:
+                if prof is not None:
+                    self._judge_reference(params_list[j], prof, *horizon, floor)
+            except ValueError as err:
+                errors[j] = str(err)
+        return errors
+
+    def _check_reference_domain(self, params, t0: float, t_final: float) -> None:
+        """ValueError if [t0, t_final] leaves the reference's samples or its check would not fit in memory."""
         check_domain(params.reference, t0, t_final)
         resources.check_fits(
             resources.Estimate(0.0, resources.check_bytes(t_final - t0, resources.jet_floats(self))),
             f"the reference check over [{t0:g}, {t_final:g}] s (its derivatives every {REFERENCE_GRID_STEP / 2:g} s)",
             "shorten the horizon",
         )
-        # a grid of half the spacing: the kink test runs on its even and its odd points, so a jump
-        # in the middle of an interval of one lies on a point of the other (residual >= J h / 4)
-        prof = reference_profile(self, params, t0, t_final, REFERENCE_GRID_STEP / 2)
-        if prof is None:
-            return
+
+    def _judge_reference(self, params, prof, t0: float, t_final: float, floor: float) -> None:
+        """ValueError if the profile ``(ts, jets, level, branch)`` of :func:`reference_profile`
+        reaches the singular set, has a non-finite derivative or a kink."""
         ts, jets, level, branch = prof
         level = self._reference_level(level, params)
         bad = ~np.isfinite(level) | (level <= floor) | (np.sign(branch) != self.reference_branch(params))
