@@ -319,24 +319,29 @@ class _Search:
         d = per.min(axis=1)
         return (d < self.eps) | s, np.where(s, 0.0, d), t
 
-    def along_rays(self, errs, lo, hi):
-        """Per failing error (its radius ``hi`` fails), the smallest confirmed failing radius on its
-        ray: three rounds of an 8-point grid between ``lo`` and the current failing radius."""
+    def along_rays(self, errs, lo, hi, d_hi, t_hi):
+        """Per failing error (its radius ``hi`` fails, its confirmed distance ``d_hi`` and time
+        ``t_hi``), the smallest confirmed failing radius on its ray, three rounds of an 8-point
+        grid between ``lo`` and the current failing radius: ``(radius, point, distance, time)``,
+        the point being the initial error simulated at that radius (no run repeated)."""
         u = errs / np.linalg.norm(errs, axis=1, keepdims=True)
         lo = np.full(len(u), float(lo))
         hi = np.full(len(u), float(hi))
+        point, d_hi, t_hi = np.array(errs, dtype=float), np.asarray(d_hi, float), np.asarray(t_hi, float)
         frac = np.arange(1, 9) / 8.0
         rows = np.arange(len(u))
         for _ in range(3):
             rs = lo[:, None] + (hi - lo)[:, None] * frac[None]  # (n, 8)
-            fail, _, _ = self.confirm((rs[..., None] * u[:, None, :]).reshape(-1, u.shape[1]))
-            fail = fail.reshape(rs.shape)
+            pts = rs[..., None] * u[:, None, :]  # (n, 8, r m)
+            fail, d, t = (x.reshape(rs.shape) for x in self.confirm(pts.reshape(-1, u.shape[1])))
             j = np.argmax(fail, axis=1)
             any_fail = fail.any(axis=1)
             prev = np.where(j > 0, rs[rows, np.maximum(j - 1, 0)], lo)
             hi = np.where(any_fail, rs[rows, j], hi)
+            point = np.where(any_fail[:, None], pts[rows, j], point)
+            d_hi, t_hi = np.where(any_fail, d[rows, j], d_hi), np.where(any_fail, t[rows, j], t_hi)
             lo = np.where(any_fail, prev, rs[:, -2])
-        return hi
+        return hi, point, d_hi, t_hi
 
     def on_sphere(self, dirs, rad):
         """(N, k) slice directions -> (N, r m) initial errors of norm ``rad``."""
@@ -347,15 +352,13 @@ class _Search:
         """Confirm the (at most 8) best candidates at ``rad`` (a coarse failure may be spurious); pull
         the two best confirmed failures in along their rays. (radius, error, distance, t) or None."""
         cands = cands[:8]
-        fail, _, _ = self.confirm(cands)
+        fail, d, t = self.confirm(cands)
         if not fail.any():
             return None
-        failing = cands[np.where(fail)[0][:2]]
-        r_ray = self.along_rays(failing, self.lo, rad)
+        first = np.where(fail)[0][:2]
+        r_ray, point, d_ray, t_ray = self.along_rays(cands[first], self.lo, rad, d[first], t[first])
         j = int(np.argmin(r_ray))
-        e = failing[j] / np.linalg.norm(failing[j]) * r_ray[j]
-        _, d, t = self.confirm(e[None])
-        return float(r_ray[j]), e, float(d[0]), float(t[0])
+        return float(r_ray[j]), point[j], float(d_ray[j]), float(t_ray[j])
 
     def cheap_stages(self, rad):
         """Stages 1 and 2 at one radius: the instantaneous distance at t = 0 over the sphere (no
