@@ -853,14 +853,18 @@ def _setting(ctrl, data, base, case, law, task, space, t_final, dt, n_steps) -> 
     branch = np.ones(len(refs), int)
     for i in range(geometry.size):
         g = w.Geometry(**{k: float(geo[k][i]) for k in GEOMETRY_KEYS})
-        params = []
+        params, errors = [None] * len(refs), [None] * len(refs)
         for j, ref in enumerate(refs):
             try:
-                params.append(ctrl.params(ref, poles=1.0, geometry=g))
+                params[j] = ctrl.params(ref, poles=1.0, geometry=g)
             except ValueError as err:
-                raise _reference_error(ref, j, g, kind, level, err) from None
-        # every reference of the group in one batched evaluation (one program, not one call each)
-        for j, err in enumerate(ctrl.reference_errors(params, t_final)):
+                errors[j] = str(err)
+        # every usable reference of the group in one batched evaluation (one program, not one
+        # call each); the first unusable reference is named, whichever check refused it
+        ok = [j for j, p in enumerate(params) if p is not None]
+        for j, err in zip(ok, ctrl.reference_errors([params[j] for j in ok], t_final)):
+            errors[j] = err
+        for j, err in enumerate(errors):
             if err is not None:
                 raise _reference_error(refs[j], j, g, kind, level, err)
             branch[j] = ctrl.reference_branch(params[j])

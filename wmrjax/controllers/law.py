@@ -428,6 +428,15 @@ def _concrete_horizon(t0, t_final):
     return t0, t_final
 
 
+def _message_of(check, *args, **kwargs) -> str | None:
+    """The message of the ValueError ``check(*args, **kwargs)`` raises, or None."""
+    try:
+        check(*args, **kwargs)
+    except ValueError as err:
+        return str(err)
+    return None
+
+
 # --- run checks shared by the siblings ---------------------------------------------------------
 
 REFERENCE_GRID_STEP = 0.01  # [s] spacing of the grid on which a reference is checked
@@ -540,14 +549,18 @@ def reference_profiles(ctrl, params_list, t0: float, t_final: float, step: float
     profiles are held at a time (sets beyond that go in further batches of the same size)."""
     params_list = list(params_list)
     ts = _check_grid(t0, t_final, step)
-    size = min(len(params_list), max(1, LONG_CHECK_POINTS // ts.size))
-    if size < 2 or _stacked(params_list) is None:
+    padded = -(-ts.size // _BLOCK) * _BLOCK  # the grid as evaluated: whole blocks
+    size = min(len(params_list), max(1, LONG_CHECK_POINTS // padded))
+    if size < 2:
         yield from (reference_profile(ctrl, p, t0, t_final, step) for p in params_list)
         return
     for i in range(0, len(params_list), size):
         chunk = params_list[i : i + size]
-        padded = chunk + [chunk[-1]] * (size - len(chunk))  # one batch size: one compiled program
-        out = _evaluate_blocks(_reference_profiles, ctrl, _stacked(padded), ts, _BLOCK, batched=True)
+        stacked = _stacked(chunk + [chunk[-1]] * (size - len(chunk)))  # one batch size: one compiled program
+        if stacked is None:  # another structure, static field or leaf shape among them
+            yield from (reference_profile(ctrl, p, t0, t_final, step) for p in chunk)
+            continue
+        out = _evaluate_blocks(_reference_profiles, ctrl, stacked, ts, _BLOCK, batched=True)
         yield from ((None if out is None else (ts,) + tuple(x[j] for x in out)) for j in range(len(chunk)))
 
 
@@ -779,27 +792,25 @@ class LinearizingController:
     def reference_errors(self, params_list, t_final, *, t0=0.0, floor: float = 1e-6) -> list:
         """:meth:`check_reference` of several parameter sets (a sweep group's references): their
         profiles evaluated by one batched program where they stack. Returns, for each set, the
-        message of the ValueError :meth:`check_reference` would raise, or None."""
+        message of the ValueError :meth:`check_reference` would raise for it, or None. A bad
+        horizon raises its ValueError, as :meth:`check_reference` does."""
         horizon = _concrete_horizon(t0, t_final)
         params_list = list(params_list)
         if horizon is None:
             return [None] * len(params_list)
-        errors = []
-        for p in params_list:
-            try:
-                self._check_reference_domain(p, *horizon)
-                errors.append(None)
-            except ValueError as err:
-                errors.append(str(err))
-        ok = [p for p, e in zip(params_list, errors) if e is None]
-        profiles = reference_profiles(self, ok, *horizon, REFERENCE_GRID_STEP / 2)
-        for j in (j for j, e in enumerate(errors) if e is None):
-            prof = next(profiles)
-            try:
-                if prof is not None:
-                    self._judge_reference(params_list[j], prof, *horizon, floor)
-            except ValueError as err:
-                errors[j] = str(err)
+        errors = [_message_of(self._check_reference_domain, p, *horizon) for p in params_list]
+        pending = [j for j, e in enumerate(errors) if e is None]
+        step = REFERENCE_GRID_STEP / 2
+        done = 0
+        try:
+            for j, prof in zip(pending, reference_profiles(self, [params_list[j] for j in pending], *horizon, step)):
+                errors[j] = (
+                    None if prof is None else _message_of(self._judge_reference, params_list[j], prof, *horizon, floor)
+                )
+                done += 1
+        except ValueError:  # the batched evaluation itself refused: each set on its own, as check_reference does
+            for j in pending[done:]:
+                errors[j] = _message_of(self.check_reference, params_list[j], horizon[1], t0=horizon[0], floor=floor)
         return errors
 
     def _check_reference_domain(self, params, t0: float, t_final: float) -> None:
