@@ -2,8 +2,9 @@ r"""Fixed-step RK4 under ``lax.scan``, with per-run diagnostics.
 
 :func:`simulate` integrates one unbatched closed loop; batch it with ``jax.vmap`` over
 initial states, references, gains or geometry, and differentiate it with ``jax.grad``.
-It is jitted once at this entry point (the closed-loop object, the step count and the
-saving stride are static).
+Called with concrete arguments it is jitted at this entry point (the closed-loop object, the
+step count and the saving stride are static); called inside an outer ``jit``, ``vmap`` or
+``grad`` it traces into the outer program, which is the one compiled.
 
 Five implementation choices matter for speed on CPUs (``experiments/benchmark.py`` times
 them; its results are on the benchmarks page of the docs):
@@ -450,13 +451,12 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     t0 = jnp.asarray(t0, dtype)
     estimate = error_tol is not None  # static: None compiles the loop without the error estimate
     error_tol = jnp.asarray(jnp.inf if error_tol is None else error_tol, dtype)
-    # traced once, reused by the four RK stages and the final evaluation (XLA inlines it):
-    # cuts tracing and compile time of the rollout and of its gradient several-fold
-    field = jax.jit(_simplify.simplify(lambda t, z: system.vector_field(t, z, params)))
-    # the loop body's version: on scalars (see wmrjax._scalarize), with the parameters as an
-    # argument that the body takes apart once, outside the loop; the largest laws run their
-    # RK stages in a loop over one copy of it (see STAGE_LOOP_MIN_EQUATIONS)
+    # the field on scalars (see wmrjax._scalarize), traced once and replayed by the RK stages, the
+    # initial shapes and the final state's evaluation: the same arithmetic at every time, and one
+    # trace of the law per run. The loop body takes the parameters apart once, outside the loop;
+    # the largest laws run their RK stages in a loop over one copy of it (STAGE_LOOP_MIN_EQUATIONS)
     field_s, n_scalar = _scalar_field(system, t0, z0, params)
+    field = lambda t, z: field_s(t, z, params)
     stage_loop = n_scalar >= STAGE_LOOP_MIN_EQUATIONS
     post_step = getattr(system, "post_step", None)
     sample, sample_every = _sampler(system)
@@ -934,7 +934,15 @@ def simulate(
     if save_fn is not None and not callable(save_fn):
         raise ValueError(f"save_fn must be a function (t, z, aux) -> pytree, got {type(save_fn).__name__}")
     rewrites = _simplify.rewrites_enabled()
-    return _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn, rewrites)
+    # inside an outer trace (jit, vmap, grad) the outer program is the one compiled: a jit of our
+    # own would only add a call whose traced body the outer transformations process once more
+    run = _simulate.__wrapped__ if _traced(z0, params, dt, t0, margin_floor, error_tol) else _simulate
+    return run(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn, rewrites)
+
+
+def _traced(*trees) -> bool:
+    """True when a leaf of ``trees`` is a tracer (``simulate`` called inside jit, vmap or grad)."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
 
 
 def _check_steps(system, n_steps, save_every):
