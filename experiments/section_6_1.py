@@ -69,7 +69,8 @@ def _along_run(ctrl, params, t, state):
     """Along a run (times ``t`` (T,), states (T, n)): the reference's posture (T, 3) and law state
     (T, n), the tracking error (T, r m) and the error of the linear dynamics from its first value,
     e^{A t} e(0) (T, r m). One compiled program (cached per closed loop, the parameters an
-    argument): evaluated op by op, these compiled 69 small programs, 2.1 s of a cold start."""
+    argument): evaluated op by op, these compiled one small program per operation and shape (the
+    benchmarks page, "Small programs of a cold start", has the count and the time)."""
     import jax
 
     return jax.jit(_along, static_argnums=0)(ctrl, params, t, state)

@@ -61,7 +61,7 @@ t_final = 1.0
 dt = 0.02
 """
 
-# a tuning problem without a certificate (a static law): about 5 s with a warm cache
+# a tuning problem without a certificate (a static law): a short one, for the probe's cases
 TUNE = """title = "probe_tune"
 [controller]
 law = "static"
@@ -128,7 +128,7 @@ TUNE_SMALL = (
     "2",
 )
 
-# the certification with small counts and no falsifier (about 20 s)
+# the certification with small counts and no falsifier (its shortest run)
 CERTIFY_SMALL = ("--n-starts", "0", "--n-empirical", "8", "--n-directions", "4", "--map-grid", "2")
 
 

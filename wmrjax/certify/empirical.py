@@ -20,8 +20,8 @@ from wmrjax.problem import Space, Task, place
 from wmrjax.simulate import batch_map, fixed_blocks, simulate
 
 # Runs per compiled block, whatever the batch: a block shrunk to fit small batches was a second
-# program of the same closed loop (a 256-run block beside the 512-run one: ~5 s of compiling in
-# the (1,2) certification); 256 keeps the padding of the small batches (rays, samples) cheap.
+# program of the same closed loop to compile (docs/benchmarks.md has its cost in the (1,2)
+# certification); 256 keeps the padding of the small batches (rays, samples) cheap.
 ROLLOUT_BLOCK = 256
 
 

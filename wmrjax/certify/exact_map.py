@@ -342,7 +342,7 @@ def _split_in_four(t_lo, t_hi, p_lo, p_hi):
 ACCEL_GRID = 4001
 # Boxes are evaluated in blocks of this many, the last one padded: the branch and bound's rounds
 # have a different number of boxes each (236 to 16 652 on the figure-eight), and one program per
-# count recompiled the box bounds at every round (16 programs, ~3.5 s each, for one certification).
+# count recompiled the box bounds at every round (docs/benchmarks.md: the (1,2) certification).
 BOX_BLOCK = 2048
 
 
