@@ -103,6 +103,43 @@ def test_vmap_equals_python_loop_and_jit_equals_nojit(paper61):
     np.testing.assert_allclose(nojit.control, batched.control[1], rtol=1e-11, atol=1e-11)
 
 
+@dataclasses.dataclass(frozen=True)
+class _CountingLoop:
+    """The §6.1 closed loop, counting how often its vector field is traced (a test's counter)."""
+
+    ctrl: object
+    calls: list = dataclasses.field(default_factory=list, compare=False, hash=False)
+
+    @property
+    def n_state(self):
+        return self.ctrl.n_state
+
+    @property
+    def state_names(self):
+        return self.ctrl.state_names
+
+    def vector_field(self, t, z, params):
+        self.calls.append(1)
+        return self.ctrl.vector_field(t, z, params)
+
+
+def test_inside_an_outer_trace_simulate_traces_the_law_once_and_adds_no_call(paper61):
+    """Called inside jit (vmap, grad), simulate traces into the outer program: no jitted call of its
+    own for the outer transformations to process again, and the law traced once per run (the
+    loop's scalar field serves the initial shapes and the final state's evaluation too). Same
+    numbers as the jitted entry point called with concrete arguments."""
+    ctrl, params, z0 = paper61
+    loop = _CountingLoop(ctrl)
+    sim = lambda z: w.simulate(loop, z, params, dt=0.02, n_steps=6, save_every=3)
+    jaxpr = jax.make_jaxpr(sim)(z0)
+    assert len(loop.calls) == 1
+    names = [e.params.get("name") for e in jaxpr.jaxpr.eqns if e.primitive.name in ("jit", "pjit")]
+    assert "_simulate" not in names
+    inner, outer = jax.jit(sim)(z0), sim(z0)  # traced into jit / the jitted entry point
+    np.testing.assert_array_equal(inner.state, outer.state)
+    np.testing.assert_array_equal(inner.margin, outer.margin)
+
+
 def test_vmap_over_references_and_gains(paper61):
     ctrl, params, z0 = paper61
     poles = jnp.array([1.0, 2.0])
