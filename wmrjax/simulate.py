@@ -54,7 +54,7 @@ from jax.ad_checkpoint import checkpoint_name
 from jax.extend import core as jex_core
 
 from wmrjax import _scalarize, _simplify, resources
-from wmrjax._validate import check_finite, check_int, concrete
+from wmrjax._validate import check_finite, check_int, concrete, is_concrete
 
 # from this many steps on, reverse-mode differentiation checkpoints the saving chunks too
 TWO_LEVEL_CHECKPOINT_STEPS = 2000
@@ -936,13 +936,9 @@ def simulate(
     rewrites = _simplify.rewrites_enabled()
     # inside an outer trace (jit, vmap, grad) the outer program is the one compiled: a jit of our
     # own would only add a call whose traced body the outer transformations process once more
-    run = _simulate.__wrapped__ if _traced(z0, params, dt, t0, margin_floor, error_tol) else _simulate
+    leaves = jax.tree_util.tree_leaves((z0, params, dt, t0, margin_floor, error_tol))
+    run = _simulate if all(is_concrete(x) for x in leaves) else _simulate.__wrapped__
     return run(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn, rewrites)
-
-
-def _traced(*trees) -> bool:
-    """True when a leaf of ``trees`` is a tracer (``simulate`` called inside jit, vmap or grad)."""
-    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
 
 
 def _check_steps(system, n_steps, save_every):
