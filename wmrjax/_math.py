@@ -17,6 +17,7 @@ import math
 import jax
 import jax.extend
 import jax.numpy as jnp
+import numpy as np
 from jax.experimental import jet as _jet
 from jax.interpreters import ad, batching, mlir
 
@@ -121,10 +122,12 @@ def sincos(x):
 # ``atan2`` with a Taylor rule that holds where its second argument vanishes (the rule of
 # ``jax.experimental.jet`` expands x / y and returns NaN there, e.g. for a path heading
 # along x): theta' = (y x' - x y') / (x^2 + y^2), expanded term by term.
+# Its operands broadcast like any elementwise primitive's: a vmap that batches one operand and
+# not the other (a path whose x' is a constant, tabulated over time) binds it on a scalar and an array.
 atan2_p = jax.extend.core.Primitive("wmrjax_atan2")
-atan2_p.def_impl(lambda x, y: jax.jit(jax.lax.atan2)(x, y))
-atan2_p.def_abstract_eval(lambda x, y: jax.core.ShapedArray(x.shape, x.dtype))
-mlir.register_lowering(atan2_p, mlir.lower_fun(jax.lax.atan2, multiple_results=False))
+atan2_p.def_impl(lambda x, y: jax.jit(jnp.arctan2)(x, y))
+atan2_p.def_abstract_eval(lambda x, y: jax.core.ShapedArray(np.broadcast_shapes(x.shape, y.shape), x.dtype))
+mlir.register_lowering(atan2_p, mlir.lower_fun(jnp.arctan2, multiple_results=False))
 ad.defjvp(atan2_p, lambda dx, x, y: dx * y / (x * x + y * y), lambda dy, x, y: -dy * x / (x * x + y * y))
 batching.defbroadcasting(atan2_p)
 

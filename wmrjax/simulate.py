@@ -6,8 +6,15 @@ Called with concrete arguments it is jitted at this entry point (the closed-loop
 step count and the saving stride are static); called inside an outer ``jit``, ``vmap`` or
 ``grad`` it traces into the outer program, which is the one compiled.
 
-Five implementation choices matter for speed on CPUs (``experiments/benchmark.py`` times
-them; its results are on the benchmarks page of the docs):
+Six implementation choices matter for speed (``experiments/benchmark.py`` times them; its
+results are on the benchmarks page of the docs):
+
+* what the vector field computes from the time and the parameters alone (the reference's
+  jet, a gain schedule's coefficients) is computed for every stage time of the horizon
+  before the loop, vectorised, and fed to the steps as the scan's inputs
+  (:mod:`wmrjax._hoist`): the loop holds only what depends on the state, and a sampled path
+  costs it what a closed-form reference costs (references batched per run keep the whole
+  field in the loop);
 
 * the scan carry is a tuple of scalars, one per state component, so that under
   ``vmap`` each component is a contiguous batch array (structure of arrays) and the
@@ -24,9 +31,9 @@ them; its results are on the benchmarks page of the docs):
   that select the next state, so that the recomputation is the RK4 stages alone, without the
   diagnostics and the error estimate.
 
-The rewriting of the step (:mod:`wmrjax._scalarize`, :mod:`wmrjax._simplify`) reads JAX's
-internal jaxpr interfaces. ``WMRJAX_JAXPR_REWRITES=0`` in the environment runs the plain JAX
-program instead (same values to rounding, but for the simplifier's IEEE caveat: it folds
+The rewriting of the step (:mod:`wmrjax._scalarize`, :mod:`wmrjax._simplify`) and the
+tabulation (:mod:`wmrjax._hoist`) read JAX's internal jaxpr interfaces.
+``WMRJAX_JAXPR_REWRITES=0`` in the environment runs the plain JAX program instead (same values to rounding, but for the simplifier's IEEE caveat: it folds
 ``0 * inf`` and ``0 / 0`` to 0); :func:`simulate` reads it at every call and compiles a program
 for each setting. Use it to rule the rewriters out when a result looks wrong, or when a new
 JAX breaks them.
@@ -53,7 +60,7 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 from jax.extend import core as jex_core
 
-from wmrjax import _scalarize, _simplify, resources
+from wmrjax import _hoist, _scalarize, _simplify, resources
 from wmrjax._validate import check_finite, check_int, concrete, is_concrete
 
 # from this many steps on, reverse-mode differentiation checkpoints the saving chunks too
@@ -161,12 +168,15 @@ def rk4_step(field, t, z, dt):
     return z_next, aux
 
 
-def _rk4(field, t, z, dt):
-    """RK4 step returning ``(z_next, aux_at_t, k1, k4)`` (the stages the error estimate needs)."""
-    k1, aux = field(t, z)
-    k2, _ = field(t + 0.5 * dt, _axpy(z, 0.5 * dt, k1))
-    k3, _ = field(t + 0.5 * dt, _axpy(z, 0.5 * dt, k2))
-    k4, _ = field(t + dt, _axpy(z, dt, k3))
+def _rk4(field, t, z, dt, at=None):
+    """RK4 step returning ``(z_next, aux_at_t, k1, k4)`` (the stages the error estimate needs).
+    ``at``: what ``field`` takes in place of each stage's time (four values, e.g. the rows of a
+    table of time-dependent values, :mod:`wmrjax._hoist`); None: the stage times."""
+    a1, a2, a3, a4 = (t, t + 0.5 * dt, t + 0.5 * dt, t + dt) if at is None else at
+    k1, aux = field(a1, z)
+    k2, _ = field(a2, _axpy(z, 0.5 * dt, k1))
+    k3, _ = field(a3, _axpy(z, 0.5 * dt, k2))
+    k4, _ = field(a4, _axpy(z, dt, k3))
     combine = lambda zi, a, b, c, d: (
         zi + (dt / 6.0) * (a + 2.0 * b + 2.0 * c + d)
         if _is_continuous(zi) and not all(map(_held, (a, b, c, d)))
@@ -175,9 +185,11 @@ def _rk4(field, t, z, dt):
     return jax.tree_util.tree_map(combine, z, k1, k2, k3, k4), aux, k1, k4
 
 
-def _rk4_stage_loop(field, t, z, dt, parts, rebuild):
+def _rk4_stage_loop(field, t, z, dt, parts, rebuild, rows=None):
     """:func:`_rk4` of ``field(t, z, p)``, ``p = rebuild(parts)``, with its four stages run by a
-    loop over one copy of the field, on scalars.
+    loop over one copy of the field, on scalars. ``rows``: what ``field`` takes in place of the
+    stage times t, t + dt/2 and t + dt (a step's three rows of a table, :mod:`wmrjax._hoist`);
+    None: the times.
 
     For the largest laws: the loop body holds one copy of the field instead of four, so XLA
     compiles the step faster (and its fused scalar program stays small enough for
@@ -193,13 +205,16 @@ def _rk4_stage_loop(field, t, z, dt, parts, rebuild):
     dtype = jnp.result_type(dt)
     nodes = jnp.asarray([0.0, 0.5, 0.5, 1.0], dtype)  # stage times, in units of dt
     weights = jnp.asarray([1.0, 2.0, 2.0, 1.0], dtype)  # weights x 6
-    k_like, aux_like = jax.eval_shape(field, t, z, rebuild(parts))
+    k_like, aux_like = jax.eval_shape(field, t if rows is None else rows[0], z, rebuild(parts))
 
-    def stage(carry, stage_xs, zs, parts):
+    def stage(carry, stage_xs, zs, parts, rows):
         k_prev, acc, k1, aux = carry  # tuples of scalars: the continuous leaves of k; aux
         i, node, weight = stage_xs
         z_i = _axpy(_from_scalars(zs, z), node * dt, _from_continuous(k_prev, k_like))
-        k, aux_i = field(t + node * dt, z_i, rebuild(parts))
+        # a row of the table selected on scalars (stage 0: t, 3: t + dt, else t + dt/2): no array
+        pick = lambda a, b, c: jnp.where(i == 0, a, jnp.where(i == 3, c, b))
+        at = t + node * dt if rows is None else jax.tree_util.tree_map(pick, *rows)
+        k, aux_i = field(at, z_i, rebuild(parts))
         k, aux_i = _continuous(k), _to_scalars(aux_i)
         first = i == 0
         acc = tuple(jnp.where(first, ki, s + weight * ki) for s, ki in zip(acc, k))
@@ -211,7 +226,7 @@ def _rk4_stage_loop(field, t, z, dt, parts, rebuild):
     zeros = lambda tree: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), tree)
     zero_k, zero_aux = _continuous(zeros(k_like)), _to_scalars(zeros(aux_like))
     (k4, acc, k1, aux), _ = jax.lax.scan(
-        lambda c, xs: body(c, xs, zs, parts), (zero_k, zero_k, zero_k, zero_aux), (jnp.arange(4), nodes, weights)
+        lambda c, xs: body(c, xs, zs, parts, rows), (zero_k, zero_k, zero_k, zero_aux), (jnp.arange(4), nodes, weights)
     )
     acc = _from_continuous(acc, k_like)
     combine = lambda zi, s: zi + (dt / 6.0) * s if _is_continuous(zi) else zi
@@ -377,8 +392,9 @@ class _Rebuild:
 
 
 def _scalar_field(system, t, z, params):
-    """``(field(t, z, p), n)``: ``system``'s vector field on scalars, traced once at the avals of
-    ``(t, z, params)`` (calls with the same avals replay that program), and its equation count."""
+    """``(field(t, z, p), n, closed, out_tree)``: ``system``'s vector field on scalars, traced once
+    at the avals of ``(t, z, params)`` (calls with the same avals replay that program), its
+    equation count, the traced program and the structure of its output."""
     scalar = scalarized(_simplify.simplify(lambda t, z, p: system.vector_field(t, z, p)))
     closed, shapes = jax.make_jaxpr(scalar, return_shape=True)(t, z, params)
     out_tree = jax.tree_util.tree_structure(shapes)
@@ -387,7 +403,7 @@ def _scalar_field(system, t, z, params):
     def field(t, z, p):
         return jax.tree_util.tree_unflatten(out_tree, replay(*jax.tree_util.tree_leaves((t, z, p))))
 
-    return field, len(closed.jaxpr.eqns)
+    return field, len(closed.jaxpr.eqns), closed, out_tree
 
 
 def _sampler(system):
@@ -455,25 +471,28 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # initial shapes and the final state's evaluation: the same arithmetic at every time, and one
     # trace of the law per run. The loop body takes the parameters apart once, outside the loop;
     # the largest laws run their RK stages in a loop over one copy of it (STAGE_LOOP_MIN_EQUATIONS)
-    field_s, n_scalar = _scalar_field(system, t0, z0, params)
+    field_s, n_scalar, closed, out_tree = _scalar_field(system, t0, z0, params)
     field = lambda t, z: field_s(t, z, params)
-    stage_loop = n_scalar >= STAGE_LOOP_MIN_EQUATIONS
     post_step = getattr(system, "post_step", None)
     sample, sample_every = _sampler(system)
     params_parts, rebuild_params = scalar_parts(params)
-
+    # the field's state-independent part (the reference's jet, a schedule) tabulated before the loop
+    hoisted = _hoisting(closed, out_tree, z0, params, t0, dt, n_steps) if rewrites and sample is None else None
+    field_q, q_parts, rebuild_q, table, n_loop = hoisted or (field_s, None, rebuild_params, (), n_scalar)
+    stage_loop = n_loop >= STAGE_LOOP_MIN_EQUATIONS  # the size of what runs in the loop
     loop = _Loop(system, field_s, dt, estimate, stage_loop, post_step, sample, sample_every, rebuild_params)
+    loop = loop._replace(field_q=field_q, rebuild_q=rebuild_q, hoisted=hoisted is not None)
     carry_k4 = estimate and sample is None  # the continuous loops carry the last stage for the next estimate
 
-    def step_on_scalars(carry, i, parts):
+    def step_on_scalars(carry, ix, parts):
         zt, alive, diag, sign_prev, k4_prev, est_ok = carry  # est_ok is None without discrete transitions
-        p = rebuild_params(parts)
+        (i, x), p = ix, rebuild_params(parts[0])
         z = _from_scalars(zt, z0)
         t = t0 + i.astype(dtype) * dt
         z_in = z  # what a failed run keeps: a dead run's sample is discarded by the selection below
         if sample is not None:  # a digital controller samples at its period's start
             z = sample(i // sample_every, t, z, p)
-        z_next, aux, est, k4, jumped = _advance(loop, t, z, i, p, parts, k4_prev, est_ok)
+        z_next, aux, est, k4, jumped = _advance(loop, t, z, i, p, parts, k4_prev, est_ok, x)
         margin = jnp.asarray(aux.margin, dtype)
         reg, step_est = getattr(aux, "regularity", None), est if estimate else None
         # classify the state z at time t
@@ -502,16 +521,39 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # stores the step's two flags that select the next state: the recomputation is then the
     # RK4 stages alone, a faster gradient.
     policy = jax.checkpoint_policies.save_only_these_names(*_SAVED_FLAGS)
-    step = jax.checkpoint(lambda carry, i: step_on_scalars(carry, i, params_parts), prevent_cse=False, policy=policy)
+    parts = (params_parts, q_parts)
+    step = jax.checkpoint(lambda carry, ix: step_on_scalars(carry, ix, parts), prevent_cse=False, policy=policy)
     if sample is not None:
         # a sampled-data period holds one evaluation of the law among plant steps: reverse mode
         # stores its residuals instead of recomputing the period
-        step = lambda carry, i: step_on_scalars(carry, i, params_parts)
+        step = lambda carry, ix: step_on_scalars(carry, ix, parts)
 
     outside = _outside_samples(params, t0, t0 + n_steps * dt)
     carry, rec0 = _initial_carry(field, z0, t0, dt, save_fn, carry_k4, post_step is not None and estimate, outside)
-    carry, recs = _scan_steps(step, carry, rec0, n_steps, save_every, 1 if sample is None else sample_every)
+    carry, recs = _scan_steps(step, carry, rec0, n_steps, save_every, 1 if sample is None else sample_every, table)
     return _finish(loop, field, carry, recs, z0, params, t0, n_steps, save_every, margin_floor, error_tol, save_fn)
+
+
+def _hoisting(closed, out_tree, z0, params, t0, dt, n_steps: int):
+    """``(field_q, parts, rebuild, table, n)`` of a loop whose field's state-independent part is
+    computed before it (:mod:`wmrjax._hoist`): the rest of the field ``field_q(row, z, q)``, its
+    constants as scalars with their ``rebuild``, the table of its timed values at every stage
+    time and the rest's equation count. None where the field stays whole in the loop: the table would be batched by an
+    enclosing vmap (a reference or a geometry per run) or larger than TABLE_MAX_BYTES."""
+    split = _hoist.split_field(closed, out_tree, len(jax.tree_util.tree_leaves(z0)))
+    leaves = jax.tree_util.tree_leaves(params)
+    feeds = [x for x, used in zip(leaves, _hoist.table_inputs(split)) if used]
+    size = sum(int(np.prod(a.shape)) * a.dtype.itemsize for a in split.table.out_avals)
+    if size * _hoist.STAGE_TIMES * n_steps > _hoist.TABLE_MAX_BYTES or any(map(_hoist.batched, (t0, dt, *feeds))):
+        return None
+    consts, inputs = _hoist.constants(split, leaves)
+    table = _hoist.tabulate(split, inputs, _hoist.stage_times(t0, dt, n_steps))
+    parts, rebuild = scalar_parts(consts)
+    return functools.partial(_hoisted_field, split), parts, rebuild, table, len(split.field.jaxpr.eqns)
+
+
+def _hoisted_field(split, row, z, consts):
+    return _hoist.field_at(split, consts, row, z)
 
 
 class _Loop(NamedTuple):
@@ -526,21 +568,39 @@ class _Loop(NamedTuple):
     sample: object  # a sampled-data system's sampler, or None
     sample_every: object
     rebuild_params: object
+    # the RK stages' field ``field_q(at, z, q)``, ``q = rebuild_q(parts[1])`` where the field's
+    # state-independent part is tabulated (``hoisted``: ``at`` a row of the table), else
+    # ``field_s(t, z, p)`` (``at`` the stage time, ``q`` the parameters)
+    field_q: object = None
+    rebuild_q: object = None
+    hoisted: bool = False
 
 
-def _advance(loop: _Loop, t, z, i, p, parts, k4_prev, est_ok):
+def _stage_rows(x):
+    """The table's rows of one step (one per distinct stage time, :data:`_hoist.STAGE_TIMES`) as
+    the four RK stages read them: a tuple of four rows."""
+    return tuple(x[s] for s in _hoist.STAGE_ROWS)
+
+
+def _advance(loop: _Loop, t, z, i, p, parts, k4_prev, est_ok, x=()):
     """One unit of the time loop from ``z`` at ``t``: ``(z_next, aux at (t, z), error estimate,
     last stage k4, jumped)``. A unit is one RK4 step (then the system's ``post_step``), or a
-    sampled-data system's whole period: its ``sample_every`` steps under the held sample."""
+    sampled-data system's whole period: its ``sample_every`` steps under the held sample.
+    ``parts``: the parameters' and the tabulated field's constants as scalars; ``x``: the step's
+    rows of the table (:mod:`wmrjax._hoist`)."""
     dt = loop.dt
     if loop.sample is not None:
         return _period_advance(
-            loop.field_s, t, z, dt, loop.sample_every, loop.estimate, parts, loop.rebuild_params, loop.system.held(z)
+            loop.field_s, t, z, dt, loop.sample_every, loop.estimate, parts[0], loop.rebuild_params, loop.system.held(z)
         )
+    q_parts = parts[1] if loop.hoisted else parts[0]
     if loop.stage_loop:
-        z_next, aux, k1, k4 = _rk4_stage_loop(loop.field_s, t, z, dt, parts, loop.rebuild_params)
+        rows = x if loop.hoisted else None
+        z_next, aux, k1, k4 = _rk4_stage_loop(loop.field_q, t, z, dt, q_parts, loop.rebuild_q, rows)
     else:
-        z_next, aux, k1, k4 = _rk4(lambda tt, zz: loop.field_s(tt, zz, p), t, z, dt)
+        q = loop.rebuild_q(q_parts)
+        at = _stage_rows(x) if loop.hoisted else None
+        z_next, aux, k1, k4 = _rk4(lambda a, zz: loop.field_q(a, zz, q), t, z, dt, at)
     jumped = jnp.array(False)
     if loop.post_step is not None:  # hybrid systems: discrete transition at the end of the step
         z_post = loop.post_step(t + dt, z_next, p)
@@ -664,28 +724,32 @@ def _initial_carry(field, z0, t0, dt, save_fn, carry_k4: bool, carry_jumps: bool
     return carry, rec0
 
 
-def _scan_steps(step, carry, rec0, n_steps, save_every, unit):
-    """``(carry, records)``: ``step`` over the horizon by units of ``unit`` steps (a sampled-data
-    system runs by whole periods), keeping the record of the first step of every ``save_every``
-    (one copy of the step body in the compiled program, whatever save_every is)."""
+def _scan_steps(step, carry, rec0, n_steps, save_every, unit, table=()):
+    """``(carry, records)``: ``step(carry, (i, x))`` over the horizon by units of ``unit`` steps (a
+    sampled-data system runs by whole periods; ``i`` the unit's first step), keeping the record of
+    the first step of every ``save_every`` (one copy of the step body in the compiled program,
+    whatever save_every is). ``table``: a pytree of arrays with a leading axis of ``n_steps``
+    (one step per unit), whose rows are fed to the steps as ``x``."""
     n_saves = n_steps // save_every
     save_units, n_units = save_every // unit, n_steps // unit
+    head = n_saves * save_units
 
-    def inner(c, ij):
+    def inner(c, ijx):
         # one step (or period); keep the record of the first step of each saving chunk (one copy
         # of the step body in the compiled program, whatever save_every is)
-        i, j = ij
+        i, j, x = ijx
         state, rec = c
-        state, new_rec = step(state, i)
+        state, new_rec = step(state, (i, x))
         rec = jax.tree_util.tree_map(lambda a, b: jnp.where(j == 0, a, b), new_rec, rec)
         return (state, rec), None
 
-    idx = unit * jnp.arange(n_saves * save_units).reshape(n_saves, save_units)  # first step of each unit
+    idx = unit * jnp.arange(head).reshape(n_saves, save_units)  # first step of each unit
     within = jnp.broadcast_to(jnp.arange(save_units), idx.shape)
+    rows = jax.tree_util.tree_map(lambda a: a[:head].reshape(n_saves, save_units, *a.shape[1:]), table)
 
     def outer(c, ids):
         if save_units == 1:  # one step (or period) per saved sample: no inner loop
-            return step(c, ids[0][0])
+            return step(c, (ids[0][0], jax.tree_util.tree_map(lambda a: a[0], ids[2])))
         (state, rec), _ = jax.lax.scan(inner, (c, rec0), ids)
         return state, rec
 
@@ -693,10 +757,11 @@ def _scan_steps(step, carry, rec0, n_steps, save_every, unit):
         # long horizons: reverse mode keeps one carry per saving chunk and recomputes a chunk's
         # steps when it reaches it (one more forward pass; memory / save_every)
         outer = jax.checkpoint(outer, prevent_cse=False)
-    carry, recs = jax.lax.scan(outer, carry, (idx, within))
-    rest = unit * jnp.arange(n_saves * save_units, n_units)
+    carry, recs = jax.lax.scan(outer, carry, (idx, within, rows))
+    rest = unit * jnp.arange(head, n_units)
     if rest.shape[0]:  # steps beyond the last saving chunk run without saving
-        (carry, _), _ = jax.lax.scan(inner, (carry, rec0), (rest, jnp.ones_like(rest)))
+        tail = jax.tree_util.tree_map(lambda a: a[head:], table)
+        (carry, _), _ = jax.lax.scan(inner, (carry, rec0), (rest, jnp.ones_like(rest), tail))
     return carry, recs
 
 

@@ -1,0 +1,135 @@
+"""The part of a closed loop's vector field that does not depend on the state, computed once
+before the time loop instead of at every RK4 stage.
+
+A linearizing law evaluates the reference's jet (and a gain schedule's coefficients) at each
+stage time. That work depends on the time and the parameters, never on the state, and the
+stage times of a fixed-step run are known before it starts. :func:`split_field` cuts the
+traced field (a closed jaxpr of ``(t, z, params)``) by data dependence (JAX's partial
+evaluation) into three programs:
+
+* ``consts``: what depends on the parameters alone (a gain, a product of geometry terms),
+  evaluated once per run;
+* ``table``: what depends on the time (and the parameters), evaluated for all stage times of
+  the horizon at once, vectorised, before the loop (:func:`tabulate`);
+* ``field``: the rest, which depends on the state, the only part left in the loop; it reads
+  the values it needs from the two others (:func:`field_at`).
+
+Every family of references then costs the loop the same: a built-in closed form, a sampled
+path (a spline's piece search and Horner's rule), a user's function and a schedule differ
+only in the one vectorised evaluation before the loop. The values are those of the whole
+field: the same operations on the same numbers, moved.
+
+What it costs: a table of ``3 n_steps`` rows of the time-dependent values per run (three
+distinct stage times per RK4 step), and, when a gradient flows into the reference or a
+schedule, their cotangents. :func:`simulate` therefore splits only where the table is shared by
+the runs of a batch (the reference is not batched by an enclosing ``vmap``: :func:`batched`)
+and small (:data:`TABLE_MAX_BYTES`); otherwise the field runs whole in the loop, as before.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax._src.interpreters import partial_eval as pe
+from jax.extend import core as jex_core
+
+# the largest table of one run that is built before the loop [bytes]; a longer horizon runs the
+# field whole in the loop (the memory model of wmrjax.resources has no term for the table)
+TABLE_MAX_BYTES = 2**24
+# stage times per RK4 step: t, t + dt/2 (stages 2 and 3), t + dt
+STAGE_TIMES = 3
+# which of a step's STAGE_TIMES rows each of the four RK4 stages reads
+STAGE_ROWS = (0, 1, 1, 2)
+
+
+class Split(NamedTuple):
+    """A vector field cut by what it depends on (see the module docstring).
+
+    Attributes:
+      consts: closed jaxpr ``(*param_leaves) -> (*constant residuals, *table inputs)``.
+      table: closed jaxpr ``(*table inputs, t) -> timed residuals``.
+      field: closed jaxpr ``(*residuals, *state_leaves) -> output leaves`` of the field.
+      timed: for each residual of ``field``, True where it comes from the table.
+      n_consts: how many of ``consts``' outputs are residuals (the rest feed the table).
+      out_tree: the structure of the field's output ``(dz/dt, aux)``.
+    """
+
+    consts: Any
+    table: Any
+    field: Any
+    timed: tuple
+    n_consts: int
+    out_tree: Any
+
+    @property
+    def n_timed(self) -> int:
+        return sum(self.timed)
+
+
+def split_field(closed, out_tree, n_state_leaves: int) -> Split:
+    """Cut ``closed`` (the field traced at ``(t, z, params)``, leaves flattened in that order:
+    one time, ``n_state_leaves`` state leaves, then the parameters') into a :class:`Split`."""
+    n_params = len(closed.in_avals) - 1 - n_state_leaves
+    state_unknown = [False] + [True] * n_state_leaves + [False] * n_params
+    # instantiate: every output of the field comes out of the state-dependent part
+    known, field, _, _ = pe.partial_eval_jaxpr_nounits(closed, state_unknown, instantiate=True)
+    consts, table, timed, _ = pe.partial_eval_jaxpr_nounits(known, [True] + [False] * n_params, instantiate=False)
+    return Split(consts, table, field, tuple(timed), len(timed) - sum(timed), out_tree)
+
+
+def table_inputs(split: Split) -> list:
+    """For each parameter leaf: True where the table depends on it."""
+    n_in = len(split.consts.jaxpr.outvars) - split.n_consts
+    _, used = pe.dce_jaxpr(split.consts.jaxpr, [False] * split.n_consts + [True] * n_in)
+    return list(used)
+
+
+def batched(x) -> bool:
+    """True when ``x`` is batched by an enclosing ``jax.vmap`` traced around this call (looked
+    for through the differentiation tracers' primal values). A trace-time question: a ``vmap``
+    of an already-traced program (``vmap(jit(f))``) is not seen, and its table is batched."""
+    while isinstance(x, jax.core.Tracer):
+        if hasattr(x, "batch_dim"):  # a vmap's tracer: batched when it has a batch axis
+            if type(x.batch_dim) is int:
+                return True
+            x = x.val
+        elif hasattr(x, "primal"):  # jvp or linearize: the primal value is what is batched
+            x = x.primal
+        else:  # a jit, checkpoint or shard_map trace: nothing more to see
+            return False
+    return False
+
+
+def constants(split: Split, param_leaves) -> tuple:
+    """``(residuals, table inputs)``: the parameter-only values, once per run."""
+    out = jex_core.jaxpr_as_fun(split.consts)(*param_leaves)
+    return tuple(out[: split.n_consts]), tuple(out[split.n_consts :])
+
+
+def stage_times(t0, dt, n_steps: int):
+    """The distinct stage times of ``n_steps`` RK4 steps from ``t0``, shape (n_steps, 3): the
+    loop's own arithmetic (``t = t0 + i dt``, then ``t + 0.5 dt`` and ``t + dt``), to the bit."""
+    t = t0 + jnp.arange(n_steps).astype(jnp.result_type(dt)) * dt
+    return jnp.stack([t, t + 0.5 * dt, t + dt], axis=1)
+
+
+def tabulate(split: Split, inputs, times) -> tuple:
+    """The timed residuals at every stage time (vectorised over the times, outside any loop):
+    for each column of ``times`` (n, k), a tuple of arrays, one per residual, shaped ``(n,) +
+    residual shape``. A step's row is then a tuple of scalars per stage time: the loop body takes
+    no array apart to read it."""
+    fn = jex_core.jaxpr_as_fun(split.table)
+    one = lambda t: tuple(fn(*inputs, t))
+    table = jax.vmap(jax.vmap(one))(times)
+    return tuple(tuple(r[:, k] for r in table) for k in range(times.shape[1]))
+
+
+def field_at(split: Split, consts, row, z):
+    """The field's ``(dz/dt, aux)`` at state ``z``, from the constant residuals ``consts`` and
+    ``row``, the timed residuals at the stage's time (one value per timed residual)."""
+    consts, row = iter(consts), iter(row)
+    res = [next(row) if timed else next(consts) for timed in split.timed]
+    out = jex_core.jaxpr_as_fun(split.field)(*res, *jax.tree_util.tree_leaves(z))
+    return jax.tree_util.tree_unflatten(split.out_tree, out)
