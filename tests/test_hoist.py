@@ -39,7 +39,8 @@ def _scheduled_11():
 
 def _split(ctrl, params, z0):
     field_s, _, closed, out_tree = simulate_module._scalar_field(ctrl, jnp.zeros(()), z0, params)
-    return field_s, _hoist.split_field(closed, out_tree, len(jax.tree_util.tree_leaves(z0)))
+    n_params = len(jax.tree_util.tree_leaves(params))
+    return field_s, _hoist.split_field(closed, out_tree, len(jax.tree_util.tree_leaves(z0)), [False] * n_params)
 
 
 @pytest.mark.parametrize("case", ["sampled_61", "scheduled_11"])
@@ -92,34 +93,46 @@ def test_a_sampled_path_leaves_the_loop_what_a_builtin_reference_leaves(level):
     assert counts["sampled"] == counts["builtin"] > 0, counts
 
 
-def test_batched_references_keep_the_field_in_the_loop(paper61):
-    """References that differ per run (vmap over their parameters) are not tabulated (a table per
-    run would be batch x steps x values): the runs equal each one's own run (tabulated) to
-    rounding, and the tracing saw them batched."""
-    ctrl, params, z0 = paper61
-    refs = [R.circle(radius=r, omega=0.5) for r in (2.0, 3.0)]
-    stacked = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[params._replace(reference=r) for r in refs])
+def test_what_depends_on_batched_parameters_stays_in_the_loop(paper61, monkeypatch):
+    """A table is built only from what the runs of a batch share. References that differ per run
+    (vmap over their parameters) keep their jet in the loop (a table of it would be batch x steps
+    x values); gains that differ per run on a shared reference keep the reference's jet
+    tabulated. Either batch equals each run on its own (everything shared: tabulated) to rounding."""
+    ctrl, params, _ = paper61
     seen = []
-    original = simulate_module._hoisting
+    original = _hoist.split_field
 
-    def spy(*args, **kwargs):
-        out = original(*args, **kwargs)
-        seen.append(out is not None)
-        return out
+    def spy(closed, out_tree, n_state, varying, n_time=1):
+        split = original(closed, out_tree, n_state, varying, n_time)
+        seen.append((sum(varying), split.n_timed))
+        return split
 
-    z0s = jnp.stack([ctrl.reference_state(0.0, params._replace(reference=r)).at[0].add(0.1) for r in refs])
+    monkeypatch.setattr(_hoist, "split_field", spy)
     run = lambda z, p: w.simulate(ctrl, z, p, dt=0.01, n_steps=300)
-    simulate_module._hoisting = spy
-    try:
-        batched = jax.vmap(run)(z0s, stacked)
-        shared = jax.vmap(run, in_axes=(0, None))(z0s, params._replace(reference=refs[0]))
-    finally:
-        simulate_module._hoisting = original
-    assert seen == [False, True]  # batched references: not tabulated; a shared one: tabulated
-    for k, r in enumerate(refs):
-        alone = run(z0s[k], params._replace(reference=r))
-        np.testing.assert_allclose(batched.state[k], alone.state, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(shared.state[0], run(z0s[0], params._replace(reference=refs[0])).state, atol=1e-12)
+    refs = [R.circle(radius=r, omega=0.5) for r in (2.0, 3.0)]
+    per_run = [
+        params._replace(reference=refs[0], gains=w.Gains.from_poles(1.0, 2, 2)),
+        params._replace(reference=refs[1]),
+    ]
+    per_run.append(params._replace(reference=refs[0], gains=w.Gains.from_poles(2.0, 2, 2)))
+    z0s = jnp.stack([ctrl.reference_state(0.0, p).at[0].add(0.1) for p in per_run])
+    stack = lambda ps: jax.tree_util.tree_map(lambda *x: jnp.stack(x), *ps)
+    alone = [run(z, p) for z, p in zip(z0s, per_run)]
+    n_alone = seen[0][1]
+    seen.clear()
+    refs_batched = jax.vmap(run)(z0s[:2], stack(per_run[:2]))  # references (and gains) per run
+    gains = params.gains._replace(coeffs=jnp.stack([per_run[0].gains.coeffs, per_run[2].gains.coeffs]))
+    pair = z0s[jnp.array([0, 2])]
+    jax.vmap(run, in_axes=(0, None))(pair, per_run[0])  # everything shared
+    gains_batched = jax.vmap(lambda z, g: run(z, per_run[0]._replace(gains=g)))(pair, gains)
+    (v_refs, t_refs), (v_shared, t_shared), (v_gains, t_gains) = seen
+    assert n_alone > 0 and t_shared == t_gains == n_alone  # the reference's jet tabulated
+    assert v_shared == 0 and 0 < v_gains < v_refs  # gains batched: fewer varying leaves
+    assert t_refs < n_alone  # the references' jets stay in the loop
+    for k in (0, 1):
+        np.testing.assert_allclose(refs_batched.state[k], alone[k].state, rtol=0, atol=1e-12)
+    for k, j in ((0, 0), (1, 2)):
+        np.testing.assert_allclose(gains_batched.state[k], alone[j].state, rtol=0, atol=1e-12)
 
 
 def test_batched_sees_through_vmap_jvp_and_jit():

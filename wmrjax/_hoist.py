@@ -21,9 +21,10 @@ field: the same operations on the same numbers, moved.
 
 What it costs: a table of ``3 n_steps`` rows of the time-dependent values per run (three
 distinct stage times per RK4 step), and, when a gradient flows into the reference or a
-schedule, their cotangents. :func:`simulate` therefore splits only where the table is shared by
-the runs of a batch (the reference is not batched by an enclosing ``vmap``: :func:`batched`)
-and small (:data:`TABLE_MAX_BYTES`); otherwise the field runs whole in the loop, as before.
+schedule, their cotangents. The table is therefore built only from what the runs of a batch
+share: a parameter leaf that an enclosing ``vmap`` batches (a reference, a geometry or gains
+per run, :func:`batched`) keeps what depends on it in the loop, as before; and only where the
+table is small (:data:`TABLE_MAX_BYTES`).
 """
 
 from __future__ import annotations
@@ -68,22 +69,23 @@ class Split(NamedTuple):
         return sum(self.timed)
 
 
-def split_field(closed, out_tree, n_state_leaves: int) -> Split:
+def split_field(closed, out_tree, n_state_leaves: int, varying, n_time: int = 1) -> Split:
     """Cut ``closed`` (the field traced at ``(t, z, params)``, leaves flattened in that order:
-    one time, ``n_state_leaves`` state leaves, then the parameters') into a :class:`Split`."""
-    n_params = len(closed.in_avals) - 1 - n_state_leaves
-    state_unknown = [False] + [True] * n_state_leaves + [False] * n_params
-    # instantiate: every output of the field comes out of the state-dependent part
-    known, field, _, _ = pe.partial_eval_jaxpr_nounits(closed, state_unknown, instantiate=True)
-    consts, table, timed, _ = pe.partial_eval_jaxpr_nounits(known, [True] + [False] * n_params, instantiate=False)
+    ``n_time`` time inputs, ``n_state_leaves`` state leaves, then the parameters') into a
+    :class:`Split`.
+
+    ``varying``: for each parameter leaf, True where it differs from run to run of a batch (an
+    enclosing vmap batches it, :func:`batched`). What depends on such a leaf stays in the loop
+    with the state (a table of it would be batch x steps large); what depends on the time and
+    the shared parameters alone is tabulated."""
+    varying = [bool(v) for v in varying]
+    unknown = [False] * n_time + [True] * n_state_leaves + varying
+    # instantiate: every output of the field comes out of the part left in the loop
+    known, field, _, _ = pe.partial_eval_jaxpr_nounits(closed, unknown, instantiate=True)
+    n_shared = len(varying) - sum(varying)
+    timing = [True] * n_time + [False] * n_shared
+    consts, table, timed, _ = pe.partial_eval_jaxpr_nounits(known, timing, instantiate=False)
     return Split(consts, table, field, tuple(timed), len(timed) - sum(timed), out_tree)
-
-
-def table_inputs(split: Split) -> list:
-    """For each parameter leaf: True where the table depends on it."""
-    n_in = len(split.consts.jaxpr.outvars) - split.n_consts
-    _, used = pe.dce_jaxpr(split.consts.jaxpr, [False] * split.n_consts + [True] * n_in)
-    return list(used)
 
 
 def batched(x) -> bool:
@@ -102,9 +104,10 @@ def batched(x) -> bool:
     return False
 
 
-def constants(split: Split, param_leaves) -> tuple:
-    """``(residuals, table inputs)``: the parameter-only values, once per run."""
-    out = jex_core.jaxpr_as_fun(split.consts)(*param_leaves)
+def constants(split: Split, shared_leaves) -> tuple:
+    """``(residuals, table inputs)``: the values of the shared parameter leaves alone (those not
+    ``varying`` in :func:`split_field`), once per run."""
+    out = jex_core.jaxpr_as_fun(split.consts)(*shared_leaves)
     return tuple(out[: split.n_consts]), tuple(out[split.n_consts :])
 
 
@@ -115,21 +118,22 @@ def stage_times(t0, dt, n_steps: int):
     return jnp.stack([t, t + 0.5 * dt, t + dt], axis=1)
 
 
-def tabulate(split: Split, inputs, times) -> tuple:
+def tabulate(split: Split, inputs, *times) -> tuple:
     """The timed residuals at every stage time (vectorised over the times, outside any loop):
-    for each column of ``times`` (n, k), a tuple of arrays, one per residual, shaped ``(n,) +
-    residual shape``. A step's row is then a tuple of scalars per stage time: the loop body takes
-    no array apart to read it."""
+    ``times`` are the time inputs' values, each of shape (n, c); for each of the c columns, a
+    tuple of arrays, one per residual, shaped ``(n,) + residual shape``. A step's row is then a
+    tuple of scalars per column: the loop body takes no array apart to read it."""
     fn = jex_core.jaxpr_as_fun(split.table)
-    one = lambda t: tuple(fn(*inputs, t))
-    table = jax.vmap(jax.vmap(one))(times)
-    return tuple(tuple(r[:, k] for r in table) for k in range(times.shape[1]))
+    one = lambda *ts: tuple(fn(*inputs, *ts))
+    table = jax.vmap(jax.vmap(one))(*times)
+    return tuple(tuple(r[:, k] for r in table) for k in range(times[0].shape[1]))
 
 
-def field_at(split: Split, consts, row, z):
-    """The field's ``(dz/dt, aux)`` at state ``z``, from the constant residuals ``consts`` and
-    ``row``, the timed residuals at the stage's time (one value per timed residual)."""
+def field_at(split: Split, consts, row, z, varying_leaves=()):
+    """The field's ``(dz/dt, aux)`` at state ``z``, from the constant residuals ``consts``,
+    ``row``, the timed residuals at the stage's time (one value per timed residual), and the
+    varying parameter leaves (in their order among the parameters')."""
     consts, row = iter(consts), iter(row)
     res = [next(row) if timed else next(consts) for timed in split.timed]
-    out = jex_core.jaxpr_as_fun(split.field)(*res, *jax.tree_util.tree_leaves(z))
+    out = jex_core.jaxpr_as_fun(split.field)(*res, *jax.tree_util.tree_leaves(z), *varying_leaves)
     return jax.tree_util.tree_unflatten(split.out_tree, out)

@@ -476,9 +476,12 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     post_step = getattr(system, "post_step", None)
     sample, sample_every = _sampler(system)
     params_parts, rebuild_params = scalar_parts(params)
-    # the field's state-independent part (the reference's jet, a schedule) tabulated before the loop
-    hoisted = _hoisting(closed, out_tree, z0, params, t0, dt, n_steps) if rewrites and sample is None else None
-    field_q, q_parts, rebuild_q, table, n_loop = hoisted or (field_s, None, rebuild_params, (), n_scalar)
+    # the field's state-independent part (the reference's jet, a schedule) tabulated before the
+    # loop (a digital controller's period evaluates its law once: not worth a table, measured)
+    hoisted = None
+    if rewrites and sample is None:
+        hoisted = _hoisting(closed, out_tree, z0, params, t0, dt, (_hoist.stage_times(t0, dt, n_steps),))
+    field_q, q_parts, rebuild_q, table, n_loop = hoisted or (None, None, None, (), n_scalar)
     stage_loop = n_loop >= STAGE_LOOP_MIN_EQUATIONS  # the size of what runs in the loop
     loop = _Loop(system, field_s, dt, estimate, stage_loop, post_step, sample, sample_every, rebuild_params)
     loop = loop._replace(field_q=field_q, rebuild_q=rebuild_q, hoisted=hoisted is not None)
@@ -534,26 +537,31 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     return _finish(loop, field, carry, recs, z0, params, t0, n_steps, save_every, margin_floor, error_tol, save_fn)
 
 
-def _hoisting(closed, out_tree, z0, params, t0, dt, n_steps: int):
+def _hoisting(closed, out_tree, z0, params, t0, dt, times):
     """``(field_q, parts, rebuild, table, n)`` of a loop whose field's state-independent part is
     computed before it (:mod:`wmrjax._hoist`): the rest of the field ``field_q(row, z, q)``, its
-    constants as scalars with their ``rebuild``, the table of its timed values at every stage
-    time and the rest's equation count. None where the field stays whole in the loop: the table would be batched by an
-    enclosing vmap (a reference or a geometry per run) or larger than TABLE_MAX_BYTES."""
-    split = _hoist.split_field(closed, out_tree, len(jax.tree_util.tree_leaves(z0)))
-    leaves = jax.tree_util.tree_leaves(params)
-    feeds = [x for x, used in zip(leaves, _hoist.table_inputs(split)) if used]
-    size = sum(int(np.prod(a.shape)) * a.dtype.itemsize for a in split.table.out_avals)
-    if size * _hoist.STAGE_TIMES * n_steps > _hoist.TABLE_MAX_BYTES or any(map(_hoist.batched, (t0, dt, *feeds))):
+    constants and the batched parameter leaves as scalars with their ``rebuild``, the table of
+    the timed values at ``times`` (the field's time inputs, each (n, c): the stage times) and the
+    rest's equation count. The parameters an enclosing vmap batches stay in the loop with what
+    depends on them. None where the field stays whole in the loop: times batched by an enclosing
+    vmap, or a table larger than TABLE_MAX_BYTES."""
+    if _hoist.batched(t0) or _hoist.batched(dt):
         return None
-    consts, inputs = _hoist.constants(split, leaves)
-    table = _hoist.tabulate(split, inputs, _hoist.stage_times(t0, dt, n_steps))
-    parts, rebuild = scalar_parts(consts)
+    leaves = jax.tree_util.tree_leaves(params)
+    varying = [_hoist.batched(x) for x in leaves]
+    split = _hoist.split_field(closed, out_tree, len(jax.tree_util.tree_leaves(z0)), varying, len(times))
+    size = sum(int(np.prod(a.shape)) * a.dtype.itemsize for a in split.table.out_avals)
+    if size * times[0].size > _hoist.TABLE_MAX_BYTES:
+        return None
+    consts, inputs = _hoist.constants(split, [x for x, v in zip(leaves, varying) if not v])
+    table = _hoist.tabulate(split, inputs, *times)
+    parts, rebuild = scalar_parts((consts, tuple(x for x, v in zip(leaves, varying) if v)))
     return functools.partial(_hoisted_field, split), parts, rebuild, table, len(split.field.jaxpr.eqns)
 
 
-def _hoisted_field(split, row, z, consts):
-    return _hoist.field_at(split, consts, row, z)
+def _hoisted_field(split, row, z, q):
+    consts, varying = q
+    return _hoist.field_at(split, consts, row, z, varying)
 
 
 class _Loop(NamedTuple):
@@ -568,9 +576,9 @@ class _Loop(NamedTuple):
     sample: object  # a sampled-data system's sampler, or None
     sample_every: object
     rebuild_params: object
-    # the RK stages' field ``field_q(at, z, q)``, ``q = rebuild_q(parts[1])`` where the field's
-    # state-independent part is tabulated (``hoisted``: ``at`` a row of the table), else
-    # ``field_s(t, z, p)`` (``at`` the stage time, ``q`` the parameters)
+    # where the field's state-independent part is tabulated (``hoisted``), the RK stages run the
+    # rest, ``field_q(row, z, q)``, ``q = rebuild_q(parts[1])``, on the table's rows; else
+    # ``field_s(t, z, p)`` at the stage times
     field_q: object = None
     rebuild_q: object = None
     hoisted: bool = False
@@ -593,14 +601,14 @@ def _advance(loop: _Loop, t, z, i, p, parts, k4_prev, est_ok, x=()):
         return _period_advance(
             loop.field_s, t, z, dt, loop.sample_every, loop.estimate, parts[0], loop.rebuild_params, loop.system.held(z)
         )
-    q_parts = parts[1] if loop.hoisted else parts[0]
+    field, rebuild, q_parts = (
+        (loop.field_q, loop.rebuild_q, parts[1]) if loop.hoisted else (loop.field_s, loop.rebuild_params, parts[0])
+    )
     if loop.stage_loop:
-        rows = x if loop.hoisted else None
-        z_next, aux, k1, k4 = _rk4_stage_loop(loop.field_q, t, z, dt, q_parts, loop.rebuild_q, rows)
+        z_next, aux, k1, k4 = _rk4_stage_loop(field, t, z, dt, q_parts, rebuild, x if loop.hoisted else None)
     else:
-        q = loop.rebuild_q(q_parts)
-        at = _stage_rows(x) if loop.hoisted else None
-        z_next, aux, k1, k4 = _rk4(lambda a, zz: loop.field_q(a, zz, q), t, z, dt, at)
+        q = rebuild(q_parts)
+        z_next, aux, k1, k4 = _rk4(lambda a, zz: field(a, zz, q), t, z, dt, _stage_rows(x) if loop.hoisted else None)
     jumped = jnp.array(False)
     if loop.post_step is not None:  # hybrid systems: discrete transition at the end of the step
         z_post = loop.post_step(t + dt, z_next, p)
