@@ -183,3 +183,18 @@ def test_tabulated_schedule_agrees_with_the_whole_field_and_its_gradients_agree(
     fd = (loss(s + h) - loss(s - h)) / (2 * h)
     np.testing.assert_allclose(fwd, rev, rtol=1e-10)
     np.testing.assert_allclose(rev, fd, rtol=1e-6)
+
+
+def test_rewrites_off_runs_the_whole_field_in_the_loop(paper61, monkeypatch):
+    """``WMRJAX_JAXPR_REWRITES=0`` (the plain JAX program, to rule the rewriters out) also turns
+    the tabulation off; the run agrees with the tabulated one to rounding."""
+    ctrl, params, z0 = paper61
+    params = _sampled(params)
+    calls = []
+    original = simulate_module._hoisting
+    monkeypatch.setattr(simulate_module, "_hoisting", lambda *a: calls.append(1) or original(*a))
+    tab = w.simulate(ctrl, z0, params, dt=0.01, n_steps=200)
+    monkeypatch.setenv("WMRJAX_JAXPR_REWRITES", "0")
+    plain = w.simulate(ctrl, z0, params, dt=0.01, n_steps=200)
+    assert calls == [1]
+    np.testing.assert_allclose(tab.state, plain.state, rtol=0, atol=1e-12)
