@@ -88,6 +88,15 @@ def split_field(closed, out_tree, n_state_leaves: int, varying, n_time: int = 1)
     return Split(consts, table, field, tuple(timed), len(timed) - sum(timed), out_tree)
 
 
+def state_part_size(closed, n_state_leaves: int, n_time: int = 1) -> int:
+    """Equations of ``closed`` (as in :func:`split_field`) that depend on the state: what a loop
+    runs when every parameter is shared. A property of the law and its geometry, not of the
+    reference's family nor of what a batch varies."""
+    n_params = len(closed.in_avals) - n_time - n_state_leaves
+    unknown = [False] * n_time + [True] * n_state_leaves + [False] * n_params
+    return len(pe.partial_eval_jaxpr_nounits(closed, unknown, instantiate=True)[1].jaxpr.eqns)
+
+
 def batched(x) -> bool:
     """True when ``x`` is batched by an enclosing ``jax.vmap`` traced around this call (looked
     for through the differentiation tracers' primal values). A trace-time question: a ``vmap``

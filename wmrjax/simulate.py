@@ -66,13 +66,16 @@ from wmrjax._validate import check_finite, check_int, concrete, is_concrete
 # from this many steps on, reverse-mode differentiation checkpoints the saving chunks too
 TWO_LEVEL_CHECKPOINT_STEPS = 2000
 # the loop body runs on scalars; laws whose scalarized vector field has at least this many
-# equations run the four RK stages in a loop over one copy of it, checkpointed stage by stage
-# (the six dynamic laws from (1,2) velocity, 303 equations, to (1,1) torque, 949; the largest
-# of the others has 205): their programs, and their gradients', compile faster and run as fast
-# or faster, where the unrolled step of the two largest is a fused scalar program that XLA:CPU's
-# loop emitter compiles slowly, into slow code. Small laws keep the unrolled step, which runs
-# faster for them (the section 6.1 law has 153 equations).
-STAGE_LOOP_MIN_EQUATIONS = 250
+# equations that depend on the state (what is left once the reference's jet is tabulated,
+# wmrjax._hoist.state_part_size, counted as if every parameter were shared) run
+# the four RK stages in a loop over one copy of it, checkpointed stage by stage: their programs,
+# and their gradients', compile faster and run as fast or faster, where the unrolled step of the
+# largest is a fused scalar program that XLA:CPU's loop emitter compiles slowly, into slow code.
+# Small laws keep the unrolled step, which runs faster for them. On the figure-eight with the
+# rows' geometries the stage loop takes (1,2) velocity (196 equations, whose certification is
+# slower unrolled) up to (1,1) torque (688); (2,0) torque (175) runs faster unrolled, the section
+# 6.1 law has 51 (measurements: docs/benchmarks.md).
+STAGE_LOOP_MIN_EQUATIONS = 190
 # reverse mode stores these flags of every step (see _simulate)
 _SAVED_FLAGS = ("wmrjax_step_ok", "wmrjax_step_finite")
 
@@ -481,8 +484,9 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     hoisted = None
     if rewrites and sample is None:
         hoisted = _hoisting(closed, out_tree, z0, params, t0, dt, (_hoist.stage_times(t0, dt, n_steps),))
-    field_q, q_parts, rebuild_q, table, n_loop = hoisted or (None, None, None, (), n_scalar)
-    stage_loop = n_loop >= STAGE_LOOP_MIN_EQUATIONS  # the size of what runs in the loop
+    field_q, q_parts, rebuild_q, table = hoisted or (None, None, None, ())
+    # the size of the law's state-dependent part: the same choice whatever a batch varies
+    stage_loop = _hoist.state_part_size(closed, len(jax.tree_util.tree_leaves(z0))) >= STAGE_LOOP_MIN_EQUATIONS
     loop = _Loop(system, field_s, dt, estimate, stage_loop, post_step, sample, sample_every, rebuild_params)
     loop = loop._replace(field_q=field_q, rebuild_q=rebuild_q, hoisted=hoisted is not None)
     carry_k4 = estimate and sample is None  # the continuous loops carry the last stage for the next estimate
@@ -538,11 +542,10 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
 
 
 def _hoisting(closed, out_tree, z0, params, t0, dt, times):
-    """``(field_q, parts, rebuild, table, n)`` of a loop whose field's state-independent part is
+    """``(field_q, parts, rebuild, table)`` of a loop whose field's state-independent part is
     computed before it (:mod:`wmrjax._hoist`): the rest of the field ``field_q(row, z, q)``, its
     constants and the batched parameter leaves as scalars with their ``rebuild``, the table of
-    the timed values at ``times`` (the field's time inputs, each (n, c): the stage times) and the
-    rest's equation count. The parameters an enclosing vmap batches stay in the loop with what
+    the timed values at ``times`` (the field's time inputs, each (n, c): the stage times). The parameters an enclosing vmap batches stay in the loop with what
     depends on them. None where the field stays whole in the loop: times batched by an enclosing
     vmap, or a table larger than TABLE_MAX_BYTES."""
     if _hoist.batched(t0) or _hoist.batched(dt):
@@ -556,7 +559,7 @@ def _hoisting(closed, out_tree, z0, params, t0, dt, times):
     consts, inputs = _hoist.constants(split, [x for x, v in zip(leaves, varying) if not v])
     table = _hoist.tabulate(split, inputs, *times)
     parts, rebuild = scalar_parts((consts, tuple(x for x, v in zip(leaves, varying) if v)))
-    return functools.partial(_hoisted_field, split), parts, rebuild, table, len(split.field.jaxpr.eqns)
+    return functools.partial(_hoisted_field, split), parts, rebuild, table
 
 
 def _hoisted_field(split, row, z, q):
