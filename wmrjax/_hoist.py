@@ -49,9 +49,10 @@ class Split(NamedTuple):
     """A vector field cut by what it depends on (see the module docstring).
 
     Attributes:
-      consts: closed jaxpr ``(*param_leaves) -> (*constant residuals, *table inputs)``.
+      consts: closed jaxpr ``(*shared_param_leaves) -> (*constant residuals, *table inputs)``.
       table: closed jaxpr ``(*table inputs, t) -> timed residuals``.
-      field: closed jaxpr ``(*residuals, *state_leaves) -> output leaves`` of the field.
+      field: closed jaxpr ``(*residuals, *state_leaves, *varying_param_leaves) -> output leaves``
+        of the field (``varying``: the parameter leaves batched per run, :func:`split_field`).
       timed: for each residual of ``field``, True where it comes from the table.
       n_consts: how many of ``consts``' outputs are residuals (the rest feed the table).
       out_tree: the structure of the field's output ``(dz/dt, aux)``.
