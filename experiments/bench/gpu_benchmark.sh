@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # The benchmark on one GPU, float64 then float32: the command behind the GPU table of
 # docs/benchmarks.md. Usage: bash experiments/bench/gpu_benchmark.sh OUT [SECONDS_PER_DTYPE]
-# Run from the repository root in an environment with jax[cuda] and the cli extra. Only the
+# Run from the repository root in an environment with jax[cuda] and the cli extra (all of it:
+# the command lines refuse to start without cmaes and optuna, which a GPU image may lack; carry
+# their wheels there, with optuna's alembic, colorlog, Mako, SQLAlchemy and greenlet). Only the
 # blocks a GPU changes: the rollout (batch_map: one chunk on a GPU by default), the gradients and the
 # reference families; compile tables, memory (host RSS), tuner and exported C steps are CPU work.
 # If the jaxpr rewriters fail on the installed JAX, the run is repeated without them
