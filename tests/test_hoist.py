@@ -38,7 +38,7 @@ def _scheduled_11():
 
 
 def _split(ctrl, params, z0):
-    field_s, _, closed, out_tree = simulate_module._scalar_field(ctrl, jnp.zeros(()), z0, params)
+    field_s, closed, out_tree = simulate_module._scalar_field(ctrl, jnp.zeros(()), z0, params)
     n_params = len(jax.tree_util.tree_leaves(params))
     return field_s, _hoist.split_field(closed, out_tree, len(jax.tree_util.tree_leaves(z0)), [False] * n_params)
 
@@ -102,8 +102,8 @@ def test_what_depends_on_batched_parameters_stays_in_the_loop(paper61, monkeypat
     seen = []
     original = _hoist.split_field
 
-    def spy(closed, out_tree, n_state, varying, n_time=1):
-        split = original(closed, out_tree, n_state, varying, n_time)
+    def spy(closed, out_tree, n_state, varying):
+        split = original(closed, out_tree, n_state, varying)
         seen.append((sum(varying), split.n_timed))
         return split
 

@@ -70,31 +70,30 @@ class Split(NamedTuple):
         return sum(self.timed)
 
 
-def split_field(closed, out_tree, n_state_leaves: int, varying, n_time: int = 1) -> Split:
+def split_field(closed, out_tree, n_state_leaves: int, varying) -> Split:
     """Cut ``closed`` (the field traced at ``(t, z, params)``, leaves flattened in that order:
-    ``n_time`` time inputs, ``n_state_leaves`` state leaves, then the parameters') into a
-    :class:`Split`.
+    one time, ``n_state_leaves`` state leaves, then the parameters') into a :class:`Split`.
 
     ``varying``: for each parameter leaf, True where it differs from run to run of a batch (an
     enclosing vmap batches it, :func:`batched`). What depends on such a leaf stays in the loop
     with the state (a table of it would be batch x steps large); what depends on the time and
     the shared parameters alone is tabulated."""
     varying = [bool(v) for v in varying]
-    unknown = [False] * n_time + [True] * n_state_leaves + varying
+    unknown = [False] + [True] * n_state_leaves + varying
     # instantiate: every output of the field comes out of the part left in the loop
     known, field, _, _ = pe.partial_eval_jaxpr_nounits(closed, unknown, instantiate=True)
     n_shared = len(varying) - sum(varying)
-    timing = [True] * n_time + [False] * n_shared
-    consts, table, timed, _ = pe.partial_eval_jaxpr_nounits(known, timing, instantiate=False)
+    consts, table, timed, _ = pe.partial_eval_jaxpr_nounits(known, [True] + [False] * n_shared, instantiate=False)
     return Split(consts, table, field, tuple(timed), len(timed) - sum(timed), out_tree)
 
 
-def state_part_size(closed, n_state_leaves: int, n_time: int = 1) -> int:
+def state_part_size(closed, n_state_leaves: int) -> int:
     """Equations of ``closed`` (as in :func:`split_field`) that depend on the state: what a loop
     runs when every parameter is shared. A property of the law and its geometry, not of the
     reference's family nor of what a batch varies."""
-    n_params = len(closed.in_avals) - n_time - n_state_leaves
-    unknown = [False] * n_time + [True] * n_state_leaves + [False] * n_params
+    n_params = len(closed.in_avals) - 1 - n_state_leaves
+    # the same cut as split_field's first with nothing varying (JAX caches it: one partial evaluation)
+    unknown = [False] + [True] * n_state_leaves + [False] * n_params
     return len(pe.partial_eval_jaxpr_nounits(closed, unknown, instantiate=True)[1].jaxpr.eqns)
 
 
@@ -128,15 +127,15 @@ def stage_times(t0, dt, n_steps: int):
     return jnp.stack([t, t + 0.5 * dt, t + dt], axis=1)
 
 
-def tabulate(split: Split, inputs, *times) -> tuple:
+def tabulate(split: Split, inputs, times) -> tuple:
     """The timed residuals at every stage time (vectorised over the times, outside any loop):
-    ``times`` are the time inputs' values, each of shape (n, c); for each of the c columns, a
-    tuple of arrays, one per residual, shaped ``(n,) + residual shape``. A step's row is then a
-    tuple of scalars per column: the loop body takes no array apart to read it."""
+    for each column of ``times`` (n, k), a tuple of arrays, one per residual, shaped ``(n,) +
+    residual shape``. A step's row is then a tuple of scalars per stage time: the loop body takes
+    no array apart to read it."""
     fn = jex_core.jaxpr_as_fun(split.table)
-    one = lambda *ts: tuple(fn(*inputs, *ts))
-    table = jax.vmap(jax.vmap(one))(*times)
-    return tuple(tuple(r[:, k] for r in table) for k in range(times[0].shape[1]))
+    one = lambda t: tuple(fn(*inputs, t))
+    table = jax.vmap(jax.vmap(one))(times)
+    return tuple(tuple(r[:, k] for r in table) for k in range(times.shape[1]))
 
 
 def field_at(split: Split, consts, row, z, varying_leaves=()):

@@ -13,8 +13,8 @@ results are on the benchmarks page of the docs):
   jet, a gain schedule's coefficients) is computed for every stage time of the horizon
   before the loop, vectorised, and fed to the steps as the scan's inputs
   (:mod:`wmrjax._hoist`): the loop holds only what depends on the state, and a sampled path
-  costs it what a closed-form reference costs (references batched per run keep the whole
-  field in the loop);
+  costs it what a closed-form reference costs (what depends on parameters batched per run,
+  a reference per run say, stays in the loop);
 
 * the scan carry is a tuple of scalars, one per state component, so that under
   ``vmap`` each component is a contiguous batch array (structure of arrays) and the
@@ -33,7 +33,8 @@ results are on the benchmarks page of the docs):
 
 The rewriting of the step (:mod:`wmrjax._scalarize`, :mod:`wmrjax._simplify`) and the
 tabulation (:mod:`wmrjax._hoist`) read JAX's internal jaxpr interfaces.
-``WMRJAX_JAXPR_REWRITES=0`` in the environment runs the plain JAX program instead (same values to rounding, but for the simplifier's IEEE caveat: it folds
+``WMRJAX_JAXPR_REWRITES=0`` in the environment runs the plain JAX program instead, the whole
+field in the loop (same values to rounding, but for the simplifier's IEEE caveat: it folds
 ``0 * inf`` and ``0 / 0`` to 0); :func:`simulate` reads it at every call and compiles a program
 for each setting. Use it to rule the rewriters out when a result looks wrong, or when a new
 JAX breaks them.
@@ -395,9 +396,9 @@ class _Rebuild:
 
 
 def _scalar_field(system, t, z, params):
-    """``(field(t, z, p), n, closed, out_tree)``: ``system``'s vector field on scalars, traced once
-    at the avals of ``(t, z, params)`` (calls with the same avals replay that program), its
-    equation count, the traced program and the structure of its output."""
+    """``(field(t, z, p), closed, out_tree)``: ``system``'s vector field on scalars, traced once
+    at the avals of ``(t, z, params)`` (calls with the same avals replay that program), the
+    traced program and the structure of its output."""
     scalar = scalarized(_simplify.simplify(lambda t, z, p: system.vector_field(t, z, p)))
     closed, shapes = jax.make_jaxpr(scalar, return_shape=True)(t, z, params)
     out_tree = jax.tree_util.tree_structure(shapes)
@@ -406,7 +407,7 @@ def _scalar_field(system, t, z, params):
     def field(t, z, p):
         return jax.tree_util.tree_unflatten(out_tree, replay(*jax.tree_util.tree_leaves((t, z, p))))
 
-    return field, len(closed.jaxpr.eqns), closed, out_tree
+    return field, closed, out_tree
 
 
 def _sampler(system):
@@ -474,19 +475,19 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # initial shapes and the final state's evaluation: the same arithmetic at every time, and one
     # trace of the law per run. The loop body takes the parameters apart once, outside the loop;
     # the largest laws run their RK stages in a loop over one copy of it (STAGE_LOOP_MIN_EQUATIONS)
-    field_s, n_scalar, closed, out_tree = _scalar_field(system, t0, z0, params)
+    field_s, closed, out_tree = _scalar_field(system, t0, z0, params)
     field = lambda t, z: field_s(t, z, params)
     post_step = getattr(system, "post_step", None)
     sample, sample_every = _sampler(system)
     params_parts, rebuild_params = scalar_parts(params)
     # the field's state-independent part (the reference's jet, a schedule) tabulated before the
     # loop (a digital controller's period evaluates its law once: not worth a table, measured)
-    hoisted = None
-    if rewrites and sample is None:
-        hoisted = _hoisting(closed, out_tree, z0, params, t0, dt, (_hoist.stage_times(t0, dt, n_steps),))
+    n_leaves = len(jax.tree_util.tree_leaves(z0))
+    hoisted = _hoisting(closed, out_tree, n_leaves, params, t0, dt, n_steps) if rewrites and sample is None else None
     field_q, q_parts, rebuild_q, table = hoisted or (None, None, None, ())
-    # the size of the law's state-dependent part: the same choice whatever a batch varies
-    stage_loop = _hoist.state_part_size(closed, len(jax.tree_util.tree_leaves(z0))) >= STAGE_LOOP_MIN_EQUATIONS
+    # the size of the law's state-dependent part: the same choice whatever a batch varies (a
+    # digital controller's period runs its own steps, without a stage loop)
+    stage_loop = sample is None and _hoist.state_part_size(closed, n_leaves) >= STAGE_LOOP_MIN_EQUATIONS
     loop = _Loop(system, field_s, dt, estimate, stage_loop, post_step, sample, sample_every, rebuild_params)
     loop = loop._replace(field_q=field_q, rebuild_q=rebuild_q, hoisted=hoisted is not None)
     carry_k4 = estimate and sample is None  # the continuous loops carry the last stage for the next estimate
@@ -541,23 +542,23 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     return _finish(loop, field, carry, recs, z0, params, t0, n_steps, save_every, margin_floor, error_tol, save_fn)
 
 
-def _hoisting(closed, out_tree, z0, params, t0, dt, times):
+def _hoisting(closed, out_tree, n_state_leaves: int, params, t0, dt, n_steps: int):
     """``(field_q, parts, rebuild, table)`` of a loop whose field's state-independent part is
     computed before it (:mod:`wmrjax._hoist`): the rest of the field ``field_q(row, z, q)``, its
-    constants and the batched parameter leaves as scalars with their ``rebuild``, the table of
-    the timed values at ``times`` (the field's time inputs, each (n, c): the stage times). The parameters an enclosing vmap batches stay in the loop with what
-    depends on them. None where the field stays whole in the loop: times batched by an enclosing
-    vmap, or a table larger than TABLE_MAX_BYTES."""
+    constants and the batched parameter leaves as scalars with their ``rebuild``, and the table
+    of the timed values at every stage time. The parameters an enclosing vmap batches stay in
+    the loop with what depends on them. None where the field stays whole in the loop: times
+    batched by an enclosing vmap, or a table larger than TABLE_MAX_BYTES."""
     if _hoist.batched(t0) or _hoist.batched(dt):
         return None
     leaves = jax.tree_util.tree_leaves(params)
     varying = [_hoist.batched(x) for x in leaves]
-    split = _hoist.split_field(closed, out_tree, len(jax.tree_util.tree_leaves(z0)), varying, len(times))
+    split = _hoist.split_field(closed, out_tree, n_state_leaves, varying)
     size = sum(int(np.prod(a.shape)) * a.dtype.itemsize for a in split.table.out_avals)
-    if size * times[0].size > _hoist.TABLE_MAX_BYTES:
+    if size * _hoist.STAGE_TIMES * n_steps > _hoist.TABLE_MAX_BYTES:
         return None
     consts, inputs = _hoist.constants(split, [x for x, v in zip(leaves, varying) if not v])
-    table = _hoist.tabulate(split, inputs, *times)
+    table = _hoist.tabulate(split, inputs, _hoist.stage_times(t0, dt, n_steps))
     parts, rebuild = scalar_parts((consts, tuple(x for x, v in zip(leaves, varying) if v)))
     return functools.partial(_hoisted_field, split), parts, rebuild, table
 
@@ -740,7 +741,7 @@ def _scan_steps(step, carry, rec0, n_steps, save_every, unit, table=()):
     sampled-data system runs by whole periods; ``i`` the unit's first step), keeping the record of
     the first step of every ``save_every`` (one copy of the step body in the compiled program,
     whatever save_every is). ``table``: a pytree of arrays with a leading axis of ``n_steps``
-    (one step per unit), whose rows are fed to the steps as ``x``."""
+    (one step per unit: continuous loops only), whose rows are fed to the steps as ``x``."""
     n_saves = n_steps // save_every
     save_units, n_units = save_every // unit, n_steps // unit
     head = n_saves * save_units
