@@ -148,6 +148,24 @@ def test_quickly_compiled_programs_match_the_default_ones(tiny):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-14)
 
 
+def test_batch_reads_shared_inputs_once_and_equals_each_scenario_alone(tiny):
+    """The batched loss takes the inputs every scenario shares once (tuning.scenarios.shared_axes:
+    what depends on them alone is then computed once per batch): it equals each scenario's own
+    rollout, run unbatched, to rounding; and what a scenario draws is batched, the rest not."""
+    from tuning.scenarios import DRAWN, rollout, shared_axes
+
+    setting, spec, ctx = tiny
+    raw = spec.init(1.2)
+    _, ok, m = mean_loss(raw, ctx.sets.train, setting, spec, ctx.weights)
+    one = jax.jit(lambda sc: rollout(setting, spec.gains(raw), sc))
+    for i in range(3):
+        alone = one(jax.tree_util.tree_map(lambda x: x[i], ctx.sets.train))
+        for a, b in zip(jax.tree_util.tree_leaves(alone), jax.tree_util.tree_leaves(m)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], rtol=1e-12, atol=1e-14)
+    _, axes = shared_axes(setting, ctx.sets.train)
+    assert {k for k, v in axes.inputs.items() if v == 0} == set(DRAWN) and axes.key == 0
+
+
 def test_nan_scenario_is_reported_and_excluded(tiny):
     setting, spec, ctx = tiny
     raw = spec.init(1.0)

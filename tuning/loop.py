@@ -25,7 +25,7 @@ from tuning import certified
 from tuning.config import Scenarios, Stopping
 from tuning.gains import GainSpec
 from tuning.losses import LossWeights, certificate_radius, scenario_loss
-from tuning.scenarios import Scenario, draw_set, rollout
+from tuning.scenarios import Scenario, draw_set, rollout, shared_axes
 from wmrjax.references import FAMILIES
 from wmrjax_cli import files
 
@@ -215,7 +215,8 @@ def _mean_loss_and_grad(raw, scen, setting, family, w_arr):
     """Mean loss and gradient over the scenarios that stayed valid; a scenario whose value or
     gradient is not finite is dropped from both, never averaged in. :func:`wmrjax.value_and_grad`
     picks the mode: forward sensitivities for a few gain parameters, reverse mode for many."""
-    vg = jax.vmap(w.value_and_grad(_per_scenario, has_aux=True), in_axes=(None, 0, None, None, None))
+    scen, axes = shared_axes(setting, scen)
+    vg = jax.vmap(w.value_and_grad(_per_scenario, has_aux=True), in_axes=(None, axes, None, None, None))
     (L, m), G = vg(raw, scen, setting, family, w_arr)
     ok = m.valid & jnp.isfinite(L) & jnp.all(jnp.isfinite(G.reshape(G.shape[0], -1)), axis=1)
     n = jnp.maximum(jnp.sum(ok), 1).astype(L.dtype)
@@ -235,7 +236,8 @@ _gradient_step = jax.jit(_mean_loss_and_grad, static_argnums=(2, 3), compiler_op
 
 def _mean_loss(raw, scen, setting, family, w_arr):
     """Mean loss (valid scenarios only), validity mask and metrics; forward only."""
-    L, m = jax.vmap(_per_scenario, in_axes=(None, 0, None, None, None))(raw, scen, setting, family, w_arr)
+    scen, axes = shared_axes(setting, scen)
+    L, m = jax.vmap(_per_scenario, in_axes=(None, axes, None, None, None))(raw, scen, setting, family, w_arr)
     ok = m.valid & jnp.isfinite(L)
     return jnp.sum(jnp.where(ok, L, 0.0)) / jnp.maximum(jnp.sum(ok), 1).astype(L.dtype), ok, m
 

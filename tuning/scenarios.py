@@ -26,6 +26,10 @@ from wmrjax.problem import Setting, initial_box, initial_keys, place, random_opt
 class Scenario(NamedTuple):
     """One tuning scenario (a pytree; a set stacks them along a leading axis).
 
+    The scenarios of a set differ only in what :func:`draw` draws (:data:`DRAWN`, the noise key,
+    and the reference of a random family); the batched losses read the other inputs from the
+    first scenario (:func:`shared_axes`), as every set :func:`draw_set` returns holds them.
+
     Attributes:
       inputs: the run's inputs (:meth:`wmrjax.problem.Setting.inputs` keys but ``gains``):
         nominal geometry, plant limits and scales (``geometry_scale``: the plant's L and e over
@@ -82,6 +86,20 @@ def draw_set(setting: Setting, mismatch: float, keys) -> Scenario:
     return jax.vmap(lambda k: draw(setting, mismatch, k))(keys)
 
 
+# what a scenario draws; every other input is the problem's own, the same in every scenario
+DRAWN = ("initial", "z0", "input_scale", "geometry_scale")
+
+
+def shared_axes(setting: Setting, sc: Scenario) -> tuple:
+    """``(sc', axes)``: a scenario batch with the inputs every scenario shares taken once (the
+    first scenario's), and the ``in_axes`` of ``jax.vmap`` for it: the shared inputs unbatched, so
+    that what depends on them alone is computed once, not once per scenario."""
+    drawn = set(DRAWN) | ({"reference"} if R.FAMILIES[setting.data["reference"]["family"]].kind == "random" else set())
+    inputs = {k: (v if k in drawn else jax.tree_util.tree_map(lambda x: x[0], v)) for k, v in sc.inputs.items()}
+    axes = {k: (0 if k in drawn else None) for k in sc.inputs}
+    return Scenario(inputs, sc.key), Scenario(axes, 0)
+
+
 def rollout(setting: Setting, gains, sc: Scenario, trajectory: bool = False):
     """Simulate one scenario with ``gains`` (:class:`wmrjax.Gains` or a
     :class:`wmrjax.GainSchedule`); returns :class:`tuning.Metrics` (with ``trajectory``:
@@ -101,4 +119,4 @@ def rollout(setting: Setting, gains, sc: Scenario, trajectory: bool = False):
     return metrics(setting, tr, params, sc.inputs, MARGIN_SAFE)
 
 
-__all__ = ["Metrics", "Scenario", "draw", "draw_set", "rollout", "tuning_box"]
+__all__ = ["DRAWN", "Metrics", "Scenario", "draw", "draw_set", "rollout", "shared_axes", "tuning_box"]
