@@ -530,11 +530,10 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # RK4 stages alone, a faster gradient.
     policy = jax.checkpoint_policies.save_only_these_names(*_SAVED_FLAGS)
     parts = (params_parts, q_parts)
+    # A sampled-data period too: storing its residuals (the law's jet at the sample, every plant
+    # stage) made the tuner's reverse-mode gradient a third slower than recomputing the period
+    # (docs/benchmarks.md).
     step = jax.checkpoint(lambda carry, ix: step_on_scalars(carry, ix, parts), prevent_cse=False, policy=policy)
-    if sample is not None:
-        # a sampled-data period holds one evaluation of the law among plant steps: reverse mode
-        # stores its residuals instead of recomputing the period
-        step = lambda carry, ix: step_on_scalars(carry, ix, parts)
 
     outside = _outside_samples(params, t0, t0 + n_steps * dt)
     carry, rec0 = _initial_carry(field, z0, t0, dt, save_fn, carry_k4, post_step is not None and estimate, outside)
