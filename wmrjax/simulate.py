@@ -27,9 +27,9 @@ results are on the benchmarks page of the docs):
 * the large laws (:data:`STAGE_LOOP_MIN_EQUATIONS`) run the four RK stages in a loop over
   one copy of the field, checkpointed stage by stage: their programs compile faster;
 * the vector fields use :func:`wmrjax._math.sincos`, which XLA vectorises;
-* reverse mode recomputes each step from its input carry but stores the step's two flags
-  that select the next state, so that the recomputation is the RK4 stages alone, without the
-  diagnostics and the error estimate.
+* reverse mode recomputes each step (a digital controller's whole period) from its input
+  carry but stores the step's two flags that select the next state, so that the
+  recomputation is the RK4 stages alone, without the diagnostics and the error estimate.
 
 The rewriting of the step (:mod:`wmrjax._scalarize`, :mod:`wmrjax._simplify`) and the
 tabulation (:mod:`wmrjax._hoist`) read JAX's internal jaxpr interfaces.
