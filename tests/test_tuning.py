@@ -166,6 +166,21 @@ def test_batch_reads_shared_inputs_once_and_equals_each_scenario_alone(tiny):
     assert {k for k, v in axes.inputs.items() if v == 0} == set(DRAWN) and axes.key == 0
 
 
+def test_set_whose_shared_inputs_differ_is_refused(tiny):
+    """A set edited by hand so that one scenario has its own actuator limit: the batched losses,
+    which read the shared inputs from the first scenario, refuse it (naming the input and the
+    scenario) before anything compiles; the same edit inside a transformation is not checkable
+    and not checked."""
+    setting, spec, ctx = tiny
+    train = ctx.sets.train
+    bad = train._replace(inputs={**train.inputs, "limit": train.inputs["limit"].at[2].set(1.2)})
+    for fn in (mean_loss, mean_loss_and_grad):
+        with pytest.raises(ValueError, match=r"inputs\['limit'\] differ between scenarios \(scenarios \[2\]"):
+            fn(spec.init(1.0), bad, setting, spec, ctx.weights)
+    nan_everywhere = train._replace(inputs={**train.inputs, "delta": jnp.full_like(train.inputs["delta"], jnp.nan)})
+    tuning.scenarios.check_shared(setting, nan_everywhere)  # the same value (NaN) in every scenario: shared
+
+
 def test_nan_scenario_is_reported_and_excluded(tiny):
     setting, spec, ctx = tiny
     raw = spec.init(1.0)

@@ -25,7 +25,7 @@ from tuning import certified
 from tuning.config import Scenarios, Stopping
 from tuning.gains import GainSpec
 from tuning.losses import LossWeights, certificate_radius, scenario_loss
-from tuning.scenarios import Scenario, draw_set, rollout, shared_axes
+from tuning.scenarios import Scenario, check_shared, draw_set, rollout, shared_axes
 from wmrjax.references import FAMILIES
 from wmrjax_cli import files
 
@@ -225,10 +225,20 @@ def _mean_loss_and_grad(raw, scen, setting, family, w_arr):
     return loss, grad, ok, m
 
 
-mean_loss_and_grad = jax.jit(_mean_loss_and_grad, static_argnums=(2, 3))
-"""``(raw, scenarios, setting, family, weights) -> (mean loss, gradient, valid mask, metrics)``
-over a batch of scenarios (not :func:`wmrjax.batch_value_and_grad`, which returns per-example
-gradients)."""
+_mean_loss_and_grad_program = jax.jit(_mean_loss_and_grad, static_argnums=(2, 3))
+
+
+def mean_loss_and_grad(raw, scen, setting, family, w_arr):
+    """``(mean loss, gradient, valid mask, metrics)`` over a batch of scenarios (not
+    :func:`wmrjax.batch_value_and_grad`, which returns per-example gradients).
+
+    Raises:
+      ValueError: the scenarios differ in an input they must share (:func:`tuning.scenarios.check_shared`).
+    """
+    check_shared(setting, scen)
+    return _mean_loss_and_grad_program(raw, scen, setting, family, w_arr)
+
+
 # the tuning loop's program: the same function at LOOP_COMPILE (a top-level program: JAX takes
 # compiler options on the outermost jit only, so the public function keeps the default)
 _gradient_step = jax.jit(_mean_loss_and_grad, static_argnums=(2, 3), compiler_options=LOOP_COMPILE)
@@ -242,8 +252,19 @@ def _mean_loss(raw, scen, setting, family, w_arr):
     return jnp.sum(jnp.where(ok, L, 0.0)) / jnp.maximum(jnp.sum(ok), 1).astype(L.dtype), ok, m
 
 
-mean_loss = jax.jit(_mean_loss, static_argnums=(2, 3))
-"""``(raw, scenarios, setting, family, weights) -> (mean loss, valid mask, metrics)``."""
+_mean_loss_program = jax.jit(_mean_loss, static_argnums=(2, 3))
+
+
+def mean_loss(raw, scen, setting, family, w_arr):
+    """``(mean loss, valid mask, metrics)`` over a batch of scenarios, forward only.
+
+    Raises:
+      ValueError: the scenarios differ in an input they must share (:func:`tuning.scenarios.check_shared`).
+    """
+    check_shared(setting, scen)
+    return _mean_loss_program(raw, scen, setting, family, w_arr)
+
+
 # the validation's program: the same function, compiled quickly (it runs every eval_every steps)
 validation_loss = jax.jit(_mean_loss, static_argnums=(2, 3), compiler_options=QUICK_COMPILE)
 

@@ -28,7 +28,9 @@ class Scenario(NamedTuple):
 
     The scenarios of a set differ only in what :func:`draw` draws (:data:`DRAWN`, the noise key,
     and the reference of a random family); the batched losses read the other inputs from the
-    first scenario (:func:`shared_axes`), as every set :func:`draw_set` returns holds them.
+    first scenario (:func:`shared_axes`), as every set :func:`draw_set` returns holds them
+    (:func:`tuning.mean_loss` and :func:`tuning.mean_loss_and_grad` refuse a set that does not:
+    :func:`check_shared`).
 
     Attributes:
       inputs: the run's inputs (:meth:`wmrjax.problem.Setting.inputs` keys but ``gains``):
@@ -90,14 +92,42 @@ def draw_set(setting: Setting, mismatch: float, keys) -> Scenario:
 DRAWN = ("initial", "z0", "input_scale", "geometry_scale")
 
 
+def _drawn(setting: Setting) -> set:
+    """The inputs a scenario draws: :data:`DRAWN`, and the reference of a random family."""
+    random = R.FAMILIES[setting.data["reference"]["family"]].kind == "random"
+    return set(DRAWN) | ({"reference"} if random else set())
+
+
 def shared_axes(setting: Setting, sc: Scenario) -> tuple:
     """``(sc', axes)``: a scenario batch with the inputs every scenario shares taken once (the
     first scenario's), and the ``in_axes`` of ``jax.vmap`` for it: the shared inputs unbatched, so
     that what depends on them alone is computed once, not once per scenario."""
-    drawn = set(DRAWN) | ({"reference"} if R.FAMILIES[setting.data["reference"]["family"]].kind == "random" else set())
+    drawn = _drawn(setting)
     inputs = {k: (v if k in drawn else jax.tree_util.tree_map(lambda x: x[0], v)) for k, v in sc.inputs.items()}
     axes = {k: (0 if k in drawn else None) for k in sc.inputs}
     return Scenario(inputs, sc.key), Scenario(axes, 0)
+
+
+def check_shared(setting: Setting, sc: Scenario) -> None:
+    """ValueError when the scenarios of a batch differ in an input they must share (one that
+    :func:`shared_axes` takes from the first scenario): a set edited or built by hand. Traced
+    batches (inside a transformation) are not checked."""
+    drawn = _drawn(setting)
+    for k, v in sc.inputs.items():
+        if k in drawn:
+            continue
+        for leaf in jax.tree_util.tree_leaves(v):
+            if isinstance(leaf, jax.core.Tracer):
+                return
+            a = np.asarray(leaf)
+            same = (a == a[:1]) | (np.isnan(a) & np.isnan(a[:1])) if a.dtype.kind == "f" else a == a[:1]
+            if not np.all(same):
+                rows = sorted({int(i) for i in np.nonzero(~same.reshape(a.shape[0], -1).all(axis=1))[0]})
+                raise ValueError(
+                    f"scenario inputs[{k!r}] differ between scenarios (scenarios {rows[:8]} differ from scenario 0); "
+                    f"every scenario of a set shares the problem's {k!r}: only {sorted(drawn)} and the noise key "
+                    "vary (draw sets with tuning.scenarios.draw_set, or change the problem)"
+                )
 
 
 def rollout(setting: Setting, gains, sc: Scenario, trajectory: bool = False):
@@ -119,4 +149,4 @@ def rollout(setting: Setting, gains, sc: Scenario, trajectory: bool = False):
     return metrics(setting, tr, params, sc.inputs, MARGIN_SAFE)
 
 
-__all__ = ["DRAWN", "Metrics", "Scenario", "draw", "draw_set", "rollout", "shared_axes", "tuning_box"]
+__all__ = ["DRAWN", "Metrics", "Scenario", "check_shared", "draw", "draw_set", "rollout", "shared_axes", "tuning_box"]
