@@ -1,5 +1,6 @@
 """Lemma 2 certificates: closed forms vs numerics, K2 bounds, and simulation."""
 
+import importlib
 import math
 
 import jax
@@ -40,6 +41,28 @@ def test_k2_bounds_hold(rng):
         b = C.lyapunov_bound(A)
         assert np.all(np.asarray(b.K1 * np.exp(-b.r1 * np.asarray(ts))) >= np.asarray(C.k2_exact(A, ts)) - 1e-10)
         assert float(b.r1) > 0 and float(b.K1) >= 1.0
+
+
+def test_lemma2_grid_program_equals_the_public_functions():
+    """lemma2 evaluates M1 and every K2 on its grid and on the refinement's points in blocks of
+    one compiled program (``_grid_program``): its certificates on the grid equal
+    m1_closed_form, k2_paper/k2_lyapunov/k2_exact and certificate() called one by one (to
+    rounding), and the grid's 1001 points and the refinement's 1514 went through one program."""
+    L2 = importlib.import_module("wmrjax.certify.lemma2")  # the module (wmrjax.certify.lemma2 is the function)
+    ctrl = w.dynamic_linearization("(1,1)", "velocity")
+    params = ctrl.params(R.figure_eight(), poles=1.0, geometry=ctrl.row.default_geometry)
+    before = L2._grid_program._cache_size()
+    rep = C.lemma2(ctrl, params, t_final=10.0, eps=1e-2)
+    assert L2._grid_program._cache_size() == before + 1
+    ts = jnp.linspace(0.0, 10.0, 1001)
+    A = ctrl.error_matrix(params.gains)
+    m1 = C.m1_closed_form(ctrl, params, ts)
+    for got, k2 in ((rep.lyapunov, C.k2_lyapunov(A, ts)), (rep.exact_norm, C.k2_exact(A, ts))):
+        want = C.certificate(ts, m1, k2, 1e-2)
+        for a, b in zip((got.m1, got.k2, got.F), (want.m1, want.k2, want.F)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13)
+        assert float(got.radius) <= float(want.radius)  # the refinement can only lower min F
+    assert rep.paper is None  # (64) is for r = 2
 
 
 def test_section61_condition_52_and_ordering(paper61, cert61):

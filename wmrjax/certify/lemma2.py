@@ -89,7 +89,12 @@ def _m1_closed(ctrl, params, ts):
     return jax.vmap(lambda t: ctrl.singular_distance(ctrl.reference_jet(t, params), params))(ts)
 
 
-def m1_numerical(ctrl: DynamicLinearization, params: DynamicParams, ts, iters: int = 40, damping: float = 1e-6):
+M1_ITERS, M1_DAMPING = 40, 1e-6  # m1_numerical's Levenberg-Marquardt: iterations and relative damping
+
+
+def m1_numerical(
+    ctrl: DynamicLinearization, params: DynamicParams, ts, iters: int = M1_ITERS, damping: float = M1_DAMPING
+):
     r"""M1(t) of Remark 16 (eq 58): :math:`\min \|\zeta - \zeta_{ref}(t)\|` over the singular set.
 
     The singular set is the image under :math:`\Psi` of the states on each singular family
@@ -174,11 +179,8 @@ def lyapunov_bound(A) -> LyapunovBound:
     A = jnp.asarray(A)
     n = A.shape[0]
     Av = concrete(A)
-    if Av is not None and not np.all(np.linalg.eigvals(Av).real < 0):
-        raise ValueError(
-            f"error matrix is not Hurwitz (eigenvalues {np.linalg.eigvals(Av)}); "
-            "the closed-loop poles must be at -poles with poles > 0"
-        )
+    if Av is not None:
+        _check_hurwitz(Av)
     eye = jnp.eye(n, dtype=A.dtype)
     # vec(A^T P + P A) = (I kron A^T + A^T kron I) vec(P)   (column-major vec)
     L = jnp.kron(eye, A.T) + jnp.kron(A.T, eye)
@@ -186,6 +188,15 @@ def lyapunov_bound(A) -> LyapunovBound:
     P = 0.5 * (P + P.T)
     ev = jnp.linalg.eigvalsh(P)
     return LyapunovBound(jnp.sqrt(ev[-1] / ev[0]), 0.5 / ev[-1], P)
+
+
+def _check_hurwitz(A) -> None:
+    """ValueError unless the concrete matrix ``A`` is Hurwitz."""
+    ev = np.linalg.eigvals(np.asarray(A))
+    if not np.all(ev.real < 0):
+        raise ValueError(
+            f"error matrix is not Hurwitz (eigenvalues {ev}); the closed-loop poles must be at -poles with poles > 0"
+        )
 
 
 def k2_lyapunov(A, ts):
@@ -333,20 +344,20 @@ def lemma2(
     if isinstance(n_t, bool) or not isinstance(n_t, (int, np.integer)) or n_t < MIN_GRID:
         raise ValueError(f"n_t must be an integer >= {MIN_GRID} (time samples on which min F is taken), got {n_t!r}")
     check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
-    A = ctrl.error_matrix(params.gains)
     paper_k2 = ctrl.relative_degree == 2 and params.gains.is_double_pole(1.0)
     scheduled = params.gains.time_varying
+    if not scheduled:
+        _check_hurwitz(ctrl.error_matrix(params.gains))
 
     def certificates(ts):
-        m1v = m1_closed_form(ctrl, params, ts) if m1 == "closed" else m1_numerical(ctrl, params, ts)
-        check_lemma2_args(t_final=t_final, eps=eps, m1=m1v)
+        ts = np.asarray(ts)
         if scheduled:
+            m1v = m1_closed_form(ctrl, params, ts) if m1 == "closed" else m1_numerical(ctrl, params, ts)
+            check_lemma2_args(t_final=t_final, eps=eps, m1=m1v)
             return None, None, certificate(ts, m1v, k2_transition(params.gains, ts), eps)
-        return (
-            certificate(ts, m1v, k2_paper(ts), eps) if paper_k2 else None,
-            certificate(ts, m1v, k2_lyapunov(A, ts), eps),
-            certificate(ts, m1v, k2_exact(A, ts), eps),
-        )
+        m1v, k2s = _grid_values(ctrl, params, ts, m1, paper_k2)
+        check_lemma2_args(t_final=t_final, eps=eps, m1=m1v)
+        return tuple(None if k2 is None else _certificate_on_host(ts, m1v, k2, eps) for k2 in k2s)
 
     ts = jnp.linspace(0.0, t_final, n_t)
     certs = certificates(ts)
@@ -363,6 +374,39 @@ def lemma2(
     certs = _refined(certs, refined, n_t, t_final)
     closed = "closed form (Lemma 3)" if ctrl.row.singular_set_is_linear else "closed form (1-D search over theta)"
     return Lemma2Report(*certs, closed if m1 == "closed" else "numerical (Remark 16)")
+
+
+GRID_BLOCK = 512  # times per call of the grid program: every grid of every call goes through one program
+
+
+def _grid_values(ctrl, params, ts, m1: str, paper_k2: bool):
+    """``(M1, (K2 of (64) or None, Lyapunov K2, exact K2))`` on the times ``ts`` (NumPy arrays) for
+    constant gains, evaluated in blocks of :data:`GRID_BLOCK` times (the last padded) by one
+    compiled program: the grid and its refinement, of other sizes, reuse it."""
+    out = []
+    for i in range(0, ts.size, GRID_BLOCK):
+        tb = ts[i : i + GRID_BLOCK]
+        pad = np.concatenate([tb, np.full(GRID_BLOCK - tb.size, tb[-1])])
+        out.append(jax.device_get(_grid_program(ctrl, params, jnp.asarray(pad), m1, paper_k2)))
+    m1v, *k2s = (np.concatenate([b[k] for b in out])[: ts.size] for k in range(4))
+    return m1v, (k2s[0] if paper_k2 else None, k2s[1], k2s[2])
+
+
+@functools.partial(jax.jit, static_argnums=(0, 3, 4))
+def _grid_program(ctrl, params, ts, m1: str, paper_k2: bool):
+    """M1, K2 of (64) (zeros where it does not apply), the Lyapunov K2 and the exact K2 on ``ts``."""
+    A = ctrl.error_matrix(params.gains)  # Hurwitz: checked by the caller (the Lyapunov bound assumes it)
+    m1v = _m1_closed(ctrl, params, ts) if m1 == "closed" else _m1_numerical(ctrl, params, ts, M1_ITERS, M1_DAMPING)
+    paper = k2_paper(ts) if paper_k2 else jnp.zeros_like(ts)
+    return m1v, paper, k2_lyapunov(A, ts), _k2_exact(A, ts)
+
+
+def _certificate_on_host(ts, m1, k2, eps) -> Certificate:
+    """:func:`certificate` computed with NumPy (no small XLA program per operation and shape)."""
+    with np.errstate(divide="ignore", over="ignore"):  # K2 underflowing to 0 on long horizons: F = inf, as jnp gives
+        F = (m1 - eps) / k2
+    i = int(np.argmin(F))
+    return Certificate(*(jnp.asarray(x) for x in (ts, m1, k2, F, F[i], ts[i])))
 
 
 def _refined(certs, refined, n_t, t_final):
