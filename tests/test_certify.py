@@ -215,13 +215,15 @@ def test_a_wrong_k2_raises_the_lemma2_alarm(paper61, monkeypatch):
     its own certificate, which analyse warns about and lists in its alarms."""
     import importlib
 
-    from wmrjax.certify import pipeline
-
     L = importlib.import_module("wmrjax.certify.lemma2")  # the module (C.lemma2 is the function)
-    k2 = L.k2_exact
-    wrong = lambda A, ts: 0.25 * k2(A, ts)
-    monkeypatch.setattr(L, "k2_exact", wrong)  # the certificate's K2 (lemma2)
-    monkeypatch.setattr(pipeline, "k2_exact", wrong)  # and the bound (53) checked on the runs
+    values = L._grid_values
+
+    def wrong(*args):
+        m1, (paper, lyapunov, exact) = values(*args)
+        return m1, (paper, lyapunov, 0.25 * exact)
+
+    # the certificate's K2 (lemma2) and the bound (53) checked on the runs (grid_k2s): one program
+    monkeypatch.setattr(L, "_grid_values", wrong)
     with pytest.warns(RuntimeWarning, match="LEMMA 2 VIOLATED inside the exact_norm certificate"):
         report = _small_analyse(paper61)
     assert report.empirical["exact_norm"].violations_53_inside > 0

@@ -401,6 +401,19 @@ def _grid_program(ctrl, params, ts, m1: str, paper_k2: bool):
     return m1v, paper, k2_lyapunov(A, ts), _k2_exact(A, ts)
 
 
+def grid_k2s(ctrl, params) -> dict:
+    """name -> ``ts -> K2(ts)`` ((T,) concrete times [s] -> (T,) NumPy array) of the constant-gain
+    certificates :func:`lemma2` computes (``"paper"`` where (64) applies, ``"lyapunov"``,
+    ``"exact_norm"``), evaluated by the program that computed them: checking the certificates on
+    other runs compiles nothing more."""
+    paper_k2 = ctrl.relative_degree == 2 and params.gains.is_double_pole(1.0)
+
+    def k2(i):
+        return lambda ts: _grid_values(ctrl, params, np.asarray(ts), "closed", paper_k2)[1][i]
+
+    return ({"paper": k2(0)} if paper_k2 else {}) | {"lyapunov": k2(1), "exact_norm": k2(2)}
+
+
 def _certificate_on_host(ts, m1, k2, eps) -> Certificate:
     """:func:`certificate` computed with NumPy (no small XLA program per operation and shape)."""
     with np.errstate(divide="ignore", over="ignore"):  # K2 underflowing to 0 on long horizons: F = inf, as jnp gives
