@@ -344,7 +344,7 @@ def lemma2(
     if isinstance(n_t, bool) or not isinstance(n_t, (int, np.integer)) or n_t < MIN_GRID:
         raise ValueError(f"n_t must be an integer >= {MIN_GRID} (time samples on which min F is taken), got {n_t!r}")
     check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
-    paper_k2 = ctrl.relative_degree == 2 and params.gains.is_double_pole(1.0)
+    paper_k2 = _paper_k2_applies(ctrl, params)
     scheduled = params.gains.time_varying
     if not scheduled:
         _check_hurwitz(ctrl.error_matrix(params.gains))
@@ -352,9 +352,9 @@ def lemma2(
     def certificates(ts):
         ts = np.asarray(ts)
         if scheduled:
-            m1v = m1_closed_form(ctrl, params, ts) if m1 == "closed" else m1_numerical(ctrl, params, ts)
+            m1v = np.asarray(m1_closed_form(ctrl, params, ts) if m1 == "closed" else m1_numerical(ctrl, params, ts))
             check_lemma2_args(t_final=t_final, eps=eps, m1=m1v)
-            return None, None, certificate(ts, m1v, k2_transition(params.gains, ts), eps)
+            return None, None, _certificate_on_host(ts, m1v, np.asarray(k2_transition(params.gains, ts)), eps)
         m1v, k2s = _grid_values(ctrl, params, ts, m1, paper_k2)
         check_lemma2_args(t_final=t_final, eps=eps, m1=m1v)
         return tuple(None if k2 is None else _certificate_on_host(ts, m1v, k2, eps) for k2 in k2s)
@@ -406,12 +406,17 @@ def grid_k2s(ctrl, params) -> dict:
     certificates :func:`lemma2` computes (``"paper"`` where (64) applies, ``"lyapunov"``,
     ``"exact_norm"``), evaluated by the program that computed them: checking the certificates on
     other runs compiles nothing more."""
-    paper_k2 = ctrl.relative_degree == 2 and params.gains.is_double_pole(1.0)
+    paper_k2 = _paper_k2_applies(ctrl, params)
 
     def k2(i):
         return lambda ts: _grid_values(ctrl, params, np.asarray(ts), "closed", paper_k2)[1][i]
 
     return ({"paper": k2(0)} if paper_k2 else {}) | {"lyapunov": k2(1), "exact_norm": k2(2)}
+
+
+def _paper_k2_applies(ctrl, params) -> bool:
+    """Whether the paper's K2 (64) bounds this loop: r = 2 and the double pole at -1 per output."""
+    return ctrl.relative_degree == 2 and params.gains.is_double_pole(1.0)
 
 
 def _certificate_on_host(ts, m1, k2, eps) -> Certificate:
