@@ -67,6 +67,16 @@ def slice_basis(ctrl: DynamicLinearization, kind="full"):
     return P
 
 
+def square_basis(P):
+    """The (n, k) slice basis ``P`` padded with zero columns to (n, n).
+
+    Every slice then goes through one compiled program per closed loop (the full one, the
+    position slice and any explicit basis alike): its extra coordinates multiply zero columns,
+    so they stay zero and add exact zeros to every sum, and the results are those of ``P``.
+    """
+    return jnp.concatenate([P, jnp.zeros((P.shape[0], P.shape[0] - P.shape[1]), P.dtype)], axis=1)
+
+
 # singular values below this fraction of the largest count as zero (directions M cannot move)
 RANK_TOLERANCE = 1e-14
 # the bisection's bracket in log(nu s_max^2) extends this far past where nu s^2 = 1 for the largest and
@@ -192,7 +202,7 @@ def exact_map_radius(
         )
     if rows is None:
         return curved_exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=basis)
-    P = slice_basis(ctrl, basis)
+    P = square_basis(slice_basis(ctrl, basis))  # one program for every slice
     C = jnp.eye(ctrl.relative_degree * ctrl.m)[jnp.asarray(rows)]
     ts = jnp.linspace(0.0, t_final, n_t)
     m1 = _linear_m1(ctrl, params, C, ts)
@@ -307,15 +317,14 @@ def differentiable_exact_map_radius(
 
 
 def _turn_of_headings(ctrl, params, P, eps_a, t_c, theta_c, phi_width: float):
-    """``(rho, x)`` of shapes (n_t, n_phi) and (n_t, n_phi, k): the attained radius at every time
+    """``(rho, x)`` of shapes (n_t, n_phi) and (n_t, n_phi, n): the attained radius at every time
     centre ``t_c`` and a full turn of headings around the reference's ``theta_c`` (an odd number,
     so that the reference's own heading is one of them)."""
     psi_c = np.linspace(-np.pi, np.pi, 2 * int(np.ceil(np.pi / phi_width)) + 1)
     T, Ps = np.meshgrid(t_c, psi_c, indexing="ij")
-    rho, x = _curved_centres(
-        ctrl, params, P, eps_a, jnp.asarray(T.ravel()), jnp.asarray((Ps + theta_c[:, None]).ravel())
-    )
-    return np.asarray(rho).reshape(T.shape), np.asarray(x).reshape(T.shape + (-1,))
+    centres = (T.ravel(), (Ps + theta_c[:, None]).ravel())
+    _, rho, x, _ = _at_centres(ctrl, params, P, eps_a, 0.0, 0.0, *centres)
+    return rho.reshape(T.shape), x.reshape(T.shape + (-1,))
 
 
 def _heading_boxes(t_c, theta_c, h_t: float, half: float, phi_width: float):
@@ -397,7 +406,7 @@ def curved_exact_map_radius(
     check_lemma2_args(t_final=t_final, eps=eps, reference=params.reference)
     if singular_rows(ctrl) is not None:
         raise ValueError(f"type {ctrl.robot.name} has a linear singular set: use exact_map_radius")
-    P = slice_basis(ctrl, basis)
+    P = square_basis(slice_basis(ctrl, basis))  # one program per stage for every slice
     eps_a = jnp.asarray(eps, jnp.result_type(float))
     tg = jnp.linspace(0.0, t_final, ACCEL_GRID)
     m1 = m1_closed_form(ctrl, params, tg)
@@ -407,7 +416,7 @@ def curved_exact_map_radius(
     if not np.isfinite(found[0]):
         raise ValueError("no initial error in this slice brings zeta within eps of the singular set over the horizon")
     # boxes: per time box, headings within reach of theta(t) for errors up to the first upper bound
-    reach = np.asarray(_heading_reach(ctrl, params, P, jnp.asarray(t_c), t_final / (2 * n_t), found[0], G))
+    reach = _at_centres(ctrl, params, P, eps_a, found[0], G, t_c, np.zeros_like(t_c), h_t=t_final / (2 * n_t))[3]
     half = float(np.max(reach)) + eps + phi_width
     boxes = _heading_boxes(t_c, theta_c, t_final / n_t, half, phi_width)
     limits = dict(rtol=rtol, max_rounds=max_rounds, max_boxes=max_boxes)
@@ -458,10 +467,29 @@ def _branch_and_bound(ctrl, params, P, eps_a, G, boxes, best, *, rtol, max_round
 
 
 def _boxes_in_blocks(ctrl, params, P, eps_a, rho_up: float, G: float, boxes):
-    """:func:`_curved_boxes` over any number of boxes through one compiled program: blocks of
-    :data:`BOX_BLOCK` boxes (:func:`wmrjax.simulate.fixed_blocks`). NumPy results."""
-    rho, g = jnp.asarray(rho_up), jnp.asarray(G)
-    return fixed_blocks(lambda *box: _curved_boxes(ctrl, params, P, eps_a, rho, g, *box), boxes, BOX_BLOCK)
+    """The branch and bound's ``(t_lo, t_hi, p_lo, p_hi)`` boxes through :func:`_centred_boxes`:
+    NumPy ``(lower bound, attained radius at the centre, its slice coordinates)``."""
+    t_lo, t_hi, p_lo, p_hi = boxes
+    tc, ht, pc, hp = 0.5 * (t_lo + t_hi), 0.5 * (t_hi - t_lo), 0.5 * (p_lo + p_hi), 0.5 * (p_hi - p_lo)
+    return _centred_boxes(ctrl, params, P, eps_a, rho_up, G, (tc, ht, pc, hp))[:3]
+
+
+def _at_centres(ctrl, params, P, eps_a, rho_up: float, G: float, ts, phis, h_t: float = 0.0):
+    """:func:`_centred_boxes` at the points ``(ts, phis)`` (boxes of heading width 0 and time
+    half-width ``h_t``): the first upper bound (``h_t`` 0: the attained radius at each point) and
+    the heading reach of the time boxes (``rho_up`` and ``G`` given) come from the branch and
+    bound's own program."""
+    ts = np.asarray(ts, dtype=float)
+    box = (ts, np.full_like(ts, h_t), np.asarray(phis, dtype=float), np.zeros_like(ts))
+    return _centred_boxes(ctrl, params, P, eps_a, rho_up, G, box)
+
+
+def _centred_boxes(ctrl, params, P, eps_a, rho_up: float, G: float, box):
+    """:func:`_curved_boxes` over any number of boxes ``(t_c, h_t, p_c, h_p)`` (NumPy arrays)
+    through one compiled program: blocks of :data:`BOX_BLOCK` (:func:`wmrjax.simulate.fixed_blocks`).
+    NumPy ``(lower bound, attained radius, slice coordinates, heading reach)``."""
+    rho, g = jnp.asarray(float(rho_up)), jnp.asarray(float(G))
+    return fixed_blocks(lambda *b: _curved_boxes(ctrl, params, P, eps_a, rho, g, *b), box, BOX_BLOCK)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -509,46 +537,22 @@ def _centre_problem(ctrl, params, P, t, phi):
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
-def _curved_centres(ctrl, params, P, eps, ts, phis):
-    """Attained radius (and the slice coordinates of its error) at each (t, phi)."""
-
-    def one(t, phi):
-        M, a, _, _, _ = _centre_problem(ctrl, params, P, t, phi)
-        return min_norm_to_ball(M, a, eps)
-
-    return jax.vmap(one)(ts, phis)
-
-
-@functools.partial(jax.jit, static_argnums=(0, 4))
-def _heading_reach(ctrl, params, P, ts, ht, rho_up, G):
-    """Per time box: how far theta(t) can move from theta_ref(t_c) for errors up to rho_up."""
-    A = ctrl.error_matrix(params.gains)
-    nA = _math.spectral_norm(A)
-
-    def one(t):
-        M, _, _, zd, E = _centre_problem(ctrl, params, P, t, 0.0)
-        dt_ = ht * jnp.linalg.norm(zd) + 0.5 * ht**2 * G + _math.spectral_norm(E) * jnp.expm1(nA * ht) * rho_up
-        return jnp.linalg.norm(M[0]) * rho_up + dt_
-
-    return jax.vmap(one)(ts)
-
-
-@functools.partial(jax.jit, static_argnums=(0,))
-def _curved_boxes(ctrl, params, P, eps, rho_up, G, t_lo, t_hi, p_lo, p_hi):
-    """Per box: (lower bound, attained radius at the centre, its slice coordinates)."""
+def _curved_boxes(ctrl, params, P, eps, rho_up, G, t_c, h_t, p_c, h_p):
+    """Per box (centre ``(t_c, p_c)``, half-widths ``(h_t, h_p)``): the lower bound, the attained
+    radius at the centre, its slice coordinates, and how far the heading can move from the
+    reference's over the time box for errors up to ``rho_up`` (``|M_0| rho_up + Delta_t``)."""
     A = ctrl.error_matrix(params.gains)
     nA = _math.spectral_norm(A)
     g = params.geometry
     c2 = 1.0 + (g.e * jnp.sin(g.delta)) ** 2
     m = ctrl.m
 
-    def one(t0, t1, p0, p1):
-        tc, ht, pc, hp = 0.5 * (t0 + t1), 0.5 * (t1 - t0), 0.5 * (p0 + p1), 0.5 * (p1 - p0)
+    def one(tc, ht, pc, hp):
         M, a, zr, zd, E = _centre_problem(ctrl, params, P, tc, pc)
         ub, x = min_norm_to_ball(M, a, eps)
         move = ht * jnp.linalg.norm(zd) + 0.5 * ht**2 * G + _math.spectral_norm(E) * jnp.expm1(nA * ht) * rho_up
         speed = jnp.linalg.norm(zr[m : m + 2]) + _math.spectral_norm((E @ P)[m : m + 2]) * rho_up + move
         lb, _ = min_norm_to_ball(M, a, eps + move + hp * jnp.sqrt(1.0 + speed**2 / c2))
-        return jnp.minimum(lb, rho_up), ub, x
+        return jnp.minimum(lb, rho_up), ub, x, jnp.linalg.norm(M[0]) * rho_up + move
 
-    return jax.vmap(one)(t_lo, t_hi, p_lo, p_hi)
+    return jax.vmap(one)(t_c, h_t, p_c, h_p)

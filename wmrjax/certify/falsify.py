@@ -29,7 +29,7 @@ import numpy as np
 
 from wmrjax._validate import check_int, check_positive
 from wmrjax.certify.empirical import check_vectors, distance_along, n_steps_for, run_from_error, window_distances
-from wmrjax.certify.exact_map import slice_basis
+from wmrjax.certify.exact_map import slice_basis, square_basis
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 from wmrjax.simulate import batch_map
@@ -100,7 +100,7 @@ def falsify(
                 f"windows must be ({u0.shape[0]}, 2) intervals [t0, t1] with t0 <= t1 [s], one per start, "
                 f"got shape {windows.shape}"
             )
-    Q = _square(P)  # every slice through one compiled program: directions padded with zeros
+    Q = square_basis(P)  # every slice through one compiled program: directions padded with zeros
     us, vals = _falsify(
         ctrl,
         params,
@@ -302,7 +302,7 @@ class _Search:
         self.fine = 0.1 * dt
         self.n_fine = n_steps_for(t_final, self.fine)
         P = slice_basis(ctrl, basis)
-        self.k, self.Pn, self.Q = P.shape[1], np.asarray(P), _square(P)
+        self.k, self.Pn, self.Q = P.shape[1], np.asarray(P), square_basis(P)
         self.keys = iter(jax.random.split(key, 64))
         self.counts = {"instantaneous": 0, "sampling": 0, "gradient": 0, "confirmation": 0}
         self.lo = float(r_lo)
@@ -452,11 +452,6 @@ class _Search:
         )
         self.counts["gradient"] += len(starts) * (self.steps + 1)
         return np.asarray(f.initial_errors), np.asarray(f.distance)
-
-
-def _square(P):
-    """The (n, k) slice basis padded with zero columns to (n, n): one compiled program per type."""
-    return jnp.concatenate([P, jnp.zeros((P.shape[0], P.shape[0] - P.shape[1]), P.dtype)], axis=1)
 
 
 def _pad(u, Q):
