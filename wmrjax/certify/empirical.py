@@ -242,6 +242,7 @@ def window_distances(
     save_every: int = 1,
     n_windows: int = 4,
     block: int = ROLLOUT_BLOCK,
+    shared: bool = True,
 ):
     """Per run: the smallest distance to the singular set in each of ``n_windows`` equal windows
     of the horizon (samples), whether it failed, and the time of its closest approach.
@@ -251,11 +252,17 @@ def window_distances(
     host devices (:func:`wmrjax.batch_map`). The certification stages (empirical radius,
     falsifier sampling and confirmation, slice map) all run through it.
 
+    With ``shared`` (the default) the runs go through the empirical check's program
+    (:func:`verify_all`: the output error measured too, against no bound), compiled once for
+    both; ``shared=False`` compiles a program without the output error, for runs no other
+    stage shares a program with (the falsifier's confirmations at dt / 10).
+
     Returns:
       ``(minima (N, n_windows), failed (N,), t_closest (N,))`` as NumPy arrays (failed runs:
       minima 0, t_closest the failure time).
     """
-    st = _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, n_windows, block, None, 0.0)
+    k2v = None if shared else np.zeros((0, n_steps // save_every + 1))
+    st = _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, n_windows, block, k2v, 0.0)
     return st.window_minima, st.failed, st.t_closest
 
 
@@ -279,7 +286,7 @@ def _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, n_windows, b
     (closed loop, dt, n_steps, save_every, block), whatever the batch size and the bounds."""
     errs = np.asarray(initial_errors, dtype=np.result_type(float))
     n_saved = n_steps // save_every + 1
-    bounds = np.full((_N_BOUNDS, n_saved), np.inf)
+    bounds = np.full((_N_BOUNDS if k2v is None or len(k2v) else 0, n_saved), np.inf)
     if k2v is not None:
         bounds[: len(k2v)] = k2v
     branch = jnp.asarray(float(ctrl.reference_branch(params)))
@@ -305,13 +312,8 @@ def _rollout_stats(ctrl, params, errs, k2, tol, branch, dt, n_steps, save_every,
         per = jnp.min(jnp.where(inside, d[None], jnp.inf), axis=1)
         fail = tr.diagnostics.failed | (ctrl.branch_quantity(z0, params) * branch <= 0)
         i = jnp.argmin(d)
-        # (53) against every bound on the saved grid
-        err = jax.vmap(lambda t, z: ctrl.error(t, z, params).reshape(-1))(tr.t, tr.state)
-        nrm = jnp.linalg.norm(err, axis=1)
         n0 = jnp.linalg.norm(e0)
-        bound = k2 * n0  # (K, T)
-        viol = jnp.any(tr.valid[None] & (nrm[None] > bound + tol), axis=1)
-        ratio = jnp.max(jnp.where(tr.valid[None], nrm[None] / jnp.maximum(bound, 1e-300), 0.0), axis=1)
+        viol, ratio = _bound_checks(ctrl, params, tr, k2 * n0, tol)
         return (
             jnp.where(fail, 0.0, per),
             fail,
@@ -323,6 +325,20 @@ def _rollout_stats(ctrl, params, errs, k2, tol, branch, dt, n_steps, save_every,
         )
 
     return batch_map(one, errs, chunk=64)
+
+
+def _bound_checks(ctrl, params, tr, bound, tol):
+    """(53) against every bound ``bound`` (K, T) on the saved grid of the run ``tr``: per bound,
+    whether it is violated at a valid sample and the largest ratio ||error|| / bound. With no
+    bound (K = 0) the output error is not evaluated: one placeholder column ``(False, 0)`` (the
+    batch over runs needs a non-empty axis)."""
+    if bound.shape[0] == 0:
+        return jnp.zeros((1,), dtype=bool), jnp.zeros((1,), dtype=bound.dtype)
+    err = jax.vmap(lambda t, z: ctrl.error(t, z, params).reshape(-1))(tr.t, tr.state)
+    nrm = jnp.linalg.norm(err, axis=1)
+    viol = jnp.any(tr.valid[None] & (nrm[None] > bound + tol), axis=1)
+    ratio = jnp.max(jnp.where(tr.valid[None], nrm[None] / jnp.maximum(bound, 1e-300), 0.0), axis=1)
+    return viol, ratio
 
 
 class EmpiricalRadius(NamedTuple):

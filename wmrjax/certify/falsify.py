@@ -155,10 +155,10 @@ def _falsify(ctrl, params, radius, us, windows, P, branch, dt, n_steps, steps, l
         return (us, state, best_u, best_v), None
 
     init = (us, opt.init(us), us, jnp.full(us.shape[0], jnp.inf))
-    (us, _, best_u, best_v), _ = jax.lax.scan(step, init, None, length=steps)
-    v_last = jax.vmap(objective)(us, windows)
-    better = v_last < best_v
-    return jnp.where(better[:, None], us, best_u), jnp.where(better, v_last, best_v)
+    # one iteration more than Adam's steps: its value (and best) is the last iterate's, its update
+    # unused; the objective is traced and compiled once, inside the forward-mode program
+    (_, _, best_u, best_v), _ = jax.lax.scan(step, init, None, length=steps + 1)
+    return best_u, best_v
 
 
 class FalsifiedRadius(NamedTuple):
@@ -314,7 +314,9 @@ class _Search:
     def confirm(self, errs):
         """Fine runs (blocks of 16: most calls confirm 8 candidates or fewer) of initial errors:
         (failed, distance, time of the closest approach)."""
-        per, s, t = window_distances(self.ctrl, self.params, errs, dt=self.fine, n_steps=self.n_fine, block=16)
+        per, s, t = window_distances(
+            self.ctrl, self.params, errs, dt=self.fine, n_steps=self.n_fine, block=16, shared=False
+        )
         self.counts["confirmation"] += len(per)
         d = per.min(axis=1)
         return (d < self.eps) | s, np.where(s, 0.0, d), t
