@@ -435,3 +435,49 @@ def test_rollout_statistics_compile_one_program_for_every_batch_size(paper61):
     assert E._rollout_stats._cache_size() == 1
     for a, b in zip(few, many):
         np.testing.assert_array_equal(a, b[:3])  # padding changes nothing
+    # without the output error (the falsifier's confirmations): a program of its own, the same values
+    lean = E.window_distances(ctrl, params, errs[:3], dt=0.02, n_steps=20, shared=False)
+    assert E._rollout_stats._cache_size() == 2
+    for a, b in zip(lean, few):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_exact_map_compiles_one_program_for_every_slice(paper61):
+    """The full error space and the position slice go through one compiled exact map (the slice
+    basis padded with zero columns), and the padding changes no bit: the position slice's radius,
+    time and worst error equal those of the unpadded (n, 2) basis through the same core."""
+    X = importlib.import_module("wmrjax.certify.exact_map")
+    ctrl, params, _ = paper61
+    X._exact_map.clear_cache()
+    kw = dict(t_final=3.0, eps=1e-2, n_t=301)
+    radii = {b: C.exact_map_radius(ctrl, params, basis=b, **kw) for b in ("full", "position")}
+    assert X._exact_map._cache_size() == 1
+    P = C.slice_basis(ctrl, "position")
+    C2 = jnp.eye(4)[jnp.asarray(X.singular_rows(ctrl))]
+    ts = jnp.linspace(0.0, 3.0, 301)
+    eps = jnp.asarray(1e-2, ts.dtype)
+    _, rad, t_star, worst = X._exact_map(ctrl, params, P, C2, eps, ts, None, 40, None)  # compiled unpadded
+    pos = radii["position"]
+    assert float(pos.radius) == float(rad) and float(pos.argmin) == float(t_star)
+    np.testing.assert_array_equal(np.asarray(pos.worst_error), np.asarray(worst))
+
+
+def test_falsifier_search_traces_its_rollout_once(paper61, monkeypatch):
+    """The gradient search's program holds one rollout (the last iterate's value comes from the
+    forward-mode program, not from a second trace of the objective)."""
+    F = importlib.import_module("wmrjax.certify.falsify")
+    ctrl, params, _ = paper61
+    traced = []
+
+    def counting(*args):
+        traced.append(1)
+        return run(*args)
+
+    run = F.run_from_error
+    monkeypatch.setattr(F, "run_from_error", counting)
+    F._falsify.clear_cache()
+    Q = F.square_basis(C.slice_basis(ctrl, "position"))
+    us, windows = jnp.eye(4)[:2], jnp.asarray([[0.0, 1.0], [0.0, 1.0]])
+    F._falsify.trace(ctrl, params, jnp.asarray(1.0), us, windows, Q, jnp.asarray(1.0), 0.02, 10, 3, 0.1)
+    assert len(traced) == 1
+    F._falsify.clear_cache()  # the counting trace is not kept for the other tests
