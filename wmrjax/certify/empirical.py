@@ -286,7 +286,9 @@ def _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, n_windows, b
     (closed loop, dt, n_steps, save_every, block), whatever the batch size and the bounds."""
     errs = np.asarray(initial_errors, dtype=np.result_type(float))
     n_saved = n_steps // save_every + 1
-    bounds = np.full((_N_BOUNDS if k2v is None or len(k2v) else 0, n_saved), np.inf)
+    # K2 bounds given as none at all (an empty k2v): a program without the output error
+    rows = 0 if k2v is not None and len(k2v) == 0 else _N_BOUNDS
+    bounds = np.full((rows, n_saved), np.inf)
     if k2v is not None:
         bounds[: len(k2v)] = k2v
     branch = jnp.asarray(float(ctrl.reference_branch(params)))
