@@ -440,6 +440,15 @@ def test_rollout_statistics_compile_one_program_for_every_batch_size(paper61):
     assert E._rollout_stats._cache_size() == 2
     for a, b in zip(lean, few):
         np.testing.assert_array_equal(a, b)
+    # a few runs in the confirmations' blocks (the tuner's worst errors): a third program, the same values
+    kw = dict(t_final=0.4, initial_errors=errs[:3], dt=0.02)
+    confirm = C.min_distance(ctrl, params, block=C.CONFIRM_BLOCK, shared=False, **kw)
+    assert E._rollout_stats._cache_size() == 3
+    for a, b in zip(confirm, C.min_distance(ctrl, params, **kw)):
+        np.testing.assert_array_equal(a, b)
+    for bad, match in ((dict(block=0), "block"), (dict(shared="no"), "shared must be True or False")):
+        with pytest.raises(ValueError, match=match):
+            C.min_distance(ctrl, params, **kw, **bad)
 
 
 def test_exact_map_compiles_one_program_for_every_slice(paper61):

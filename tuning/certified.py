@@ -296,6 +296,8 @@ def worst_error_rollouts(setting, params, em, eps: float) -> dict:
         initial_errors=jnp.concatenate([x * s for s in CONFIRM_SCALES]),
         t_final=setting.t_final,
         dt=setting.dt / 10,
+        block=certify.CONFIRM_BLOCK,  # two runs: the falsifier's confirmations' program, not 256-run blocks
+        shared=False,
     )
     dist, sing = np.asarray(d.distance), np.asarray(d.singular)
     inside_ok = bool(dist[0] >= eps and not sing[0])

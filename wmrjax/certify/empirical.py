@@ -23,6 +23,10 @@ from wmrjax.simulate import batch_map, fixed_blocks, simulate
 # program of the same closed loop to compile (docs/benchmarks.md has its cost in the (1,2)
 # certification); 256 keeps the padding of the small batches (rays, samples) cheap.
 ROLLOUT_BLOCK = 256
+# Runs per block of the fine confirmations (the falsifier's failures, the tuner's worst errors:
+# a handful of runs at a tenth of the step, 10 times the steps): a 256-run block would simulate
+# the padding 10 times longer than the runs; they share one lean program (``shared=False``)
+CONFIRM_BLOCK = 16
 
 
 def check_vectors(name: str, x, width: int, what: str, nonzero: bool = False) -> np.ndarray:
@@ -212,7 +216,15 @@ class Distances(NamedTuple):
 
 
 def min_distance(
-    ctrl: DynamicLinearization, params: DynamicParams, *, t_final: float, initial_errors, dt: float, save_every: int = 1
+    ctrl: DynamicLinearization,
+    params: DynamicParams,
+    *,
+    t_final: float,
+    initial_errors,
+    dt: float,
+    save_every: int = 1,
+    block: int = ROLLOUT_BLOCK,
+    shared: bool = True,
 ) -> Distances:
     r"""Simulate from :math:`\zeta_{ref}(0) + \tilde\zeta_0` and return, per run,
     :math:`\min_t \mathrm{dist}(\zeta(t), S)` and whether the simulator flagged it singular.
@@ -223,12 +235,19 @@ def min_distance(
 
     Args:
       t_final: horizon [s]; initial_errors: (N, r m); dt: RK4 step [s]; save_every: stride.
+      block, shared: :func:`window_distances`'s (a few fine runs: :data:`CONFIRM_BLOCK` and
+        ``shared=False``, the falsifier's confirmations' program).
 
     Returns:
       :class:`Distances`.
     """
     n_steps, save_every = check_runs(ctrl, params, t_final, dt, initial_errors, save_every)
-    per, fail, _ = window_distances(ctrl, params, initial_errors, dt=dt, n_steps=n_steps, save_every=save_every)
+    check_int("block", block, 1)
+    if not isinstance(shared, bool):
+        raise ValueError(f"shared must be True or False, got {shared!r}")
+    per, fail, _ = window_distances(
+        ctrl, params, initial_errors, dt=dt, n_steps=n_steps, save_every=save_every, block=block, shared=shared
+    )
     return Distances(jnp.asarray(np.where(fail, 0.0, per.min(axis=1))), jnp.asarray(fail))
 
 

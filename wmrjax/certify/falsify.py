@@ -28,7 +28,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax._validate import check_int, check_positive
-from wmrjax.certify.empirical import check_vectors, distance_along, n_steps_for, run_from_error, window_distances
+from wmrjax.certify.empirical import (
+    CONFIRM_BLOCK,
+    check_vectors,
+    distance_along,
+    n_steps_for,
+    run_from_error,
+    window_distances,
+)
 from wmrjax.certify.exact_map import slice_basis, square_basis
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
@@ -312,10 +319,10 @@ class _Search:
         return sum(v for n, v in self.counts.items() if n != "instantaneous")
 
     def confirm(self, errs):
-        """Fine runs (blocks of 16: most calls confirm 8 candidates or fewer) of initial errors:
-        (failed, distance, time of the closest approach)."""
+        """Fine runs (blocks of :data:`CONFIRM_BLOCK`: most calls confirm 8 candidates or fewer) of
+        initial errors: (failed, distance, time of the closest approach)."""
         per, s, t = window_distances(
-            self.ctrl, self.params, errs, dt=self.fine, n_steps=self.n_fine, block=16, shared=False
+            self.ctrl, self.params, errs, dt=self.fine, n_steps=self.n_fine, block=CONFIRM_BLOCK, shared=False
         )
         self.counts["confirmation"] += len(per)
         d = per.min(axis=1)
