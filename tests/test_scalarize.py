@@ -250,15 +250,17 @@ def test_stage_loop_equals_the_unrolled_step(paper61, monkeypatch):
         tr = w.simulate(ctrl, z0, p, dt=0.01, n_steps=60, save_every=5)
         return jnp.sum(tr.state[:, :2] ** 2), tr
 
-    def derivatives():
+    def derivatives(forward):
         (value, tr), g = jax.value_and_grad(run, has_aux=True)(params.gains.coeffs)
-        return tr, g, jax.jacfwd(lambda c: run(c)[0])(params.gains.coeffs)
+        return tr, g, jax.jacfwd(lambda c: run(c)[0])(params.gains.coeffs) if forward else None
 
-    tr1, g1, f1 = derivatives()
+    # the unrolled step's forward mode against its reverse mode is test_autodiff.py's: the loop's
+    # forward mode is compared with the unrolled reverse mode here (one program fewer)
+    tr1, g1, _ = derivatives(False)
     assert _stage_loops(lambda g: run(g)[0], params.gains.coeffs) == 0  # 153 equations: unrolled
     jax.clear_caches()
     monkeypatch.setattr(simulate_module, "STAGE_LOOP_MIN_EQUATIONS", 0)
-    tr2, g2, f2 = derivatives()
+    tr2, g2, f2 = derivatives(True)
     assert _stage_loops(lambda g: run(g)[0], params.gains.coeffs) == 1
     for a, b in ((tr2.state, tr1.state), (tr2.control, tr1.control), (tr2.margin, tr1.margin)):
         np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-14)
@@ -267,8 +269,7 @@ def test_stage_loop_equals_the_unrolled_step(paper61, monkeypatch):
         np.testing.assert_allclose(getattr(tr2.diagnostics, f), getattr(tr1.diagnostics, f), rtol=1e-9)
     assert tr1.diagnostics.error_estimate > 1e-12  # the estimate (k1, k4 of the loop) is compared, not zeros
     np.testing.assert_allclose(g2, g1, rtol=1e-11)
-    np.testing.assert_allclose(f2, f1, rtol=1e-11)
-    np.testing.assert_allclose(f1, g1, rtol=1e-11)
+    np.testing.assert_allclose(f2, g1, rtol=1e-11)
     jax.clear_caches()
 
 
