@@ -446,6 +446,8 @@ def test_rollout_statistics_compile_one_program_for_every_batch_size(paper61):
     assert E._rollout_stats._cache_size() == 3
     for a, b in zip(confirm, C.min_distance(ctrl, params, **kw)):
         np.testing.assert_array_equal(a, b)
+    E.window_distances(ctrl, params, errs[:3], dt=0.02, n_steps=20, block=C.CONFIRM_BLOCK, shared=False)
+    assert E._rollout_stats._cache_size() == 3  # min_distance ran the lean program, not a shared one
     for bad, match in ((dict(block=0), "block"), (dict(shared="no"), "shared must be True or False")):
         with pytest.raises(ValueError, match=match):
             C.min_distance(ctrl, params, **kw, **bad)

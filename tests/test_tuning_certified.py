@@ -103,8 +103,9 @@ def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch):
     (the falsifier, blind to the map, misses this one: 31.3 m against 8.80 m, so the point
     rests on the worst error's rollouts); a second run keeps it (nothing tuned again). The
     falsifier's agreement on a free point (5.61 m to 0.04 %) is the certify tests' to check.
-    The worst error's fine runs go through the falsifier's confirmation program (blocks of
-    CONFIRM_BLOCK, no output error), not a 256-run block of fine runs."""
+    The worst error's fine runs go through the falsifier's confirmations' blocks (CONFIRM_BLOCK
+    runs of the program without the output error, at CONFIRM_DT_FACTOR times the step), not a
+    256-run block of fine runs."""
     import importlib
 
     from tuning import pareto
@@ -116,13 +117,14 @@ def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch):
         E,
         "window_distances",
         lambda *a, **kw: (
-            programs.append((kw.get("block", E.ROLLOUT_BLOCK), kw.get("shared", True))) or window_distances(*a, **kw)
+            programs.append((kw["dt"], kw.get("block", E.ROLLOUT_BLOCK), kw.get("shared", True)))
+            or window_distances(*a, **kw)
         ),
     )
     out = tmp_path / "pareto"
     problem = TINY.with_values({"simulation.dt": 0.01})  # the falsifier's step is the problem's
     s = pareto.run(problem, out, "position", fractions=[1.0], log=lambda *_: None)
-    assert programs and set(programs) == {(certify.CONFIRM_BLOCK, False)}
+    assert programs and set(programs) == {(certify.CONFIRM_DT_FACTOR * 0.01, certify.CONFIRM_BLOCK, False)}
     (pt,) = s["points"]
     assert pt["required_radius"] == s["initial_gains"]["radius"] <= pt["tuned_radius"]
     assert s["every_point_certified"] and pt["worst_error_confirmed"] and pt["falsified_radius"] is not None

@@ -295,8 +295,9 @@ def worst_error_rollouts(setting, params, em, eps: float) -> dict:
         params,
         initial_errors=jnp.concatenate([x * s for s in CONFIRM_SCALES]),
         t_final=setting.t_final,
-        dt=setting.dt / 10,
-        block=certify.CONFIRM_BLOCK,  # two runs: the falsifier's confirmations' program, not 256-run blocks
+        # two runs: the falsifier's confirmation program (its step and blocks), not 256-run blocks
+        dt=certify.CONFIRM_DT_FACTOR * setting.dt,
+        block=certify.CONFIRM_BLOCK,
         shared=False,
     )
     dist, sing = np.asarray(d.distance), np.asarray(d.singular)

@@ -24,6 +24,7 @@ Only dynamic linearizing laws are certified: a static law raises ``ValueError``.
 
 from wmrjax.certify.empirical import (  # noqa: F401
     CONFIRM_BLOCK,
+    CONFIRM_DT_FACTOR,
     Distances,
     EmpiricalRadius,
     Verification,

@@ -27,6 +27,10 @@ ROLLOUT_BLOCK = 256
 # a handful of runs at a tenth of the step, 10 times the steps): a 256-run block would simulate
 # the padding 10 times longer than the runs; they share one lean program (``shared=False``)
 CONFIRM_BLOCK = 16
+# The confirmations' RK4 step as a fraction of the search's: one expression for both, since the
+# step is a static argument of the compiled program (0.1 * dt and dt / 10 differ in the last bit
+# for some dt, e.g. 0.05 s, which would compile the same program twice)
+CONFIRM_DT_FACTOR = 0.1
 
 
 def check_vectors(name: str, x, width: int, what: str, nonzero: bool = False) -> np.ndarray:
@@ -267,14 +271,16 @@ def window_distances(
     of the horizon (samples), whether it failed, and the time of its closest approach.
 
     The batch is cut into blocks of ``block`` runs (the last one padded), so every batch size
-    shares one compiled program per (closed loop, dt, n_steps); each block is spread over the
+    shares one compiled program (below); each block is spread over the
     host devices (:func:`wmrjax.batch_map`). The certification stages (empirical radius,
     falsifier sampling and confirmation, slice map) all run through it.
 
     With ``shared`` (the default) the runs go through the empirical check's program
     (:func:`verify_all`: the output error measured too, against no bound), compiled once for
-    both; ``shared=False`` compiles a program without the output error, for runs no other
-    stage shares a program with (the falsifier's confirmations at dt / 10).
+    both; ``shared=False`` compiles a program without the output error, for runs the empirical
+    check does not share a program with: the fine confirmations at ``CONFIRM_DT_FACTOR * dt``
+    (the falsifier's failures, the tuner's worst errors), in blocks of :data:`CONFIRM_BLOCK`.
+    One compiled program per (closed loop, dt, n_steps, save_every, n_windows, block, shared).
 
     Returns:
       ``(minima (N, n_windows), failed (N,), t_closest (N,))`` as NumPy arrays (failed runs:

@@ -30,6 +30,7 @@ import numpy as np
 from wmrjax._validate import check_int, check_positive
 from wmrjax.certify.empirical import (
     CONFIRM_BLOCK,
+    CONFIRM_DT_FACTOR,
     check_vectors,
     distance_along,
     n_steps_for,
@@ -306,7 +307,7 @@ class _Search:
         self.n_starts, self.steps, self.n_samples = n_starts, steps, n_samples
         self.learning_rate, self.n_windows = learning_rate, n_windows
         self.n_steps = n_steps_for(t_final, dt)
-        self.fine = 0.1 * dt
+        self.fine = CONFIRM_DT_FACTOR * dt
         self.n_fine = n_steps_for(t_final, self.fine)
         P = slice_basis(ctrl, basis)
         self.k, self.Pn, self.Q = P.shape[1], np.asarray(P), square_basis(P)
