@@ -411,24 +411,18 @@ def reference_rows(batch: int, reps: int, levels=None) -> dict:
     for level in list(Level) if levels is None else [Level(x) for x in levels]:
         ctrl, cases, z0s_of = _reference_cases(level)
         z0s = z0s_of(batch)
-
-        def rollouts():
-            return {
-                name: jax.jit(
-                    jax.vmap(lambda z, p=p: w.simulate(ctrl, z, p, dt=DT, n_steps=N_STEPS, save_every=N_STEPS))
-                )
-                for name, p in cases.items()
-            }
-
+        fns = {
+            name: jax.jit(jax.vmap(lambda z, p=p: w.simulate(ctrl, z, p, dt=DT, n_steps=N_STEPS, save_every=N_STEPS)))
+            for name, p in cases.items()
+        }
         compile_s = {}
-        for name, fn in rollouts().items():
+        for name, fn in fns.items():
             # every case's first call from empty caches: the sections before this one compiled the
             # built-in reference's check over the horizon and the small programs the cases share,
             # which the first case then skipped and the others paid
             jax.clear_caches()
             compile_s[name] = _first_call(fn, z0s)
-        fns = rollouts()
-        for fn in fns.values():  # compiled again (the caches were cleared), outside the timing
+        for fn in fns.values():  # compiled again where the caches were cleared, outside the timing
             jax.block_until_ready(fn(z0s))
         # run times in alternating rounds: a slow spell of the machine slows every case alike
         best, trs = _best_times({n: (lambda fn=fn: jax.block_until_ready(fn(z0s))) for n, fn in fns.items()}, reps, 3)

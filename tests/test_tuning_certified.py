@@ -121,10 +121,10 @@ def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch):
             or window_distances(*a, **kw)
         ),
     )
-    out = tmp_path / "pareto"
-    problem = TINY.with_values({"simulation.dt": 0.01})  # the falsifier's step is the problem's
+    out, dt = tmp_path / "pareto", 0.01
+    problem = TINY.with_values({"simulation.dt": dt})  # the falsifier's step is the problem's
     s = pareto.run(problem, out, "position", fractions=[1.0], log=lambda *_: None)
-    assert programs and set(programs) == {(certify.CONFIRM_DT_FACTOR * 0.01, certify.CONFIRM_BLOCK, False)}
+    assert programs and set(programs) == {(certify.CONFIRM_DT_FACTOR * dt, certify.CONFIRM_BLOCK, False)}
     (pt,) = s["points"]
     assert pt["required_radius"] == s["initial_gains"]["radius"] <= pt["tuned_radius"]
     assert s["every_point_certified"] and pt["worst_error_confirmed"] and pt["falsified_radius"] is not None
