@@ -752,8 +752,10 @@ def _worker(args: list, env: dict) -> dict:
 def compile_table(cases, batch: int, devices: int, progress=print) -> dict:
     """Compile times per case in fresh processes: first call with an empty persistent cache, then
     a second process reading the cache the first one wrote."""
+    from wmrjax.xla_cpu import cpu_flags
+
     env = dict(os.environ)
-    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+    env["XLA_FLAGS"] = cpu_flags("", devices)  # the command lines' settings, nothing inherited
     out = {}
     with tempfile.TemporaryDirectory() as cache:
         for case in cases:
@@ -1269,6 +1271,7 @@ def main(argv=None) -> int:
 
     p = _parser()
     a = p.parse_args(argv)
+    options.configure_xla(a.devices)  # before JAX starts its backend (a worker's too)
     if a.worker:
         return _run_worker(a)
     unknown = [n for n in a.cold_start if n not in cold_start_jobs() and a.cold_start != ["all"]]
@@ -1276,8 +1279,6 @@ def main(argv=None) -> int:
         p.error(f"argument --cold-start: unknown job(s) {unknown}; expected 'all' or some of {list(cold_start_jobs())}")
     options.prepare_output(p, a.out)
     options.use_compilation_cache(a)
-    flag = f"--xla_force_host_platform_device_count={a.devices}"
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()  # read when the backend starts
     s = run(
         a.out,
         a.batches,

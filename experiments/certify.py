@@ -359,8 +359,7 @@ def main(argv=None) -> int:
 
     p = _parser()
     a = p.parse_args(argv)
-    flag = f"--xla_force_host_platform_device_count={a.devices}"
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()  # read when the backend starts
+    options.configure_xla(a.devices)  # before JAX starts its backend
     try:
         common.enable_x64()
         problem = problem_from_args(a)

@@ -91,6 +91,7 @@ def tracking_cli(argv, doc, default_out, kinds, run_fn) -> int:
     p.add_argument("--seed", type=options.seed, default=0, help="PRNG seed of the random references and initial errors")
     p.add_argument("--types", nargs="+", default=list(kinds), help=f"subset of {' '.join(kinds)}")
     a = p.parse_args(argv)
+    options.configure_xla()  # before JAX starts its backend
     options.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=a.n_random, n_state=7, saved_every=10)
     import wmrjax as w
 

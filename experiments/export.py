@@ -191,6 +191,7 @@ def main(argv=None) -> int:
 
     p = _parser()
     a = p.parse_args(argv)
+    options.configure_xla()  # before JAX starts its backend
     cc = None if a.cc == "none" else a.cc
     if cc is not None and shutil.which(cc) is None:
         options.fail(p, f"--cc {a.cc}: no such compiler on PATH (give another, or --cc none to skip the C checks)")

@@ -226,6 +226,7 @@ def main(argv=None) -> int:
     p.add_argument("--dt", type=options.positive, default=0.01, help="RK4 step [s]")
     p.add_argument("--t-final", type=options.positive, default=10.0, help="horizon [s]")
     a = p.parse_args(argv)
+    options.configure_xla()  # before JAX starts its backend
     options.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=4096)
     s = options.work(p, a, lambda progress: run(a.out, a.dt, a.t_final, progress=progress))
     sim = s["simulation"]

@@ -296,6 +296,7 @@ def main(argv=None) -> int:
         "--lam", type=options.positive, default=None, help="stabilizer gain lambda [1/s] (None: the paper's 40)"
     )
     a = p.parse_args(argv)
+    options.configure_xla()  # before JAX starts its backend
     if not a.t_final > 10.0:
         p.error(
             f"argument --t-final: must exceed 10 s (the reference (66) stops at t = 10 s and parking follows), "

@@ -131,6 +131,7 @@ def main(argv=None) -> int:
     )
     p.add_argument("--block", type=options.count, default=1024, help="runs per block")
     a = p.parse_args(argv)
+    options.configure_xla()  # before JAX starts its backend
     options.prepare_output(p, a.out)
     res = run(a.out, a.runs, a.block)
     one, two = res["one_process"], res["two_processes"]

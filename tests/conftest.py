@@ -31,6 +31,12 @@ DEFAULT_OPT_LEVEL = {"xla_backend_optimization_level": 3}  # XLA's default (its 
 if os.environ.get("WMRJAX_TEST_OPT_LEVEL", "0") != "default":
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
 
+# The command lines' XLA:CPU setting (every time loop compiled into one kernel, wmrjax.xla_cpu), so
+# that the tests run the programs the command lines run, in-process and in the processes they start.
+from wmrjax.xla_cpu import configure_cpu  # noqa: E402
+
+configure_cpu()
+
 import math  # noqa: E402
 
 import jax.numpy as jnp  # noqa: E402

@@ -928,6 +928,7 @@ def main(argv=None) -> int:
 
     p = parser()
     a = p.parse_args(argv)
+    options.configure_xla()  # before JAX starts its backend
     import jax
 
     jax.config.update("jax_enable_x64", True)  # float64 from the first check on (run() sets it too)

@@ -256,6 +256,7 @@ def main(argv=None) -> int:
 
     p = parser()
     a = p.parse_args(argv)
+    options.configure_xla()  # before JAX starts its backend
     jax.config.update("jax_enable_x64", True)
     try:
         problem = Problem.load(a.file)

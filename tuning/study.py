@@ -673,6 +673,7 @@ def main(argv=None) -> int:
 
     p = parser()
     a = p.parse_args(argv)
+    options.configure_xla()  # before JAX starts its backend
     try:  # the problems named by the options: a bad one is a bad option
         problems = problems_of(a)
     except ValueError as e:

@@ -5,7 +5,7 @@ robots by state feedback linearization", IJRR 14(6), 1995. Float64 is not enable
 import; call ``jax.config.update("jax_enable_x64", True)`` in your entry point.
 """
 
-from wmrjax import autodiff, certify, controllers, export, io, linearize, references, resources, robots  # noqa: F401
+from wmrjax import autodiff, certify, controllers, export, io, linearize, references, resources, robots, xla_cpu  # noqa: F401
 from wmrjax.autodiff import batch_value_and_grad, value_and_grad  # noqa: F401
 from wmrjax.controllers import (  # noqa: F401
     Aux,
@@ -43,5 +43,6 @@ from wmrjax.simulate import (  # noqa: F401
     shard_batch,
     simulate,
 )
+from wmrjax.xla_cpu import configure_cpu, cpu_flags  # noqa: F401
 
 __version__ = "0.2.0"

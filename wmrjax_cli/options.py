@@ -139,6 +139,21 @@ def parser(description: str, default_out: str | None, compile_cache: bool = True
     return p
 
 
+def configure_xla(devices: int | None = None) -> None:
+    """This project's XLA:CPU settings for the process (:func:`wmrjax.configure_cpu`: every time
+    loop compiled into one kernel; ``devices`` host devices, one per core, if given). Call it
+    right after parsing, before any JAX work: XLA reads its flags when JAX's backend starts
+    (called in-process after that, e.g. from a test, it only sets the environment its workers get)."""
+    import warnings
+
+    from wmrjax import xla_cpu
+
+    with warnings.catch_warnings():
+        # a command line called from Python after JAX started: its loops keep the caller's setting
+        warnings.simplefilter("ignore", RuntimeWarning)
+        xla_cpu.configure_cpu(devices)
+
+
 def use_compilation_cache(args) -> Path | None:
     """Turn on JAX's persistent compilation cache in ``args.compile_cache`` (unless
     ``--no-compile-cache``): every program is stored there (the small ones too: a tuning run

@@ -82,8 +82,7 @@ def main(argv=None) -> int:
             p, f"--devices {a.devices} is more than this machine's {cores} cores (JAX host devices run one per core)"
         )
     devices = a.devices or max(1, cores // n_proc)
-    flag = f"--xla_force_host_platform_device_count={devices}"
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()  # before JAX starts
+    options.configure_xla(devices)  # before JAX starts its backend
     # one writer per --out: the launching process (its workers inherit the lock's token), or
     # process 0 of a run over several hosts
     options.prepare_output(p, a.out, lock=not distributed or a.process_id == 0)
