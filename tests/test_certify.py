@@ -1,7 +1,9 @@
 """Lemma 2 certificates: closed forms vs numerics, K2 bounds, and simulation."""
 
 import importlib
+import logging
 import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -451,6 +453,45 @@ def test_rollout_statistics_compile_one_program_for_every_batch_size(paper61):
     for bad, match in ((dict(block=0), "block"), (dict(shared="no"), "shared must be True or False")):
         with pytest.raises(ValueError, match=match):
             C.min_distance(ctrl, params, **kw, **bad)
+
+
+def _compiled(records) -> list:
+    """Names of the programs XLA compiled, from jax.log_compiles's log records."""
+    found = [re.search(r"XLA compilation of jit\((\w+)\)", r.getMessage()) for r in records]
+    return sorted(m.group(1) for m in found if m)
+
+
+def test_programs_compiled_ahead_are_the_ones_the_stages_run(paper61, caplog):
+    """compile_window_distances and compile_search (analyse's thread) compile exactly the
+    programs the empirical stages, the gradient stage and the confirmations then call: none of
+    those calls compiles its program again. An error on analyse's thread reaches its caller."""
+    F = importlib.import_module("wmrjax.certify.falsify")
+    P = importlib.import_module("wmrjax.certify.pipeline")
+    ctrl, params, _ = paper61
+    errs = 0.05 * np.asarray(jax.random.normal(jax.random.PRNGKey(1), (5, 4)))
+    n = F.gradient_starts(8, 4)
+    windows = np.tile([[-0.01, 0.41]], (n, 1))
+    fine = C.CONFIRM_DT_FACTOR * 0.02
+    jax.clear_caches()
+    with caplog.at_level(logging.WARNING), jax.log_compiles(True):
+        P._compile_ahead(ctrl, params, t_final=0.4, dt=0.02, falsifier_dt=0.02, n_starts=8)
+        ahead = _compiled(caplog.records)
+        caplog.clear()
+        C.min_distance(ctrl, params, t_final=0.4, initial_errors=errs, dt=0.02)  # the empirical radius's runs
+        C.min_distance(ctrl, params, t_final=0.4, initial_errors=errs, dt=fine, block=C.CONFIRM_BLOCK, shared=False)
+        for basis, k in (("full", 4), ("position", 2)):  # both slices: one program
+            starts = np.asarray(jax.random.normal(jax.random.PRNGKey(2), (n, k)))
+            kw = dict(t_final=0.4, radius=0.3, starts=starts, dt=0.02, steps=30, windows=windows)
+            C.falsify(ctrl, params, basis=basis, **kw)
+        after = _compiled(caplog.records)
+    assert ahead.count("_rollout_stats") == 2 and ahead.count("_falsify") == 1, ahead
+    assert "_rollout_stats" not in after and "_falsify" not in after, after
+
+    def broken():
+        raise ZeroDivisionError("on the thread")
+
+    with pytest.raises(ZeroDivisionError, match="on the thread"):
+        P._Ahead(broken).join()
 
 
 def test_exact_map_compiles_one_program_for_every_slice(paper61):

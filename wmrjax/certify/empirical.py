@@ -310,6 +310,12 @@ def _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, n_windows, b
     """:func:`_rollout_stats` over fixed-size blocks (the last padded): one compiled program per
     (closed loop, dt, n_steps, save_every, block), whatever the batch size and the bounds."""
     errs = np.asarray(initial_errors, dtype=np.result_type(float))
+    head, tail = _program_args(ctrl, params, dt, n_steps, save_every, n_windows, k2v, tol, errs.dtype)
+    return _Stats(*fixed_blocks(lambda e: _rollout_stats(*head, e, *tail), [errs], block))
+
+
+def _program_args(ctrl, params, dt, n_steps, save_every, n_windows, k2v, tol, dtype) -> tuple[tuple, tuple]:
+    """:func:`_rollout_stats`'s arguments before and after its block of initial errors."""
     n_saved = n_steps // save_every + 1
     # K2 bounds given as none at all (an empty k2v): a program without the output error
     rows = 0 if k2v is not None and len(k2v) == 0 else _N_BOUNDS
@@ -317,12 +323,17 @@ def _blocked(ctrl, params, initial_errors, dt, n_steps, save_every, n_windows, b
     if k2v is not None:
         bounds[: len(k2v)] = k2v
     branch = jnp.asarray(float(ctrl.reference_branch(params)))
-    bounds, tol = jnp.asarray(bounds), jnp.asarray(tol, errs.dtype)
+    return (ctrl, params), (jnp.asarray(bounds), jnp.asarray(tol, dtype), branch, dt, n_steps, save_every, n_windows)
 
-    def stats(e):
-        return _rollout_stats(ctrl, params, e, bounds, tol, branch, dt, n_steps, save_every, n_windows)
 
-    return _Stats(*fixed_blocks(stats, [errs], block))
+def compile_window_distances(ctrl, params, *, dt: float, n_steps: int, n_windows: int = 4, block: int, shared: bool):
+    """Compile :func:`window_distances`'s program for these settings without running it (its
+    first call then finds it compiled): to compile ahead, e.g. on another thread while
+    something else computes. Arguments as :func:`window_distances`'s (``save_every`` 1)."""
+    k2v = None if shared else np.zeros((0, n_steps + 1))
+    dtype = np.result_type(float)
+    head, tail = _program_args(ctrl, params, dt, n_steps, 1, n_windows, k2v, 0.0, dtype)
+    _rollout_stats.lower(*head, jnp.zeros((block, error_width(ctrl)), dtype), *tail).compile()
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9))
@@ -484,10 +495,23 @@ GOLDEN_FRACTION = 0.5 * (math.sqrt(5.0) - 1.0)  # golden section: the bracket sh
 
 def _golden_minima(m_of, dd, a, b, n_golden: int) -> np.ndarray:
     """Golden-section minimisation of ``m_of`` along each ray ``dd[i]`` inside ``[a[i], b[i]]``, all
-    brackets in one batch per round: the centres of the final brackets."""
-    for _ in range(n_golden):
-        x1, x2 = b - GOLDEN_FRACTION * (b - a), a + GOLDEN_FRACTION * (b - a)
-        m12 = m_of(np.concatenate([dd, dd]), np.concatenate([x1, x2]))
-        left = m12[: len(a)] <= m12[len(a) :]
+    brackets in one batch per round: the centres of the final brackets, after ``n_golden``
+    shrinks. Each round keeps one interior point and its value (the golden ratio puts it where
+    the next round needs it) and simulates only the other: one run per ray and round."""
+    x1, x2 = b - GOLDEN_FRACTION * (b - a), a + GOLDEN_FRACTION * (b - a)
+    f12 = m_of(np.concatenate([dd, dd]), np.concatenate([x1, x2]))
+    f1, f2 = f12[: len(a)], f12[len(a) :]
+    for k in range(n_golden):
+        left = f1 <= f2  # the minimum lies in [a, x2]: x1 becomes its upper interior point
         a, b = np.where(left, a, x1), np.where(left, x2, b)
+        if k == n_golden - 1:
+            break
+        new = np.where(left, b - GOLDEN_FRACTION * (b - a), a + GOLDEN_FRACTION * (b - a))
+        f_new = m_of(dd, new)
+        x1, x2, f1, f2 = (
+            np.where(left, new, x2),
+            np.where(left, x1, new),
+            np.where(left, f_new, f2),
+            np.where(left, f1, f_new),
+        )
     return 0.5 * (a + b)

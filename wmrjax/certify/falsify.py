@@ -32,6 +32,7 @@ from wmrjax.certify.empirical import (
     CONFIRM_BLOCK,
     CONFIRM_DT_FACTOR,
     check_vectors,
+    compile_window_distances,
     distance_along,
     n_steps_for,
     run_from_error,
@@ -95,7 +96,6 @@ def falsify(
     steps = check_int("steps", steps, 1)
     n_windows = check_int("n_windows", n_windows, 1)
     check_positive("learning_rate", learning_rate)
-    branch = jnp.asarray(float(ctrl.reference_branch(params)))
     u0 = jnp.asarray(starts)
     if windows is None:
         edges = jnp.linspace(0.0, dt * n_steps, n_windows + 1)
@@ -109,21 +109,17 @@ def falsify(
                 f"got shape {windows.shape}"
             )
     Q = square_basis(P)  # every slice through one compiled program: directions padded with zeros
-    us, vals = _falsify(
-        ctrl,
-        params,
-        jnp.asarray(radius, dtype=u0.dtype),
-        _pad(u0 / jnp.linalg.norm(u0, axis=1, keepdims=True), Q),
-        windows,
-        Q,
-        branch,
-        dt,
-        n_steps,
-        steps,
-        learning_rate,
-    )
+    args = _search_args(ctrl, params, radius, u0, windows, Q)
+    us, vals = _falsify(*args, dt, n_steps, steps, learning_rate)
     errs = radius * (us / jnp.linalg.norm(us, axis=1, keepdims=True)) @ Q.T
     return Falsification(errs, vals, jnp.argmin(vals))
+
+
+def _search_args(ctrl, params, radius, u0, windows, Q) -> tuple:
+    """:func:`_falsify`'s array arguments (before its static ones) for the starts ``u0`` (S, k)."""
+    branch = jnp.asarray(float(ctrl.reference_branch(params)))
+    u = _pad(u0 / jnp.linalg.norm(u0, axis=1, keepdims=True), Q)
+    return ctrl, params, jnp.asarray(radius, dtype=u0.dtype), u, windows, Q, branch
 
 
 @functools.partial(jax.jit, static_argnums=(0, 7, 8, 9, 10))
@@ -439,7 +435,7 @@ class _Search:
         n_w, dt = self.n_windows, self.dt
         n_slots = self.n_starts // 4
         n_warm = 0 if warm is None else min(len(warm), n_slots)
-        n_samp = max(self.n_starts - len(u_inst) - n_slots, n_w) + n_slots - n_warm
+        n_samp = gradient_starts(self.n_starts, n_w) - len(u_inst) - n_warm
         ranked = np.argsort(per_win, axis=0)
         wins = np.arange(n_samp) % n_w
         starts = [dirs[ranked[i // n_w, w]] for i, w in enumerate(wins)] + list(u_inst)
@@ -462,6 +458,44 @@ class _Search:
         )
         self.counts["gradient"] += len(starts) * (self.steps + 1)
         return np.asarray(f.initial_errors), np.asarray(f.distance)
+
+
+N_INSTANT_STARTS = 2  # instantaneous minimisers among a gradient stage's starts
+
+
+def gradient_starts(n_starts: int, n_windows: int) -> int:
+    """Starts of a gradient stage (one compiled program): the best samples of every window (at
+    least one each), the instantaneous minimisers and a quarter ``n_starts`` of warm slots."""
+    n_slots = n_starts // 4
+    return max(n_starts - N_INSTANT_STARTS - n_slots, n_windows) + n_slots + N_INSTANT_STARTS
+
+
+def compile_search(
+    ctrl: DynamicLinearization,
+    params: DynamicParams,
+    *,
+    t_final: float,
+    dt: float,
+    n_starts: int = 16,
+    steps: int = 30,
+    learning_rate: float = 0.1,
+    n_windows: int = 4,
+) -> None:
+    """Compile the two programs of :func:`falsified_radius` (same arguments) that its first
+    stages do not: the gradient stage's and the fine confirmations' (blocks of
+    :data:`CONFIRM_BLOCK` at ``CONFIRM_DT_FACTOR * dt``), without running them; the search then
+    finds them compiled. :func:`wmrjax.certify.analyse` calls it on a thread of its own while
+    the certificates compute."""
+    check_dynamic(ctrl, params)
+    n_steps = n_steps_for(t_final, dt)
+    fine = CONFIRM_DT_FACTOR * dt
+    compile_window_distances(
+        ctrl, params, dt=fine, n_steps=n_steps_for(t_final, fine), block=CONFIRM_BLOCK, shared=False
+    )
+    Q = square_basis(slice_basis(ctrl, "full"))
+    S = gradient_starts(n_starts, n_windows)
+    args = _search_args(ctrl, params, 1.0, jnp.ones((S, Q.shape[1])), jnp.zeros((S, 2)), Q)
+    _falsify.lower(*args, dt, n_steps, steps, learning_rate).compile()
 
 
 def _pad(u, Q):

@@ -10,6 +10,7 @@ position slice, and the gradient falsifier (full and position slice). It returns
 from __future__ import annotations
 
 import math
+import threading
 import time
 import warnings
 from typing import Callable, NamedTuple
@@ -19,9 +20,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax._validate import check_int
-from wmrjax.certify.empirical import EmpiricalRadius, empirical_radius, n_steps_for, sample_sphere, verify_all
+from wmrjax.certify.empirical import (
+    ROLLOUT_BLOCK,
+    EmpiricalRadius,
+    compile_window_distances,
+    empirical_radius,
+    n_steps_for,
+    sample_sphere,
+    verify_all,
+)
 from wmrjax.certify.exact_map import ExactMapRadius, exact_map_radius, slice_basis
-from wmrjax.certify.falsify import FalsifiedRadius, falsified_radius
+from wmrjax.certify.falsify import FalsifiedRadius, compile_search, falsified_radius
 from wmrjax.certify.lemma2 import Lemma2Report, check_dynamic, grid_k2s, k2_transition, lemma2
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 
@@ -196,6 +205,9 @@ def analyse(
     falsifier_dt = dt if falsifier_dt is None else falsifier_dt
     n_steps = _check_analyse_args(t_final, dt, falsifier_dt, n_empirical, n_directions, n_starts, seed, log)
     horizon = dict(t_final=t_final, eps=eps)
+    # the batch rollouts' programs, compiled on a thread while the certificates compute (much of
+    # which is compiling, on one core): the empirical stages and the falsifier then find them
+    ahead = _Ahead(_compile_ahead, ctrl, params, t_final=t_final, dt=dt, falsifier_dt=falsifier_dt, n_starts=n_starts)
     cert = _lemma2_on_grid(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_steps=n_steps)
     radii = {n: float(c.radius) for n, c in cert.certificates().items()}
     certified = max(radii.values())
@@ -219,6 +231,7 @@ def analyse(
 
     # -- gradient falsifier, full and position slice
     keys = (kf1, kf2) if n_starts else ()
+    ahead.join()
     fs = _falsifiers(
         ctrl, params, keys, dt=falsifier_dt, n_starts=n_starts, r_lo=certified, log=log, elapsed=elapsed, **horizon
     )
@@ -227,6 +240,38 @@ def analyse(
     alarms += disagree
     stages = (exact["full"], exact["position"], emp, sampling, er, fs.get("full"), fs.get("position"))
     return CertificationReport(eps, t_final, cert, zeta0_norm, *stages, below, tuple(alarms), time.time() - t0)
+
+
+def _compile_ahead(ctrl, params, *, t_final: float, dt: float, falsifier_dt: float, n_starts: int) -> None:
+    """Compile, without running them, the programs :func:`analyse` needs after its certificates:
+    the batch rollouts' (empirical checks and radius, the falsifier's sampling) and, with
+    ``n_starts``, the falsifier's gradient stage and fine confirmations."""
+    n_steps = n_steps_for(t_final, dt)
+    compile_window_distances(ctrl, params, dt=dt, n_steps=n_steps, block=ROLLOUT_BLOCK, shared=True)
+    if n_starts:
+        compile_search(ctrl, params, t_final=t_final, dt=falsifier_dt, n_starts=n_starts)
+
+
+class _Ahead(threading.Thread):
+    """``fn(*args, **kwargs)`` on a thread of its own, started at once; :meth:`join` waits for it
+    and raises its exception, if any, with its traceback."""
+
+    def __init__(self, fn, *args, **kwargs):
+        super().__init__(daemon=True)
+        self._call, self._error = (fn, args, kwargs), None
+        self.start()
+
+    def run(self):
+        fn, args, kwargs = self._call
+        try:
+            fn(*args, **kwargs)
+        except BaseException as exc:  # handed to the caller of join
+            self._error = exc
+
+    def join(self, timeout=None):
+        super().join(timeout)
+        if self._error is not None:
+            raise self._error
 
 
 def _check_analyse_args(t_final, dt, falsifier_dt, n_empirical, n_directions, n_starts, seed, log) -> int:
