@@ -1,6 +1,7 @@
 """Lemma 2 certificates: closed forms vs numerics, K2 bounds, and simulation."""
 
 import importlib
+import inspect
 import logging
 import math
 import re
@@ -492,6 +493,66 @@ def test_programs_compiled_ahead_are_the_ones_the_stages_run(paper61, caplog):
 
     with pytest.raises(ZeroDivisionError, match="on the thread"):
         P._Ahead(broken).join()
+
+
+def test_compile_ahead_settings_and_bad_arguments(paper61):
+    """compile_search compiles falsified_radius's programs only with its defaults: they are the
+    same; bad settings are refused before compiling; a block that raises drops the thread's error."""
+    F = importlib.import_module("wmrjax.certify.falsify")
+    P = importlib.import_module("wmrjax.certify.pipeline")
+    ctrl, params, _ = paper61
+    ahead, search = inspect.signature(F.compile_search).parameters, inspect.signature(C.falsified_radius).parameters
+    for name in ("n_starts", "steps", "learning_rate", "n_windows"):
+        assert ahead[name].default == search[name].default, name
+    kw = dict(t_final=0.4, dt=0.02)
+    for bad, match in (
+        (dict(n_starts=0), "n_starts"),
+        (dict(steps=1.5), "steps"),
+        (dict(learning_rate=-1.0), "learning_rate"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            F.compile_search(ctrl, params, **kw, **bad)
+    for bad, match in (
+        (dict(block=0, shared=True), "block"),
+        (dict(block=16, shared=1), "shared must be True or False"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            importlib.import_module("wmrjax.certify.empirical").compile_window_distances(
+                ctrl, params, dt=0.02, n_steps=20, **bad
+            )
+
+    def broken():
+        raise ZeroDivisionError("on the thread")
+
+    with pytest.raises(KeyError, match="the caller's"):
+        with P._Ahead(broken):
+            raise KeyError("the caller's")
+
+
+def test_golden_section_keeps_one_point_per_round():
+    """The golden section with one new point per round ends where the two-point version (every
+    round both interior points) does, to rounding, with n_golden + 1 evaluations per ray."""
+    E = importlib.import_module("wmrjax.certify.empirical")
+    rng = np.random.default_rng(3)
+    centre = rng.uniform(-1.0, 1.0, 50)
+    a, b = centre - rng.uniform(0.1, 2.0, 50), centre + rng.uniform(0.1, 2.0, 50)
+    calls = []
+
+    def m_of(rows, r):
+        calls.append(len(r))
+        x = r - centre[rows.astype(int)]
+        return x**2 + 0.1 * x**4 - 0.01 * np.sin(5.0 * x)
+
+    rows = np.arange(50.0)
+    got = E._golden_minima(m_of, rows, a, b, 16)
+    assert sum(calls) == 50 * 17
+    lo, hi = a.copy(), b.copy()
+    for _ in range(16):  # the two-point version
+        x1, x2 = hi - E.GOLDEN_FRACTION * (hi - lo), lo + E.GOLDEN_FRACTION * (hi - lo)
+        left = m_of(rows, x1) <= m_of(rows, x2)
+        lo, hi = np.where(left, lo, x1), np.where(left, x2, hi)
+    np.testing.assert_allclose(got, 0.5 * (lo + hi), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got, centre, atol=0.05)  # the sine term moves the minimum by ~0.025
 
 
 def test_exact_map_compiles_one_program_for_every_slice(paper61):

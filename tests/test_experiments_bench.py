@@ -14,8 +14,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_benchmark_cli_smoke(tmp_path):
-    # the session's XLA flags (tests/conftest.py: optimization level 0; the benchmark appends its
-    # device count): this checks the benchmark's values, not its speed (80 s in a test run -> 55 s alone, 65 s in a test run, at level 0)
+    # the session's XLA flags (tests/conftest.py: optimization level 0; the benchmark replaces any
+    # device count with its --devices): this checks the benchmark's values, not its speed (80 s in a test run -> 55 s alone, 65 s in a test run, at level 0)
     env = dict(os.environ, PYTHONPATH=ROOT)
     r = subprocess.run(
         [

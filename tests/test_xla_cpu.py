@@ -31,10 +31,16 @@ def test_cpu_flags_adds_the_option_and_keeps_what_is_given():
     )
     assert w.cpu_flags("--xla_backend_extra_options=a=1") == f"--xla_backend_extra_options=a=1,{OPTION}"
     # the user's own threshold and device count win
-    mine = (
-        "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0 --xla_force_host_platform_device_count=4"
+    # the user's own threshold wins; a device count given replaces the environment's
+    mine = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0"
+    assert w.cpu_flags(mine + " --xla_force_host_platform_device_count=4", devices=2) == (
+        mine + " --xla_force_host_platform_device_count=2"
     )
-    assert w.cpu_flags(mine, devices=2) == mine
+    assert w.cpu_flags(mine + " --xla_force_host_platform_device_count=4") == (
+        mine + " --xla_force_host_platform_device_count=4"
+    )
+    # a trailing comma of the user's map is not doubled
+    assert w.cpu_flags("--xla_backend_extra_options=a=1,") == f"--xla_backend_extra_options=a=1,{OPTION}"
     # idempotent
     once = w.cpu_flags("--xla_dump_to=/tmp/x", devices=3)
     assert w.cpu_flags(once, devices=3) == once
@@ -119,6 +125,7 @@ def test_results_agree_with_the_default_setting_to_rounding():
     here = {}
     exec(_ROLLOUT, here)
     default_flags = flags.replace(f"--xla_backend_extra_options={OPTION}", "")
+    assert xla_cpu.SMALL_LOOP_OPTION not in default_flags, default_flags
     default = np.array(ast.literal_eval(_python(_ROLLOUT + "print(repr(states.tolist()))", default_flags).strip()))
     np.testing.assert_allclose(here["states"], default, rtol=1e-12, atol=1e-12)
 

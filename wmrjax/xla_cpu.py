@@ -33,8 +33,8 @@ _DEVICES = "--xla_force_host_platform_device_count="
 def cpu_flags(xla_flags: str = "", devices: int | None = None) -> str:
     """``xla_flags`` (an ``XLA_FLAGS`` string) with this library's CPU settings added.
 
-    Settings already in ``xla_flags`` are kept: a small-loop threshold given there is not
-    replaced (``...threshold=0`` turns the single-kernel loops off), a device count neither.
+    A small-loop threshold already in ``xla_flags`` is kept (``...threshold=0`` turns the
+    single-kernel loops off); a device count there is replaced by ``devices`` when it is given.
 
     Args:
       xla_flags: the flags to extend (typically ``os.environ.get("XLA_FLAGS", "")``).
@@ -53,11 +53,12 @@ def cpu_flags(xla_flags: str = "", devices: int | None = None) -> str:
         extra = [i for i, tok in enumerate(tokens) if tok.startswith(_EXTRA)]
         option = f"{SMALL_LOOP_OPTION}={SMALL_LOOP_BYTES}"
         if extra:  # one map of backend options: the last one given counts, so extend it
+            tokens[extra[-1]] = tokens[extra[-1]].rstrip(",")
             tokens[extra[-1]] += ("," if tokens[extra[-1]] != _EXTRA else "") + option
         else:
             tokens.append(_EXTRA + option)
-    if devices is not None and not any(tok.startswith(_DEVICES) for tok in tokens):
-        tokens.append(f"{_DEVICES}{devices}")
+    if devices is not None:  # the count asked for, whatever the environment held
+        tokens = [tok for tok in tokens if not tok.startswith(_DEVICES)] + [f"{_DEVICES}{devices}"]
     return " ".join(tokens)
 
 
@@ -70,9 +71,10 @@ def configure_cpu(devices: int | None = None) -> bool:
 
     Returns:
       True if the single-kernel loops apply in this process: JAX has not started its backend
-      yet, or it started with the setting already. False, with a ``RuntimeWarning``, if the
-      backend already runs without it: XLA has read its flags, and this process's loops keep
-      the default (the same results to rounding, slower for small batches).
+      yet, or the environment held the setting already when this was called (the backend is
+      then taken to have read it). False, with a ``RuntimeWarning``, if the backend already runs
+      and the environment did not hold it: XLA has read its flags, and this process's loops
+      keep the default (the same results to rounding, slower for small batches).
     """
     current = os.environ.get("XLA_FLAGS", "")
     os.environ["XLA_FLAGS"] = cpu_flags(current, devices)

@@ -246,9 +246,7 @@ def min_distance(
       :class:`Distances`.
     """
     n_steps, save_every = check_runs(ctrl, params, t_final, dt, initial_errors, save_every)
-    check_int("block", block, 1)
-    if not isinstance(shared, bool):
-        raise ValueError(f"shared must be True or False, got {shared!r}")
+    _check_block(block, shared)
     per, fail, _ = window_distances(
         ctrl, params, initial_errors, dt=dt, n_steps=n_steps, save_every=save_every, block=block, shared=shared
     )
@@ -326,10 +324,22 @@ def _program_args(ctrl, params, dt, n_steps, save_every, n_windows, k2v, tol, dt
     return (ctrl, params), (jnp.asarray(bounds), jnp.asarray(tol, dtype), branch, dt, n_steps, save_every, n_windows)
 
 
+def _check_block(block, shared) -> None:
+    """ValueError for a bad ``block`` (an integer >= 1) or ``shared`` (a bool)."""
+    check_int("block", block, 1)
+    if not isinstance(shared, bool):
+        raise ValueError(f"shared must be True or False, got {shared!r}")
+
+
 def compile_window_distances(ctrl, params, *, dt: float, n_steps: int, n_windows: int = 4, block: int, shared: bool):
     """Compile :func:`window_distances`'s program for these settings without running it (its
     first call then finds it compiled): to compile ahead, e.g. on another thread while
     something else computes. Arguments as :func:`window_distances`'s (``save_every`` 1)."""
+    check_dynamic(ctrl, params)
+    _check_block(block, shared)
+    for name, v in (("n_steps", n_steps), ("n_windows", n_windows)):
+        check_int(name, v, 1)
+    check_positive("dt", dt)
     k2v = None if shared else np.zeros((0, n_steps + 1))
     dtype = np.result_type(float)
     head, tail = _program_args(ctrl, params, dt, n_steps, 1, n_windows, k2v, 0.0, dtype)
@@ -497,7 +507,8 @@ def _golden_minima(m_of, dd, a, b, n_golden: int) -> np.ndarray:
     """Golden-section minimisation of ``m_of`` along each ray ``dd[i]`` inside ``[a[i], b[i]]``, all
     brackets in one batch per round: the centres of the final brackets, after ``n_golden``
     shrinks. Each round keeps one interior point and its value (the golden ratio puts it where
-    the next round needs it) and simulates only the other: one run per ray and round."""
+    the next round needs it) and simulates only the other: two runs per ray in the first round, one in
+    each of the others."""
     x1, x2 = b - GOLDEN_FRACTION * (b - a), a + GOLDEN_FRACTION * (b - a)
     f12 = m_of(np.concatenate([dd, dd]), np.concatenate([x1, x2]))
     f1, f2 = f12[: len(a)], f12[len(a) :]

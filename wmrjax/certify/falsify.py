@@ -286,6 +286,7 @@ def _check_falsifier_args(
 
 
 N_INSTANTANEOUS = 64  # random starts of the instantaneous stage (no rollout)
+N_INSTANT_STARTS = 2  # its best minimisers, among a gradient stage's starts
 # the bisection's first step below the smallest failure, relative to it, and its largest: at 0.5
 # the step reaches no lower than the bracket's midpoint (its lower end is >= 0), i.e. plain halving
 FIRST_STEP, MAX_STEP = 0.02, 0.5
@@ -379,7 +380,7 @@ class _Search:
             self.learning_rate,
         )
         self.counts["instantaneous"] += N_INSTANTANEOUS * 201
-        best_inst = np.argsort(np.asarray(d_inst))[:2]
+        best_inst = np.argsort(np.asarray(d_inst))[:N_INSTANT_STARTS]
         u_inst, d_inst = np.asarray(u_inst)[best_inst, : self.k], np.asarray(d_inst)[best_inst]
         dirs = np.asarray(jax.random.normal(next(self.keys), (self.n_samples, self.k)))
         per_win, _, _ = window_distances(
@@ -460,9 +461,6 @@ class _Search:
         return np.asarray(f.initial_errors), np.asarray(f.distance)
 
 
-N_INSTANT_STARTS = 2  # instantaneous minimisers among a gradient stage's starts
-
-
 def gradient_starts(n_starts: int, n_windows: int) -> int:
     """Starts of a gradient stage (one compiled program): the best samples of every window (at
     least one each), the instantaneous minimisers and a quarter ``n_starts`` of warm slots."""
@@ -488,6 +486,9 @@ def compile_search(
     the certificates compute."""
     check_dynamic(ctrl, params)
     n_steps = n_steps_for(t_final, dt)
+    for name, v in (("n_starts", n_starts), ("steps", steps), ("n_windows", n_windows)):
+        check_int(name, v, 1)
+    check_positive("learning_rate", learning_rate)
     fine = CONFIRM_DT_FACTOR * dt
     compile_window_distances(
         ctrl, params, dt=fine, n_steps=n_steps_for(t_final, fine), block=CONFIRM_BLOCK, shared=False

@@ -207,54 +207,65 @@ def analyse(
     horizon = dict(t_final=t_final, eps=eps)
     # the batch rollouts' programs, compiled on a thread while the certificates compute (much of
     # which is compiling, on one core): the empirical stages and the falsifier then find them
-    ahead = _Ahead(_compile_ahead, ctrl, params, t_final=t_final, dt=dt, falsifier_dt=falsifier_dt, n_starts=n_starts)
-    cert = _lemma2_on_grid(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_steps=n_steps)
-    radii = {n: float(c.radius) for n, c in cert.certificates().items()}
-    certified = max(radii.values())
-    log("  Lemma 2 radii " + ", ".join(f"{n} {r:.4f}" for n, r in radii.items()) + f"  {elapsed()}")
-    exact = _exact_maps(ctrl, params, n_t=4 * n_steps + 1, log=log, elapsed=elapsed, **horizon)
-    r_top = max([certified] + [float(e.radius) for e in exact.values()])
+    with _Ahead(
+        _compile_ahead, ctrl, params, t_final=t_final, dt=dt, falsifier_dt=falsifier_dt, n_starts=n_starts
+    ) as ahead:
+        cert = _lemma2_on_grid(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_steps=n_steps)
+        radii = {n: float(c.radius) for n, c in cert.certificates().items()}
+        certified = max(radii.values())
+        log("  Lemma 2 radii " + ", ".join(f"{n} {r:.4f}" for n, r in radii.items()) + f"  {elapsed()}")
+        exact = _exact_maps(ctrl, params, n_t=4 * n_steps + 1, log=log, elapsed=elapsed, **horizon)
+        r_top = max([certified] + [float(e.radius) for e in exact.values()])
 
-    # -- empirical: (53) and regularity inside every ball
-    kd, kr, kf1, kf2 = jax.random.split(jax.random.PRNGKey(seed), 4)
-    r_max = 2.0 * r_top
+        kd, kr, kf1, kf2 = jax.random.split(jax.random.PRNGKey(seed), 4)
+        emp, sampling, alarms, er = _empirical_stages(
+            ctrl, params, cert, exact, (kd, kr), n_empirical, n_directions, 2.0 * r_top, dt, log, elapsed, **horizon
+        )
+
+        # -- gradient falsifier, full and position slice
+        keys = (kf1, kf2) if n_starts else ()
+        ahead.join()
+        fs = _falsifiers(
+            ctrl, params, keys, dt=falsifier_dt, n_starts=n_starts, r_lo=certified, log=log, elapsed=elapsed, **horizon
+        )
+        below, disagree = consistency(radii, exact, fs)
+        _raise_alarms(disagree, log)
+        alarms += disagree
+        stages = (exact["full"], exact["position"], emp, sampling, er, fs.get("full"), fs.get("position"))
+        return CertificationReport(eps, t_final, cert, zeta0_norm, *stages, below, tuple(alarms), time.time() - t0)
+
+
+def _empirical_stages(ctrl, params, cert, exact, keys, n_empirical, n_directions, r_max, dt, log, elapsed, **horizon):
+    """(53) and regularity inside every ball on ``n_empirical`` sampled runs (uniform direction,
+    uniform radius up to ``r_max``), then the empirical safe radius on ``n_directions`` rays of
+    the position slice: ``(checks, sampling, alarms, EmpiricalRadius)``."""
+    radii = {n: float(c.radius) for n, c in cert.certificates().items()}
     sampling = {"n_runs": n_empirical, "radius_range": [0.0, r_max], "sampling": "uniform direction, uniform radius"}
     emp, alarms = {}, []
     if n_empirical:
-        errs = _sampled_errors(ctrl, params, kd, kr, n_empirical, r_max)
-        emp, alarms = _empirical_checks(ctrl, params, cert, radii, errs, t_final=t_final, dt=dt, log=log)
-
-    # -- empirical safe radius per direction of the position slice
+        errs = _sampled_errors(ctrl, params, *keys, n_empirical, r_max)
+        emp, alarms = _empirical_checks(ctrl, params, cert, radii, errs, t_final=horizon["t_final"], dt=dt, log=log)
     directions = _position_directions(ctrl, n_directions, exact["position"].worst_error)
     er = empirical_radius(ctrl, params, **horizon, directions=directions, r_max=r_max, dt=dt)
     log(f"  empirical safe radius (position slice, {len(directions)} rays): {er.radius:.4f}  {elapsed()}")
-
-    # -- gradient falsifier, full and position slice
-    keys = (kf1, kf2) if n_starts else ()
-    ahead.join()
-    fs = _falsifiers(
-        ctrl, params, keys, dt=falsifier_dt, n_starts=n_starts, r_lo=certified, log=log, elapsed=elapsed, **horizon
-    )
-    below, disagree = consistency(radii, exact, fs)
-    _raise_alarms(disagree, log)
-    alarms += disagree
-    stages = (exact["full"], exact["position"], emp, sampling, er, fs.get("full"), fs.get("position"))
-    return CertificationReport(eps, t_final, cert, zeta0_norm, *stages, below, tuple(alarms), time.time() - t0)
+    return emp, sampling, alarms, er
 
 
 def _compile_ahead(ctrl, params, *, t_final: float, dt: float, falsifier_dt: float, n_starts: int) -> None:
     """Compile, without running them, the programs :func:`analyse` needs after its certificates:
     the batch rollouts' (empirical checks and radius, the falsifier's sampling) and, with
     ``n_starts``, the falsifier's gradient stage and fine confirmations."""
-    n_steps = n_steps_for(t_final, dt)
-    compile_window_distances(ctrl, params, dt=dt, n_steps=n_steps, block=ROLLOUT_BLOCK, shared=True)
+    for step in {dt, falsifier_dt} if n_starts else {dt}:  # the falsifier samples at its own step
+        n_steps = n_steps_for(t_final, step)
+        compile_window_distances(ctrl, params, dt=step, n_steps=n_steps, block=ROLLOUT_BLOCK, shared=True)
     if n_starts:
         compile_search(ctrl, params, t_final=t_final, dt=falsifier_dt, n_starts=n_starts)
 
 
 class _Ahead(threading.Thread):
     """``fn(*args, **kwargs)`` on a thread of its own, started at once; :meth:`join` waits for it
-    and raises its exception, if any, with its traceback."""
+    and raises its exception, if any, with its traceback. As a context manager, it is joined on
+    leaving the block (its error ignored when the block itself raised)."""
 
     def __init__(self, fn, *args, **kwargs):
         super().__init__(daemon=True)
@@ -270,8 +281,18 @@ class _Ahead(threading.Thread):
 
     def join(self, timeout=None):
         super().join(timeout)
-        if self._error is not None:
-            raise self._error
+        error, self._error = self._error, None  # raised once
+        if error is not None:
+            raise error
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        # a failure of the caller's stages: wait for the thread (no compiling left behind), its own
+        # error dropped in favour of the caller's
+        self._error = None if kind is not None else self._error
+        self.join()
 
 
 def _check_analyse_args(t_final, dt, falsifier_dt, n_empirical, n_directions, n_starts, seed, log) -> int:
