@@ -1,6 +1,7 @@
 """wmrjax.xla_cpu: the XLA_FLAGS string it builds, that the setting reaches XLA (a time loop
 compiled into one kernel), that it is refused once JAX's backend runs, that results agree with
-XLA's default to rounding, and that every command line applies it before JAX starts."""
+XLA's default to rounding, and that every command line's ``main`` calls it (a text check: that
+the call comes before JAX starts is each main's order, read in review)."""
 
 import ast
 import os
@@ -138,7 +139,7 @@ def _mains():
             yield path.relative_to(ROOT), text
 
 
-def test_every_command_line_applies_the_setting_before_jax_starts():
+def test_every_command_line_calls_configure_xla_in_main():
     mains = dict(_mains())
     assert len(mains) == 12, sorted(mains)
     for path, text in mains.items():

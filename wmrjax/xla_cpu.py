@@ -7,9 +7,9 @@ of the falsifier; a tuner's few scenarios) that dispatch, not the arithmetic, se
 compiles a while loop whose memory traffic is below its option
 ``xla_cpu_small_while_loop_byte_threshold`` (1 kB by default) into a single kernel instead.
 :func:`configure_cpu` raises that threshold to :data:`SMALL_LOOP_BYTES`, so that every time
-loop is compiled whole: a confirmation block of the (1,1) law runs 2.3x faster, small batches
-up to 4x, large ones at the same speed (docs/benchmarks.md). The kernels differ, so results
-agree with the default setting to rounding (relative differences ~1e-15), not to the bit.
+loop is compiled whole: small batches run several times faster, large ones at the same speed
+(measurements: docs/benchmarks.md). The kernels differ, so results agree with the default
+setting to rounding, not to the bit.
 
 XLA reads ``XLA_FLAGS`` once, when JAX starts its backend (the first array or computation):
 call :func:`configure_cpu` first thing in a script, or put :func:`cpu_flags`'s string in the
