@@ -220,8 +220,7 @@ def test_a_traced_horizon_outside_the_samples_fails_the_run():
 def test_a_horizon_outside_the_samples_is_refused_unless_extrapolated(tmp_path):
     """Circle samples on [0, 4] s: a run to 8 s, a run from t0 = -1 s, the reference check and a
     Lemma 2 certificate over 8 s are refused by name; with extrapolate=True the run goes on (the
-    quintic end piece is then 0.24 m off the circle at 8 s: what used to be reported as 'converged'
-    silently); samples on [5, 25] s refuse a horizon starting at 0. The problem file's key too."""
+    path then tends to the tangent line at the last sample's velocity, off the circle at 8 s); samples on [5, 25] s refuse a horizon starting at 0. The problem file's key too."""
     from wmrjax import certify as C
     from wmrjax.problem import Problem, ProblemError
 

@@ -56,6 +56,7 @@ import functools
 import hashlib
 import json
 import math
+import re
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -65,6 +66,12 @@ import numpy as np
 
 from wmrjax import io, resources
 from wmrjax.controllers.law import Level, Task
+from wmrjax.references import spline_degree_for
+
+# a case's name is a label in tables and a part of its figures' file names: no path separator,
+# no control character, no leading dot, a bounded length
+CASE_NAME_MAX = 64
+CASE_NAME = re.compile(rf"[A-Za-z0-9][A-Za-z0-9 _.+\-]{{0,{CASE_NAME_MAX - 1}}}")
 
 SECTIONS = (
     "title",
@@ -337,9 +344,13 @@ class Problem:
         for i, c in enumerate(cases):
             check_keys(f"case #{i + 1}", c, ("name",) + CASE_SECTIONS, ("name",))
             name = c["name"]
-            if not isinstance(name, str) or not name or name in names:
+            if not isinstance(name, str) or not CASE_NAME.fullmatch(name) or name in names:
+                shown = repr(name)
                 raise ProblemError(
-                    f"[[case]] #{i + 1} name: expected a non-empty name not used by another case, got {name!r}"
+                    f"[[case]] #{i + 1} name: expected a label of 1 to {CASE_NAME_MAX} characters -- letters, "
+                    "digits, space, '_', '.', '+', '-', starting with a letter or digit (it names the case's "
+                    f"figures and rows) -- not used by another case, got "
+                    f"{shown[:60] + '...' if len(shown) > 60 else shown}"
                 )
             names.add(name)
             merged = {k: v for k, v in self.data.items() if k != "case"}
@@ -839,7 +850,7 @@ def _setting(ctrl, data, base, case, law, task, space, t_final, dt, n_steps) -> 
     kind, level = ctrl.robot.name, ctrl.level
     geometry = _geometry_axis(data.get("geometry", {}), ctrl)
     plant, period, noise_std, noise_seed = _plant_axis(data.get("plant"), ctrl, dt, t_final)
-    reference, refs = reference_axis(data["reference"], base, law, kind)
+    reference, refs = reference_axis(data["reference"], base, law, kind, ctrl.path_order)
     gains = gains_axis(data.get("gains", {}), ctrl, base)
     initial = initial_axis(data["initial"], ctrl, space)
     geo = geometry.payload
@@ -964,9 +975,10 @@ def _plant_axis(ps, ctrl, dt, t_final):
     return Axis("plant", columns, cols), period, tuple(float(v) for v in noise), seed
 
 
-def reference_axis(rs, base: Path, law, kind):
+def reference_axis(rs, base: Path, law, kind, path_order: int):
     """``(axis, references)`` of a ``[reference]`` section: the references (their heading offsets
-    applied; offsets fastest) and their columns."""
+    applied; offsets fastest) and their columns. A sampled path's spline keeps the law's
+    ``path_order`` (its ``ctrl.path_order``) continuous."""
     import jax
 
     from wmrjax import references as R
@@ -977,7 +989,7 @@ def reference_axis(rs, base: Path, law, kind):
     build = (
         _named_references if fam.kind == "named" else _random_references if fam.kind == "random" else _data_reference
     )
-    refs, cols = build(fam, rs, base, law)
+    refs, cols = build(fam, rs, base, law, path_order)
     params = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *[r.params for r in refs])
     heading = axis_values("reference", "heading_offset", rs.get("heading_offset", _default_offset(law, kind)))
     ii, jj = np.indices((len(refs), len(heading))).reshape(2, -1)
@@ -990,7 +1002,8 @@ def reference_axis(rs, base: Path, law, kind):
 COMMON_REFERENCE_KEYS = ("family", "heading_offset")
 
 
-def _named_references(fam, rs, base, law):
+def _named_references(fam, rs, base, law, path_order):
+    del path_order  # a named family's path is smooth
     check_keys("reference", rs, COMMON_REFERENCE_KEYS + ("options",))
     defaults = fam.options()
     given = rs.get("options", {})
@@ -1038,7 +1051,8 @@ def random_options(rs) -> dict:
     return opts
 
 
-def _random_references(fam, rs, base, law):
+def _random_references(fam, rs, base, law, path_order):
+    del path_order  # a random family's path is smooth
     import jax
     import jax.numpy as jnp
 
@@ -1069,8 +1083,9 @@ def _draw_references(make, opts: tuple, seed: int, count: int):
     return jax.vmap(lambda k: make(k, **dict(opts)))(keys)
 
 
-def _data_reference(fam, rs, base, law):
-    """A reference through the user's samples (t, x, y) or waypoints (x, y), from a file or arrays."""
+def _data_reference(fam, rs, base, law, path_order):
+    """A reference through the user's samples (t, x, y) or waypoints (x, y), from a file or arrays:
+    the spline of the lowest degree that keeps the law's ``path_order`` continuous."""
     cols = fam.columns
     waypoints = "t" not in cols
     extra = ("speed", "t0") if waypoints else ()
@@ -1110,6 +1125,7 @@ def _data_reference(fam, rs, base, law):
             f"last point), got {extrapolate!r}"
         )
     xy = np.stack([data["x"], data["y"]], axis=1)
+    degree = spline_degree_for(path_order)
     try:
         if waypoints:
             ref = fam.make(
@@ -1119,9 +1135,10 @@ def _data_reference(fam, rs, base, law):
                 min_speed=min_speed,
                 name=name,
                 extrapolate=extrapolate,
+                degree=degree,
             )
         else:
-            ref = fam.make(data["t"], xy, min_speed=min_speed, name=name, extrapolate=extrapolate)
+            ref = fam.make(data["t"], xy, min_speed=min_speed, name=name, extrapolate=extrapolate, degree=degree)
     except ValueError as err:
         raise ProblemError(f"[reference] {'file ' + repr(rs['file']) if 'file' in rs else cols}: {err}") from None
     return [ref], {"reference_index": np.zeros(1)}

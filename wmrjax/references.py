@@ -15,6 +15,7 @@ differentiated with respect to their parameters.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import warnings
 from typing import Any, Callable
@@ -24,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import jet
 
-from wmrjax import _math, _simplify
+from wmrjax import _math, _simplify, resources
 from wmrjax._validate import check_real, concrete
 
 
@@ -136,8 +137,8 @@ def check_domain(ref: "Reference", t0: float, t_final: float) -> None:
         raise ValueError(
             f"reference {ref.name!r} is defined by its samples on [{lo:g}, {hi:g}] s, and the horizon "
             f"[{t0:g}, {t_final:g}] s goes {where} sample: fit the horizon inside the samples, add "
-            "samples, or extend the path explicitly (from_samples(..., extrapolate=True); extrapolate "
-            "= true in a problem file's [reference])"
+            "samples, or extend the path explicitly at its end's velocity (from_samples(..., extrapolate=True); "
+            "extrapolate = true in a problem file's [reference])"
         )
 
 
@@ -300,7 +301,25 @@ def named(name: str) -> Reference:
 
 # --- references from the user's own samples ---------------------------------------------
 
-SPLINE_DEGREE = 5  # quintic: C^4, enough for the torque-level dynamic laws (they use p up to order 4)
+SPLINE_DEGREE = 5  # quintic: C^4, enough for every law whose reference jet uses p up to order 4
+# the degrees a sampled path may have: odd (an interpolating spline of odd degree has its knots at
+# the samples), C^(k-1). Degree 7 is for the torque-level (1,1) dynamic law, whose outputs
+# P + e x1(theta) use the path's fifth derivative (through its heading): :func:`spline_degree_for`.
+SPLINE_DEGREES = (5, 7)
+
+
+def spline_degree_for(path_order: int) -> int:
+    """The smallest degree of :data:`SPLINE_DEGREES` whose spline has a continuous derivative of
+    order ``path_order`` (a law's :attr:`path_order`): a jump there is a jump of the law's
+    feed-forward, which a fixed-step integrator follows only to O(dt) (and the certificates'
+    empirical checks then measure the integrator, not the loop)."""
+    for k in SPLINE_DEGREES:
+        if k - 1 >= path_order:
+            return k
+    raise ValueError(
+        f"a law using the path's derivative of order {path_order} needs a spline of degree > "
+        f"{SPLINE_DEGREES[-1]}; sampled paths have degree {' or '.join(map(str, SPLINE_DEGREES))}"
+    )
 
 
 def _span(knots, s, n_coef: int, k: int):
@@ -333,9 +352,8 @@ def _basis(knots, l, s, k: int):
     return jnp.stack(n)
 
 
-def _spline_value(knots, coef, s):
-    """Value of the B-spline ``sum_j coef[j] B_j(s)``; ``coef``: (n, d)."""
-    k = SPLINE_DEGREE
+def _spline_value(knots, coef, s, k: int):
+    """Value of the B-spline of degree ``k``, ``sum_j coef[j] B_j(s)``; ``coef``: (n, d)."""
     n = coef.shape[0]
     l = _span(knots, s, n, k)
     b = _basis(knots, l, s, k)
@@ -371,8 +389,9 @@ def _horner(pp, ts, s, uniform: bool):
     j = _piece(ts, s, uniform)
     c = jax.lax.dynamic_index_in_dim(pp, j, axis=0, keepdims=False)  # (k + 1, 2)
     u = s - ts[j]
-    v = c[SPLINE_DEGREE]
-    for i in range(SPLINE_DEGREE - 1, -1, -1):
+    k = pp.shape[-2] - 1  # the degree: static, from the pieces' shape
+    v = c[k]
+    for i in range(k - 1, -1, -1):
         v = v * u + c[i]
     return v
 
@@ -385,14 +404,66 @@ def _path_spline_uniform(t, params):
     return _horner(params["pp"], params["t"], t, uniform=True)
 
 
+# [s] the least time scale of an extension past a sampled path's end (else the last k sample
+# intervals): the derivatives of its blend scale like 1 / T^j, and over a second or more the
+# law's feed-forward stays of the size of the path's own (a blend over one 20 Hz interval put
+# a jump into the reference check's finite differences)
+EXTENSION_TIME = 1.0
+
+
+def _extension(c, tau, scale):
+    r"""The path past an end, ``tau`` >= 0 [s] away from it, from the end's Taylor coefficients ``c``
+    ((k + 1, 2), in ``tau``): :math:`c_0 + c_1\tau + \varphi((k+1)\tau/T)\sum_{i=2}^{k-1} c_i\tau^i` with
+    :math:`\varphi(x) = e^{-x}\sum_{j \le k} x^j/j!` (a gentle step: its derivative is
+    :math:`-e^{-x}x^k/k!`). :math:`\varphi - 1 = O(x^{k+1})`, so every derivative up
+    to order k - 1 is the spline's at the end (the law's feed-forward stays continuous), and the
+    path tends to the straight line at the end's velocity within a few ``scale`` [s]: bounded
+    speed, where the end polynomial itself ran off (25 m/s, 98 m)."""
+    k = c.shape[-2] - 1
+    tau = jnp.maximum(tau, 0.0)  # the side not selected is evaluated too: keep it finite
+    v = c[k - 1]  # without c_k: the k-th derivative jumps at every sample already, and a septic
+    for i in range(k - 2, 1, -1):  # end piece's c_7 (0.96 on a lane change) ran the blend off at 2.3 m/s
+        v = v * tau + c[i]
+    x = tau * ((k + 1) / scale)  # the blend's mean time is ``scale``
+    blend, term = jnp.ones_like(x), jnp.ones_like(x)
+    for j in range(1, k + 1):  # e^-x sum_{j <= k} x^j / j!: 1 - O(x^(k+1)), derivative -e^-x x^k / k!
+        term = term * x / j
+        blend = blend + term
+    return c[0] + c[1] * tau + jnp.exp(-x) * blend * v * tau**2
+
+
+def _extended(t, params, uniform: bool):
+    """The spline inside its samples, :func:`_extension` past either end."""
+    ts, ends = jnp.asarray(params["t"]), jnp.asarray(params["ends"])
+    # clamped by where, not clip: at an end itself, clip's derivative is split between the sides
+    inside = _horner(params["pp"], ts, jnp.where(t > ts[-1], ts[-1], jnp.where(t < ts[0], ts[0], t)), uniform)
+    k = ends.shape[-2] - 1
+    after = _extension(ends[1], t - ts[-1], jnp.maximum(ts[-1] - ts[-1 - k], EXTENSION_TIME))
+    before = _extension(ends[0], ts[0] - t, jnp.maximum(ts[k] - ts[0], EXTENSION_TIME))
+    return jnp.where(t > ts[-1], after, jnp.where(t < ts[0], before, inside))
+
+
+def _end_coefficients(pp, ts):
+    """Taylor coefficients (2, k + 1, 2) of the path at its first sample (in the time before it,
+    tau = t0 - t) and at its last (tau = t - tN), from the spline's pieces."""
+    k = pp.shape[-2] - 1
+    i = np.arange(k + 1)
+    first = pp[0] * ((-1.0) ** i)[:, None]
+    h = ts[-1] - ts[-2]
+    binom = np.array([[math.comb(a, b) if a >= b else 0 for a in range(k + 1)] for b in range(k + 1)], float)
+    powers = h ** np.clip(i[None, :] - i[:, None], 0, None).astype(float)  # h^(a - b) for a >= b
+    last = (binom * powers) @ pp[-1]  # the last piece re-centred at its right end
+    return jnp.stack([first, last])
+
+
 def _path_spline_extrapolated(t, params):
     """:func:`_path_spline`, extended past its samples on request (``extrapolate=True``)."""
-    return _horner(params["pp"], params["t"], t, uniform=False)
+    return _extended(t, params, uniform=False)
 
 
 def _path_spline_uniform_extrapolated(t, params):
     """:func:`_path_spline_uniform`, extended past its samples on request."""
-    return _horner(params["pp"], params["t"], t, uniform=True)
+    return _extended(t, params, uniform=True)
 
 
 # a sampled path is defined by its data on [first sample, last sample]
@@ -418,17 +489,32 @@ def _is_uniform(t) -> bool:
     return bool(np.max(np.abs(tv - grid)) <= UNIFORM_TOLERANCE * (tv[-1] - tv[0]) / (tv.shape[0] - 1))
 
 
-def _spline_knots(ts):
+def _spline_knots(ts, k: int):
     """Not-a-knot knots of an interpolating spline of odd degree k at ``ts`` (as SciPy's
     ``make_interp_spline``): the end sample repeated k + 1 times, interior knots at the
     interior samples except the (k - 1) / 2 nearest each end."""
-    k = SPLINE_DEGREE
     h = (k - 1) // 2
     return jnp.concatenate([jnp.repeat(ts[:1], k + 1), ts[h + 1 : ts.shape[0] - h - 1], jnp.repeat(ts[-1:], k + 1)])
 
 
-def _check_samples(t, xy):
-    """ValueError for samples a quintic spline cannot interpolate (concrete inputs only)."""
+# the spline's collocation system is solved dense: its matrix, its LU factors and the work of
+# the solve, (N + k)^2 floats each
+SPLINE_SOLVE_COPIES = 3
+
+
+def _check_spline_fits(n: int, k: int) -> None:
+    """ValueError, before anything is allocated, when the dense solve of a spline through ``n``
+    samples does not fit in the memory available now (the message says how much it needs)."""
+    size = n + k
+    resources.check_fits(
+        resources.Estimate(0.0, SPLINE_SOLVE_COPIES * 8.0 * size**2),
+        f"a sampled path of {n} samples (its spline's collocation system, {size} x {size}, solved dense)",
+        "resample the path at fewer points (a spline through a few thousand samples follows any planned path closely)",
+    )
+
+
+def _check_samples(t, xy, k: int):
+    """ValueError for samples a spline of degree ``k`` cannot interpolate (concrete inputs only)."""
     for name, v in (("t", t), ("xy", xy)):  # a complex path lost its imaginary part silently
         check_real(f"from_samples: {name}", v)
     tv, xv = concrete(t), concrete(xy)
@@ -436,9 +522,9 @@ def _check_samples(t, xy):
         tv = np.asarray(tv)
         if tv.ndim != 1:
             raise ValueError(f"from_samples: t must be a 1-D array of times [s], got shape {tv.shape}")
-        if tv.shape[0] < SPLINE_DEGREE + 1:
+        if tv.shape[0] < k + 1:
             raise ValueError(
-                f"from_samples needs at least {SPLINE_DEGREE + 1} samples for a quintic spline, got {tv.shape[0]}"
+                f"from_samples needs at least {k + 1} samples for a spline of degree {k}, got {tv.shape[0]}"
             )
         if not np.all(np.isfinite(tv)):
             raise ValueError("from_samples: t has non-finite values")
@@ -460,44 +546,80 @@ def _check_samples(t, xy):
             raise ValueError("from_samples: xy has non-finite values")
 
 
-@jax.jit
-def _interpolant(t, xy):
-    """The quintic interpolating spline through ``(t, xy)`` as polynomial pieces: (N - 1, 6, 2),
+def _natural_knots(ts, k: int):
+    """Knots of an interpolating spline of odd degree k with natural ends: the end sample
+    repeated k + 1 times, every interior sample a knot."""
+    return jnp.concatenate([jnp.repeat(ts[:1], k + 1), ts[1:-1], jnp.repeat(ts[-1:], k + 1)])
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _interpolant(t, xy, k: int):
+    """The interpolating spline of degree ``k`` through ``(t, xy)`` as polynomial pieces: (N - 1, k + 1, 2),
     ``[j, i]`` the i-th Taylor coefficient at ``t[j]`` (from the right) of the spline on
     ``[t[j], t[j + 1]]``.
 
-    The spline is solved in B-spline form (not-a-knot knots, collocation at the samples) and
-    its pieces are read off by Taylor mode at each sample: evaluating a piece is then a lookup
-    and Horner's rule, where the B-spline form runs the Cox-de Boor recursion (15 divisions)
-    and its derivatives at every evaluation.
+    Degree 5 has not-a-knot ends (SciPy's ``make_interp_spline(t, xy, k=5)``). Degree 7 has
+    natural ends, derivatives 4 to 6 zero at both ends (``bc_type=([(4, 0), (5, 0), (6, 0)],)
+    * 2``): a septic not-a-knot end piece spans four intervals and swings far off sparse
+    waypoints (1.5 m on a 16-waypoint ellipse of 6 m by 3 m).
+
+    The spline is solved in B-spline form (collocation at the samples, plus the end
+    conditions) and its pieces are read off by Taylor mode at each sample: evaluating a piece
+    is then a lookup and Horner's rule, where the B-spline form runs the Cox-de Boor
+    recursion (15 divisions for degree 5) and its derivatives at every evaluation.
     """
-    knots = _spline_knots(t)
-    k = SPLINE_DEGREE
-    n = t.shape[0]
+    natural = k > SPLINE_DEGREE
+    knots = _natural_knots(t, k) if natural else _spline_knots(t, k)
+    n = t.shape[0] + k - 1 if natural else t.shape[0]  # B-spline coefficients
 
     def row(s):
         l = _span(knots, s, n, k)
         return jnp.zeros(n, t.dtype).at[l - k + jnp.arange(k + 1)].set(_basis(knots, l, s, k))
 
-    coef = jnp.linalg.solve(jax.vmap(row)(t), xy)
+    def derivative_rows(s):  # the basis' derivatives 0 .. k - 1 at s: (k, n)
+        l = _span(knots, s, n, k)
+        # Taylor mode of the k + 1 non-zero functions, scattered after: through the scatter of
+        # `row` the program took 40 times as long to compile (27 s against 0.7 s for degree 7)
+        d = taylor(lambda u: _basis(knots, l, u, k), s, k - 1)  # (k, k + 1)
+        return jnp.zeros((k, n), t.dtype).at[:, l - k + jnp.arange(k + 1)].set(d)
+
+    a, b = jax.vmap(row)(t), xy
+    if natural:  # derivatives (k + 1) / 2 .. k - 1 of the spline zero at both ends
+        orders = slice((k + 1) // 2, k)
+        ends = jnp.concatenate([derivative_rows(t[0])[orders], derivative_rows(t[-1])[orders]])
+        a, b = jnp.concatenate([a, ends]), jnp.concatenate([b, jnp.zeros((ends.shape[0], 2), b.dtype)])
+    coef = jnp.linalg.solve(a, b)
     factorials = jnp.asarray([math.factorial(i) for i in range(k + 1)], t.dtype)
-    jets = jax.vmap(lambda s: taylor(lambda u: _spline_value(knots, coef, u), s, k))(t[:-1])  # (N - 1, k + 1, 2)
+    jets = jax.vmap(lambda s: taylor(lambda u: _spline_value(knots, coef, u, k), s, k))(t[:-1])  # (N - 1, k + 1, 2)
     return jets / factorials[:, None]
 
 
-def from_samples(
-    t, xy, *, min_speed: float | None = None, heading_offset=0.0, name: str = "samples", extrapolate: bool = False
-) -> Reference:
-    r"""A reference through sampled positions: the quintic interpolating spline (C^4).
+def _spline_params(t, pp, extrapolate: bool) -> dict:
+    """A sampled path's params: times and pieces, and the ends' coefficients if it extends past them."""
+    return dict(t=t, pp=pp, ends=_end_coefficients(pp, t)) if extrapolate else dict(t=t, pp=pp)
 
-    The spline is the one SciPy's ``make_interp_spline(t, xy, k=5)`` builds (not-a-knot
-    ends), solved in JAX: the reference is differentiable with respect to time (every
-    derivative up to order 4 is continuous, as the torque-level dynamic laws need) and with
+
+def from_samples(
+    t,
+    xy,
+    *,
+    min_speed: float | None = None,
+    heading_offset=0.0,
+    name: str = "samples",
+    extrapolate: bool = False,
+    degree: int = SPLINE_DEGREE,
+) -> Reference:
+    r"""A reference through sampled positions: the interpolating spline of degree 5 (C^4) or 7 (C^6).
+
+    The spline is the one SciPy's ``make_interp_spline(t, xy, k=degree)`` builds (not-a-knot
+    ends for degree 5, natural ends for 7), solved in JAX: the reference is differentiable
+    with respect to time (every derivative up to order ``degree - 1`` is continuous) and with
     respect to the samples ``t`` and ``xy`` (call ``from_samples`` inside the differentiated
     function). The path is defined on ``[t[0], t[-1]]`` (:meth:`Reference.domain`): a run
     or a check whose horizon leaves it is refused, unless ``extrapolate=True``, which extends
-    the end pieces polynomially (a quintic diverges fast: 0.24 m off a sampled circle 4 s past
-    its last sample).
+    it past each end toward the straight line at the end's velocity, every derivative up to
+    ``degree - 1`` continuous at the join (:func:`_extension`; the end polynomial itself diverges:
+    a quintic through a lane change ran off to 98 m at 25 m/s).
 
     Args:
       t: (N,) strictly increasing sample times [s], N >= 6.
@@ -508,23 +630,31 @@ def from_samples(
       heading_offset: constant heading offset [rad].
       name: label used in reports.
       extrapolate: allow times outside ``[t[0], t[-1]]`` (the end pieces extended).
+      degree: 5 (default) or 7. A law's reference jet uses the path's derivatives up to its
+        ``path_order``; the spline must keep that one continuous (:func:`spline_degree_for`):
+        degree 7 for the torque-level (1,1) dynamic law, 5 for every other law. Problem files
+        choose it from their law.
 
     Returns:
-      A :class:`Reference` whose params are ``{"t": (N,), "pp": (N - 1, 6, 2)}``: the sample
+      A :class:`Reference` whose params are ``{"t": (N,), "pp": (N - 1, degree + 1, 2)}`` (and,
+      extrapolated, ``"ends"``: (2, degree + 1, 2), the path's Taylor coefficients at its ends): the sample
       times and the spline's polynomial pieces (``pp[j, i]``: the i-th Taylor coefficient at
       ``t[j]`` of the piece on ``[t[j], t[j + 1]]``).
 
     Raises:
-      ValueError: times not strictly increasing, fewer than 6 samples, wrong shapes,
-        non-finite values, or a stop (with ``min_speed``).
+      ValueError: times not strictly increasing, fewer than ``degree + 1`` samples, wrong
+        shapes, non-finite values, a degree other than 5 or 7, or a stop (with ``min_speed``).
     """
     if not isinstance(extrapolate, bool):
         raise ValueError(f"from_samples: extrapolate must be True or False, got {extrapolate!r}")
-    _check_samples(t, xy)
+    if isinstance(degree, bool) or degree not in SPLINE_DEGREES:
+        raise ValueError(f"from_samples: degree must be one of {SPLINE_DEGREES}, got {degree!r}")
+    _check_samples(t, xy, degree)
+    _check_spline_fits(np.shape(t)[0], degree)
     dtype = jnp.result_type(float)
     t = jnp.asarray(t, dtype)
     ref = Reference(
-        params=dict(t=t, pp=_interpolant(t, jnp.asarray(xy, dtype))),
+        params=_spline_params(t, _interpolant(t, jnp.asarray(xy, dtype), int(degree)), extrapolate),
         heading_offset=_as_array(heading_offset),
         path=_SPLINE_PATHS[_is_uniform(t), extrapolate],
         name=name,
@@ -574,6 +704,7 @@ def from_waypoints(
     heading_offset=0.0,
     name: str = "waypoints",
     extrapolate: bool = False,
+    degree: int = SPLINE_DEGREE,
 ) -> Reference:
     """A reference through position-only waypoints, timed at constant chord speed.
 
@@ -585,8 +716,8 @@ def from_waypoints(
       points: (N, 2) waypoints [m], N >= 6, consecutive points distinct.
       speed: chord speed [m/s], > 0.
       t0: time of the first waypoint [s].
-      min_speed, heading_offset, name, extrapolate: as in :func:`from_samples` (the path is
-        defined from the first waypoint's time to the last's).
+      min_speed, heading_offset, name, extrapolate, degree: as in :func:`from_samples` (the
+        path is defined from the first waypoint's time to the last's).
     """
     check_real("from_waypoints: points", points)
     pv = np.asarray(points, float)
@@ -602,12 +733,16 @@ def from_waypoints(
             "consecutive waypoints must be distinct"
         )
     t = t0 + np.concatenate([[0.0], np.cumsum(chords)]) / speed
-    return from_samples(t, pv, min_speed=min_speed, heading_offset=heading_offset, name=name, extrapolate=extrapolate)
+    return from_samples(
+        t, pv, min_speed=min_speed, heading_offset=heading_offset, name=name, extrapolate=extrapolate, degree=degree
+    )
 
 
-def load_samples(path, *, min_speed: float | None = None, heading_offset=0.0, extrapolate: bool = False) -> Reference:
+def load_samples(
+    path, *, min_speed: float | None = None, heading_offset=0.0, extrapolate: bool = False, degree: int = SPLINE_DEGREE
+) -> Reference:
     """:func:`from_samples` of a CSV file with a header naming columns ``t``, ``x``, ``y``
-    (other columns ignored; ``#`` starts a comment; ``extrapolate`` as there).
+    (other columns ignored; ``#`` starts a comment; ``extrapolate`` and ``degree`` as there).
 
     Raises:
       ValueError: what :func:`wmrjax.io.read_csv_columns` refuses (not a regular file, over
@@ -627,6 +762,7 @@ def load_samples(path, *, min_speed: float | None = None, heading_offset=0.0, ex
         heading_offset=heading_offset,
         name=path.stem,
         extrapolate=extrapolate,
+        degree=degree,
     )
 
 

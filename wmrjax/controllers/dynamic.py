@@ -528,22 +528,27 @@ class DynamicLinearization(LinearizingController):
         """The quantity whose sign is the branch (chi1 for (2,0), (1,1); eta1 for (2,1), (1,2))."""
         return self.row.branch_quantity(z, params.geometry)
 
-    def reference_branch(self, params: DynamicParams) -> int:
+    def reference_branch(self, params: DynamicParams):
         """Branch of the reference's virtual robot: +1 (it moves forward along its tangent).
 
         Where the branch follows the heading ((2,0), (1,1)), a heading offset of pi (moving
-        backwards) gives -1.
+        backwards) gives -1. An int for a concrete offset; a traced offset (inside ``jit`` or
+        ``vmap``) gives the same rule as a traced float (it used to give +1 there, so the
+        reference check, a compiled program, refused every reference with offset pi).
         """
-        off = concrete(params.reference.heading_offset)
-        if self.row.branch_follows_heading and off is not None and np.cos(float(off)) < 0:
-            return -1
-        return 1
+        if not self.row.branch_follows_heading:
+            return 1
+        off = params.reference.heading_offset
+        c = concrete(off)
+        if c is None:  # traced (the reference check's compiled program, vmap over offsets): the same rule
+            return jnp.where(jnp.cos(off) < 0, -1.0, 1.0)
+        return -1 if np.cos(float(c)) < 0 else 1
 
     def reference_state(self, t, params: DynamicParams):
         r""":math:`(X_e)_{ref}(t) = \Psi^{-1}(\zeta_{ref}(t))` (eq 48), on the reference's branch."""
         t = jnp.asarray(t, dtype=jnp.result_type(float))
         zeta = self.reference_jet(t, params)[: self.relative_degree]
-        return self.inverse_psi(zeta, params, float(self.reference_branch(params)))
+        return self.inverse_psi(zeta, params, self.reference_branch(params))
 
     def initial_state(self, zeta0, params: DynamicParams, branch=None):
         r"""Extended state from an initial output jet, :math:`X_e(0) = \Psi^{-1}(\zeta(0))`.
@@ -565,8 +570,9 @@ class DynamicLinearization(LinearizingController):
         ref_branch = self.reference_branch(params)
         if branch is None:
             branch = ref_branch
-        self._check_branch(branch, ref_branch)
-        z0 = self.inverse_psi(zeta0, params, float(branch))
+        if concrete(ref_branch) is not None:  # a traced offset's branch is checked where it is concrete
+            self._check_branch(branch, ref_branch)
+        z0 = self.inverse_psi(zeta0, params, jnp.asarray(branch, jnp.result_type(float)))
         self.check_regular(z0, params)
         return z0
 

@@ -39,7 +39,7 @@ from jax._src import core as jax_core  # trace_state_clean: whether a call happe
 from wmrjax import _math, linearize, resources, robots
 from wmrjax._validate import check_finite, check_real, check_shape, concrete, is_concrete
 from wmrjax.gains import Gains, GainSchedule
-from wmrjax.references import Reference, check_domain
+from wmrjax.references import Reference, check_domain, spline_degree_for
 from wmrjax.robots import Geometry, RobotType
 
 # |det K| below this is treated as singular inside the law (the division is clamped);
@@ -678,6 +678,13 @@ class LinearizingController:
     def n_state(self) -> int:
         return self.law.n_state
 
+    @property
+    def path_order(self) -> int:
+        """The highest derivative of the reference path p(t) that :meth:`reference_jet` uses: the
+        outputs' derivative of order r, of a posture whose heading is the tangent of p (one
+        order more). A sampled path must keep it continuous (:func:`wmrjax.references.spline_degree_for`)."""
+        return self.relative_degree + 1
+
     def outputs(self, z, params):
         """Linearizing outputs Y at ``z``, shape (m,)."""
         return self.law.outputs(z, params.geometry)
@@ -827,14 +834,19 @@ class LinearizingController:
         reaches the singular set, has a non-finite derivative or a kink."""
         ts, jets, level, branch = prof
         level = self._reference_level(level, params)
-        bad = ~np.isfinite(level) | (level <= floor) | (np.sign(branch) != self.reference_branch(params))
-        if bad.any():
-            i = int(np.argmax(bad))
+        low = ~np.isfinite(level) | (level <= floor)
+        other = np.sign(branch) != self.reference_branch(params)
+        if low.any():
+            i = int(np.argmax(low))
             raise ValueError(
                 f"reference {params.reference.name!r} reaches the singular set of the {self._law_name} (type "
-                f"{self.robot.name}) at t = {ts[i]:.4g} s (regularity {level[i]:.3g}); {self._table} requires "
-                f"{self._reference_requirement} on [{t0:g}, {t_final:g}] s (it must not stop or reverse)"
+                f"{self.robot.name}) at t = {ts[i]:.4g} s: its regularity {level[i]:.3g} is at or below the floor "
+                f"{floor:g}; {self._table} requires {self._reference_requirement} on [{t0:g}, {t_final:g}] s "
+                "(it must not stop or reverse)"
             )
+        if other.any():
+            i = int(np.argmax(other))
+            raise ValueError(self._branch_message(params, ts[i], level[i], t0, t_final))
         if not np.all(np.isfinite(jets)):
             i = int(np.argmax(~np.isfinite(jets).reshape(len(ts), -1).all(axis=1)))
             raise ValueError(f"reference {params.reference.name!r} has a non-finite derivative at t = {ts[i]:.4g} s")
@@ -853,8 +865,29 @@ class LinearizingController:
                 f"reference {params.reference.name!r} is not smooth enough for the {self._law_name}: its "
                 f"derivative of order {j} jumps between t = {a:.4g} and {b:.4g} s (trapezoid residual "
                 f"{res:.3g}); the law uses derivatives up to order {self.relative_degree}, which must be "
-                f"continuous ({kink_cause(ts, jets)})"
+                f"continuous ({self._kink_cause(params, ts, jets)})"
             )
+
+    def _kink_cause(self, params, ts, jets) -> str:
+        """:func:`kink_cause`, or a sampled path whose spline is of too low a degree for this law."""
+        pp = params.reference.params.get("pp") if isinstance(params.reference.params, dict) else None
+        if pp is not None and np.shape(pp)[-2] - 2 < self.path_order:
+            return (
+                f"the path is a spline of degree {np.shape(pp)[-2] - 1}, whose derivative of order "
+                f"{np.shape(pp)[-2] - 1} jumps at every sample, and this law uses the path's derivative of "
+                f"order {self.path_order}: build it with degree={spline_degree_for(self.path_order)} "
+                "(problem files do)"
+            )
+        return kink_cause(ts, jets)
+
+    def _branch_message(self, params, t: float, level: float, t0: float, t_final: float) -> str:
+        """Why a regular reference is refused for its branch (Remark 17): the message names the key."""
+        return (
+            f"reference {params.reference.name!r} is regular at t = {t:.4g} s (regularity {level:.3g}) but moves "
+            f"on the other branch than its heading offset gives on [{t0:g}, {t_final:g}] s; the direction of "
+            "travel is set by the heading offset ([reference] heading_offset: 0 drives along the body's +x2, "
+            "pi along -x2)"
+        )
 
     def _reference_level(self, raw, params):
         """The regularity level (>= 0, 0 singular) from what ``reference_regularity`` returned."""
