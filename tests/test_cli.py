@@ -143,9 +143,17 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
         holder.send_signal(signal.SIGKILL)
         holder.wait()
     (tmp_path / "blocks").mkdir()
-    torn = [tmp_path / ".runs.parquet.x1.tmp", tmp_path / "blocks" / ".block_000000.npz.x2.tmp"]
+    torn = [tmp_path / ".runs.parquet.x1.wmrjax-tmp", tmp_path / "blocks" / ".block_000000.npz.x2.wmrjax-tmp"]
     for f in torn:
         f.write_bytes(b"half")
+    # a user's own temporary files, and one behind a link to a directory elsewhere, are not ours
+    (tmp_path / "deep").mkdir()
+    elsewhere = tmp_path.parent / f"{tmp_path.name}-elsewhere"
+    elsewhere.mkdir(exist_ok=True)
+    theirs = [tmp_path / ".x.tmp", tmp_path / "deep" / ".report.tmp", elsewhere / ".runs.parquet.x3.wmrjax-tmp"]
+    for f in theirs:
+        f.write_bytes(b"keep")
+    (tmp_path / "link").symlink_to(elsewhere, target_is_directory=True)
     taker = subprocess.run(
         [
             sys.executable,
@@ -161,6 +169,7 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
     assert taker.returncode == 0, taker.stderr
     assert f"removed the stale lock of process {holder.pid} ('holder of the test'" in taker.stderr
     assert not any(f.exists() for f in torn)
+    assert all(f.read_bytes() == b"keep" for f in theirs)
     assert json.loads((tmp_path / files.LOCK_NAME).read_text())["command"] == "taker"
 
 

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import ctypes
 import json
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 C_FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-O2")
@@ -147,8 +149,10 @@ def reload_in_fresh_process(artifact: Path, run, directory: Path) -> dict:
 
     data = directory / "run_for_reload.npz"
     np.savez(data, t=np.asarray(run.t), measured=np.asarray(run.measured), state0=np.asarray(run.initial_state))
+    # -I (isolated): neither the working directory nor PYTHONPATH nor the user's site is on
+    # sys.path, so no file lying in `directory` (a json.py) is imported in place of a module
     r = subprocess.run(
-        [sys.executable, "-c", RELOAD, str(artifact), str(data)], capture_output=True, text=True, cwd=directory
+        [sys.executable, "-I", "-c", RELOAD, str(artifact), str(data)], capture_output=True, text=True, cwd=directory
     )
     data.unlink()
     if r.returncode:
@@ -160,7 +164,6 @@ def verify(step, run, *, period: float, directory: Path, cc: str | None) -> dict
     """The export checked over one closed-loop run of the simulator (:func:`wmrjax.export.reference_run`;
     see the module's docstring): the largest relative differences, and the C step's time."""
     import jax
-    import numpy as np
 
     from wmrjax import export as X
 
@@ -174,7 +177,24 @@ def verify(step, run, *, period: float, directory: Path, cc: str | None) -> dict
         "jax_vs_simulator": relative_error(per_sample, run.command),
         "jax_driven_vs_simulator": relative_error(cmd, run.command),
     }
-    art = reload_in_fresh_process(directory / f"{step.name}.jax_export", run, directory)
+    # every scratch file (the run's data, the shared library, the timing driver) is written, and
+    # every process runs, in a private temporary directory: nothing found in the user's output
+    # directory is run or imported, and nothing there is written through a link
+    with tempfile.TemporaryDirectory(prefix="wmrjax-export-check-") as scratch:
+        return _verify_in(step, run, cmd, st, reg, out, directory, Path(scratch), cc, period)
+
+
+def _verify_in(
+    step, run, cmd, st, reg, out: dict, directory: Path, scratch: Path, cc: str | None, period: float
+) -> dict:
+    """:func:`verify`'s checks of the written files, on copies in ``scratch``."""
+    import numpy as np
+
+    from wmrjax import export as X
+
+    for name in (f"{step.name}.h", f"{step.name}.c", f"{step.name}.jax_export"):  # what write_export wrote
+        shutil.copyfile(directory / name, scratch / name, follow_symlinks=False)
+    art = reload_in_fresh_process(scratch / f"{step.name}.jax_export", run, scratch)
     out["artifact_vs_jax"] = max(
         relative_error(art["command"], cmd),
         relative_error(art["state"], st),
@@ -184,13 +204,13 @@ def verify(step, run, *, period: float, directory: Path, cc: str | None) -> dict
     if cc is None:
         out["c"] = "skipped: no C compiler (--cc)"
         return out
-    c = CStep(compile_shared(directory / f"{step.name}.c", cc), step)
+    c = CStep(compile_shared(scratch / f"{step.name}.c", cc), step)
     ccmd, cst, creg = X.drive(c, run)
     out["c_vs_jax"] = max(
         relative_error(ccmd, cmd), relative_error(cst, st), relative_error(creg[:, None], reg[:, None])
     )
     out["c_seconds_per_step"] = time_c_step(
-        directory,
+        scratch,
         step,
         np.asarray(run.measured)[0],
         np.asarray(run.initial_state),
@@ -198,7 +218,6 @@ def verify(step, run, *, period: float, directory: Path, cc: str | None) -> dict
         period=period,
         cc=cc,
     )
-    (directory / f"{step.name}.so").unlink()
     return out
 
 

@@ -22,12 +22,20 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
+# the temporary files of atomic_write end so (``.NAME.RANDOM.wmrjax-tmp``): a torn write's cleanup
+# removes these and nothing else of a user's (a plain ``.tmp`` may be anybody's)
+TMP_SUFFIX = ".wmrjax-tmp"
+
 
 def atomic_write(path, write: Callable) -> Path:
-    """Call ``write(fh)`` on a temporary binary file next to ``path``, then rename it to ``path``."""
+    """Call ``write(fh)`` on a temporary binary file next to ``path``, then rename it to ``path``.
+
+    The rename replaces a symbolic link at ``path`` (it is never written through), and a
+    killed write leaves only a ``.NAME.*`` :data:`TMP_SUFFIX` file, which the next holder of
+    the directory's lock removes."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TMP_SUFFIX)
     try:
         try:  # mkstemp makes 0600; results are as readable as the umask allows
             os.fchmod(fd, 0o666 & ~_umask())
@@ -374,8 +382,11 @@ def release_output(out, token: str | None) -> None:
 
 
 def _remove_torn_writes(out: Path) -> None:
-    """Delete the temporary files of killed atomic writes (``.NAME.*.tmp``, see :func:`atomic_write`)
-    in ``out`` and its subdirectories: only the lock holder writes there."""
-    for tmp in out.rglob(".*.tmp"):
-        if tmp.is_file():
-            tmp.unlink(missing_ok=True)
+    """Delete the temporary files of killed atomic writes (``.NAME.*`` :data:`TMP_SUFFIX`, see
+    :func:`atomic_write`) in ``out`` and its subdirectories, not following links: only those
+    this package's writer names so, so a user's own ``.x.tmp`` stays."""
+    for root, _, names in os.walk(out, followlinks=False):
+        for name in names:
+            p = Path(root) / name
+            if name.startswith(".") and name.endswith(TMP_SUFFIX) and p.is_file() and not p.is_symlink():
+                p.unlink(missing_ok=True)

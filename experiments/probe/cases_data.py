@@ -111,7 +111,7 @@ shutil.copy("out/runs.parquet", "original.parquet")
 block = lambda b: "out/blocks/block_%06d.npz" % b
 TAMPER
 again = run("-m", "experiments.sweep", "a.toml", *EXTRA, "--out", "out")
-left = sorted(os.path.join(d, f) for d, _, fs in os.walk("out") for f in fs if f.endswith(".tmp"))
+left = sorted(os.path.join(d, f) for d, _, fs in os.walk("out") for f in fs if f.endswith(".wmrjax-tmp"))
 emit(first=first, again=again, same=same_table("out/runs.parquet", "original.parquet"),
      rows=rows("out/runs.parquet"), left=left)
 """
@@ -217,7 +217,7 @@ def _blocks() -> list[Case]:
                 timeout=180,
             )
         )
-    tmp = "open('out/.runs.parquet.x1.tmp', 'wb').write(b'half')\nopen('out/blocks/.block_000000.npz.x2.tmp', 'wb').write(b'half')"
+    tmp = "open('out/.runs.parquet.x1.wmrjax-tmp', 'wb').write(b'half')\nopen('out/blocks/.block_000000.npz.x2.wmrjax-tmp', 'wb').write(b'half')"
     out.append(
         Case(
             "sweep-stale-tmp-files",
@@ -229,7 +229,7 @@ def _blocks() -> list[Case]:
             prelude="none",
             timeout=180,
             issue=True,
-            note="the kill is simulated by writing the files a killed atomic write leaves ('.NAME.*.tmp'); "
+            note="the kill is simulated by writing the files a killed atomic write leaves ('.NAME.*.wmrjax-tmp'); "
             "a leftover is POOR (litter), not data loss",
         )
     )

@@ -96,7 +96,7 @@ def main(argv=None) -> int:
 
 def problem_of(a):
     """The sweep file's problem, paired with ``--gains`` files as cases (``default`` and one per file)."""
-    from wmrjax.problem import Problem, ProblemError
+    from wmrjax.problem import CASE_NAME, Problem, ProblemError
 
     problem = Problem.load(a.spec)
     if not a.gains:
@@ -107,7 +107,7 @@ def problem_of(a):
             "already: add the tuned gains there"
         )
     names = ["tuned"] if len(a.gains) == 1 else [f.resolve().parent.name for f in a.gains]
-    if len(set(names)) != len(names):
+    if len(set(names)) != len(names) or not all(CASE_NAME.fullmatch(n) for n in names):
         names = [f"tuned_{i + 1}" for i in range(len(a.gains))]
     cases = [{"name": "default"}] + [{"name": n, "gains": {"file": str(f.resolve())}} for n, f in zip(names, a.gains)]
     return problem.with_values({"case": cases})

@@ -5,6 +5,7 @@ final errors and margins -- read back from ``runs.parquet``."""
 from __future__ import annotations
 
 import itertools
+import re
 from pathlib import Path
 
 import numpy as np
@@ -117,6 +118,12 @@ def summarize(plan: S.Plan, table: dict, certified: dict) -> dict:
     return out
 
 
+def file_part(label: str) -> str:
+    """A case's name as part of a file name: a problem file's names are checked labels
+    (:data:`wmrjax.problem.CASE_NAME`); anything else a path could read is replaced, never used."""
+    return re.sub(r"[^A-Za-z0-9_.+-]", "_", label).lstrip(".") or "_"
+
+
 def group_name(g) -> str:
     """``"(2,0) velocity"``, prefixed by the case's name (``"tuned: (2,0) velocity"``)."""
     name = f"{g.ctrl.robot.name} {g.ctrl.level}"
@@ -183,7 +190,7 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
         robot, level = g.ctrl.robot.name, str(g.ctrl.level)
         gsel = select(table, g)
         tag = (
-            (f"_{g.case}" if g.case is not None else "") + f"_{robot.strip('()').replace(',', '')}_{level}"
+            (f"_{file_part(g.case)}" if g.case is not None else "") + f"_{robot.strip('()').replace(',', '')}_{level}"
             if len(plan.groups) > 1
             else ""
         )

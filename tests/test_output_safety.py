@@ -1,0 +1,163 @@
+"""Nothing written outside ``--out``, nothing deleted that a job did not write, nothing run from
+the user's files, messages that quote at most an excerpt of a file, sizes estimated before
+allocation (issue 57: the second reliability probe's bad cases). Each test failed on the code
+before the fix (said per test)."""
+
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from experiments.sweep.report import file_part
+from wmrjax import io
+from wmrjax import references as R
+from wmrjax.problem import CASE_NAME_MAX, Problem, ProblemError
+from wmrjax_cli import export_check, files
+
+PROBLEM = """
+[controller]
+law = "dynamic"
+robot = "(2,0)"
+[reference]
+family = "circle"
+[initial]
+x = {{ min = -0.1, max = 0.1, num = 2 }}
+[simulation]
+t_final = 1.0
+dt = 0.01
+[[case]]
+name = {name}
+"""
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "a/../../../X/Y",  # before: a sweep wrote a PNG outside --out
+        "../escape",
+        ".hidden",
+        "tab\there",
+        "new\nline",
+        "x" * (CASE_NAME_MAX + 1),
+        "",
+        "a\\b",
+    ],
+)
+def test_case_names_are_labels_not_paths(tmp_path, name):
+    f = tmp_path / "p.toml"
+    f.write_text(PROBLEM.format(name=json.dumps(name)))
+    with pytest.raises(ProblemError, match=r"\[\[case\]\] #1 name: expected a label of 1 to 64") as err:
+        Problem.load(f)
+    assert len(str(err.value)) < 400  # a long name is quoted as an excerpt
+
+
+def test_good_case_names_load_and_stay_file_names(tmp_path):
+    f = tmp_path / "p.toml"
+    f.write_text(PROBLEM.format(name=json.dumps("tuned v2+noise_0.1")))
+    assert [n for n, _ in Problem.load(f).cases()] == ["tuned v2+noise_0.1"]
+    assert file_part("tuned v2+noise_0.1") == "tuned_v2+noise_0.1"
+    assert "/" not in file_part("a/../../b") and not file_part("../x").startswith(".")
+
+
+def test_atomic_write_replaces_a_link_and_never_writes_through_it(tmp_path):
+    target = tmp_path / "outside.txt"
+    target.write_text("the user's")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "step.c").symlink_to(target)
+    files.write_bytes(out / "step.c", b"generated")
+    assert target.read_text() == "the user's"
+    assert not (out / "step.c").is_symlink() and (out / "step.c").read_bytes() == b"generated"
+    assert [p.name for p in out.iterdir()] == ["step.c"]  # no temporary file left
+
+
+def test_artifact_reload_imports_nothing_from_the_output_directory(tmp_path):
+    """Before: the fresh process ran with its working directory at --out, so a json.py lying
+    there was imported (and run) in place of the standard library's."""
+    marker = tmp_path / "ran"
+    (tmp_path / "json.py").write_text(f"open({str(marker)!r}, 'w').write('ran')\n")
+    (tmp_path / "numpy.py").write_text(f"open({str(marker)!r}, 'w').write('ran')\n")
+
+    def step(t, m, s):
+        return 2.0 * m, s + t, jnp.sum(m)
+
+    args = (jnp.zeros(()), jnp.zeros(2), jnp.zeros(1))
+    art = tmp_path / "step.jax_export"
+    art.write_bytes(jax.export.export(jax.jit(step))(*args).serialize())
+
+    class Run:
+        t = np.array([0.0, 0.1])
+        measured = np.array([[1.0, 2.0], [3.0, 4.0]])
+        initial_state = np.zeros(1)
+
+    got = export_check.reload_in_fresh_process(art, Run(), tmp_path)
+    assert not marker.exists()
+    np.testing.assert_allclose(got["command"], [[2.0, 4.0], [6.0, 8.0]])
+    assert got["wmrjax_imported"] is False
+
+
+def test_a_secret_file_is_never_quoted():
+    """Before: a samples 'file' that is /proc/self/environ printed the whole environment."""
+    os.environ["WMRJAX_TEST_SECRET"] = "hunter2-secret-value"
+    try:
+        with pytest.raises(ValueError) as err:
+            io.read_csv_columns("/proc/self/environ", ("t", "x", "y"), "reference samples")
+    finally:
+        del os.environ["WMRJAX_TEST_SECRET"]
+    assert "hunter2" not in str(err.value) and "NUL bytes" in str(err.value)
+    assert len(str(err.value)) < 200
+
+
+def test_a_huge_header_gives_a_short_message(tmp_path):
+    """Before: a 5 MB header line gave a 5 MB message."""
+    f = tmp_path / "wide.csv"
+    f.write_text("t," + "q" * 5_000_000 + "\n0,1\n")
+    with pytest.raises(ValueError, match=r"header line has 5000002 characters") as err:
+        io.read_csv_columns(f, ("t", "x", "y"), "reference samples")
+    assert len(str(err.value)) < 300
+    g = tmp_path / "many.csv"
+    g.write_text(",".join(f"c{'z' * 40}{i}" for i in range(50)) + "\n" + ",".join(["1"] * 50) + "\n")
+    with pytest.raises(ValueError, match=r"missing column\(s\) \['t', 'x', 'y'\].*\.\.\. \(50 columns\)") as err:
+        io.read_csv_columns(g, ("t", "x", "y"), "reference samples")
+    assert len(str(err.value)) < 600
+
+
+def test_extra_text_columns_are_ignored_and_bad_values_named(tmp_path):
+    """The docs say other columns are ignored: before, a text column refused the whole file."""
+    f = tmp_path / "labelled.csv"
+    f.write_text("t,x,y,label\n0,1,2,start\n1,2,3,end of the lane\n")
+    got = io.read_csv_columns(f, ("t", "x", "y"), "samples")
+    np.testing.assert_array_equal(got["x"], [1.0, 2.0])
+    f.write_text("t,x,y\n0,1,2\n1," + "9" * 30 + "abc,3\n")
+    with pytest.raises(ValueError, match=r"data row 2, column 'x': '9+\.*'?.*is not a number") as err:
+        io.read_csv_columns(f, ("t", "x", "y"), "samples")
+    assert len(str(err.value)) < 200
+    f.write_text("t,x,y\n0,1,2\n1,2\n")
+    with pytest.raises(ValueError, match="data row 2 has 2 values; every row needs 3"):
+        io.read_csv_columns(f, ("t", "x", "y"), "samples")
+
+
+def test_a_huge_sampled_path_is_refused_before_allocation():
+    """Before: 10^6 samples ended in a raw RESOURCE_EXHAUSTED after minutes; now refused at once
+    with its size and the fix."""
+    t = np.arange(1_000_000.0) * 0.01
+    with pytest.raises(ValueError, match=r"sampled path of 1000000 samples .* needs about .* GB.*resample"):
+        R.from_samples(t, np.c_[t, np.zeros_like(t)])
+
+
+def test_torn_write_cleanup_keeps_user_files_in_process(tmp_path):
+    """Before: acquiring --out removed every '.*.tmp' anywhere under it (rglob)."""
+    user = [tmp_path / ".x.tmp", tmp_path / "deep" / ".report.tmp"]
+    user[1].parent.mkdir()
+    for f in user:
+        f.write_text("mine")
+    ours = tmp_path / f".summary.json.abc{files.TMP_SUFFIX}"
+    ours.write_text("half")
+    token = files.acquire_output(tmp_path, "test")
+    try:
+        assert all(f.read_text() == "mine" for f in user) and not ours.exists()
+    finally:
+        files.release_output(tmp_path, token)
