@@ -103,6 +103,9 @@ def run(
     step = X.control_step(ctrl, params)
     say(f"export {ctrl.robot.name} ({ctrl.level}) along {setting.reference.name} as {step.name}")
     out.mkdir(parents=True, exist_ok=True)
+    # a previous export's summary describes its own code: gone before the new code is written,
+    # so a run killed in between leaves no summary saying "agrees" beside code it never checked
+    (out / "summary.json").unlink(missing_ok=True)
     written = write_export(step, out)
     z0, index = initial_state(setting, params, initial)
     say(f"check: {n_samples} periods of {period} s against the simulator")
@@ -122,6 +125,8 @@ def run(
         "robot": step.robot,
         "level": step.level,
         "reference": setting.reference.name,
+        # [s] where a sampled path's data define it; outside, the step's regularity is 0 (stop)
+        "reference_span_s": X.reference_span(params.reference),
         "sizes": {
             "measured": step.n_measured,
             "state": step.n_state,

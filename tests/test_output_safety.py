@@ -5,6 +5,11 @@ before the fix (said per test)."""
 
 import json
 import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -161,3 +166,84 @@ def test_torn_write_cleanup_keeps_user_files_in_process(tmp_path):
         assert all(f.read_text() == "mine" for f in user) and not ours.exists()
     finally:
         files.release_output(tmp_path, token)
+
+
+def test_one_directory_holds_one_jobs_results(tmp_path):
+    """Before: a certification into a finished sweep's --out (directly or through a link) exited 0
+    and replaced the sweep's summary.json beside its table."""
+    files.claim_output(tmp_path, "experiments.sweep")
+    files.claim_output(tmp_path, "experiments.sweep")  # the same job again (a rerun, a resume)
+    with pytest.raises(files.OutputLocked, match=r"holds the results of 'experiments.sweep', not of 'experiments.cert"):
+        files.claim_output(tmp_path, "experiments.certify")
+    link = tmp_path.parent / f"{tmp_path.name}-link"
+    link.symlink_to(tmp_path, target_is_directory=True)
+    with pytest.raises(files.OutputLocked, match="one directory holds one job's results"):
+        files.claim_output(link, "experiments.certify")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_killed_launchers_workers_die_with_it():
+    """Before: killing the launcher of `sweep --processes 2` orphaned its workers, which kept
+    computing and later overwrote the next command's runs.parquet and summary.json."""
+    launcher = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import subprocess, sys, time\n"
+            "from experiments.sweep.cli import die_with_parent\n"
+            "w = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'], preexec_fn=die_with_parent)\n"
+            "print(w.pid, flush=True)\n"
+            "time.sleep(60)\n",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    worker = int(launcher.stdout.readline())
+    launcher.send_signal(signal.SIGKILL)
+    launcher.wait()
+    for _ in range(100):  # the worker is a zombie of init until reaped: gone or dead state
+        try:
+            state = Path(f"/proc/{worker}/stat").read_text().split(")")[-1].split()[0]
+        except FileNotFoundError:
+            return
+        if state in ("Z", "X"):
+            return
+        time.sleep(0.05)
+    os.kill(worker, signal.SIGKILL)
+    pytest.fail(f"worker {worker} outlived its launcher by 5 s")
+
+
+def test_a_resumed_run_sees_a_changed_path_file(tmp_path):
+    """Before: the tuner's checkpoint fingerprint hashed the sections as written (the CSV's name),
+    so a run resumed after the path file's content changed, mixing steps on two paths."""
+    t = np.linspace(0.0, 10.0, 21)
+    (tmp_path / "path.csv").write_text("t,x,y\n" + "".join(f"{a},{a},{0.1 * a}\n" for a in t))
+    text = PROBLEM.split("[[case]]")[0].replace('family = "circle"', 'family = "samples"\nfile = "path.csv"')
+    (tmp_path / "p.toml").write_text(text.replace("{{", "{").replace("}}", "}"))
+    first = Problem.load(tmp_path / "p.toml").setting("tuning")
+    (tmp_path / "path.csv").write_text("t,x,y\n" + "".join(f"{a},{a},{0.2 * a}\n" for a in t))
+    second = Problem.load(tmp_path / "p.toml").setting("tuning")
+    assert first.data == second.data  # what the old fingerprint hashed
+    assert first.content_digest() != second.content_digest()
+    assert Problem.load(tmp_path / "p.toml").setting("tuning").content_digest() == second.content_digest()
+
+
+def test_the_exported_step_flags_times_outside_its_sampled_path():
+    """Before: the exported step of a path sampled on [0, 4] s extrapolated silently past it (0.2 m
+    off at 8 s, 10.9 m at 12 s), and the span was in neither the header nor the summary."""
+    import wmrjax as w
+    from wmrjax import export as X
+
+    t = np.linspace(0.0, 4.0, 41)
+    ctrl = w.dynamic_linearization("(2,0)")
+    params = ctrl.params(R.from_samples(t, np.c_[t, 0.2 * np.sin(t)]), poles=1.0, geometry=w.Geometry(e=0.2))
+    step = X.control_step(ctrl, params)
+    assert step.span == (0.0, 4.0)
+    z0 = ctrl.reference_state(0.0, params)
+    state = step.initial_state(0.0, z0[3:])
+    fn = jax.jit(step.fn)
+    regs = [float(fn(jnp.asarray(s), z0[:3], state)[2]) for s in (0.0, 2.0, 4.0, 4.5, -0.5)]
+    assert all(abs(r) > 1e-3 for r in regs[:3]) and regs[3:] == [0.0, 0.0]
+    assert "valid for t in [0.0, 4.0] s" in X.generate_c(step)[f"{step.name}.h"]
+    circle = ctrl.params(R.circle(), poles=1.0, geometry=w.Geometry(e=0.2))
+    assert X.control_step(ctrl, circle).span is None

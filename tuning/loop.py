@@ -296,7 +296,9 @@ def fingerprint(
 ) -> str:
     """A digest of everything a run's checkpoint depends on (``run_id``: what the caller adds,
     e.g. the problem file's fingerprint and the optimizer's settings)."""
-    desc = [setting.data, repr(family), scenarios._asdict(), loss._asdict(), stopping._asdict(), steps, seed, run_id]
+    # the setting's values, not only its sections: a path file's name stays when its content changes
+    desc = [setting.data, setting.content_digest(), repr(family), scenarios._asdict(), loss._asdict()]
+    desc += [stopping._asdict(), steps, seed, run_id]
     return hashlib.sha256(json.dumps(desc, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

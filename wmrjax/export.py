@@ -20,7 +20,10 @@ simulation is what is deployed. Its signature::
 * ``command``: the plant input to hold until the next sample: u at velocity level, v = du/dt at
   torque level (before the plant's own scaling and saturation);
 * ``regularity``: the law's signed regularity function (det K); a sign change between two
-  samples or a value near 0 means the robot is at the singular set of its outputs.
+  samples or a value near 0 means the robot is at the singular set of its outputs. Along a
+  sampled path it is exactly 0 at a time outside the path's samples
+  (:func:`reference_span`, also in the export's ``summary.json`` and the C header): there the
+  law has no plan to follow, and the robot loop stops on that flag.
 
 :func:`export_artifact` serializes it (``jax.export``: StableHLO, runs with ``jax`` alone, no
 ``wmrjax``); :func:`generate_c` writes it as dependency-free C99 (``math.h`` only), from the
@@ -39,9 +42,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import _cgen
+from wmrjax._validate import concrete
 from wmrjax.controllers.law import Level
 from wmrjax.controllers.plant import PlantLoop
 from wmrjax.controllers.sampled import SampledLoop, SampledParams, SampledState
+from wmrjax.references import DOMAIN_RTOL
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,9 +67,12 @@ class ControlStep(_cgen.Signature):
       level: ``"velocity"`` or ``"torque"``.
       fn: ``(t, measured, state) -> (command, state_next, regularity)``, pure and jittable;
         shapes ``()``, ``(n_measured,)``, ``(n_state,)`` -> ``(n_command,)``, ``(n_state,)``, ``()``.
+      span: ``(t_first, t_last)`` [s] of a sampled path (:func:`reference_span`), None for a
+        path defined at every time; outside it the step's regularity is 0.
     """
 
     fn: Callable = dataclasses.field(repr=False, kw_only=True)
+    span: tuple | None = dataclasses.field(default=None, kw_only=True)
 
     def initial_state(self, t0, compensator=()):
         """The controller's state before its first sample at ``t0`` [s]: the compensator's initial
@@ -120,11 +128,39 @@ def control_step(ctrl, params, *, name: str | None = None) -> ControlStep:
         raise ValueError(f"control_step: name must be a C identifier (letters, digits, _), got {name!r}")
     measured, command, comp = _labels(ctrl)
     n_c = len(comp)
-    fn = _static_step(ctrl, params) if n_c == 0 else _dynamic_step(ctrl, params)
+    fn = _within_span(_static_step(ctrl, params) if n_c == 0 else _dynamic_step(ctrl, params), params.reference)
     return ControlStep(
         name, len(measured), 2 * n_c + 1 if n_c else 0, len(command), n_c, measured, command, comp,
-        robot, str(ctrl.level), fn=fn,
+        robot, str(ctrl.level), fn=fn, span=reference_span(params.reference),
     )  # fmt: skip
+
+
+def reference_span(reference) -> tuple[float, float] | None:
+    """``(t_first, t_last)`` [s] of a sampled path (where its data define it), None for a path
+    defined at every time (a named family, or one extended with ``extrapolate=True``)."""
+    dom = reference.domain()
+    if dom is None:
+        return None
+    lo, hi = (concrete(x) for x in dom)
+    return None if lo is None or hi is None else (float(np.max(lo)), float(np.min(hi)))
+
+
+def _within_span(fn, reference):
+    """The step with its regularity output set to 0 -- the flag a robot loop stops on -- at
+    times outside a sampled path's span: there the path would be extrapolated silently (0.2 m
+    off 4 s past a 4 s path, 10.9 m at 8 s)."""
+    span = reference_span(reference)
+    if span is None:
+        return fn
+    lo, hi = span
+    tol = DOMAIN_RTOL * (1.0 + max(abs(lo), abs(hi)))
+
+    def step(t, measured, state):
+        command, state, regularity = fn(t, measured, state)
+        inside = (t >= lo - tol) & (t <= hi + tol)
+        return command, state, jnp.where(inside, regularity, jnp.zeros_like(regularity))
+
+    return step
 
 
 def _static_step(ctrl, params):
@@ -199,7 +235,13 @@ def generate_c(step: ControlStep) -> dict[str, str]:
     runs one period (``state`` is updated in place), and the sizes as macros. The source needs
     ``math.h`` only (link with ``-lm``).
     """
-    return _cgen.generate(program(step), step)
+    doc = (
+        ""
+        if step.span is None
+        else f"valid for t in [{step.span[0]!r}, {step.span[1]!r}] s, the sampled path's span: outside it "
+        "regularity is 0 (stop)"
+    )
+    return _cgen.generate(program(step), step, doc)
 
 
 class Run(NamedTuple):

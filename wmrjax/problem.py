@@ -490,6 +490,19 @@ class Setting:
     def shape(self) -> tuple:
         return tuple(a.size for a in self.axes)
 
+    def content_digest(self) -> str:
+        """A digest of every value this setting runs with, read from files included (a path's
+        samples, a gains file's gains): a resumable job's fingerprint, which changes when a file's
+        content changes under the same name."""
+        h = hashlib.sha256()
+        for a in self.axes:
+            h.update(a.name.encode())
+            for leaf in jax.tree_util.tree_leaves((a.columns, a.payload)):
+                arr = np.ascontiguousarray(np.asarray(leaf))
+                h.update(f"{arr.dtype}{arr.shape}".encode())
+                h.update(arr.tobytes())
+        return h.hexdigest()[:16]
+
     @property
     def size(self) -> int:
         return int(np.prod(self.shape))

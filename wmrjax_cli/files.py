@@ -374,6 +374,29 @@ def acquire_output(out, command: str) -> str | None:
     raise OutputLocked(f"could not take the lock {path}: it changed hands 100 times")
 
 
+# which job's results a directory holds (written by the first job that writes there)
+JOB_NAME = ".wmrjax-job.json"
+
+
+def claim_output(out, job: str) -> None:
+    """Record that ``out`` holds ``job``'s results, or refuse a directory that holds another
+    job's: a certification into a finished sweep's directory replaced its summary.json and left
+    the sweep's table beside it. Call while holding the lock (:func:`acquire_output`).
+
+    Raises:
+      OutputLocked: ``out`` holds the results of another job (named).
+    """
+    path = Path(out) / JOB_NAME
+    owner = _read_owner(path) if path.is_file() and not path.is_symlink() else {}
+    if owner.get("job") not in (None, job):
+        raise OutputLocked(
+            f"{out} holds the results of {owner['job']!r}, not of {job!r}: one directory holds one job's "
+            f"results; choose another output directory (or remove that one's files yourself)"
+        )
+    if owner.get("job") != job:
+        write_json(path, {"job": job})
+
+
 def release_output(out, token: str | None) -> None:
     """Remove the lock of ``out`` if ``token`` holds it (a no-op for None)."""
     path = Path(out) / LOCK_NAME

@@ -259,7 +259,21 @@ def prepare_output(p, out: Path, lock: bool = True) -> Path:
         if token is not None:
             os.environ[files.LOCK_ENV] = token
             atexit.register(files.release_output, out, token)
+            try:
+                files.claim_output(out, job_name(p))
+            except files.OutputLocked as exc:
+                fail(p, str(exc))
     return out
+
+
+def job_name(p) -> str:
+    """The running command as ``python -m`` names it (``experiments.certify``, ``tuning``), else
+    the parser's program name: what :func:`wmrjax_cli.files.claim_output` records."""
+    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+    name = getattr(spec, "name", None)
+    if name:
+        return name.removesuffix(".__main__")
+    return p.prog
 
 
 def work(p, args, fn, hint=lambda message: message):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -150,8 +151,26 @@ def _launch(p, a, devices: int) -> int:
         base.append("--no-compile-cache")
     elif a.compile_cache is not None:
         base += ["--compile-cache", str(a.compile_cache)]
-    procs = [subprocess.Popen(base + ["--process-id", str(i)]) for i in range(a.processes)]
-    return _wait(procs, a)
+    procs = [subprocess.Popen(base + ["--process-id", str(i)], preexec_fn=die_with_parent) for i in range(a.processes)]
+    try:
+        return _wait(procs, a)
+    except BaseException:  # Ctrl-C or a kill of the launcher: its workers do not outlive it
+        for pr in procs:
+            if pr.poll() is None:
+                pr.terminate()
+        raise
+
+
+def die_with_parent() -> None:
+    """In a worker, before it runs: ask Linux to send it SIGTERM when its launcher dies (even by
+    SIGKILL), so that no orphan keeps computing and later overwrites the next command's table
+    and summary under a lock it no longer has. Elsewhere a no-op (the launcher still stops
+    its workers on any exception)."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes  # Linux only: prctl(PR_SET_PDEATHSIG)
+
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
 
 
 # how often the launcher looks at its processes [s]
