@@ -438,3 +438,36 @@ def test_cli_writes_summary_and_gains(tmp_path):
         for basis in ("full", "position"):
             em = certify.exact_map_radius(st.ctrl, params, t_final=2.0, eps=0.01, basis=basis)
             np.testing.assert_allclose(radii[which][f"exact_map_{basis}"]["radius"], float(em.radius), rtol=1e-12)
+
+
+def test_each_log_line_shows_the_parameters_its_loss_was_evaluated_at(tiny):
+    """Issue 58: the log printed each step's updated parameters beside the loss of the parameters
+    before the update. A large learning rate makes the two differ visibly."""
+    import optax
+
+    setting, spec, _ = tiny
+    lines = []
+    res = tune(setting, spec, optax.sgd(0.5), steps=2, scenarios=TS.scenarios, log=lines.append)
+    steps = [ln for ln in lines if ln.startswith("step")]
+    assert len(steps) == 2
+    for line, rec in zip(steps, res.history):
+        assert f"train {rec['train_loss']:.5g}" in line
+        assert str(np.round(np.asarray(rec["params"]), 3).tolist()) in line
+    assert res.history[0]["params"] != res.history[1]["params"]
+
+
+def test_radius_change_is_printed_per_slice():
+    """Issue 58: the tuned gains' certified region shrank by 80 % (position slice) and only the
+    summary and the figure said so; the console now does, with its kind and loop."""
+    from tuning.cli import radius_change_lines
+
+    radii = {
+        "initial": {"lemma2": {}, "exact_map_full": {"radius": 0.5}, "exact_map_position": {"radius": 2.0}},
+        "tuned": {"lemma2": {}, "exact_map_full": {"radius": 0.55}, "exact_map_position": {"radius": 0.4}},
+    }
+    lines = radius_change_lines(radii)
+    assert lines == [
+        "certified radius (full slice, exact map, nominal loop, proved): initial 0.5 -> tuned 0.55 (+10 %)",
+        "certified radius (position slice, exact map, nominal loop, proved): initial 2 -> tuned 0.4 (-80 %)",
+    ]
+    assert radius_change_lines({"skipped": "a static law"}) == ["certified radii: a static law"]

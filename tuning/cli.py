@@ -961,11 +961,33 @@ def main(argv=None) -> int:
         f"gradient rollouts {s['rollouts']}, to match CMA-ES {s['rollouts_to_match']['cma_es']} (CMA-ES best after "
         f"{b['cma_es']['rollouts_to_best']:.0f}); {s['wall_time_s']:.1f} s"
     )
+    for line in radius_change_lines(s["radii"]):
+        print(line)
     print(
         f"wrote {a.out}/gains.json, summary.json, history.json, checkpoint.json, loss.png, schedule.png, "
         "trajectories.png" + (", radii.png" if "initial" in s["radii"] else "")
     )
     return 0
+
+
+def radius_change_lines(radii: dict) -> list:
+    """The certified radii of the initial and the tuned gains on the console, per slice, with the
+    change in percent (a tuned loop can track better and be certified from a smaller region:
+    that was only in summary.json and radii.png)."""
+    if "initial" not in radii:
+        return [f"certified radii: {radii.get('skipped', 'none')}"]
+    lines = []
+    for key, block in radii["initial"].items():
+        if not key.startswith("exact_map_") or key not in radii["tuned"]:
+            continue
+        r0 = block.get("lower_bound", block["radius"])
+        r1 = radii["tuned"][key].get("lower_bound", radii["tuned"][key]["radius"])
+        change = f"{100.0 * (r1 - r0) / r0:+.0f} %" if r0 > 0 else "n/a"
+        lines.append(
+            f"certified radius ({key.removeprefix('exact_map_')} slice, exact map, nominal loop, proved): "
+            f"initial {r0:.4g} -> tuned {r1:.4g} ({change})"
+        )
+    return lines
 
 
 if __name__ == "__main__":

@@ -538,7 +538,7 @@ def _gradient_loop(
         step += 1
         done_here += 1
         state["wall_time_s"] = time.perf_counter() - t0
-        _log_step(log, family, raw, rec, step, steps, scenarios.train, state["wall_time_s"])
+        _log_step(log, family, rec, step, steps, state["wall_time_s"])
         if ckpt is not None:
             save_checkpoint(ckpt, fp, step, raw, opt_state, state)
         if stop_after is not None and done_here >= stop_after:
@@ -644,8 +644,10 @@ def _record(
     return rec
 
 
-def _log_step(log, family, raw, rec, step, steps, n_train, wall) -> None:
-    shown = np.round(np.asarray(_positive(family, raw)), 3)
+def _log_step(log, family, rec, step, steps, wall) -> None:
+    """One line per step: the losses and the parameters they were evaluated at (the record's, not
+    the update's result: the line printed the next step's parameters beside this step's loss)."""
+    shown = np.round(np.asarray(rec["params"]), 3)
     excluded = rec["excluded"]
     log(
         f"step {step:4d}/{steps}  train {rec['train_loss']:.5g}"

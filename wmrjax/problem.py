@@ -174,6 +174,7 @@ def axis_values(
             raise ProblemError(f"{where}: num must be an integer >= 1, got {num!r}")
         if num > 1 and not hi > lo:
             raise ProblemError(f"{where}: max must be > min, got min = {lo}, max = {hi}")
+        check_table_fits(where, num, 1, "num")
         return np.linspace(lo, hi, num)
     if isinstance(v, list):
         if not v:
@@ -183,15 +184,33 @@ def axis_values(
     return np.array([number(v)], float)
 
 
+# arrays alive at once while a problem's values are built (the draws or grid, their columns,
+# the stacked payload)
+TABLE_COPIES = 3
+
+
+def check_table_fits(where: str, n: int, width: int, key: str) -> None:
+    """ProblemError, before anything is allocated, when ``n`` values of ``width`` numbers (a grid's
+    ``num``, a random draw's ``count``) do not fit in the memory available now; names the key."""
+    try:
+        resources.check_fits(
+            resources.Estimate(0.0, TABLE_COPIES * 8.0 * n * max(1, width)),
+            f"{where}: {n} values",
+            f"lower {key}",
+        )
+    except ValueError as err:
+        raise ProblemError(str(err)) from None
+
+
 def _once(where: str, values: np.ndarray) -> np.ndarray:
     """``values`` (an axis: (n,) or (n, k)) if no value is listed twice; a value listed twice would
     run (and count) the same runs twice."""
     _, first, counts = np.unique(values, axis=0, return_index=True, return_counts=True)
     if np.any(counts > 1):
         twice = values[first[np.argmax(counts > 1)]]
-        raise ProblemError(
-            f"{where}: {twice.tolist()!r} listed twice in {values.tolist()!r}: an axis lists each value once"
-        )
+        listed = repr(values.tolist())
+        listed = listed if len(listed) <= 200 else f"{listed[:200]}... ({len(values)} values)"
+        raise ProblemError(f"{where}: {twice.tolist()!r} listed twice in {listed}: an axis lists each value once")
     return values
 
 
@@ -1453,6 +1472,7 @@ def _points(ins, keys) -> Axis:
 def _random_errors(ins, rnd, keys) -> dict:
     check_keys("initial.random", rnd, ("count", "seed"), ("count",))
     count = integer("initial.random", "count", rnd["count"], 1)
+    check_table_fits("[initial] random", count, len(keys), "count")
     rng = np.random.default_rng(integer("initial.random", "seed", rnd.get("seed", 0), 0))
     errs = {}
     for k in keys:  # every key drawn (fixed order), so a key's values do not depend on the others
