@@ -194,9 +194,7 @@ def check_table_fits(where: str, n: int, width: int, key: str) -> None:
     ``num``, a random draw's ``count``) do not fit in the memory available now; names the key."""
     try:
         resources.check_fits(
-            resources.Estimate(0.0, TABLE_COPIES * 8.0 * n * max(1, width)),
-            f"{where}: {n} values",
-            f"lower {key}",
+            resources.Estimate(0.0, TABLE_COPIES * 8.0 * n * max(1, width)), f"{where}: {n} values", f"lower {key}"
         )
     except ValueError as err:
         raise ProblemError(str(err)) from None
