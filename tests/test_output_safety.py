@@ -247,3 +247,17 @@ def test_the_exported_step_flags_times_outside_its_sampled_path():
     assert "valid for t in [0.0, 4.0] s" in X.generate_c(step)[f"{step.name}.h"]
     circle = ctrl.params(R.circle(), poles=1.0, geometry=w.Geometry(e=0.2))
     assert X.control_step(ctrl, circle).span is None
+
+
+@pytest.mark.parametrize("t_final, dt", [(1e308, 0.01), (10.0, 1e-300)])
+def test_overflowing_horizons_are_refused_by_name(tmp_path, t_final, dt):
+    """Before: t_final = 1e308 or dt = 1e-300 ended in a raw OverflowError (int of an infinite
+    step count) or a run that could not end."""
+    text = (
+        PROBLEM.split("[[case]]")[0]
+        .replace("t_final = 1.0", f"t_final = {t_final!r}")
+        .replace("dt = 0.01", f"dt = {dt!r}")
+    )
+    (tmp_path / "p.toml").write_text(text.replace("{{", "{").replace("}}", "}"))
+    with pytest.raises(ProblemError, match=r"\[simulation\] t_final / dt = .* steps, more than 1e\+12"):
+        Problem.load(tmp_path / "p.toml").setting("sweep")

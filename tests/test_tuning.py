@@ -471,3 +471,34 @@ def test_radius_change_is_printed_per_slice():
         "certified radius (position slice, exact map, nominal loop, proved): initial 2 -> tuned 0.4 (-80 %)",
     ]
     assert radius_change_lines({"skipped": "a static law"}) == ["certified radii: a static law"]
+
+
+def test_listed_plant_scales_are_tuned_over_as_scenarios():
+    """Issue 58: a [plant] listing geometry scales (a +-5 % range, to sweep) was refused by the
+    tuner; its scenarios now draw a listed value each, around which the mismatch is drawn. A
+    single scale is the scenarios' centre (it was ignored: every scenario centred on 1)."""
+    from tuning.scenarios import draw_set
+
+    keys = jax.random.split(jax.random.PRNGKey(0), 64)
+    for scales, mismatch in (([0.9, 1.1], 0.0), (1.05, 0.0), (1.05, 0.02)):
+        data = copy.deepcopy(TINY_DATA)
+        data["plant"]["geometry_scale"] = scales
+        data["plant"]["input_scale"] = scales
+        setting = Problem.from_dict(data).setting("tuning")
+        loop.check(setting, TS.gain_spec(setting), TS.scenarios, TS.loss)
+        sc = draw_set(setting, mismatch, keys)
+        g = np.asarray(sc.inputs["geometry_scale"])
+        u = np.asarray(sc.inputs["input_scale"])
+        assert g.shape == (64, 2) and u.shape == (64, 2)
+        if isinstance(scales, list):
+            assert set(np.unique(g).tolist()) == set(np.unique(u).tolist()) == {0.9, 1.1}
+            assert len({(a, b) for a, b in zip(g[:, 0], u[:, 0])}) == 4  # the plant axis: their product
+        else:
+            assert np.all(np.abs(g / 1.05 - 1.0) <= mismatch + 1e-12) and np.all(
+                np.abs(u / 1.05 - 1.0) <= mismatch + 1e-12
+            )
+    data = copy.deepcopy(TINY_DATA)
+    data["plant"]["input_limit"] = [[5.5, 1.0], [4.0, 1.0]]
+    setting = Problem.from_dict(data).setting("tuning")
+    with pytest.raises(ValueError, match="tuning takes one \\[plant\\] input_limit"):
+        loop.check(setting, TS.gain_spec(setting), TS.scenarios, TS.loss)

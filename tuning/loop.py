@@ -121,7 +121,13 @@ def check(setting, family: GainSpec, scenarios: Scenarios, loss: LossWeights) ->
     ctrl = setting.ctrl
     random_reference = FAMILIES[setting.data["reference"]["family"]].kind == "random"
     # a random family's references are drawn per scenario (its count is a sweep's)
-    setting.check_single("tuning", keep=("initial", "reference") if random_reference else ("initial",))
+    setting.check_single("tuning", keep=("initial", "plant") + (("reference",) if random_reference else ()))
+    limits = np.asarray(setting.axis("plant").payload["limit"])
+    if len(np.unique(limits, axis=0)) > 1:  # a listed scale is drawn per scenario; a limit is shared by the batch
+        raise ValueError(
+            "tuning takes one [plant] input_limit (its scenarios draw a listed input_scale or geometry_scale, "
+            f"not a limit), got {len(limits)}; keep one value (sweeps take lists)"
+        )
     if (family.m, family.r) != (ctrl.m, ctrl.relative_degree):
         raise ValueError(
             f"the gain family is for (m, r) = ({family.m}, {family.r}), the controller needs "

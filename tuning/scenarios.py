@@ -3,8 +3,9 @@ r"""Scenarios drawn from a problem, and their rollouts.
 A *scenario* is one run of the problem's closed loop (:meth:`wmrjax.problem.Setting.run`:
 the law run by its digital controller, with the problem's period, noise and actuator limits)
 with its own initial error (uniform in the problem's ``[initial]`` box), reference (a fresh
-draw of a random family; the problem's own otherwise), plant (each input scale and the
-plant's L and e within +-``mismatch`` of the nominal ones) and noise key. :func:`rollout`
+draw of a random family; the problem's own otherwise), plant (one of the problem's listed
+input and geometry scales, each input scale and the plant's L and e within +-``mismatch`` of
+it) and noise key. :func:`rollout`
 simulates one with given gains and returns the loss terms of its
 :class:`wmrjax.Trajectory` (:func:`tuning.losses.metrics`). Pure: batch with ``jax.vmap``.
 """
@@ -78,9 +79,21 @@ def draw(setting: Setting, mismatch: float, key) -> Scenario:
     )
     base["z0"] = place(setting.ctrl, params, base["initial"], setting.space, setting.task, base["branch"])
     rho = jax.random.uniform(km, (nu + 2,), minval=-mismatch, maxval=mismatch)
-    base["input_scale"] = 1.0 + rho[:nu]
-    base["geometry_scale"] = 1.0 + rho[nu:]
+    input_scale, geometry_scale = _plant_scales(setting, jax.random.fold_in(km, 1))
+    base["input_scale"] = input_scale * (1.0 + rho[:nu])
+    base["geometry_scale"] = geometry_scale * (1.0 + rho[nu:])
     return Scenario(base, kn)
+
+
+def _plant_scales(setting: Setting, key) -> tuple:
+    """The problem's own input and geometry scales of one scenario: one of the ``[plant]``
+    values the file lists, drawn uniformly (a listed range is tuned over, not refused), around
+    which the mismatch is drawn. Both 1 without a ``[plant]``."""
+    plant = setting.axis("plant").payload
+    scales = jnp.asarray(np.stack([np.asarray(plant["input_scale"]), np.asarray(plant["geometry_scale"])], axis=1))
+    n = scales.shape[0]
+    j = jax.random.randint(key, (), 0, n) if n > 1 else 0
+    return scales[j, 0], scales[j, 1]
 
 
 def draw_set(setting: Setting, mismatch: float, keys) -> Scenario:

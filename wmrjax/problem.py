@@ -856,11 +856,20 @@ def _settings(data: dict, base: Path, case) -> list:
     ]
 
 
+# more RK4 steps than this in one run is an overflow of t_final / dt, not a horizon
+MAX_STEPS = 1e12
+
+
 def simulation(sim) -> tuple:
     """``(t_final, dt, n_steps)`` of a ``[simulation]`` section (its other keys are the jobs')."""
     check_keys("simulation", sim, ("t_final", "dt", "block", "error_tol", "distance_every"), ("t_final", "dt"))
     t_final = positive("simulation", "t_final", sim["t_final"])
     dt = positive("simulation", "dt", sim["dt"])
+    if not t_final / dt <= MAX_STEPS:  # 1e308 / 0.01 is inf: no whole number of steps, no run
+        raise ProblemError(
+            f"[simulation] t_final / dt = {t_final} s / {dt} s is {t_final / dt:.3g} steps, more than "
+            f"{MAX_STEPS:.0e}: shorten t_final or raise dt"
+        )
     n_steps = int(round(t_final / dt))
     if n_steps < 1 or abs(n_steps * dt - t_final) > 1e-9 * max(1.0, t_final):
         raise ProblemError(f"[simulation] t_final = {t_final} s is not a whole number of steps dt = {dt} s")

@@ -198,6 +198,11 @@ def fail_work(p: argparse.ArgumentParser, message: str, verbose: bool = False):
     p.exit(1, f"{p.prog}: error: {message}\n")
 
 
+# more RK4 steps than this in one run is not a horizon but an overflow of t_final / dt (a run of
+# 1e12 steps would take days at the fastest rate measured)
+MAX_STEPS = 1e12
+
+
 def check_horizon(
     p,
     *,
@@ -217,6 +222,12 @@ def check_horizon(
     if dt > t_final:
         fail(p, f"{dt_name} = {dt} s is longer than the horizon {t_name} = {t_final} s")
     steps = t_final / dt
+    if not math.isfinite(steps) or steps > MAX_STEPS:  # t_final = 1e308 or dt = 1e-300: no run of that length
+        fail(
+            p,
+            f"{t_name} / {dt_name} = {t_final} s / {dt} s is {steps:.3g} steps, more than {MAX_STEPS:.0e}: shorten "
+            f"{t_name} or raise {dt_name}",
+        )
     n = int(round(steps))
     if abs(steps - n) > 1e-6 * max(1.0, steps):
         fail(p, f"{t_name} = {t_final} s is not a whole number of steps of {dt_name} = {dt} s ({steps:.6g} steps)")
