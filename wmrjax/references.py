@@ -360,6 +360,10 @@ def _spline_value(knots, coef, s, k: int):
     return b @ jax.lax.dynamic_slice_in_dim(coef, l - k, k + 1, axis=0)
 
 
+# uneven samples up to this many find their piece by comparing with every sample (no loop)
+COMPARE_ALL_SAMPLES = 512
+
+
 def _piece(ts, s, uniform: bool):
     """Index ``j`` of the sample interval ``[ts[j], ts[j + 1])`` holding ``s``, clamped to
     ``[0, N - 2]`` (the end pieces extend).
@@ -378,6 +382,11 @@ def _piece(ts, s, uniform: bool):
         guess = jnp.floor((s - ts[0]) * ((n - 1) / (ts[-1] - ts[0]))).astype(int_type)
         j = jnp.clip(guess, 0, n - 2)
         j = j - (s < ts[j]).astype(int_type) + (s >= ts[jnp.minimum(j + 1, n - 1)]).astype(int_type)
+    elif n <= COMPARE_ALL_SAMPLES:
+        # one comparison per sample, summed: no loop, so the exported C step (scalar code, no
+        # loops) can hold it; a binary search is a `scan` there (waypoints, timed by chord length,
+        # are not even, and their export failed). The same index.
+        j = jnp.sum((ts <= s).astype(int_type)) - 1
     else:
         j = jnp.searchsorted(ts, s, side="right").astype(int_type) - 1
     return jnp.clip(j, 0, n - 2)

@@ -217,6 +217,40 @@ def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
             written.append(path.name)
     _histograms(plt, plan, table, out)
     written.append("histograms.png")
+    written += _plant_figures(plt, plan, table, out)
+    return written
+
+
+def _plant_figures(plt, plan: S.Plan, table: dict, out: Path) -> list:
+    """``plant_<column>.png`` for each plant column a sweep varies (a geometry or input-scale
+    range, a limit): the final position error of every regular run at each value, per group, so
+    "does it track under +-5 % geometry" is read off a figure, not the table."""
+    ok = ~table["failed"]
+    written = []
+    for col in sorted(c for c in table if c.startswith("plant_")):
+        values = np.unique(np.asarray(table[col], float)[ok])
+        if values.size < 2:
+            continue
+        fig, ax = plt.subplots(figsize=(7, 4))
+        width = 0.8 * float(np.min(np.diff(values)))
+        for k, (g, c) in enumerate(zip(plan.groups, itertools.cycle([f"C{i}" for i in range(10)]))):
+            sel = ok & select(table, g)
+            err = np.maximum(np.asarray(table["final_position_error"], float)[sel], 1e-16)
+            x = np.asarray(table[col], float)[sel] + (k - 0.5 * (len(plan.groups) - 1)) * 0.1 * width
+            ax.scatter(x, err, s=8, alpha=0.5, color=c, label=group_name(g))
+            med = [np.median(err[x == v]) if np.any(x == v) else np.nan for v in np.unique(x)]
+            ax.plot(np.unique(x), med, color=c, marker="_", markersize=14, linestyle="none")
+        ax.set_yscale("log")
+        ax.set_xlabel(label(col))
+        ax.set_ylabel("final position error [m] (bars: median)")
+        ax.set_title(f"{plan.problem.title}: tracking error per {label(col)}", fontsize=9)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        name = f"plant_{col.removeprefix('plant_')}.png"
+        common.save_figure(fig, out / name)
+        plt.close(fig)
+        written.append(name)
     return written
 
 
