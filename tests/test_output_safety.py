@@ -261,3 +261,32 @@ def test_overflowing_horizons_are_refused_by_name(tmp_path, t_final, dt):
     (tmp_path / "p.toml").write_text(text.replace("{{", "{").replace("}}", "}"))
     with pytest.raises(ProblemError, match=r"\[simulation\] t_final / dt = .* steps, more than 1e\+12"):
         Problem.load(tmp_path / "p.toml").setting("sweep")
+
+
+def test_ctrl_c_leaves_a_resumable_sweep_and_one_line(tmp_path):
+    """Before: Ctrl-C during a sweep printed a traceback, or, when Python raised it inside one of
+    jaxlib's garbage-collection callbacks, was dropped and the sweep ran on to status 0. Now:
+    exit 130, one line saying what is kept, and the same command finishes from the kept blocks."""
+    spec = tmp_path / "s.toml"
+    spec.write_text(
+        PROBLEM.split("[[case]]")[0]
+        .replace("{{ min = -0.1, max = 0.1, num = 2 }}", "{{ min = -0.3, max = 0.3, num = 60000 }}")
+        .replace("t_final = 1.0", "t_final = 20.0")
+        .replace("{{", "{")
+        .replace("}}", "}")
+        + "block = 256\n"
+    )
+    cmd = [sys.executable, "-m", "experiments.sweep", str(spec), "--out", str(tmp_path / "out")]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    blocks = tmp_path / "out" / "blocks"
+    for _ in range(1200):  # interrupt once the first blocks are kept
+        if (blocks.is_dir() and any(blocks.glob("block_*.npz"))) or proc.poll() is not None:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130, err[-2000:]
+    assert "interrupted; what finished is kept in" in err and "Traceback" not in err
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert "60000 runs" in again.stdout

@@ -15,9 +15,11 @@ its traceback shown with ``--verbose``.
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import math
 import os
+import signal
 import sys
 import threading
 import time
@@ -298,10 +300,59 @@ def work(p, args, fn, hint=lambda message: message):
     prepare_output(p, args.out)
     use_compilation_cache(args)
     try:
-        with heartbeat() as hb:
+        with reliable_interrupt(), heartbeat() as hb:
             return fn(hb.stage)
     except ValueError as exc:
         fail_work(p, hint(str(exc)), verbose=getattr(args, "verbose", False))
+    except KeyboardInterrupt:
+        interrupted(p, args.out)
+
+
+# [s] how often an interrupt that Python dropped is raised again in the main thread
+INTERRUPT_RETRY_S = 0.5
+
+
+@contextmanager
+def reliable_interrupt():
+    """Make Ctrl-C end the work: Python raises KeyboardInterrupt at the main thread's next
+    bytecode, and when that is one of jaxlib's garbage-collection callbacks the exception is
+    printed and dropped ("Exception ignored in ... _xla_gc_callback") and the run went on to
+    the end with status 0. Here a first SIGINT also starts a thread that raises it again every
+    :data:`INTERRUPT_RETRY_S` until the main thread leaves this block. Main thread only."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending = threading.Event()
+    done = threading.Event()
+
+    def again():
+        while not done.wait(INTERRUPT_RETRY_S):
+            _thread.interrupt_main()
+
+    def handler(signum, frame):
+        if not pending.is_set():
+            pending.set()
+            threading.Thread(target=again, daemon=True).start()
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        done.set()
+        signal.signal(signal.SIGINT, previous)
+
+
+def interrupted(p: argparse.ArgumentParser, out) -> None:
+    """Exit 130 (the shell's code for SIGINT) with one line instead of a traceback: every result
+    is written atomically and the lock is released at exit, so what finished is kept and the
+    same command resumes from it (a sweep's blocks, the tuner's checkpoint)."""
+    sys.stderr.flush()
+    p.exit(
+        130,
+        f"{p.prog}: interrupted; what finished is kept in {out} (written atomically): run the same command "
+        "again to resume\n",
+    )
 
 
 # --- progress --------------------------------------------------------------------------------------

@@ -87,12 +87,15 @@ def main(argv=None) -> int:
     # one writer per --out: the launching process (its workers inherit the lock's token), or
     # process 0 of a run over several hosts
     options.prepare_output(p, a.out, lock=not distributed or a.process_id == 0)
-    if a.processes > 1:
-        return _launch(p, a, devices)
     try:
-        return _run(p, a, a.process_id or 0, a.num_processes or 1)
+        with options.reliable_interrupt():
+            if a.processes > 1:
+                return _launch(p, a, devices)
+            return _run(p, a, a.process_id or 0, a.num_processes or 1)
     except ValueError as err:  # raised by the work (the file and --out were checked before it): exit 1
         options.fail_work(p, str(err), verbose=a.verbose)
+    except KeyboardInterrupt:  # Ctrl-C: the finished blocks are kept, one line instead of a traceback
+        options.interrupted(p, a.out)
 
 
 def problem_of(a):
