@@ -502,3 +502,16 @@ def test_listed_plant_scales_are_tuned_over_as_scenarios():
     setting = Problem.from_dict(data).setting("tuning")
     with pytest.raises(ValueError, match="tuning takes one \\[plant\\] input_limit"):
         loop.check(setting, TS.gain_spec(setting), TS.scenarios, TS.loss)
+
+
+def test_more_knots_than_steps_are_refused_before_anything_is_built():
+    """Issue 57: [tune.family] knots = 1e6 compiled without end and without an estimate."""
+    data = copy.deepcopy(TINY_DATA)
+    data["tune"]["family"] = {"knots": 1_000_000}
+    problem = Problem.from_dict(data)
+    settings = config.read(problem.section("tune"))
+    with pytest.raises(ProblemError, match=r"1000000 knots on a horizon of 40 steps .* at most one per step \(41\)"):
+        settings.gain_spec(problem.setting("tuning"))
+    data["tune"]["family"] = {"knots": 41}
+    problem = Problem.from_dict(data)
+    assert len(config.read(problem.section("tune")).gain_spec(problem.setting("tuning")).knots) == 41

@@ -138,6 +138,13 @@ class TuneSettings(NamedTuple):
     def gain_spec(self, setting) -> GainSpec:
         """The gain family for the problem's controller (knots uniform on [0, t_final] when given as a count)."""
         f = self.family
+        n_knots = len(f.get("knot_times", ())) or f.get("knots", 0)
+        if n_knots > setting.n_steps + 1:  # checked before np.linspace allocates them
+            raise ProblemError(
+                f"[tune.family] knots: {n_knots} knots on a horizon of {setting.n_steps} steps of {setting.dt} s; "
+                f"at most one per step ({setting.n_steps + 1}): a schedule changes its gains between steps, "
+                "and each knot adds parameters to every gradient (a few knots are the usual schedule)"
+            )
         knots = tuple(float(t) for t in f.get("knot_times", ())) or (
             tuple(float(t) for t in np.linspace(0.0, setting.t_final, f["knots"])) if f.get("knots") else ()
         )
