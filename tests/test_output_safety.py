@@ -229,8 +229,9 @@ def test_a_resumed_run_sees_a_changed_path_file(tmp_path):
 
 
 def test_the_exported_step_flags_times_outside_its_sampled_path():
-    """Before: the exported step of a path sampled on [0, 4] s extrapolated silently past it (0.2 m
-    off at 8 s, 10.9 m at 12 s), and the span was in neither the header nor the summary."""
+    """Before (the reliability probe): the exported step of a path sampled on [0, 4] s extrapolated
+    silently past it (0.2 m off at 8 s, 10.9 m at 12 s); the span was in neither the header nor
+    the summary."""
     import wmrjax as w
     from wmrjax import export as X
 

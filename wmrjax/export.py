@@ -147,8 +147,8 @@ def reference_span(reference) -> tuple[float, float] | None:
 
 def _within_span(fn, reference):
     """The step with its regularity output set to 0 -- the flag a robot loop stops on -- at
-    times outside a sampled path's span: there the path would be extrapolated silently (0.2 m
-    off 4 s past a 4 s path, 10.9 m at 8 s)."""
+    times outside a sampled path's span: there the path would be extrapolated silently (the
+    reliability probe: 0.2 m off at 8 s and 10.9 m at 12 s for a path sampled on [0, 4] s)."""
     span = reference_span(reference)
     if span is None:
         return fn

@@ -427,7 +427,8 @@ def _extension(c, tau, scale):
     :math:`-e^{-x}x^k/k!`). :math:`\varphi - 1 = O(x^{k+1})`, so every derivative up
     to order k - 1 is the spline's at the end (the law's feed-forward stays continuous), and the
     path tends to the straight line at the end's velocity within a few ``scale`` [s]: bounded
-    speed, where the end polynomial itself ran off (25 m/s, 98 m)."""
+    speed, where the end polynomial itself ran off (a lane change sampled at 20 Hz on [0, 4] s:
+    13 m off and 14.8 m/s at 8 s, 395 m off at 12 s, measured at commit bd57cac)."""
     k = c.shape[-2] - 1
     tau = jnp.maximum(tau, 0.0)  # the side not selected is evaluated too: keep it finite
     v = c[k - 1]  # without c_k: the k-th derivative jumps at every sample already, and a septic
@@ -628,7 +629,7 @@ def from_samples(
     or a check whose horizon leaves it is refused, unless ``extrapolate=True``, which extends
     it past each end toward the straight line at the end's velocity, every derivative up to
     ``degree - 1`` continuous at the join (:func:`_extension`; the end polynomial itself diverges:
-    a quintic through a lane change ran off to 98 m at 25 m/s).
+    a quintic through a 4 s lane change was 13 m off 4 s past its end).
 
     Args:
       t: (N,) strictly increasing sample times [s], N >= 6.

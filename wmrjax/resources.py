@@ -8,7 +8,7 @@ the measurements are on the docs' benchmarks page and in ``tests/test_resources.
 * a saved sample of one run: the state (n), the control (at most n), the margin, the valid
   flag and the time, and the copy handed back to NumPy: ``(2 n + SAMPLE_EXTRA_FLOATS)``
   floats (measured 120-150 B at n = 4: the smaller the run, the larger its share of fixed buffers);
-* a point of the reference check's grid (every ``law.REFERENCE_GRID_STEP / 2`` s of the horizon):
+* a point of the reference check's grid (every ``REFERENCE_GRID_STEP / 2`` s of the horizon):
   the reference's jet, its time, regularity and branch, held twice while the blocks are
   joined and again by the kink test: ``GRID_COPIES * (jet + 3)`` floats (measured 157 B for
   a velocity-level law of two outputs, 216 B at torque level);
@@ -156,11 +156,14 @@ def samples_bytes(n_samples: int, n_state: int, itemsize: int = 8, runs: int = 1
     return float(runs) * n_samples * (2 * n_state + SAMPLE_EXTRA_FLOATS) * itemsize
 
 
+# [s] spacing of the grid on which a law checks its reference (wmrjax.controllers.law, which
+# imports it): here, where the check's memory is sized, so that this module imports no law
+REFERENCE_GRID_STEP = 0.01
+
+
 def check_bytes(horizon: float, jet_floats: int) -> float:
     """The reference check over ``horizon`` seconds of a law whose reference jet has
     ``jet_floats`` numbers per time (0: a system without a reference check) [bytes]."""
-    from wmrjax.controllers.law import REFERENCE_GRID_STEP  # lazily: this module needs only NumPy
-
     if jet_floats <= 0 or not np.isfinite(horizon):
         return 0.0
     points = horizon / (REFERENCE_GRID_STEP / 2) + 2  # both parities of the check's grid

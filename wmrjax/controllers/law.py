@@ -40,6 +40,7 @@ from wmrjax import _math, linearize, resources, robots
 from wmrjax._validate import check_finite, check_real, check_shape, concrete, is_concrete
 from wmrjax.gains import Gains, GainSchedule
 from wmrjax.references import Reference, check_domain, spline_degree_for
+from wmrjax.resources import REFERENCE_GRID_STEP
 from wmrjax.robots import Geometry, RobotType
 
 # |det K| below this is treated as singular inside the law (the division is clamped);
@@ -439,7 +440,6 @@ def _message_of(check, *args, **kwargs) -> str | None:
 
 # --- run checks shared by the siblings ---------------------------------------------------------
 
-REFERENCE_GRID_STEP = 0.01  # [s] spacing of the grid on which a reference is checked
 _BLOCK = 512  # grid points per compiled evaluation (one compilation per controller)
 # the check's program runs a few times per problem: compiled at XLA's lowest backend
 # optimization level, which halves its compile (its values differ at most by rounding, far
