@@ -192,15 +192,18 @@ def test_consistency_alarms():
 
     from wmrjax.certify.pipeline import consistency
 
-    exact = {"full": NS(radius=4.99, lower_bound=None), "position": NS(radius=8.789566, lower_bound=None)}
+    exact = {
+        "full": NS(radius=4.99, lower_bound=None, boxes=0),
+        "position": NS(radius=8.789566, lower_bound=None, boxes=0),
+    }
     fals = {"full": NS(radius=4.990007), "position": NS(radius=8.789575)}
     assert consistency({"lyapunov": 1.5}, exact, fals) == (True, [])
     below, msgs = consistency({"lyapunov": 5.2}, exact, fals)  # a Lemma 2 radius above the falsifier's
     assert not below and len(msgs) == 1 and "Lemma 2 (lyapunov) 5.2 > falsified 4.99001" in msgs[0]
-    collapsed = {**exact, "full": NS(radius=7.2e-5, lower_bound=None)}  # the old long-horizon collapse
+    collapsed = {**exact, "full": NS(radius=7.2e-5, lower_bound=None, boxes=0)}  # the old long-horizon collapse
     below, msgs = consistency({"lyapunov": 1e-5}, collapsed, {"full": NS(radius=5.34), "position": None})
     assert below and len(msgs) == 1 and "exact-map radius (full) 7.2e-05 and the falsified radius 5.34" in msgs[0]
-    assert consistency({}, {"full": NS(radius=1.0, lower_bound=0.9)}, {"full": NS(radius=1.5)}) == (True, [])
+    assert consistency({}, {"full": NS(radius=1.0, lower_bound=0.9, boxes=10)}, {"full": NS(radius=1.5)}) == (True, [])
     assert consistency({}, exact, {"full": NS(radius=None), "position": None}) == (True, [])
 
 

@@ -142,11 +142,13 @@ class ExactMapRadius(NamedTuple):
         the best box centre of the branch and bound), so an upper bound on the safe radius.
       argmin: time of the worst case [s].
       worst_error: (r m,) the initial error achieving it (full coordinates).
-      lower_bound: for (1,2), a proved lower bound on the safe radius (every initial error
-        below it stays eps away over [0, T]); None for the linear singular sets, where
-        ``radius`` is exact up to the time grid and its refinement.
+      lower_bound: a proved lower bound on the safe radius (every initial error below it stays
+        eps away over all of [0, T], between the grid's times too): (1,2)'s branch and bound,
+        :func:`linear_lower_bound` for the linear singular sets; None for a gain schedule
+        (its transition matrices are RK4's), where ``radius`` is the attained one only.
       gap: ``(radius - lower_bound) / radius`` (None where ``lower_bound`` is).
-      boxes: (t, phi) boxes the branch and bound evaluated (0 for the linear sets).
+      boxes: (t, phi) boxes the branch and bound evaluated (0 for the linear sets: their
+        ``radius`` is the map's minimum itself, tight against the falsifier).
     """
 
     ts: jnp.ndarray
@@ -209,8 +211,74 @@ def exact_map_radius(
     check_lemma2_args(t_final=t_final, eps=eps, m1=m1)
     n_phi = transition_steps(t_final) if scheduled else None
     Phis = linearize.transition_matrices(params.gains, np.asarray(ts), max_step=TRANSITION_STEP) if scheduled else None
-    rho, rad, t_star, worst = _exact_map(ctrl, params, P, C, jnp.asarray(eps, ts.dtype), ts, Phis, refine, n_phi)
-    return ExactMapRadius(ts, rho, rad, t_star, worst)
+    eps_a = jnp.asarray(eps, ts.dtype)
+    rho, rad, t_star, worst = _exact_map(ctrl, params, P, C, eps_a, ts, Phis, refine, n_phi)
+    if scheduled:  # Phi(t, 0) of a schedule is RK4's: no bound between its times (attained radius only)
+        return ExactMapRadius(ts, rho, rad, t_star, worst)
+    lower = linear_lower_bound(ctrl, params, P, C, eps_a, float(rad), t_final, n_t)
+    return ExactMapRadius(ts, rho, rad, t_star, worst, lower, (float(rad) - lower) / float(rad) if rad > 0 else 0.0)
+
+
+def linear_lower_bound(
+    ctrl, params, P, C, eps_a, rho_up: float, t_final: float, n_t: int, *, rtol: float = 2e-3, max_rounds: int = 16
+) -> float:
+    r"""A proved lower bound of the exact-map radius of a linear singular set over all of [0, T],
+    not only at the grid's times (constant gains).
+
+    Cover [0, T] with time boxes of half-width h centred at :math:`t_c` (``n_t`` of them at
+    first). For t in a box and :math:`\|s\| \le \bar\rho` (the attained radius),
+    :math:`\|C\zeta(t) - C\zeta(t_c)\| \le \Delta = h\|C\dot\zeta_{ref}(t_c)\| + h^2 G/2
+    + \|Ce^{At_c}\|(e^{\|A\|h} - 1)\bar\rho` (C's rows are orthonormal;
+    :math:`e^{At} - e^{At_c} = e^{At_c}(e^{A(t - t_c)} - I)`), so an initial error coming
+    within eps of the singular set in the box comes within :math:`\epsilon + \Delta` at
+    :math:`t_c`, and :func:`min_norm_to_ball` with the inflated margin bounds its norm from
+    below. Boxes whose bound is below :math:`(1 - \mathrm{rtol})\bar\rho` are halved, for at
+    most ``max_rounds`` rounds (reaching it leaves a wider, still valid, bound). G bounds
+    :math:`\|\ddot\zeta_{ref}\|`: twice its maximum on a 4001-point grid, the one assumption
+    shared with :func:`curved_exact_map_radius` (it enters through the :math:`h^2` term only).
+
+    Returns:
+      ``min(rho_up, min over boxes)``: every initial error of the slice below it keeps
+      :math:`\|C\zeta(t)\| \ge \epsilon` for every t in [0, T].
+    """
+    if not np.isfinite(rho_up):
+        return rho_up
+    G = 2.0 * float(jnp.max(_zeta_ref_accel(ctrl, params, jnp.linspace(0.0, t_final, ACCEL_GRID))))
+    h = np.full(n_t, 0.5 * t_final / n_t)
+    t_c = (np.arange(n_t) + 0.5) * (t_final / n_t)
+    rho, g = jnp.asarray(rho_up), jnp.asarray(G)
+    closed = rho_up
+    for _ in range(max_rounds):
+        (lb,) = fixed_blocks(
+            lambda tc, hh: (_linear_boxes(ctrl, params, P, C, eps_a, rho, g, tc, hh),), (t_c, h), BOX_BLOCK
+        )
+        done = lb >= (1.0 - rtol) * rho_up
+        if done.any():
+            closed = min(closed, float(lb[done].min()))
+        if done.all():
+            return closed
+        t_c, h = np.concatenate([t_c[~done] - 0.5 * h[~done], t_c[~done] + 0.5 * h[~done]]), np.tile(0.5 * h[~done], 2)
+    return min(closed, float(lb[~done].min()))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _linear_boxes(ctrl, params, P, C, eps, rho_up, G, t_c, h):
+    """:func:`linear_lower_bound`'s bound per time box (centre ``t_c``, half-width ``h``)."""
+    A = ctrl.error_matrix(params.gains)
+    nA = _math.spectral_norm(A)
+    r = ctrl.relative_degree
+    zeta = lambda t: C @ ctrl.reference_jet(t, params)[:r].reshape(-1)
+
+    def one(tc, hh):
+        CE = C @ _math.expm_small(A * tc)
+        move = (
+            hh * jnp.linalg.norm(jax.jacfwd(zeta)(tc))
+            + 0.5 * hh**2 * G
+            + _math.spectral_norm(CE) * jnp.expm1(nA * hh) * rho_up
+        )
+        return min_norm_to_ball(CE @ P, zeta(tc), eps + move)[0]
+
+    return jax.vmap(one)(t_c, h)
 
 
 def _ball_problem(ctrl, params, P, C, t, Phi=None, n_phi=None):
