@@ -17,7 +17,12 @@ else keyword-only; each returns a NamedTuple with fixed fields:
   distances to the singular set, the empirical radius per direction;
 * :mod:`~wmrjax.certify.falsify` -- falsification (an upper bound): instantaneous, sampling
   and gradient stages, failures confirmed on a finer simulation;
-* :mod:`~wmrjax.certify.pipeline` -- :func:`analyse`, all of the above in one report.
+* :mod:`~wmrjax.certify.pipeline` -- :func:`analyse`, all of the above in one report;
+* :mod:`~wmrjax.certify.real_loop` -- what each radius covers (:class:`Feature`, :class:`Kind`)
+  and the problem's own loop (limits, a digital controller, mismatch, noise): its falsified
+  radius and the problem's certificate (:func:`problem_certificate`).
+
+Every radius above but the real loop's is the *nominal continuous* loop's.
 
 Only dynamic linearizing laws are certified: a static law raises ``ValueError``.
 """
@@ -61,3 +66,12 @@ from wmrjax.certify.lemma2 import (  # noqa: F401
     transition_steps,
 )
 from wmrjax.certify.pipeline import CertificationReport, EmpiricalCheck, analyse, plain  # noqa: F401
+from wmrjax.certify.real_loop import (  # noqa: F401
+    Feature,
+    Kind,
+    RealLoopFalsified,
+    plant_features,
+    problem_certificate,
+    radius_labels,
+    real_loop_falsified_radius,
+)

@@ -1,0 +1,163 @@
+"""The problem's own loop (issue 54): what each radius covers, the exact map's proved lower bound
+between its grid's times, and the falsifier on the plant the problem describes.
+
+Oracles: the closed-form error map with SciPy's ``expm`` on a time grid ten times finer than
+the map's (the lower bound is never undercut, the attained radius is); the exact map itself (a
+plant whose limits never engage is the nominal loop: its falsified radius must meet the map);
+and a SciPy DOP853 integration of the saturated (2,0) loop written here (e = 0: the law's
+velocity row is chi1 (-sin theta, cos theta), so the distance to the singular set is |chi1|).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.linalg
+
+import wmrjax.certify as C
+from wmrjax.problem import Problem
+
+EPS = 0.01
+T_FINAL = 6.0
+RADIUS, OMEGA = 2.0, 0.5  # the circle reference's defaults: 1 m/s, counter-clockwise
+
+
+def _problem(plant=None):
+    data = {
+        "controller": {"law": "dynamic", "robot": "(2,0)", "level": "velocity"},
+        "geometry": {"e": 0.0},
+        "reference": {"family": "circle"},
+        "gains": {"poles": 1.0},
+        "initial": {"space": "output", "x": 0.1},
+        "simulation": {"t_final": T_FINAL, "dt": 0.02},
+    }
+    if plant is not None:
+        data["plant"] = plant
+    return Problem.from_dict(data)
+
+
+@pytest.fixture(scope="module")
+def nominal():
+    setting = _problem().setting("certification")
+    params = setting.params()
+    exact = {
+        b: C.exact_map_radius(setting.ctrl, params, t_final=T_FINAL, eps=EPS, basis=b, n_t=601)
+        for b in ("full", "position")
+    }
+    return setting, params, exact
+
+
+def _reference_jet(t):
+    """(P_ref, P_ref') of the circle, flat (4,)."""
+    s, c = np.sin(OMEGA * t), np.cos(OMEGA * t)
+    return np.array([RADIUS * c, RADIUS * s, -RADIUS * OMEGA * s, RADIUS * OMEGA * c])
+
+
+def _min_velocity(setting, params, s, ts):
+    """min over ``ts`` of ||velocity row of zeta_ref(t) + expm(A t) s|| (the closed-form distance)."""
+    A = np.asarray(setting.ctrl.error_matrix(params.gains))
+    return min(np.linalg.norm((_reference_jet(t) + scipy.linalg.expm(A * t) @ s)[2:]) for t in ts)
+
+
+def test_exact_map_lower_bound_is_never_undercut_and_the_radius_is_attained(nominal):
+    setting, params, exact = nominal
+    ts = np.linspace(0.0, T_FINAL, 6001)  # ten times the map's 601 points
+    rng = np.random.default_rng(0)
+    for basis, em in exact.items():
+        assert em.lower_bound is not None and em.lower_bound <= float(em.radius)
+        assert em.gap < 3e-3  # the time boxes are halved until within rtol = 2e-3
+        P = np.asarray(C.slice_basis(setting.ctrl, basis))
+        worst = np.asarray(em.worst_error) / np.linalg.norm(em.worst_error)
+        dirs = np.concatenate([worst[None], rng.normal(size=(40, P.shape[1])) @ P.T])
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        for d in dirs:  # inside the proved ball: eps away at every time of the fine grid
+            assert _min_velocity(setting, params, 0.999 * em.lower_bound * d, ts) >= EPS
+        # the worst error just outside the attained radius comes within eps (near its time)
+        near = np.linspace(max(0.0, float(em.argmin) - 0.05), min(T_FINAL, float(em.argmin) + 0.05), 401)
+        assert _min_velocity(setting, params, 1.001 * np.asarray(em.worst_error), near) < EPS
+
+
+def test_without_a_plant_the_problem_certificate_is_the_exact_maps_proved_bound(nominal):
+    setting, params, exact = nominal
+    assert C.plant_features(setting) == ()
+    pc = C.problem_certificate(setting, params, exact, eps=EPS)
+    assert pc["loop"] == ["nominal"]
+    for basis, em in exact.items():
+        b = pc[basis]
+        assert b["radius"] == pytest.approx(em.lower_bound, rel=1e-12)
+        assert b["covers"] == ["nominal"] and b["kind"] == "proved" and b["not_covered"] == []
+        assert np.allclose(b["worst_error"], np.asarray(em.worst_error))
+
+
+def test_plant_features_name_every_section_key():
+    assert C.plant_features(_problem({"input_limit": [1.5, 1.0]}).setting("c")) == (C.Feature.INPUT_LIMIT,)
+    full = {
+        "input_limit": [1.5, 1.0],
+        "control_period": 0.1,
+        "input_scale": [0.95, 1.05],
+        "geometry_scale": [1.0, 1.1],
+        "noise_std": [0.01],
+    }
+    setting = _problem(full).setting("c")
+    assert [str(f) for f in C.plant_features(setting)] == [
+        "input_limit",
+        "control_period",
+        "input_scale",
+        "geometry_scale",
+        "noise",
+    ]
+
+
+def test_a_plant_whose_limits_never_engage_is_falsified_at_the_exact_maps_radius(nominal):
+    _, _, exact = nominal
+    setting = _problem({"input_limit": [100.0, 100.0]}).setting("certification")
+    params = setting.params()
+    for basis, em in exact.items():
+        f = C.real_loop_falsified_radius(
+            setting, params, eps=EPS, r_max=1.1 * float(em.radius), basis=basis, directions=[np.asarray(em.worst_error)]
+        )
+        # a confirmed failure can never be inside the proved ball; the map is tight, so it is found near it
+        assert em.lower_bound <= f.radius <= 1.02 * float(em.radius)
+        assert f.distance < EPS and f.plant["input_limit"] == [100.0, 100.0]
+
+
+def _saturated_loop(limit):
+    """The (2,0) law at e = 0 (P'' = v, chi1' = (-s, c).v, theta' = -(c, s).v / chi1) around a
+    plant that clips (eta1, eta2) = (chi1, theta') to +-limit: state (x, y, theta, chi1)."""
+
+    def field(t, z):
+        x, y, th, chi = z
+        s, c = np.sin(th), np.cos(th)
+        ref = _reference_jet(t)
+        acc = -(OMEGA**2) * ref[:2]
+        v = acc - 2.0 * (chi * np.array([-s, c]) - ref[2:]) - (np.array([x, y]) - ref[:2])  # poles -1, -1
+        eta1, eta2 = np.clip([chi, -(c * v[0] + s * v[1]) / chi], -limit, limit)
+        return [-eta1 * s, eta1 * c, eta2, -s * v[0] + c * v[1]]
+
+    return field
+
+
+def test_binding_limits_fail_inside_the_nominal_certificate_confirmed_by_scipy(nominal):
+    _, _, exact = nominal
+    limit = np.array([1.3, 0.8])
+    setting = _problem({"input_limit": limit.tolist()}).setting("certification")
+    params = setting.params()
+    pc = C.problem_certificate(setting, params, exact, eps=EPS, n_directions=16)
+    assert pc["loop"] == ["input_limit"]
+    b = pc["position"]
+    assert b["radius"] is None and b["kind"] is None and b["not_covered"] == ["input_limit"]
+    assert b["falsified_radius"] < b["nominal_radius"]  # saturation fails inside the nominal ball
+    (msg,) = [m for m in C.real_loop.plant_warnings(pc) if "position" in m]
+    assert "does not hold for this problem's loop (input_limit)" in msg
+    # the reported failure, integrated independently (DOP853): |chi1| dips below eps (inside one
+    # of its steps, where an event would not see the sign change twice: its dense output does)
+    e0 = np.asarray(b["falsified"]["initial_error"])
+    p0 = _reference_jet(0.0) + e0
+    z0 = [p0[0], p0[1], np.arctan2(-p0[2], p0[3]), np.linalg.norm(p0[2:])]
+    sol = scipy.integrate.solve_ivp(
+        _saturated_loop(limit), (0.0, T_FINAL), z0, method="DOP853", rtol=1e-10, atol=1e-12, dense_output=True
+    )
+    chi = np.abs(sol.sol(np.linspace(0.0, T_FINAL, 60001))[3])
+    assert chi.min() < EPS
+    assert chi.min() == pytest.approx(b["falsified"]["distance"], abs=2e-4)  # the quarter-step run's, to RK4's error

@@ -1,0 +1,468 @@
+r"""The loop the user has: what each certificate covers, and the falsifier on the problem's plant.
+
+A certificate of :mod:`wmrjax.certify` is a claim about one closed loop. The exact map and
+Lemma 2 are about the *nominal continuous* loop: the law's own model, exact actuators,
+continuous feedback. A problem's ``[plant]`` describes another loop: saturating actuators
+(``input_limit``), a digital controller with a zero-order hold (``control_period``),
+actuators and geometry that differ from the law's (``input_scale``, ``geometry_scale``) and
+measurement noise (``noise_std``). A run of that loop from inside the nominal certificate
+can fail (issue 54: a 20 Hz hold on the S-path fails at 0.98 of the nominal radius).
+
+* :class:`Feature` names what a loop has beyond the nominal one, :func:`plant_features` lists a
+  problem's, and :class:`Kind` says how a radius is known (proved for every initial error of
+  the ball, proved at a grid's times only, attained by an initial error that fails, or estimated
+  from simulations);
+* :func:`real_loop_falsified_radius` searches the problem's own loop (every listed plant value,
+  with its period, and noise realisations) for initial errors that come within eps of the
+  singular set: an upper bound on the radius any certificate of that loop can have;
+* :func:`problem_certificate` is the problem's certificate per slice: a radius only where a
+  proof covers every feature of its plant, labelled with what it covers, beside the real
+  loop's falsified radius.
+
+No proof here covers a plant feature yet: a problem with a ``[plant]`` gets no proved radius
+(``radius`` None, the features listed as not covered) and the real loop's falsified radius, so
+that the nominal radius is never printed as the answer for a loop it does not describe.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wmrjax._validate import check_int, check_positive
+from wmrjax.certify.empirical import sample_sphere
+from wmrjax.certify.exact_map import singular_rows, slice_basis
+from wmrjax.certify.lemma2 import check_dynamic
+from wmrjax.problem import Space, Task, law_state, place
+from wmrjax.simulate import fixed_blocks
+
+
+class Feature(enum.StrEnum):
+    """What a closed loop has; a certificate ``covers`` a list of them."""
+
+    NOMINAL = "nominal"  # the law's own model, exact actuators, continuous feedback
+    INPUT_LIMIT = "input_limit"  # saturating actuators
+    CONTROL_PERIOD = "control_period"  # a digital controller: sampled, zero-order hold
+    INPUT_SCALE = "input_scale"  # actuators that scale the command
+    GEOMETRY_SCALE = "geometry_scale"  # a plant geometry other than the law's
+    NOISE = "noise"  # measurement noise
+
+
+class Kind(enum.StrEnum):
+    """How a radius is known."""
+
+    PROVED = "proved"  # every initial error of the ball keeps eps away at every t of [0, T]
+    PROVED_ON_TIME_GRID = "proved_on_time_grid"  # as PROVED, at the times of a grid only
+    ATTAINED = "attained"  # an initial error at this radius comes within eps: an upper bound
+    ESTIMATED = "estimated"  # from simulations: an upper bound (falsified) or a sampled radius
+
+
+def plant_features(setting) -> tuple:
+    """The :class:`Feature` s of a problem's ``[plant]`` beyond the nominal loop (empty: none).
+
+    Args:
+      setting: a :class:`wmrjax.problem.Setting`.
+    """
+    if not setting.plant:
+        return ()
+    pv = setting.axis("plant").payload
+    out = []
+    if np.isfinite(np.asarray(pv["limit"])).any():
+        out.append(Feature.INPUT_LIMIT)
+    if setting.control_period is not None:
+        out.append(Feature.CONTROL_PERIOD)
+    if np.any(np.asarray(pv["input_scale"]) != 1.0):
+        out.append(Feature.INPUT_SCALE)
+    if np.any(np.asarray(pv["geometry_scale"]) != 1.0):
+        out.append(Feature.GEOMETRY_SCALE)
+    if any(setting.noise_std):
+        out.append(Feature.NOISE)
+    return tuple(out)
+
+
+@dataclasses.dataclass(frozen=True)
+class _SingularDistance:
+    """``simulate``'s ``save_fn``: the law state's distance to the singular set in zeta coordinates
+    (static and hashable: the loop and the law's nominal geometry as Python floats)."""
+
+    system: Any
+    ctrl: Any
+    geometry: Any
+
+    def __call__(self, t, z, aux):
+        del t, aux
+        zl = law_state(self.system, z)
+        jet = self.ctrl.law.jet(zl, self.geometry)[0]
+        rows = singular_rows(self.ctrl)
+        if rows is None:
+            return self.ctrl.row.singular_distance(jet, self.geometry, 1.0)
+        return jnp.linalg.norm(jet.reshape(-1)[jnp.asarray(rows)])
+
+
+class RealLoopFalsified(NamedTuple):
+    """Result of :func:`real_loop_falsified_radius` (None where nothing failed).
+
+    Attributes:
+      radius: the smallest radius at which a run of the problem's loop came within eps of the
+        singular set (or failed), confirmed at a quarter of the step: an upper bound of any
+        certificate of that loop (estimated: the search may miss smaller failures).
+      initial_error: (r m,) that run's initial error (full output-error coordinates).
+      plant: that run's plant (input limit, input scale, geometry scale, noise realisation).
+      distance: its confirmed min_t distance to the singular set (0: the run failed).
+      searched_up_to: the largest radius simulated.
+      rollouts: runs simulated (confirmations included).
+      variants: plant values times noise realisations searched.
+      noise: how the noise was searched (a sentence), or None without noise.
+    """
+
+    radius: float | None
+    initial_error: np.ndarray | None
+    plant: dict | None
+    distance: float | None
+    searched_up_to: float
+    rollouts: int
+    variants: int
+    noise: str | None
+
+    def summary(self) -> dict:
+        """Plain JSON."""
+        return {
+            "radius": self.radius,
+            "initial_error": None if self.initial_error is None else [float(v) for v in self.initial_error],
+            "plant": self.plant,
+            "distance": self.distance,
+            "searched_up_to": self.searched_up_to,
+            "rollouts": self.rollouts,
+            "variants": self.variants,
+            "noise": self.noise,
+            "kind": str(Kind.ESTIMATED),
+        }
+
+
+def real_loop_falsified_radius(
+    setting,
+    params,
+    *,
+    eps: float,
+    r_max: float,
+    basis="full",
+    directions=(),
+    n_directions: int = 24,
+    n_grid: int = 8,
+    n_noise: int = 2,
+    n_bisect: int = 8,
+    n_refine: int = 4,
+    seed: int = 0,
+) -> RealLoopFalsified:
+    r"""Search the problem's own closed loop for initial errors that come within eps of the
+    singular set: the real loop's falsified radius (an upper bound, estimated).
+
+    The loop is :meth:`wmrjax.problem.Setting.run`'s: the law with the problem's gains, closed
+    around its plant (limits, input and geometry scales, a zero-order hold at its period,
+    measurement noise). Every listed plant value is searched (a list of scales: every value,
+    its range's ends included), each with ``n_noise`` Gaussian noise realisations (seeds from
+    ``[plant] noise_seed``) when the plant has noise: realisations, not a worst case within a
+    bound. Initial errors are ``rho P d`` for unit directions d of the slice (``directions``
+    first, e.g. the nominal exact map's worst error, then ``n_directions`` random ones), and
+    the distance to the singular set of the law's state is measured at every RK4 step (at every
+    sample of a digital controller: what it sees, and where ``simulate`` can save).
+
+    Stages: every direction and plant variant on a grid of ``n_grid`` radii up to ``r_max`` (a
+    given error's ray also at :data:`FINE_AROUND` times its norm); the ``n_refine`` (direction,
+    variant) pairs failing at the smallest radius are bisected ``n_bisect`` times between their
+    last safe and first failing radius; the smallest failure is confirmed at a quarter of the
+    step (the same controller period).
+
+    Args:
+      setting: the problem's :class:`wmrjax.problem.Setting` (one value per axis but the plant's).
+      params: the law's parameters (``setting.params(gains=...)``).
+      eps: the margin [zeta units]; r_max: the largest radius searched.
+      basis: the slice (:func:`wmrjax.certify.slice_basis`).
+      directions: (n, r m) initial errors whose directions are searched first (projected on the slice).
+      n_directions, n_grid, n_noise, n_bisect, n_refine: the search's sizes; seed: its PRNG seed.
+
+    Returns:
+      :class:`RealLoopFalsified`.
+    """
+    ctrl = setting.ctrl
+    check_dynamic(ctrl, params)
+    check_positive("eps", eps)
+    check_positive("r_max", r_max)
+    for name, v, lo in (("n_directions", n_directions, 0), ("n_grid", n_grid, 1), ("n_noise", n_noise, 1)):
+        check_int(name, v, lo)
+    P = np.asarray(slice_basis(ctrl, basis))
+    dirs, own = _directions(P, directions, n_directions, seed)
+    variants, noise = _variants(setting, n_noise)
+    search = _Search(setting, params, P, eps)
+    grid = r_max * np.arange(1, n_grid + 1) / n_grid
+    # per direction, its radii: the grid, and around a given error's own norm a fine one (the
+    # exact map's worst error fails only within a few per mille beyond it: the ray grazes the
+    # eps-ball of the singular set there)
+    rays = [np.unique(np.concatenate([grid, n * FINE_AROUND])) if n > 0 else grid for n in own]
+    pairs = [(d, v, r) for d in range(len(dirs)) for v in range(len(variants)) for r in rays[d]]
+    d_i, v_i, r_i = (np.array(x) for x in zip(*pairs))
+    bad = search.distances(dirs[d_i], r_i, [variants[k] for k in v_i]) < eps
+    cands = []  # (first failing radius, last safe radius below it, direction, variant)
+    for d in range(len(dirs)):
+        for v in range(len(variants)):
+            on = (d_i == d) & (v_i == v)
+            if bad[on].any():
+                k = int(np.argmax(bad[on]))
+                cands.append((r_i[on][k], r_i[on][k - 1] if k else 0.0, d, v))
+    if not cands:
+        return RealLoopFalsified(None, None, None, None, float(r_max), search.rollouts, len(variants), noise)
+    cands = sorted(cands)[:n_refine]
+    hi, lo = np.array([c[0] for c in cands]), np.array([c[1] for c in cands])
+    which_d, which_v = [c[2] for c in cands], [variants[c[3]] for c in cands]
+    for _ in range(n_bisect):
+        mid = 0.5 * (lo + hi)
+        fail = search.distances(dirs[which_d], mid, which_v) < eps
+        lo, hi = np.where(fail, lo, mid), np.where(fail, mid, hi)
+    return _confirmed(search, dirs, cands, hi, variants, r_max, noise)
+
+
+# radii around a given initial error's norm searched on its ray (besides the common grid)
+FINE_AROUND = np.array([0.999, 1.0005, 1.001, 1.002, 1.005, 1.01, 1.02, 1.05])
+
+
+def _confirmed(search, dirs, cands, hi, variants, r_max, noise) -> RealLoopFalsified:
+    """The smallest failure of the bisected candidates ``cands`` (at radii ``hi``) confirmed at a
+    quarter of the step; one that does not confirm falls back to its failing grid radius, confirmed."""
+    for k in np.argsort(hi):
+        first, _, d, v = cands[k]
+        for rad in (hi[k], first):
+            (dist,) = search.distances(dirs[[d]], np.array([rad]), [variants[v]], fine=True)
+            if dist < search.eps:
+                return RealLoopFalsified(
+                    float(rad),
+                    np.asarray(search.P @ (rad * dirs[d])),
+                    variants[v].summary(),
+                    float(dist),
+                    float(r_max),
+                    search.rollouts,
+                    len(variants),
+                    noise,
+                )
+    return RealLoopFalsified(None, None, None, None, float(r_max), search.rollouts, len(variants), noise)
+
+
+def _directions(P, directions, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(dirs, norms)``: (D, k) unit directions of the slice, the given initial errors projected on
+    it, then ``n`` random ones; and (D,) the given errors' norms in the slice (0 for the random)."""
+    given = np.asarray(directions, float).reshape(-1, P.shape[0]) @ P if len(directions) else np.zeros((0, P.shape[1]))
+    norms = np.linalg.norm(given, axis=1)
+    keep = np.isfinite(norms) & (norms > 0)
+    given, norms = given[keep] / norms[keep, None], norms[keep]
+    rand = np.asarray(sample_sphere(jax.random.PRNGKey(seed), n, P.shape[1])) if n else np.zeros((0, P.shape[1]))
+    return np.concatenate([given, rand]), np.concatenate([norms, np.zeros(len(rand))])
+
+
+class _Variant(NamedTuple):
+    """One plant value of the problem's axis, with one noise realisation."""
+
+    index: int  # row of the plant axis
+    limit: np.ndarray
+    input_scale: float
+    geometry_scale: float
+    noise: int | None  # realisation (None: no noise)
+
+    def summary(self) -> dict:
+        return {
+            "input_limit": [float(v) if np.isfinite(v) else None for v in self.limit],
+            "input_scale": float(self.input_scale),
+            "geometry_scale": float(self.geometry_scale),
+            "noise_realisation": self.noise,
+        }
+
+
+def _variants(setting, n_noise: int) -> tuple[list, str | None]:
+    """Every plant value of the setting's axis times the noise realisations, and how noise was searched."""
+    pv = setting.axis("plant").payload
+    noisy = bool(setting.plant and setting.control_period is not None and any(setting.noise_std))
+    reals = list(range(n_noise)) if noisy else [None]
+    rows = range(len(np.asarray(pv["input_scale"])))
+    out = [
+        _Variant(i, np.asarray(pv["limit"])[i], pv["input_scale"][i], pv["geometry_scale"][i], k)
+        for i in rows
+        for k in reals
+    ]
+    noise = (
+        f"{n_noise} Gaussian realisations of std {list(setting.noise_std)} per plant value (not a worst case)"
+        if noisy
+        else None
+    )
+    return out, noise
+
+
+class _Search:
+    """Batched runs of the problem's loop from initial errors ``rho P d``: their min distance."""
+
+    BLOCK = 256  # runs per compiled call (the last block padded): one program whatever the count
+
+    def __init__(self, setting, params, P, eps: float):
+        self.setting, self.params, self.P, self.eps = setting, params, P, float(eps)
+        self.fine = dataclasses.replace(setting, dt=setting.dt / 4, n_steps=setting.n_steps * 4)
+        self.rollouts = 0
+        self.base = setting.run_inputs(0)
+        self.branch = float(setting.ctrl.reference_branch(params))
+        g = params.geometry
+        self.geometry = type(g)(*(float(v) for v in g))
+        self.key = jax.random.PRNGKey(setting.noise_seed)
+
+    def distances(self, dirs, radii, variants, fine: bool = False) -> np.ndarray:
+        """(N,) min_t distance (0: failed) of the runs from ``radii[i] * P @ dirs[i]`` on ``variants[i]``."""
+        s = self.fine if fine else self.setting
+        errs = np.asarray(radii, float)[:, None] * (np.asarray(dirs) @ self.P.T)
+        lim = np.stack([v.limit for v in variants]).astype(float)
+        sc = np.array([[v.input_scale, v.geometry_scale] for v in variants], float)
+        nk = np.array([0 if v.noise is None else v.noise for v in variants], np.int32)
+        self.rollouts += len(errs)
+        dist_fn = _SingularDistance(s.system(), s.ctrl, self.geometry)
+        program = lambda *b: (_runs(s, dist_fn, self.base, self.params, self.branch, self.key, *b),)
+        block = min(self.BLOCK, len(errs))
+        return fixed_blocks(program, (errs, lim, sc, nk), block)[0]
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _runs(setting, dist_fn, base, params, branch, key, errs, lim, sc, nk):
+    """min_t distance to the singular set (0: failed) of the runs of ``setting``'s loop from the
+    output errors ``errs`` with plant limits ``lim``, scales ``sc`` (input, geometry) and noise
+    realisations ``nk`` (one compiled program per setting, step and block size)."""
+    ctrl = setting.ctrl
+
+    def one(e0, limit, scales, k):
+        z0 = place(ctrl, params, e0, Space.OUTPUT, Task.POSTURE, branch)
+        p = dict(base, z0=z0, limit=limit, input_scale=scales[0], geometry_scale=scales[1])
+        tr, _ = setting.run(
+            p,
+            save_every=setting.steps_per_sample or 1,
+            error_tol=math.inf,
+            noise_key=jax.random.fold_in(key, k),
+            save_fn=dist_fn,
+        )
+        d = jnp.min(jnp.where(tr.valid, tr.state, jnp.inf))
+        return jnp.where(tr.diagnostics.failed, 0.0, d)
+
+    return jax.vmap(one)(errs, lim, sc, nk)
+
+
+# every radius of the certification's summary: what loop it covers and how it is known
+RADIUS_LABELS = {
+    "radius_paper": Kind.PROVED_ON_TIME_GRID,
+    "radius_lyapunov": Kind.PROVED_ON_TIME_GRID,
+    "radius_exact_norm": Kind.PROVED_ON_TIME_GRID,
+    "radius_exact_map": Kind.ATTAINED,
+    "radius_exact_map_lower_bound": Kind.PROVED,
+    "radius_exact_map_position_slice": Kind.ATTAINED,
+    "radius_exact_map_position_slice_lower_bound": Kind.PROVED,
+    "empirical_radius_position_slice": Kind.ESTIMATED,
+}
+
+
+def radius_labels(block: dict) -> dict:
+    """``{key: {"covers": ["nominal"], "kind": ...}}`` for every radius of a nominal
+    certification's summary block (:meth:`wmrjax.certify.CertificationReport.summary`) present
+    in it: Lemma 2 (min of F over a time grid), the exact map (attained, and its proved lower
+    bound), the empirical radius and the falsified ones (estimated)."""
+    out = {k: {"covers": [str(Feature.NOMINAL)], "kind": str(kind)} for k, kind in RADIUS_LABELS.items() if k in block}
+    for k in ("falsified_full", "falsified_position_slice"):
+        if k in block:
+            out[k] = {"covers": [str(Feature.NOMINAL)], "kind": str(Kind.ESTIMATED)}
+    return out
+
+
+SLICES = {"full": "radius_exact_map", "position": "radius_exact_map_position_slice"}
+
+
+def problem_certificate(
+    setting, params, exact: dict, *, eps: float, falsified: dict | None = None, seed: int = 0, log=None, **search
+) -> dict:
+    """The problem's certificate per slice (``full``, ``position``): the radius a proof gives for
+    the loop the problem describes, what it covers, and the real loop's falsified radius.
+
+    Without a ``[plant]`` the problem's loop is the nominal one: its radius is the exact map's
+    proved lower bound (``covers`` ["nominal"], ``kind`` "proved"). With one, no proof in this
+    package covers its features yet, so ``radius`` and ``kind`` are None, ``not_covered`` lists
+    the features, and the nominal radius is reported beside it as the nominal loop's.
+
+    Args:
+      setting: the problem's :class:`wmrjax.problem.Setting`; params: the law's parameters.
+      exact: slice -> :class:`wmrjax.certify.ExactMapRadius` of the nominal loop.
+      eps: the margin; seed: the falsifier's seed; log: progress messages (or None).
+      falsified: slice -> the nominal falsifier's :class:`wmrjax.certify.FalsifiedRadius` (or
+        None): the problem loop's falsified radius where it is the nominal loop.
+      search: :func:`real_loop_falsified_radius`'s sizes.
+
+    Returns:
+      Plain JSON: per slice ``radius``, ``worst_error``, ``covers``, ``not_covered``, ``kind``,
+      ``falsified_radius`` and ``falsified`` (the real loop's search), ``nominal_radius``; and
+      ``loop`` (the features of the problem's loop).
+    """
+    features = plant_features(setting)
+    out = {"loop": [str(f) for f in features] or [str(Feature.NOMINAL)]}
+    for basis, em in exact.items():
+        nominal = float(em.radius) if em.lower_bound is None else float(em.lower_bound)
+        kind = Kind.ATTAINED if em.lower_bound is None else Kind.PROVED
+        block = {"nominal_radius": nominal, "nominal_kind": str(kind)}
+        if features:
+            r_max = 1.1 * max(float(em.radius), 1e-12)
+            f = real_loop_falsified_radius(
+                setting,
+                params,
+                eps=eps,
+                r_max=r_max,
+                basis=basis,
+                directions=[np.asarray(em.worst_error)],
+                seed=seed,
+                **search,
+            )
+            if log is not None:
+                log(
+                    f"  problem's loop ({basis}): falsified radius {f.radius} ({f.rollouts} runs, {f.variants} plant variants)"
+                )
+            block.update(
+                radius=None,
+                worst_error=None,
+                covers=[],
+                not_covered=[str(x) for x in features],
+                kind=None,
+                falsified_radius=f.radius,
+                falsified=f.summary(),
+            )
+        else:
+            block.update(
+                radius=nominal,
+                worst_error=[float(v) for v in np.asarray(em.worst_error)],
+                covers=[str(Feature.NOMINAL)],
+                not_covered=[],
+                kind=str(kind),
+                falsified_radius=None if (falsified or {}).get(basis) is None else falsified[basis].radius,
+            )
+        out[basis] = block
+    return out
+
+
+def plant_warnings(problem_block: dict) -> list:
+    """A message per slice whose nominal radius is above the problem loop's falsified radius: the
+    nominal certificate does not hold for the loop the problem describes (a warning, not an alarm:
+    it is a certificate of another loop)."""
+    msgs = []
+    for basis in SLICES:
+        b = problem_block.get(basis)
+        if b is None or b.get("falsified_radius") is None or b["radius"] is not None:
+            continue
+        if b["nominal_radius"] > b["falsified_radius"]:
+            p = b["falsified"]["plant"]
+            msgs.append(
+                f"the nominal {basis} radius {b['nominal_radius']:.4g} does not hold for this problem's loop "
+                f"({', '.join(b['not_covered'])}): a run of it from radius {b['falsified_radius']:.4g} comes within "
+                f"eps of the singular set (plant {p})"
+            )
+    return msgs
