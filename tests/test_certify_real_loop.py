@@ -55,9 +55,13 @@ def _reference_jet(t):
 
 
 def _min_velocity(setting, params, s, ts):
-    """min over ``ts`` of ||velocity row of zeta_ref(t) + expm(A t) s|| (the closed-form distance)."""
+    """(D,) min over ``ts`` of ||velocity row of zeta_ref(t) + expm(A t) s|| (the closed-form
+    distance) for the initial errors ``s`` (D, 4)."""
     A = np.asarray(setting.ctrl.error_matrix(params.gains))
-    return min(np.linalg.norm((_reference_jet(t) + scipy.linalg.expm(A * t) @ s)[2:]) for t in ts)
+    E = np.stack([scipy.linalg.expm(A * t) for t in ts])  # (T, 4, 4)
+    jets = np.stack([_reference_jet(t) for t in ts])  # (T, 4)
+    zeta = jets[:, None, :] + np.einsum("tij,dj->tdi", E, np.atleast_2d(s))
+    return np.linalg.norm(zeta[..., 2:], axis=-1).min(axis=0)
 
 
 def test_exact_map_lower_bound_is_never_undercut_and_the_radius_is_attained(nominal):
@@ -71,11 +75,11 @@ def test_exact_map_lower_bound_is_never_undercut_and_the_radius_is_attained(nomi
         worst = np.asarray(em.worst_error) / np.linalg.norm(em.worst_error)
         dirs = np.concatenate([worst[None], rng.normal(size=(40, P.shape[1])) @ P.T])
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-        for d in dirs:  # inside the proved ball: eps away at every time of the fine grid
-            assert _min_velocity(setting, params, 0.999 * em.lower_bound * d, ts) >= EPS
+        # inside the proved ball: eps away at every time of the fine grid
+        assert np.all(_min_velocity(setting, params, 0.999 * em.lower_bound * dirs, ts) >= EPS)
         # the worst error just outside the attained radius comes within eps (near its time)
         near = np.linspace(max(0.0, float(em.argmin) - 0.05), min(T_FINAL, float(em.argmin) + 0.05), 401)
-        assert _min_velocity(setting, params, 1.001 * np.asarray(em.worst_error), near) < EPS
+        assert _min_velocity(setting, params, 1.001 * np.asarray(em.worst_error), near)[0] < EPS
 
 
 def test_without_a_plant_the_problem_certificate_is_the_exact_maps_proved_bound(nominal):
@@ -161,3 +165,39 @@ def test_binding_limits_fail_inside_the_nominal_certificate_confirmed_by_scipy(n
     chi = np.abs(sol.sol(np.linspace(0.0, T_FINAL, 60001))[3])
     assert chi.min() < EPS
     assert chi.min() == pytest.approx(b["falsified"]["distance"], abs=2e-4)  # the quarter-step run's, to RK4's error
+
+
+def test_real_loop_distances_refuses_bad_input_before_running():
+    setting = _problem({"input_limit": [1.3, 0.8]}).setting("c")
+    params = setting.params()
+    with pytest.raises(ValueError, match=r"initial_errors must be \(N, 4\)"):
+        C.real_loop_distances(setting, params, np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="plant must index the setting's 1 plant values, got 1"):
+        C.real_loop_distances(setting, params, np.zeros((1, 4)), plant=1)
+
+
+def test_the_tuner_says_its_radii_are_the_nominal_loops():
+    from tuning import certified
+
+    assert certified.problem_loop(_problem().setting("c")) == {
+        "features": [],
+        "covered": True,
+        "note": "the problem's loop is the nominal one",
+    }
+    loop = certified.problem_loop(_problem({"input_limit": [1.3, 0.8], "control_period": 0.1}).setting("c"))
+    assert loop["features"] == ["input_limit", "control_period"] and not loop["covered"]
+    assert "no proof covers this problem's input_limit, control_period" in loop["note"]
+
+
+def test_the_plant_table_runs_each_feature_alone_then_together():
+    from experiments.plant_table import loops
+
+    plant = {"input_limit": [2.0, 1.5], "control_period": 0.05, "noise_std": [0.01]}
+    assert [label for label, _ in loops(plant)] == [
+        "nominal",
+        "input_limit",
+        "control_period",
+        "input_limit + control_period",
+        "whole [plant]",
+    ]
+    assert loops({"input_limit": [2.0, 1.5]}) == [("nominal", None), ("input_limit", {"input_limit": [2.0, 1.5]})]

@@ -260,14 +260,21 @@ def radii(setting, gains, *, eps: float, falsify=False, seed: int = 0, n_starts:
     params = setting.params(gains=gains)
     report = certify.lemma2(ctrl, params, t_final=T, eps=eps)
     out = {"eps": eps, "t_final": T, "lemma2": {}}
+    nominal = [str(certify.Feature.NOMINAL)]
     for name, c in report.certificates().items():
         label = SCHEDULE_K2_LABEL if gains.time_varying else K2_LABELS[name]
-        out["lemma2"][name] = {"radius": float(c.radius), "label": label}
+        out["lemma2"][name] = {
+            "radius": float(c.radius),
+            "label": label,
+            "covers": nominal,
+            "kind": str(certify.Kind.PROVED_ON_TIME_GRID),
+        }
     certified = max(v["radius"] for v in out["lemma2"].values())
     keys = jax.random.split(jax.random.PRNGKey(seed))
     for basis, key in zip(SLICES, keys):
         em = certify.exact_map_radius(ctrl, params, t_final=T, eps=eps, basis=basis)
-        block = {"radius": float(em.radius), "label": f"exact map ({basis})"}
+        block = {"radius": float(em.radius), "label": f"exact map ({basis})", "covers": nominal}
+        block["kind"] = str(certify.Kind.ATTAINED)  # its lower bound (proved) below, where there is one
         if em.lower_bound is not None:
             block["lower_bound"] = float(em.lower_bound)
         block["worst_error_rollouts"] = worst_error_rollouts(setting, params, em, eps)
@@ -279,6 +286,24 @@ def radii(setting, gains, *, eps: float, falsify=False, seed: int = 0, n_starts:
             block["falsified_over_exact"] = None if f.radius is None else float(f.radius) / float(em.radius)
         out[f"exact_map_{basis}"] = block
     return out
+
+
+def problem_loop(setting) -> dict:
+    """What the radii above cover against the problem's loop: its plant features
+    (:func:`wmrjax.certify.plant_features`) and whether a proof covers them (not yet for any:
+    every radius of the tuner, and its requirement, is the nominal continuous loop's)."""
+    features = [str(f) for f in certify.plant_features(setting)]
+    return {
+        "features": features,
+        "covered": not features,
+        "note": (
+            "every radius here and the requirement are the nominal continuous loop's; no proof covers "
+            f"this problem's {', '.join(features)} (python -m experiments.certify gives the problem "
+            "loop's falsified radius)"
+            if features
+            else "the problem's loop is the nominal one"
+        ),
+    }
 
 
 CONFIRM_SCALES = (0.99, 1.01)  # the exact map's worst initial error, simulated this much inside and outside

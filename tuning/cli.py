@@ -609,18 +609,21 @@ def _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify: bool):
     out = {
         "initial": certified.radii(setting, family.gains(paper_raw), **kw),
         "tuned": certified.radii(setting, family.gains(tuned_raw), **kw),
+        "problem_loop": certified.problem_loop(setting),
     }
     if kept is not None:
         path = [h["radius"] for h in res.history if "radius" in h]
         tuned = out["tuned"][f"exact_map_{req.slice}"]
-        held = tuned.get("lower_bound", tuned["radius"])
+        held = tuned["radius"]  # the attained radius, the one the tuner keeps (differentiable)
         out["requirement"] = {
             **req._asdict(),
             "required_radius": kept.required,
             "measured_by": kept.radius.label,
+            "covers": tuned["covers"],
             "initial_gains_radius": kept.initial,
             "smallest_radius_of_the_run": float(np.min(path)),
             "tuned_radius": held,
+            "tuned_radius_lower_bound": tuned.get("lower_bound"),
             "held": bool(held >= kept.required),
             "steps_projected": sum(1 for h in res.history if h.get("halvings") == -1),
             "steps_halved": sum(1 for h in res.history if h.get("halvings", 0) > 0),
@@ -987,6 +990,9 @@ def radius_change_lines(radii: dict) -> list:
             f"certified radius ({key.removeprefix('exact_map_')} slice, exact map, nominal loop, proved): "
             f"initial {r0:.4g} -> tuned {r1:.4g} ({change})"
         )
+    loop = radii.get("problem_loop")
+    if loop is not None and not loop["covered"]:
+        lines.append(f"note: {loop['note']}")
     return lines
 
 

@@ -116,7 +116,7 @@ def tune_point(problem, required: float, slice_: str, eps: float, log=print) -> 
     log(f"required {required:.4g}: tuned {list(map(float, family.positive(raw)))}; certifying (exact map, falsifier)")
     rad = certified.radii(setting, family.gains(raw), eps=eps, falsify=slice_, seed=settings.seed)
     block = rad[f"exact_map_{slice_}"]
-    held = block.get("lower_bound", block["radius"])
+    held = block["radius"]  # the attained radius, the one the tuner keeps (differentiable)
     agree = block["falsified_over_exact"]
     confirmed = block["worst_error_rollouts"]["confirmed"]
     return {

@@ -73,5 +73,6 @@ from wmrjax.certify.real_loop import (  # noqa: F401
     plant_features,
     problem_certificate,
     radius_labels,
+    real_loop_distances,
     real_loop_falsified_radius,
 )

@@ -26,6 +26,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 from wmrjax._validate import check_int, check_positive
 from wmrjax.certify.empirical import (
@@ -124,8 +125,6 @@ def _search_args(ctrl, params, radius, u0, windows, Q) -> tuple:
 
 @functools.partial(jax.jit, static_argnums=(0, 7, 8, 9, 10))
 def _falsify(ctrl, params, radius, us, windows, P, branch, dt, n_steps, steps, learning_rate):
-    import optax
-
     opt = optax.adam(optax.exponential_decay(learning_rate, steps, 0.01))
 
     def objective(u, window):
@@ -507,7 +506,6 @@ def _pad(u, Q):
 @functools.partial(jax.jit, static_argnums=(0, 5, 6))
 def _instantaneous(ctrl, params, radius, P, us, steps, learning_rate):
     """Adam on the sphere for the distance of zeta_ref(0) + radius P u/|u| to the singular set (no rollout)."""
-    import optax
 
     r = ctrl.relative_degree
     jet0 = ctrl.reference_jet(jnp.zeros((), us.dtype), params)[:r]

@@ -264,6 +264,34 @@ def _directions(P, directions, n: int, seed: int) -> tuple[np.ndarray, np.ndarra
     return np.concatenate([given, rand]), np.concatenate([norms, np.zeros(len(rand))])
 
 
+def real_loop_distances(setting, params, initial_errors, *, plant: int = 0, noise_realisation: int = 0) -> np.ndarray:
+    """min_t distance to the singular set (0: the run failed) of runs of the problem's own loop.
+
+    Args:
+      setting: the problem's :class:`wmrjax.problem.Setting`; params: the law's parameters.
+      initial_errors: (N, r m) output errors (full coordinates) at t = 0.
+      plant: the row of the setting's plant axis (its listed values' product).
+      noise_realisation: which Gaussian realisation of the noise (ignored without noise).
+
+    Returns:
+      (N,) distances, measured as in :func:`real_loop_falsified_radius`.
+    """
+    errs = np.asarray(initial_errors, float)
+    n = setting.ctrl.relative_degree * setting.ctrl.m
+    if errs.ndim != 2 or errs.shape[1] != n:
+        raise ValueError(f"initial_errors must be (N, {n}) output errors (rows of derivative order), got {errs.shape}")
+    variants, _ = _variants(setting, noise_realisation + 1)
+    per_row = len(variants) // len(np.asarray(setting.axis("plant").payload["input_scale"]))
+    check_int("plant", plant, 0)
+    if plant * per_row >= len(variants):
+        raise ValueError(f"plant must index the setting's {len(variants) // per_row} plant values, got {plant}")
+    v = variants[plant * per_row + (noise_realisation if per_row > 1 else 0)]
+    search = _Search(setting, params, np.eye(n), 0.0)
+    norms = np.linalg.norm(errs, axis=1)
+    dirs = errs / np.where(norms > 0, norms, 1.0)[:, None]
+    return search.distances(dirs, norms, [v] * len(errs))
+
+
 class _Variant(NamedTuple):
     """One plant value of the problem's axis, with one noise realisation."""
 
@@ -397,7 +425,8 @@ def problem_certificate(
       exact: slice -> :class:`wmrjax.certify.ExactMapRadius` of the nominal loop.
       eps: the margin; seed: the falsifier's seed; log: progress messages (or None).
       falsified: slice -> the nominal falsifier's :class:`wmrjax.certify.FalsifiedRadius` (or
-        None): the problem loop's falsified radius where it is the nominal loop.
+        None): the problem loop's falsified radius where it is the nominal loop; with a plant,
+        its failure's ray is searched first with the exact map's worst error's.
       search: :func:`real_loop_falsified_radius`'s sizes.
 
     Returns:
@@ -419,7 +448,7 @@ def problem_certificate(
                 eps=eps,
                 r_max=r_max,
                 basis=basis,
-                directions=[np.asarray(em.worst_error)],
+                directions=_known_failures(em, (falsified or {}).get(basis)),
                 seed=seed,
                 **search,
             )
@@ -446,6 +475,15 @@ def problem_certificate(
                 falsified_radius=None if (falsified or {}).get(basis) is None else falsified[basis].radius,
             )
         out[basis] = block
+    return out
+
+
+def _known_failures(em, nominal_falsified) -> list:
+    """The nominal loop's known worst initial errors of a slice: the exact map's, and the nominal
+    falsifier's failure where it found one (the real loop's search starts on their rays)."""
+    out = [np.asarray(em.worst_error)]
+    if nominal_falsified is not None and nominal_falsified.initial_error is not None:
+        out.append(np.asarray(nominal_falsified.initial_error))
     return out
 
 
