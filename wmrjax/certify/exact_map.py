@@ -240,8 +240,8 @@ def linear_lower_bound(
     :math:`t_c`, and :func:`min_norm_to_ball` with the inflated margin bounds its norm from
     below. Boxes whose bound is below :math:`(1 - \mathrm{rtol})\bar\rho` are halved, for at
     most ``max_rounds`` rounds (reaching it leaves a wider, still valid, bound). G bounds
-    :math:`\|\ddot\zeta_{ref}\|`: twice its maximum on a 4001-point grid, the one assumption
-    shared with :func:`curved_exact_map_radius` (it enters through the :math:`h^2` term only).
+    :math:`\|C\ddot\zeta_{ref}\|`: twice its maximum on a 4001-point grid, the one assumption
+    (as in :func:`curved_exact_map_radius`; it enters through the :math:`h^2` term only).
 
     Returns:
       ``min(rho_up, min over boxes)``: every initial error of the slice below it keeps
