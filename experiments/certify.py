@@ -173,8 +173,31 @@ def run(out, problem, case=None, progress=None) -> dict:
     say(f"slice map ({cfg['map_grid']} x {cfg['map_grid']} runs)")
     block = report.summary()
     out.mkdir(parents=True, exist_ok=True)
-    gains = params.gains
-    summary = {
+    summary = _summary(problem, case, cfg, setting, params, block, problem_block)
+    summary["slice_map"] = slice_map(
+        ctrl,
+        params,
+        block,
+        out / "slice_map.png",
+        t_final=t_final,
+        dt=dt,
+        eps=cfg["eps"],
+        n_grid=cfg["map_grid"],
+        title=f"{ctrl.robot.name} along {setting.reference.name}: initial position errors",
+    )
+    summary["wall_time_s"] = time.time() - t0
+    summary["timing"] = _timing(stages, started, time.perf_counter())
+    common.write_json(out / "summary.json", summary)
+    return summary
+
+
+def _summary(problem, case, cfg: dict, setting, params, block: dict, problem_block: dict) -> dict:
+    """``summary.json`` but the slice map and the timing: the problem, the loop certified, every
+    radius (``block``: the nominal loop's, labelled) and the problem loop's certificate."""
+    from wmrjax import certify as C
+
+    ctrl, gains = setting.ctrl, params.gains
+    return {
         "experiment": "certify",
         "problem_name": problem.title,
         "case": case,
@@ -195,27 +218,12 @@ def run(out, problem, case=None, progress=None) -> dict:
             if setting.plant
             else None
         ),
-        "dt": dt,
+        "dt": setting.dt,
         **block,
         "radius_labels": C.radius_labels(block),
         "problem_certificate": problem_block,
         "plant_warnings": C.real_loop.plant_warnings(problem_block),
     }
-    summary["slice_map"] = slice_map(
-        ctrl,
-        params,
-        block,
-        out / "slice_map.png",
-        t_final=t_final,
-        dt=dt,
-        eps=cfg["eps"],
-        n_grid=cfg["map_grid"],
-        title=f"{ctrl.robot.name} along {setting.reference.name}: initial position errors",
-    )
-    summary["wall_time_s"] = time.time() - t0
-    summary["timing"] = _timing(stages, started, time.perf_counter())
-    common.write_json(out / "summary.json", summary)
-    return summary
 
 
 def _timing(stages, start: float, end: float) -> list:

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments import common
+from tuning.certified import DEFAULT_EPS
 
 FACTORS = (0.90, 0.95, 0.98, 0.995)
 
@@ -48,7 +49,7 @@ def run(out: Path, problem, basis: str = "position", progress=print) -> dict:
     if not plant:
         raise ValueError("the problem has no [plant] section: its loop is the nominal one")
     base = problem.with_values({"plant": None}).setting("certification")
-    eps = float(problem.section("certify").get("eps", 1e-2))
+    eps = float(problem.section("certify").get("eps", DEFAULT_EPS))
     params = base.params()
     em = C.exact_map_radius(base.ctrl, params, t_final=base.t_final, eps=eps, basis=basis)
     worst = np.asarray(em.worst_error) * (em.lower_bound / float(em.radius))

@@ -62,11 +62,18 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
-from wmrjax import io, resources
+from wmrjax import controllers, io, resources, robots
+from wmrjax import references as R
+from wmrjax.controllers import PlantParams, SampledParams, dynamic_linearization, measurement_noise, sampled, with_plant
+from wmrjax.controllers.dynamic import DynamicLinearization
 from wmrjax.controllers.law import Level, Task
+from wmrjax.gains import Gains, GainSchedule
 from wmrjax.references import spline_degree_for
+from wmrjax.robots import Geometry, robot_type
+from wmrjax.simulate import simulate
 
 # a case's name is a label in tables and a part of its figures' file names: no path separator,
 # no control character, no leading dot, a bounded length
@@ -435,7 +442,6 @@ class Problem:
 
 def _family_of(ref):
     """The registry's family a ``[reference]`` section names (None if it names none)."""
-    from wmrjax import references as R
 
     return R.FAMILIES.get(ref.get("family")) if isinstance(ref, dict) else None
 
@@ -538,11 +544,10 @@ class Setting:
 
     def system(self):
         """The closed loop a run simulates: the controller, with a plant, or sampled."""
-        import wmrjax as w
 
         if self.control_period is not None:
-            return w.sampled(self.ctrl, self.steps_per_sample)
-        return w.with_plant(self.ctrl) if self.plant else self.ctrl
+            return sampled(self.ctrl, self.steps_per_sample)
+        return with_plant(self.ctrl) if self.plant else self.ctrl
 
     def check_single(self, job: str, keep=("initial",)) -> None:
         """ProblemError naming the first axis (other than ``keep``) with more than one value."""
@@ -556,14 +561,12 @@ class Setting:
             )
 
     def geometry(self, i: int = 0):
-        import wmrjax as w
 
         geo = self.axis("geometry").payload
-        return w.Geometry(**{k: float(geo[k][i]) for k in GEOMETRY_KEYS})
+        return Geometry(**{k: float(geo[k][i]) for k in GEOMETRY_KEYS})
 
     def gains(self, i: int = 0):
         """The i-th gains of the axis: :class:`wmrjax.Gains` or :class:`wmrjax.GainSchedule`."""
-        import jax
 
         return jax.tree_util.tree_map(lambda x: x[i], self.axis("gains").payload["gains"])
 
@@ -579,7 +582,6 @@ class Setting:
     def inputs(self, idx: list | None = None) -> dict:
         """Every run input at its axis's level, or (with ``idx``, per-axis indices of some runs)
         per run: key -> array (or pytree) with a leading axis."""
-        import jax
 
         geo, plant, ref, gains, init = (a.payload for a in self.axes)
         src = {
@@ -601,7 +603,6 @@ class Setting:
 
     def run_inputs(self, i: int) -> dict:
         """The inputs of run ``i`` (its flat index, last axis fastest), unbatched: for :meth:`run`."""
-        import jax
 
         if not 0 <= i < self.size:
             raise ProblemError(f"run index {i} outside [0, {self.size}) of this setting")
@@ -629,13 +630,9 @@ class Setting:
           ``(trajectory, params)``: the :class:`wmrjax.Trajectory` of :meth:`system`, and the
           law's parameters (reference, gains, nominal geometry) of this run.
         """
-        import jax.numpy as jnp
-
-        import wmrjax as w
-        from wmrjax import references as R
 
         ctrl = self.ctrl
-        g = w.Geometry(L=p["L"], e=p["e"], delta=p["delta"])
+        g = Geometry(L=p["L"], e=p["e"], delta=p["delta"])
         ref = R.Reference(p["reference"], p["heading_offset"], self.reference.path, self.reference.name)
         params = ctrl.params_unchecked(ref, 1.0, g)._replace(gains=p["gains"])
         t0 = jnp.asarray(t0, jnp.result_type(float))
@@ -644,21 +641,21 @@ class Setting:
         loop = self.system()
         if self.plant:
             scale = jnp.broadcast_to(p["geometry_scale"], (2,))  # of L and e (one factor: both)
-            pg = w.Geometry(L=scale[0] * g.L, e=scale[1] * g.e, delta=g.delta)
-            plant = w.PlantParams(params, pg, jnp.broadcast_to(p["input_scale"], (ctrl.robot.n_input,)), p["limit"])
+            pg = Geometry(L=scale[0] * g.L, e=scale[1] * g.e, delta=g.delta)
+            plant = PlantParams(params, pg, jnp.broadcast_to(p["input_scale"], (ctrl.robot.n_input,)), p["limit"])
             if self.control_period is not None:
                 noise = None
                 if any(self.noise_std) and noise_key is not None:
                     n_samples = self.n_steps // self.steps_per_sample + 1
-                    noise = w.measurement_noise(noise_key, jnp.asarray(self.noise_std), n_samples, ctrl.robot.n_state)
-                sp = w.SampledParams(plant, jnp.zeros((1, ctrl.robot.n_state), t0.dtype) if noise is None else noise)
+                    noise = measurement_noise(noise_key, jnp.asarray(self.noise_std), n_samples, ctrl.robot.n_state)
+                sp = SampledParams(plant, jnp.zeros((1, ctrl.robot.n_state), t0.dtype) if noise is None else noise)
                 z0, params_run = loop.initial_state(z0, sp), sp
             else:
                 z0, params_run = loop.initial_state(z0, plant), plant
         else:
             params_run = params
         save_every = (self.steps_per_sample or 1) if save_every is None else save_every
-        tr = w.simulate(
+        tr = simulate(
             loop,
             z0,
             params_run,
@@ -731,9 +728,6 @@ def place(ctrl, params, error, space, task, branch, t0=0.0, rest: bool = False):
     Returns:
       The controller's state, shape (ctrl.n_state,).
     """
-    import jax.numpy as jnp
-
-    from wmrjax.controllers.dynamic import DynamicLinearization
 
     t0 = jnp.asarray(t0, jnp.result_type(float))
     d = jnp.asarray(error, t0.dtype)
@@ -752,7 +746,6 @@ def place(ctrl, params, error, space, task, branch, t0=0.0, rest: bool = False):
 
 
 def _place_static(ctrl, params, d, task, t0, rest):
-    import jax.numpy as jnp
 
     ref, g = params.reference, params.geometry
     post = ref.posture(t0)
@@ -773,7 +766,6 @@ def _place_static(ctrl, params, d, task, t0, rest):
 
 def _steering(ctrl, params, t0):
     """The initial steering angles: the steering reference's where the law has one, else 0."""
-    import jax.numpy as jnp
 
     n = ctrl.robot.delta_s
     b = (
@@ -790,18 +782,16 @@ def _steering(ctrl, params, t0):
 
 def controller(law, kind: str, level, task):
     """The controller of a law, robot type, level and task (ProblemError if there is none)."""
-    import wmrjax as w
 
     try:
         if Law(law) == Law.DYNAMIC:
-            return w.dynamic_linearization(kind, str(level))
-        return w.controller(kind, level=str(level), task=str(task))
+            return dynamic_linearization(kind, str(level))
+        return controllers.controller(kind, level=str(level), task=str(task))
     except ValueError as err:
         raise ProblemError(f"[controller]: {err}") from None
 
 
 def _settings(data: dict, base: Path, case) -> list:
-    import wmrjax as w
 
     for s in ("controller", "reference", "initial", "simulation"):
         if s not in data:
@@ -818,7 +808,7 @@ def _settings(data: dict, base: Path, case) -> list:
     kinds = []
     for r in robots_:
         try:
-            kinds.append(w.robot_type(r).name)
+            kinds.append(robot_type(r).name)
         except (ValueError, TypeError) as err:
             raise ProblemError(f"[controller] robot: {err}") from None
     for what, values in (("robot", kinds), ("level", levels)):
@@ -829,11 +819,11 @@ def _settings(data: dict, base: Path, case) -> list:
     if law == Law.DYNAMIC:
         if task != Task.POSTURE:
             raise ProblemError(f'[controller] task: dynamic laws track a posture (task = "posture"), got {task!r}')
-        bad = [k for k in kinds if k not in w.controllers.TABLE4]
+        bad = [k for k in kinds if k not in controllers.TABLE4]
         if bad:
             raise ProblemError(
                 f"[controller] robot: no dynamic linearizing law (Table 4) for type(s) {bad}; "
-                f"expected some of {sorted(w.controllers.TABLE4)}"
+                f"expected some of {sorted(controllers.TABLE4)}"
             )
     t_final, dt, n_steps = simulation(data["simulation"])
     space = choice(
@@ -884,7 +874,6 @@ def _reference_error(ref, j: int, g, kind: str, level: str, err) -> ProblemError
 
 
 def _setting(ctrl, data, base, case, law, task, space, t_final, dt, n_steps) -> Setting:
-    import wmrjax as w
 
     kind, level = ctrl.robot.name, ctrl.level
     geometry = _geometry_axis(data.get("geometry", {}), ctrl)
@@ -902,7 +891,7 @@ def _setting(ctrl, data, base, case, law, task, space, t_final, dt, n_steps) -> 
         )
     branch = np.ones(len(refs), int)
     for i in range(geometry.size):
-        g = w.Geometry(**{k: float(geo[k][i]) for k in GEOMETRY_KEYS})
+        g = Geometry(**{k: float(geo[k][i]) for k in GEOMETRY_KEYS})
         params, errors = [None] * len(refs), [None] * len(refs)
         for j, ref in enumerate(refs):
             try:
@@ -918,11 +907,9 @@ def _setting(ctrl, data, base, case, law, task, space, t_final, dt, n_steps) -> 
             if err is not None:
                 raise _reference_error(refs[j], j, g, kind, level, err)
             branch[j] = ctrl.reference_branch(params[j])
-    g0 = w.Geometry(**{k: float(geo[k][0]) for k in GEOMETRY_KEYS})
+    g0 = Geometry(**{k: float(geo[k][0]) for k in GEOMETRY_KEYS})
     step = dt if period is None else period
     for i in range(gains.size):
-        import jax
-
         gi = jax.tree_util.tree_map(lambda x: x[i], gains.payload["gains"])
         try:
             ctrl.check_step(ctrl.params(refs[0], geometry=g0, gains=gi), step)
@@ -950,7 +937,6 @@ def _setting(ctrl, data, base, case, law, task, space, t_final, dt, n_steps) -> 
 
 
 def _geometry_axis(gs, ctrl) -> Axis:
-    import wmrjax as w
 
     kind = ctrl.robot.name
     check_keys("geometry", gs, GEOMETRY_KEYS)
@@ -960,10 +946,10 @@ def _geometry_axis(gs, ctrl) -> Axis:
     }
     cols = product(geo)
     for i in range(len(cols["L"])):
-        g = w.Geometry(**{k: float(cols[k][i]) for k in GEOMETRY_KEYS})
+        g = Geometry(**{k: float(cols[k][i]) for k in GEOMETRY_KEYS})
         try:
-            w.robots.check_geometry(g)
-            w.controllers.law.check_requirements(ctrl.row.requires, g, f"type {kind}")
+            robots.check_geometry(g)
+            controllers.law.check_requirements(ctrl.row.requires, g, f"type {kind}")
         except ValueError as err:
             raise ProblemError(f"[geometry] for type {kind}: {err}") from None
     return Axis("geometry", {f"geometry_{k}": v for k, v in cols.items()}, dict(cols))
@@ -1018,9 +1004,6 @@ def reference_axis(rs, base: Path, law, kind, path_order: int):
     """``(axis, references)`` of a ``[reference]`` section: the references (their heading offsets
     applied; offsets fastest) and their columns. A sampled path's spline keeps the law's
     ``path_order`` (its ``ctrl.path_order``) continuous."""
-    import jax
-
-    from wmrjax import references as R
 
     if not isinstance(rs, dict) or "family" not in rs:
         raise ProblemError(f"[reference]: needs family = one of {list(R.FAMILIES)}")
@@ -1071,7 +1054,6 @@ def _named_references(fam, rs, base, law, path_order):
 
 def random_options(rs) -> dict:
     """The options of a random family (``[reference] options``) over its defaults, checked."""
-    from wmrjax import references as R
 
     opts = R.FAMILIES["random_smooth"].options()
     given = rs.get("options", {})
@@ -1092,10 +1074,6 @@ def random_options(rs) -> dict:
 
 def _random_references(fam, rs, base, law, path_order):
     del path_order  # a random family's path is smooth
-    import jax
-    import jax.numpy as jnp
-
-    from wmrjax import references as R
 
     check_keys("reference", rs, COMMON_REFERENCE_KEYS + ("count", "seed", "options"))
     count = integer("reference", "count", rs.get("count", 1), 1)
@@ -1116,7 +1094,6 @@ def _random_references(fam, rs, base, law, path_order):
 def _draw_references(make, opts: tuple, seed: int, count: int):
     """``count`` references of a random family, one program (eagerly, each of the draw's small
     operations compiled on its first use took seconds)."""
-    import jax
 
     keys = jax.random.split(jax.random.PRNGKey(seed), count)
     return jax.vmap(lambda k: make(k, **dict(opts)))(keys)
@@ -1192,10 +1169,9 @@ def _read_csv(path: Path, cols: tuple) -> dict:
 
 
 def _default_offset(law, kind):
-    import wmrjax as w
 
     if Law(law) == Law.DYNAMIC:
-        return float(w.controllers.TABLE4[kind].default_heading_offset)
+        return float(controllers.TABLE4[kind].default_heading_offset)
     return 0.0
 
 
@@ -1207,9 +1183,6 @@ GAIN_KEYS = ("poles", "omega", "zeta", "lam", "coefficients", "schedule", "file"
 def gains_axis(gs, ctrl, base: Path) -> Axis:
     """The gains of a ``[gains]`` section: poles, damping factors (omega, zeta, lam), Hurwitz
     coefficients, a schedule, or tuned-gains files; lists are an axis."""
-    import jax
-
-    import wmrjax as w
 
     check_keys("gains", gs, GAIN_KEYS)
     m, r = ctrl.m, ctrl.relative_degree
@@ -1242,7 +1215,7 @@ def gains_axis(gs, ctrl, base: Path) -> Axis:
         if "lam" in gs:
             raise ProblemError("[gains] lam: only with omega and zeta")
         poles = axis_values("gains", "poles", gs.get("poles", 1.0), positive=True)
-        values = [w.Gains.from_poles(np.full((m, r), p)) for p in poles]
+        values = [Gains.from_poles(np.full((m, r), p)) for p in poles]
         cols = {"gains_poles": poles}
     kinds = {type(v).__name__ for v in values}
     if len(kinds) > 1:
@@ -1261,7 +1234,6 @@ def _checked(ctrl, gains, where):
 
 
 def _gains_from_coefficients(v, m, r):
-    import wmrjax as w
 
     a = np.asarray(v, float) if isinstance(v, list) else None
     if a is None or a.shape not in ((m, r), (r,)) or not np.all(np.isfinite(a)):
@@ -1269,11 +1241,10 @@ def _gains_from_coefficients(v, m, r):
             f"[gains] coefficients: expected {r} Hurwitz coefficients k_0 .. k_{r - 1} per output, "
             f"shape ({m}, {r}) or ({r},), got {v!r}"
         )
-    return w.Gains(np.broadcast_to(a, (m, r)).copy())
+    return Gains(np.broadcast_to(a, (m, r)).copy())
 
 
 def _damping(gs, ctrl):
-    import wmrjax as w
 
     m, r = ctrl.m, ctrl.relative_degree
     if not ("omega" in gs and "zeta" in gs):
@@ -1294,19 +1265,18 @@ def _damping(gs, ctrl):
         om = np.full((m, r // 2), grid["omega"][i])
         ze = np.full((m, r // 2), grid["zeta"][i])
         lam = np.full((m,), grid["lam"][i]) if r % 2 else None
-        values.append(w.Gains.from_damping(om, ze, lam, m=m))
+        values.append(Gains.from_damping(om, ze, lam, m=m))
     return values, {f"gains_{k}": v for k, v in grid.items()}
 
 
 def _schedule(s, ctrl):
     """A :class:`wmrjax.GainSchedule` from ``{ knots = [...], omega = ..., zeta = ..., lam = ... }``
     (values per knot, output and factor: (K, m, r // 2); lam (K, m) for an odd r)."""
-    import wmrjax as w
 
     check_keys("gains.schedule", s, ("knots", "omega", "zeta", "lam"), ("knots", "omega", "zeta"))
     try:
         lam = None if "lam" not in s else np.asarray(s["lam"], float)
-        return w.GainSchedule.from_damping(
+        return GainSchedule.from_damping(
             np.asarray(s["knots"], float), np.asarray(s["omega"], float), np.asarray(s["zeta"], float), lam
         ).check(ctrl.m, ctrl.relative_degree)
     except (ValueError, TypeError) as err:
@@ -1324,7 +1294,6 @@ class GainsFile:
 
     def to_problem(self) -> dict:
         """The ``[gains]`` section that gives these gains inline."""
-        import jax
 
         if getattr(self.gains, "time_varying", False):
             g = self.gains
@@ -1382,7 +1351,6 @@ def read_gains_file(path: Path, ctrl=None) -> GainsFile:
     """A tuned-gains file: ``gains.json`` of ``python -m tuning`` (kind ``wmrjax.gains``), or a
     tuning ``summary.json`` (its ``tuned_gains``). With ``ctrl``: refused unless tuned for this
     robot type and level, and of its shape."""
-    import wmrjax as w
 
     text = read_text(path, "[gains] file")
     where = f"[gains] file {str(path)!r}"
@@ -1424,14 +1392,14 @@ def read_gains_file(path: Path, ctrl=None) -> GainsFile:
         if "schedule" in body:
             sch = body["schedule"]
             check_keys("gains.schedule", sch, ("knots", "omega", "zeta", "lam"), ("knots", "omega", "zeta"))
-            gains = w.GainSchedule.from_damping(
+            gains = GainSchedule.from_damping(
                 np.asarray(sch["knots"], float),
                 np.asarray(sch["omega"], float),
                 np.asarray(sch["zeta"], float),
                 None if "lam" not in sch else np.asarray(sch["lam"], float),
             )
         else:
-            gains = w.Gains(np.asarray(body["coefficients"], float))
+            gains = Gains(np.asarray(body["coefficients"], float))
         if ctrl is not None:
             gains = gains.check(ctrl.m, ctrl.relative_degree)
     except (ValueError, TypeError) as err:

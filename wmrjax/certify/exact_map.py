@@ -220,8 +220,9 @@ def exact_map_radius(
     return ExactMapRadius(ts, rho, rad, t_star, worst, lower, (float(rad) - lower) / float(rad) if rad > 0 else 0.0)
 
 
-# time boxes the linear lower bound starts from (they are halved where the bound needs it): the
-# map's own grid (4 per RK4 step in the pipeline, 14 401 on the car) cost 7.5 s for the same bound
+# time boxes the linear lower bound starts from (they are halved where the bound needs it): one
+# block of the boxes' program; the map's own grid (4 points per RK4 step in the pipeline, 14 401
+# on the car) is far more than the bound needs
 LOWER_BOUND_BOXES = 2048
 
 

@@ -209,13 +209,7 @@ def real_loop_falsified_radius(
     pairs = [(d, v, r) for d in range(len(dirs)) for v in range(len(variants)) for r in rays[d]]
     d_i, v_i, r_i = (np.array(x) for x in zip(*pairs))
     bad = search.distances(dirs[d_i], r_i, [variants[k] for k in v_i]) < eps
-    cands = []  # (first failing radius, last safe radius below it, direction, variant)
-    for d in range(len(dirs)):
-        for v in range(len(variants)):
-            on = (d_i == d) & (v_i == v)
-            if bad[on].any():
-                k = int(np.argmax(bad[on]))
-                cands.append((r_i[on][k], r_i[on][k - 1] if k else 0.0, d, v))
+    cands = _first_failures(bad, d_i, v_i, r_i)
     if not cands:
         return RealLoopFalsified(None, None, None, None, float(r_max), search.rollouts, len(variants), noise)
     cands = sorted(cands)[:n_refine]
@@ -226,6 +220,19 @@ def real_loop_falsified_radius(
         fail = search.distances(dirs[which_d], mid, which_v) < eps
         lo, hi = np.where(fail, lo, mid), np.where(fail, mid, hi)
     return _confirmed(search, dirs, cands, hi, variants, r_max, noise)
+
+
+def _first_failures(bad, d_i, v_i, r_i) -> list:
+    """Per (direction, variant) pair with a failing run: ``(first failing radius, the last safe
+    radius below it (0: none), direction, variant)``, from the runs' flags ``bad`` at the pairs'
+    indices ``d_i``, ``v_i`` and increasing radii ``r_i``."""
+    out = []
+    for d, v in sorted(set(zip(d_i.tolist(), v_i.tolist()))):
+        on = (d_i == d) & (v_i == v)
+        if bad[on].any():
+            k = int(np.argmax(bad[on]))
+            out.append((r_i[on][k], r_i[on][k - 1] if k else 0.0, d, v))
+    return out
 
 
 # radii around a given initial error's norm searched on its ray (besides the common grid)
@@ -336,7 +343,7 @@ class _Search:
 
     def __init__(self, setting, params, P, eps: float):
         self.setting, self.params, self.P, self.eps = setting, params, P, float(eps)
-        self.fine = dataclasses.replace(setting, dt=setting.dt / 4, n_steps=setting.n_steps * 4)
+        self.fine = _finer(setting)
         self.rollouts = 0
         self.base = setting.run_inputs(0)
         self.branch = float(setting.ctrl.reference_branch(params))
@@ -356,6 +363,13 @@ class _Search:
         program = lambda *b: (_runs(s, dist_fn, self.base, self.params, self.branch, self.key, *b),)
         block = min(self.BLOCK, len(errs))
         return fixed_blocks(program, (errs, lim, sc, nk), block)[0]
+
+
+@functools.lru_cache(maxsize=8)
+def _finer(setting):
+    """``setting`` at a quarter of its step (the same controller period), one object per setting:
+    the confirmation's program is compiled once for both slices, not once per search."""
+    return dataclasses.replace(setting, dt=setting.dt / 4, n_steps=setting.n_steps * 4)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
@@ -440,7 +454,10 @@ def problem_certificate(
         nominal = float(em.radius) if em.lower_bound is None else float(em.lower_bound)
         kind = Kind.ATTAINED if em.lower_bound is None else Kind.PROVED
         block = {"nominal_radius": nominal, "nominal_kind": str(kind)}
-        if features:
+        if features and not np.isfinite(float(em.radius)):  # nothing reaches the singular set: no scale to search
+            block.update(radius=None, worst_error=None, covers=[], not_covered=[str(x) for x in features])
+            block.update(kind=None, falsified_radius=None, falsified=None)
+        elif features:
             r_max = 1.1 * max(float(em.radius), 1e-12)
             f = real_loop_falsified_radius(
                 setting,
