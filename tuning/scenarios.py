@@ -90,10 +90,10 @@ def _plant_scales(setting: Setting, key) -> tuple:
     values the file lists, drawn uniformly (a listed range is tuned over, not refused), around
     which the mismatch is drawn. Both 1 without a ``[plant]``."""
     plant = setting.axis("plant").payload
-    scales = jnp.asarray(np.stack([np.asarray(plant["input_scale"]), np.asarray(plant["geometry_scale"])], axis=1))
-    n = scales.shape[0]
+    inputs, geometry = jnp.asarray(plant["input_scale"]), jnp.asarray(plant["geometry_scale"])  # (n, nu), (n,)
+    n = geometry.shape[0]
     j = jax.random.randint(key, (), 0, n) if n > 1 else 0
-    return scales[j, 0], scales[j, 1]
+    return inputs[j], geometry[j]
 
 
 def draw_set(setting: Setting, mismatch: float, keys) -> Scenario:

@@ -71,6 +71,27 @@ def read_small_text(path, what: str) -> str:
         raise ValueError(f"{what} {_name(path)} is not UTF-8 text ({err.reason} at byte {err.start})") from None
 
 
+def _lines(path, what: str) -> list:
+    """The non-empty, non-comment lines of a small text file."""
+    text = read_small_text(path, what)
+    return [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+
+
+def csv_header(path, what: str) -> list:
+    """The column names of a small CSV file's header line (stripped; ``[]`` for an empty file).
+
+    Raises:
+      ValueError: what :func:`read_small_text` refuses, or a header line longer than
+        :data:`MAX_HEADER_CHARS`.
+    """
+    lines = _lines(path, what)
+    if lines and len(lines[0]) > MAX_HEADER_CHARS:
+        raise ValueError(
+            f"{what} {_name(path)}: its header line has {len(lines[0])} characters (at most {MAX_HEADER_CHARS})"
+        )
+    return [h.strip() for h in lines[0].split(",")] if lines else []
+
+
 def read_csv_columns(path, cols: tuple, what: str) -> dict:
     """The named columns of a small CSV file with a header line (``#`` starts a comment; other
     columns are ignored, whatever they hold). Messages quote at most :data:`EXCERPT_CHARS`
@@ -88,8 +109,7 @@ def read_csv_columns(path, cols: tuple, what: str) -> dict:
       ValueError: what :func:`read_small_text` refuses, a header naming a column twice (which
         one would be meant?), a missing column, a value that is not a number, or a ragged row.
     """
-    text = read_small_text(path, what)
-    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    lines = _lines(path, what)
     if not lines:
         raise ValueError(f"{what} {_name(path)}: no header line; expected a CSV file with columns {', '.join(cols)}")
     if len(lines[0]) > MAX_HEADER_CHARS:

@@ -13,7 +13,7 @@ gains, the certification says from where it is safe. Build it in Python
     e = 0.15                             # [m]; L [m], delta [rad]
     [plant]                              # optional: the robot the law does not know exactly
     input_limit = [1.5, 2.0]             # |u_i| <= limit_i [m/s, rad/s; per s at torque level]
-    input_scale = 1.0                    # true input = scale * command
+    input_scale = 1.0                    # true input = scale * command ([[s1, s2]]: one per input)
     geometry_scale = 1.0                 # the plant's L and e = scale * the law's
     control_period = 0.05                # [s]: a digital controller (zero-order hold) ...
     noise_std = [0.01, 0.01, 0.005]      # ... measuring X with this noise [m, m, rad]
@@ -958,6 +958,15 @@ def _geometry_axis(gs, ctrl) -> Axis:
 PLANT_KEYS = ("input_limit", "input_scale", "geometry_scale", "control_period", "noise_std", "noise_seed")
 
 
+def _input_scales(v, nu: int) -> np.ndarray:
+    """(n, nu) input scales of ``[plant] input_scale``: one factor for every input (a number, a
+    list of numbers or a ``{min, max, num}`` table: an axis), or one factor per input (a list
+    of nu numbers in a list: ``[[0.97, 1.02]]``; several such lists: an axis)."""
+    if isinstance(v, list) and v and all(isinstance(x, list) for x in v):
+        return axis_values("plant", "input_scale", v, vector=nu, positive=True)
+    return np.repeat(axis_values("plant", "input_scale", v, positive=True)[:, None], nu, axis=1)
+
+
 def _plant_axis(ps, ctrl, dt, t_final):
     """``(axis, control_period, noise_std, noise_seed)`` of a ``[plant]`` section (None: none)."""
     nu, nX = ctrl.robot.n_input, ctrl.robot.n_state
@@ -970,12 +979,13 @@ def _plant_axis(ps, ctrl, dt, t_final):
     )
     pv = {
         "limit": lim,
-        "input_scale": axis_values("plant", "input_scale", ps.get("input_scale", 1.0), positive=True),
+        "input_scale": _input_scales(ps.get("input_scale", 1.0), nu),
         "geometry_scale": axis_values("plant", "geometry_scale", ps.get("geometry_scale", 1.0), positive=True),
     }
     cols = product(pv)
     columns = {f"plant_input_limit_{i + 1}": cols["limit"][:, i] for i in range(nu)}
-    columns |= {"plant_input_scale": cols["input_scale"], "plant_geometry_scale": cols["geometry_scale"]}
+    columns |= {f"plant_input_scale_{i + 1}": cols["input_scale"][:, i] for i in range(nu)}
+    columns["plant_geometry_scale"] = cols["geometry_scale"]
     period = None
     if "control_period" in ps:
         period = positive("plant", "control_period", ps["control_period"])

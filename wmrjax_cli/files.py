@@ -22,6 +22,8 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
+from wmrjax import io
+
 # the temporary files of atomic_write end so (``.NAME.RANDOM.wmrjax-tmp``): a torn write's cleanup
 # removes these and nothing else of a user's (a plain ``.tmp`` may be anybody's)
 TMP_SUFFIX = ".wmrjax-tmp"
@@ -254,6 +256,33 @@ def write_parquet(path, batches) -> Path:
                 writer.close()
 
     return atomic_write(path, write)
+
+
+def read_parquet_columns(path, cols: tuple, what: str) -> tuple:
+    """``(columns, header)`` of a Parquet file: name -> float64 (n,) for each of ``cols``, and
+    every column name. Needs ``pyarrow``.
+
+    Raises:
+      ValueError: not a regular file, larger than :data:`wmrjax.io.MAX_FILE_BYTES`, not Parquet, or
+        a missing column; naming the file.
+    """
+    import pyarrow.parquet as pq
+
+    path = Path(path)
+    name = io.excerpt(str(path), 200)
+    if not path.is_file():
+        raise ValueError(f"{what} {name}: not a regular file (missing, or a directory or device)")
+    if path.stat().st_size > io.MAX_FILE_BYTES:
+        raise ValueError(f"{what} {name}: more than {io.MAX_FILE_BYTES} bytes")
+    try:
+        header = list(pq.read_schema(path).names)
+    except Exception as err:  # pyarrow raises its own error types for a file that is not Parquet
+        raise ValueError(f"{what} {name}: not a Parquet file ({io.excerpt(str(err))})") from None
+    missing = [c for c in cols if c not in header]
+    if missing:
+        raise ValueError(f"{what} {name}: missing column(s) {missing}; it needs {', '.join(cols)}")
+    table = pq.read_table(path, columns=list(cols))
+    return {c: np.asarray(table.column(c).to_numpy(), float) for c in cols}, header
 
 
 # --- one writer per output directory ---------------------------------------------------------

@@ -304,14 +304,14 @@ class _Variant(NamedTuple):
 
     index: int  # row of the plant axis
     limit: np.ndarray
-    input_scale: float
+    input_scale: np.ndarray  # (n_input,)
     geometry_scale: float
     noise: int | None  # realisation (None: no noise)
 
     def summary(self) -> dict:
         return {
             "input_limit": [float(v) if np.isfinite(v) else None for v in self.limit],
-            "input_scale": float(self.input_scale),
+            "input_scale": [float(v) for v in np.asarray(self.input_scale)],
             "geometry_scale": float(self.geometry_scale),
             "noise_realisation": self.noise,
         }
@@ -356,7 +356,7 @@ class _Search:
         s = self.fine if fine else self.setting
         errs = np.asarray(radii, float)[:, None] * (np.asarray(dirs) @ self.P.T)
         lim = np.stack([v.limit for v in variants]).astype(float)
-        sc = np.array([[v.input_scale, v.geometry_scale] for v in variants], float)
+        sc = np.array([[*np.asarray(v.input_scale), v.geometry_scale] for v in variants], float)
         nk = np.array([0 if v.noise is None else v.noise for v in variants], np.int32)
         self.rollouts += len(errs)
         dist_fn = _SingularDistance(s.system(), s.ctrl, self.geometry)
@@ -376,12 +376,13 @@ def _finer(setting):
 def _runs(setting, dist_fn, base, params, branch, key, errs, lim, sc, nk):
     """min_t distance to the singular set (0: failed) of the runs of ``setting``'s loop from the
     output errors ``errs`` with plant limits ``lim``, scales ``sc`` (input, geometry) and noise
-    realisations ``nk`` (one compiled program per setting, step and block size)."""
+    realisations ``nk`` (one compiled program per setting, step and block size); a row of ``sc``
+    is the input scales (one per input) then the geometry scale."""
     ctrl = setting.ctrl
 
     def one(e0, limit, scales, k):
         z0 = place(ctrl, params, e0, Space.OUTPUT, Task.POSTURE, branch)
-        p = dict(base, z0=z0, limit=limit, input_scale=scales[0], geometry_scale=scales[1])
+        p = dict(base, z0=z0, limit=limit, input_scale=scales[:-1], geometry_scale=scales[-1])
         tr, _ = setting.run(
             p,
             save_every=setting.steps_per_sample or 1,

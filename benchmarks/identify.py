@@ -1,0 +1,152 @@
+"""Identification from logs (issue 56): do the 95 % intervals cover the truth, and how long does a
+fit take?
+
+    .venv/bin/python benchmarks/identify.py --out results/benchmarks/identify [--seeds 50]
+
+1. Coverage. For (2,0) and (1,1) at velocity level and (1,1) at torque level, ``--seeds`` logs
+   (10 s at 50 Hz, one log per fit) integrated by SciPy's DOP853 from known parameters with
+   Gaussian measurement noise (``tests/identify_oracle.py``: the tests' own integration, not
+   ``wmrjax.simulate``) are fitted; per parameter: how often the 95 % interval covers the truth,
+   the mean reported standard error against the spread of the estimates over the seeds (a
+   parametric bootstrap of the fit: their ratio should be 1).
+2. Time. A 30 s, 50 Hz log of the (1,1) car of ``experiments/problems/car_waypoints.toml``
+   (torque level) fitted in a fresh process: the fit's wall time cold (compilation included),
+   and warm (a second fit of the same shapes).
+
+Writes ``identify.json`` into ``--out`` and prints the tables (docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))  # the oracle is the tests' own SciPy integration, on purpose
+
+CONFIGS = (
+    ("(2,0)", "velocity", 1.0, [1.08, 0.94], [0.01, 0.01, 0.005]),
+    ("(1,1)", "velocity", 1.06, [0.92, 1.04], [0.01, 0.01, 0.005, 0.005]),
+    ("(1,1)", "torque", 1.06, [0.92, 1.04], [0.01, 0.01, 0.005, 0.005]),
+)
+PERIOD, L = 0.02, 0.33
+
+TIMING = r"""
+import time, json, sys
+t0 = time.time()
+import jax
+jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, "tests")
+from identify_oracle import make_log
+from wmrjax import identify
+from wmrjax.problem import Problem
+log = make_log("(1,1)", "torque", L=0.33, geometry_scale=1.06, input_scale=[0.92, 1.04],
+               noise_std=[0.01, 0.01, 0.005, 0.005], n=1501, period=0.02, seed=100)
+model = identify.sections.plant_model(Problem.load("experiments/problems/car_waypoints.toml").setting("identify"))
+t1 = time.time()
+ident = identify.identify(model, [log])
+t2 = time.time()
+identify.identify(model, [log._replace(posture=log.posture + 1e-4)])
+t3 = time.time()
+print(json.dumps({"cold_s": t2 - t1, "warm_s": t3 - t2, "process_s": t3 - t0, "iterations": ident.iterations,
+                  "converged": ident.converged}))
+"""
+
+
+def coverage(seeds: int) -> list:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import wmrjax as w
+    from identify_oracle import make_log
+    from wmrjax import identify
+    from wmrjax.controllers.law import Level
+
+    rows = []
+    for kind, level, gs, scales, noise in CONFIGS:
+        model = identify.PlantModel(w.robot_type(kind), Level(level), w.Geometry(L, 0.25, 0.0), (np.inf, np.inf), PERIOD)
+        truth = {"geometry_scale": gs, **{f"input_scale_{i + 1}": s for i, s in enumerate(scales)}}
+        truth |= {f"noise_std_{c}": s for c, s in zip(model.channels, noise)}
+        est = {k: [] for k in truth}
+        t0 = time.time()
+        for seed in range(seeds):
+            log = make_log(kind, level, L=L, geometry_scale=gs, input_scale=scales, noise_std=noise, n=501, period=PERIOD, seed=1000 + seed)
+            ident = identify.identify(model, [log])
+            for k in truth:
+                e = ident.estimate(k)
+                est[k].append((e.estimate, e.std_error, e.interval_95) if e.identifiable else None)
+        for k, v in truth.items():
+            fits = [x for x in est[k] if x is not None]
+            if not fits:
+                rows.append({"robot": kind, "level": level, "parameter": k, "identifiable": 0, "fits": seeds})
+                continue
+            e = np.array([x[0] for x in fits])
+            se = np.array([x[1] for x in fits])
+            cover = np.mean([lo <= v <= hi for _, _, (lo, hi) in fits])
+            rows.append(
+                {
+                    "robot": kind,
+                    "level": level,
+                    "parameter": k,
+                    "truth": v,
+                    "fits": len(fits),
+                    "identifiable": len(fits),
+                    "coverage": float(cover),
+                    "mean_estimate": float(e.mean()),
+                    "mean_std_error": float(se.mean()),
+                    "spread_of_estimates": float(e.std(ddof=1)),
+                }
+            )
+        print(f"{kind} {level}: {seeds} fits in {time.time() - t0:.0f} s", flush=True)
+    return rows
+
+
+def timing() -> dict:
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    out = subprocess.run([sys.executable, "-c", TIMING], cwd=ROOT, env=env, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def table(rows) -> str:
+    lines = [
+        "| robot, level | parameter | truth | identifiable fits | coverage of the 95 % interval | mean std error | spread of estimates | ratio |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if "coverage" not in r:
+            lines.append(f"| {r['robot']} {r['level']} | {r['parameter']} | - | 0 of {r['fits']} (not identifiable) | - | - | - | - |")
+            continue
+        lines.append(
+            f"| {r['robot']} {r['level']} | {r['parameter']} | {r['truth']} | {r['fits']} | {r['coverage']:.0%} | "
+            f"{r['mean_std_error']:.3g} | {r['spread_of_estimates']:.3g} | {r['spread_of_estimates'] / r['mean_std_error']:.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "identify")
+    p.add_argument("--seeds", type=int, default=50)
+    a = p.parse_args(argv)
+    t = timing()
+    print(f"30 s, 50 Hz (1,1) car log: fit cold {t['cold_s']:.1f} s, warm {t['warm_s']:.1f} s (process {t['process_s']:.1f} s)")
+    rows = coverage(a.seeds)
+    print(table(rows))
+    a.out.mkdir(parents=True, exist_ok=True)
+    result = {"timing": t, "coverage": rows, "seeds": a.seeds, "machine": platform.processor() or platform.machine(), "cores": os.cpu_count()}
+    tmp = a.out / ".identify.json.tmp"
+    tmp.write_text(json.dumps(result, indent=1))
+    tmp.replace(a.out / "identify.json")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
