@@ -263,3 +263,23 @@ def test_the_command_writes_the_identified_problem(tmp_path):
     with pytest.raises(SystemExit) as exit_:
         cli.main([str(CAR), "--log", str(bad), "--out", str(tmp_path / "o2")])
     assert exit_.value.code == 2 and not (tmp_path / "o2").exists()
+
+
+def test_a_parquet_log_reads_as_its_csv(tmp_path):
+    """The command reads Parquet logs (pyarrow, the cli extra) into the same Log as the CSV."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from experiments import identify as cli
+
+    rows = _rows()
+    names = ["t", "x", "y", "theta", "u1", "u2"]
+    pq.write_table(pa.table({n: rows[:, i] for i, n in enumerate(names)}), tmp_path / "log.parquet")
+    robot = w.robot_type("(2,0)")
+    a = cli.read_log(tmp_path / "log.parquet", robot)
+    b = I.read_log(_write(tmp_path / "log.csv", ",".join(names), rows), robot)
+    for x, y in zip(a[1:], b[1:]):
+        np.testing.assert_array_equal(x, y)
+    pq.write_table(pa.table({n: rows[:, i] for i, n in enumerate(names[:-1])}), tmp_path / "short.parquet")
+    with pytest.raises(ValueError, match=r"missing column\(s\) \['u2'\]"):
+        cli.read_log(tmp_path / "short.parquet", robot)

@@ -195,7 +195,13 @@ def real_loop_falsified_radius(
     check_dynamic(ctrl, params)
     check_positive("eps", eps)
     check_positive("r_max", r_max)
-    for name, v, lo in (("n_directions", n_directions, 0), ("n_grid", n_grid, 1), ("n_noise", n_noise, 1)):
+    for name, v, lo in (
+        ("n_directions", n_directions, 0),
+        ("n_grid", n_grid, 1),
+        ("n_noise", n_noise, 1),
+        ("n_bisect", n_bisect, 0),
+        ("n_refine", n_refine, 1),  # the failures refined: at least the first
+    ):
         check_int(name, v, lo)
     P = np.asarray(slice_basis(ctrl, basis))
     dirs, own = _directions(P, directions, n_directions, seed)
