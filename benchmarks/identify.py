@@ -11,7 +11,10 @@ fit take?
    true parameters, a parametric bootstrap at the truth: 1 if the standard errors are right;
    each seed draws its own commands, so the mean standard error and the estimates' spread are
    shown beside it but do not compare one to one).
-2. Time. A 30 s, 50 Hz log of the (1,1) car of ``experiments/problems/car_waypoints.toml``
+2. Bootstrap. Per robot one log fitted, then ``--replicates`` logs integrated by SciPy from the
+   *fitted* parameters and noise (the same commands, new noise), each fitted: the spread of their
+   estimates against the first fit's standard errors.
+3. Time. A 30 s, 50 Hz log of the (1,1) car of ``experiments/problems/car_waypoints.toml``
    (torque level) fitted in a fresh process: the fit's wall time cold (compilation included),
    and warm (a second fit of the same shapes).
 
@@ -124,6 +127,66 @@ def coverage(seeds: int) -> list:
     return rows
 
 
+def bootstrap(replicates: int) -> list:
+    """Per robot, one log fitted, then ``replicates`` logs simulated (by SciPy) from the *fitted*
+    parameters and noise with the same commands, each fitted: the replicates' spread against the
+    first fit's standard errors (a parametric bootstrap)."""
+    rows = []
+    for kind, level, gs, scales, noise in CONFIGS:
+        model = identify.PlantModel(
+            w.robot_type(kind), Level(level), w.Geometry(L, 0.25, 0.0), (np.inf, np.inf), PERIOD
+        )
+        seed = 5000
+        first = identify.identify(
+            model,
+            [
+                make_log(
+                    kind,
+                    level,
+                    L=L,
+                    geometry_scale=gs,
+                    input_scale=scales,
+                    noise_std=noise,
+                    n=501,
+                    period=PERIOD,
+                    seed=seed,
+                )
+            ],
+        )
+        theta = first.theta()
+        sigma = [e.estimate for e in first.noise_std]
+        reps = []
+        for b in range(replicates):
+            log = make_log(
+                kind,
+                level,
+                L=L,
+                geometry_scale=theta[0],
+                input_scale=theta[1:],
+                noise_std=sigma,
+                n=501,
+                period=PERIOD,
+                seed=seed,
+                noise_seed=b,
+            )
+            reps.append(identify.identify(model, [log]))
+        for e in first.parameters + first.noise_std:
+            if not e.identifiable:
+                continue
+            boot = np.array([r.estimate(e.name).estimate for r in reps])
+            rows.append(
+                {
+                    "robot": kind,
+                    "level": level,
+                    "parameter": e.name,
+                    "hessian_std_error": e.std_error,
+                    "bootstrap_sd": float(boot.std(ddof=1)),
+                    "replicates": replicates,
+                }
+            )
+    return rows
+
+
 def timing() -> dict:
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     out = subprocess.run([sys.executable, "-c", TIMING], cwd=ROOT, env=env, capture_output=True, text=True, check=True)
@@ -149,10 +212,24 @@ def table(rows) -> str:
     return "\n".join(lines)
 
 
+def bootstrap_table(rows) -> str:
+    lines = [
+        "| robot, level | parameter | std error (Hessian) | sd over the bootstrap's fits | ratio |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['robot']} {r['level']} | {r['parameter']} | {r['hessian_std_error']:.3g} | {r['bootstrap_sd']:.3g} | "
+            f"{r['bootstrap_sd'] / r['hessian_std_error']:.2f} |"
+        )
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "identify")
     p.add_argument("--seeds", type=int, default=50)
+    p.add_argument("--replicates", type=int, default=200, help="the parametric bootstrap's fits per robot")
     a = p.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
     t = timing()
@@ -161,6 +238,8 @@ def main(argv=None) -> int:
     )
     rows = coverage(a.seeds)
     print(table(rows))
+    boot = bootstrap(a.replicates)
+    print(bootstrap_table(boot))
     a.out.mkdir(parents=True, exist_ok=True)
     result = {
         "timing": t,

@@ -78,10 +78,13 @@ def make_log(
     x0=None,
     name: str = "synthetic",
     limit=None,
+    noise_seed: int | None = None,
 ) -> Log:
     """One log of ``n`` samples: the true plant (L times ``geometry_scale``, inputs times
     ``input_scale``, clipped at ``limit``) driven by held commands, its posture measured with
-    Gaussian noise of std ``noise_std`` per channel."""
+    Gaussian noise of std ``noise_std`` per channel. ``seed`` draws the commands (and, without
+    ``noise_seed``, the noise too); ``noise_seed`` draws the noise alone (the same commands, a new
+    noise: a parametric bootstrap's replicate)."""
     rng = np.random.default_rng(seed)
     ds = DELTA_S[kind]
     nu = DELTA_M[kind] + ds
@@ -102,6 +105,7 @@ def make_log(
         states.append(z)
     X = np.asarray(states)[:, :n_x]
     sd = np.broadcast_to(np.asarray(noise_std, float), (n_x,))
-    meas = X + rng.normal(size=X.shape) * sd
+    noise_rng = rng if noise_seed is None else np.random.default_rng([seed, noise_seed])
+    meas = X + noise_rng.normal(size=X.shape) * sd
     meas[:, 2] = np.arctan2(np.sin(meas[:, 2]), np.cos(meas[:, 2]))  # a robot logs a wrapped heading
     return Log(name, np.arange(n) * period, meas, cmd)
