@@ -248,7 +248,7 @@ def test_the_command_writes_the_identified_problem(tmp_path):
     )
     path = _write(tmp_path / "run.csv", "t,x,y,theta,beta1,u1,u2", np.column_stack([log.t, log.posture, log.command]))
     out = tmp_path / "out"
-    assert cli.main([str(CAR), "--log", str(path), "--out", str(out), "--no-compile-cache"]) == 0
+    assert cli.main([str(CAR), "--log", str(path), "--out", str(out)]) == 0  # the session's compilation cache
     s = json.loads((out / "summary.json").read_text())
     assert s["parameters"]["geometry_scale"]["identifiable"] and set(s["files"]) == {
         "summary.json",
