@@ -148,3 +148,30 @@ def test_expm_small_derivatives_and_overflow(rng):
     np.testing.assert_allclose(np.asarray(jax.grad(f)(A)), np.asarray(jax.grad(g)(A)), atol=1e-12)
     np.testing.assert_allclose(np.asarray(jax.jacfwd(f)(A)), np.asarray(jax.grad(g)(A)), atol=1e-12)
     assert np.isnan(np.asarray(_math.expm_small(jnp.asarray([[2.0**41]])))).all()
+
+
+@pytest.mark.parametrize("n, w, block", [(23, 6, 5), (40, 8, 7), (7, 6, 7), (64, 6, 5)])
+def test_banded_solve_is_the_dense_solve_and_its_gradient(n, w, block, rng):
+    """banded_solve against numpy's dense solve (a random banded system with rows within ``block``
+    columns of the diagonal, sizes that do and do not fill whole blocks), and its gradient in the
+    entries and the right-hand side against the dense solve's (jax.grad of both)."""
+    half = w // 2
+    starts = np.clip(np.arange(n) - half, 0, n - w)
+    vals = rng.normal(size=(n, w))
+    vals[np.arange(n), np.arange(n) - starts] += 4.0  # the diagonal: a well-posed system
+    rhs = rng.normal(size=(n, 2))
+
+    def dense(v):
+        A = jnp.zeros((n, n)).at[np.arange(n)[:, None], starts[:, None] + np.arange(w)].set(v)
+        return A
+
+    x = np.asarray(_math.banded_solve(jnp.asarray(vals), jnp.asarray(starts), jnp.asarray(rhs), block))
+    np.testing.assert_allclose(x, np.linalg.solve(np.asarray(dense(vals)), rhs), rtol=0, atol=1e-12)
+    weights = rng.normal(size=(n, 2))
+    f_band = lambda v, b: jnp.sum(weights * _math.banded_solve(v, jnp.asarray(starts), b, block))
+    f_dense = lambda v, b: jnp.sum(weights * jnp.linalg.solve(dense(v), b))
+    for g1, g2 in zip(
+        jax.grad(f_band, (0, 1))(jnp.asarray(vals), jnp.asarray(rhs)),
+        jax.grad(f_dense, (0, 1))(jnp.asarray(vals), jnp.asarray(rhs)),
+    ):
+        np.testing.assert_allclose(g1, g2, rtol=1e-10, atol=1e-12)

@@ -371,3 +371,63 @@ def expm_small(A):
     # static bounds: fori_loop runs as a scan, which reverse mode differentiates
     E = jax.lax.fori_loop(0, MAX_SQUARINGS, lambda i, E: jnp.where(i < s, E @ E, E), E)
     return jnp.where(s <= MAX_SQUARINGS, E, jnp.nan)
+
+
+def banded_solve(values, starts, rhs, block: int):
+    r"""Solve a square system whose row ``r`` is ``values[r]`` at columns ``starts[r] ...
+    starts[r] + w - 1`` (every other entry zero), as block-tridiagonal: blocks of ``block`` rows,
+    eliminated in order (block Thomas), each block's pivot solved by LU with partial pivoting.
+
+    Memory and work are linear in the size (a dense solve's are quadratic and cubic): a B-spline
+    collocation system of 10^5 samples is solved in a second. Without pivoting across blocks it
+    is stable for the matrices it is used for: B-spline collocation at samples satisfying
+    Schoenberg-Whitney is totally positive, where Gaussian elimination needs no pivoting (de
+    Boor, A Practical Guide to Splines, XIII); end-condition rows belong at the top and the bottom,
+    where the first and the last block take them whole (the padding goes first for that: a block
+    boundary among the last rows made a natural septic spline's pivot block singular).
+    Differentiable (two ``lax.scan``).
+
+    Args:
+      values: (n, w) each row's non-zero entries.
+      starts: (n,) integer column of each row's first entry; every entry of row r must lie within
+        ``block`` columns of r (``|c - r| <= block``).
+      rhs: (n, d) right-hand sides.
+      block: the block size (static).
+
+    Returns:
+      (n, d) the solution.
+    """
+    n, w = values.shape
+    b = int(block)
+    m = -(-n // b)
+    pad = m * b - n
+    # padding first (identity rows, unknowns zero), so that the last block ends at the last row:
+    # end-condition rows at the bottom then lie in one block, whose pivoting takes them together
+    r = jnp.arange(n) + pad
+    col = starts[:, None] + pad + jnp.arange(w)[None, :]  # (n, w)
+    pos = col - (r[:, None] // b - 1) * b  # within the block row's three blocks, [0, 3b)
+    band = jnp.zeros((m * b, 3 * b), values.dtype).at[r[:, None], pos].add(values)
+    head = jnp.arange(pad)
+    band = band.at[head, head - (head // b - 1) * b].set(1.0)
+    band = band.reshape(m, b, 3 * b)
+    L, D, U = band[:, :, :b], band[:, :, b : 2 * b], band[:, :, 2 * b :]
+    d = jnp.concatenate([jnp.zeros((pad,) + rhs.shape[1:], rhs.dtype), rhs]).reshape(m, b, -1)
+
+    def forward(carry, blk):
+        X_prev, y_prev = carry  # the previous block's eliminated coupling and right-hand side
+        Li, Di, Ui, di = blk
+        A = Di - Li @ X_prev
+        X = jnp.linalg.solve(A, Ui)
+        y = jnp.linalg.solve(A, di - Li @ y_prev)
+        return (X, y), (X, y)
+
+    zero = (jnp.zeros((b, b), values.dtype), jnp.zeros((b, d.shape[-1]), values.dtype))
+    _, (X, y) = jax.lax.scan(forward, zero, (L, D, U, d))
+
+    def backward(x_next, blk):
+        Xi, yi = blk
+        x = yi - Xi @ x_next
+        return x, x
+
+    _, x = jax.lax.scan(backward, jnp.zeros_like(y[0]), (X, y), reverse=True)
+    return x.reshape(m * b, -1)[pad:]

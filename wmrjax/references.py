@@ -507,18 +507,20 @@ def _spline_knots(ts, k: int):
     return jnp.concatenate([jnp.repeat(ts[:1], k + 1), ts[h + 1 : ts.shape[0] - h - 1], jnp.repeat(ts[-1:], k + 1)])
 
 
-# the spline's collocation system is solved dense: its matrix, its LU factors and the work of
-# the solve, (N + k)^2 floats each
-SPLINE_SOLVE_COPIES = 3
+# floats per sample of a spline's construction: its banded system (a block row of 3k^2 entries
+# per k samples, twice: the band and its eliminated blocks), the solve's right-hand sides, and the
+# pieces' Taylor jets (k + 1 coefficients by 2 coordinates), with a factor 2 for the program's
+# temporaries
+def _spline_floats_per_sample(k: int) -> float:
+    return 2.0 * (2 * 3 * k + 4 + 2 * (k + 1) * (k + 1))
 
 
 def _check_spline_fits(n: int, k: int) -> None:
-    """ValueError, before anything is allocated, when the dense solve of a spline through ``n``
-    samples does not fit in the memory available now (the message says how much it needs)."""
-    size = n + k
+    """ValueError, before anything is allocated, when a spline through ``n`` samples does not fit
+    in the memory available now (the message says how much it needs)."""
     resources.check_fits(
-        resources.Estimate(0.0, SPLINE_SOLVE_COPIES * 8.0 * size**2),
-        f"a sampled path of {n} samples (its spline's collocation system, {size} x {size}, solved dense)",
+        resources.Estimate(0.0, 8.0 * n * _spline_floats_per_sample(k)),
+        f"a sampled path of {n} samples (its spline of degree {k})",
         "resample the path at fewer points (a spline through a few thousand samples follows any planned path closely)",
     )
 
@@ -582,23 +584,27 @@ def _interpolant(t, xy, k: int):
     knots = _natural_knots(t, k) if natural else _spline_knots(t, k)
     n = t.shape[0] + k - 1 if natural else t.shape[0]  # B-spline coefficients
 
-    def row(s):
+    def row(s):  # the k + 1 basis functions non-zero at s, and the first one's index
         l = _span(knots, s, n, k)
-        return jnp.zeros(n, t.dtype).at[l - k + jnp.arange(k + 1)].set(_basis(knots, l, s, k))
+        return _basis(knots, l, s, k), l - k
 
-    def derivative_rows(s):  # the basis' derivatives 0 .. k - 1 at s: (k, n)
+    def derivative_rows(s):  # the non-zero basis functions' derivatives 0 .. k - 1 at s: (k, k + 1)
         l = _span(knots, s, n, k)
-        # Taylor mode of the k + 1 non-zero functions, scattered after: through the scatter of
-        # `row` the program took 40 times as long to compile (27 s against 0.7 s for degree 7)
-        d = taylor(lambda u: _basis(knots, l, u, k), s, k - 1)  # (k, k + 1)
-        return jnp.zeros((k, n), t.dtype).at[:, l - k + jnp.arange(k + 1)].set(d)
+        return taylor(lambda u: _basis(knots, l, u, k), s, k - 1), l - k
 
-    a, b = jax.vmap(row)(t), xy
-    if natural:  # derivatives (k + 1) / 2 .. k - 1 of the spline zero at both ends
+    values, starts = jax.vmap(row)(t)
+    b = xy
+    if natural:  # derivatives (k + 1) / 2 .. k - 1 of the spline zero at both ends: rows first and last
         orders = slice((k + 1) // 2, k)
-        ends = jnp.concatenate([derivative_rows(t[0])[orders], derivative_rows(t[-1])[orders]])
-        a, b = jnp.concatenate([a, ends]), jnp.concatenate([b, jnp.zeros((ends.shape[0], 2), b.dtype)])
-    coef = jnp.linalg.solve(a, b)
+        (d0, s0), (d1, s1) = derivative_rows(t[0]), derivative_rows(t[-1])
+        m = d0[orders].shape[0]
+        values = jnp.concatenate([d0[orders], values, d1[orders]])
+        starts = jnp.concatenate([jnp.full(m, s0), starts, jnp.full(m, s1)])
+        zeros = jnp.zeros((m, 2), b.dtype)
+        b = jnp.concatenate([zeros, b, zeros])
+    # banded: every row's entries lie within k columns of its diagonal (the knots' layout), so the
+    # system is block tridiagonal in blocks of k: solved in linear time and memory
+    coef = _math.banded_solve(values, starts, b, k)
     factorials = jnp.asarray([math.factorial(i) for i in range(k + 1)], t.dtype)
     jets = jax.vmap(lambda s: taylor(lambda u: _spline_value(knots, coef, u, k), s, k))(t[:-1])  # (N - 1, k + 1, 2)
     return jets / factorials[:, None]
