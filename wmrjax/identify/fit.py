@@ -173,8 +173,18 @@ _input_matrix = jax.jit(input_matrix, static_argnums=0)
 
 
 def cut(model: PlantModel, logs: list, length: int, start: int, delay: int) -> Segments:
-    """Cut ``logs`` into segments of ``length`` samples from row ``start`` on (a last, shorter
-    segment is padded; one of a single sample is dropped), commands delayed by ``delay`` rows."""
+    """Cut ``logs`` into the fit's :class:`Segments`.
+
+    Args:
+      model: the :class:`PlantModel` (at torque level a segment's initial velocities are guessed
+        from its first samples).
+      logs: the :class:`wmrjax.identify.Log` s.
+      length: samples per segment (a last, shorter segment is padded and masked; one of a single
+        sample is dropped).
+      start: the first row used in every log (the largest delay tried: every delay is then fitted
+        on the same samples).
+      delay: the commands' delay [rows]: sample i is driven by the command of row i - delay.
+    """
     out = {k: [] for k in Segments._fields}
     for j, log in enumerate(logs):
         n = len(log.t)
