@@ -70,12 +70,16 @@ def initial_state(setting, params, index: int | None = None):
         norms = np.linalg.norm(errors, axis=1)
         nonzero = np.flatnonzero(norms > 0)
         index = int(nonzero[np.argmin(norms[nonzero])]) if nonzero.size else 0
-    if not 0 <= index < len(errors):
-        raise ValueError(
-            f"--initial {index}: the problem has {len(errors)} initial conditions (0 to {len(errors) - 1})"
-        )
+    check_initial(setting, index)
     branch = setting.branch[0] if len(setting.branch) else 1.0
     return place(setting.ctrl, params, errors[index], setting.space, setting.task, branch), index
+
+
+def check_initial(setting, index: int) -> None:
+    """ValueError unless ``index`` names one of the problem's initial conditions (``--initial``)."""
+    n = len(setting.initial_errors())
+    if not 0 <= index < n:
+        raise ValueError(f"--initial {index}: the problem has {n} initial conditions (0 to {n - 1})")
 
 
 def setup(problem, case=None):
@@ -205,7 +209,9 @@ def main(argv=None) -> int:
         problem = Problem.load(a.file if a.file is not None else DEFAULT_PROBLEM)
         if a.gains is not None:
             problem = problem.with_values({"gains": {"file": str(a.gains.resolve())}})
-        setup(problem, a.case)
+        setting, _, _ = setup(problem, a.case)
+        if a.initial is not None:  # refused here, before the export's work, not after
+            check_initial(setting, a.initial)
     except ValueError as e:
         p.error(str(e))
     s = options.work(
@@ -217,6 +223,7 @@ def main(argv=None) -> int:
             case=a.case,
             period=a.period,
             n_samples=a.samples,
+            initial=a.initial,
             cc=cc,
             tolerance=a.tolerance,
             progress=progress,

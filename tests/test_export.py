@@ -72,12 +72,13 @@ def test_command_exports_a_problem_file_and_the_robot_loop_compiles(tmp_path):
     out = tmp_path / "export"
     r = subprocess.run(
         [sys.executable, "-m", "experiments.export", "experiments/problems/s_path.toml", "--out", str(out),
-         "--samples", "100"],
+         "--samples", "100", "--initial", "3"],
         cwd=ROOT, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr[-2000:]
     s = json.loads((out / "summary.json").read_text())
     assert s["agrees"] and s["checks"]["samples"] == 100 and s["checks"]["period_s"] == 0.05
+    assert s["initial_condition"]["index"] == 3  # --initial is used (it was parsed and ignored)
     assert set(s["files"]) == {"wmr_20_velocity.h", "wmr_20_velocity.c", "wmr_20_velocity.jax_export", "robot_loop.c"}
     exe = tmp_path / "robot"
     subprocess.run([CC, *E.C_FLAGS, "robot_loop.c", "wmr_20_velocity.c", "-o", str(exe), "-lm"], cwd=out, check=True)
@@ -107,3 +108,9 @@ def test_bad_input_is_refused_before_any_work(tmp_path):
         cwd=ROOT, capture_output=True, text=True,
     )  # fmt: skip
     assert r.returncode == 2 and "no such compiler" in r.stderr
+    r = subprocess.run(
+        [sys.executable, "-m", "experiments.export", "--initial", "99999", "--cc", "none", "--out", str(tmp_path / "o2")],
+        cwd=ROOT, capture_output=True, text=True,
+    )  # fmt: skip
+    assert r.returncode == 2 and "--initial 99999: the problem has 6561 initial conditions" in r.stderr
+    assert not (tmp_path / "o2").exists()
