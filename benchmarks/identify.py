@@ -72,29 +72,28 @@ print(json.dumps({"cold_s": t2 - t1, "warm_s": t3 - t2, "process_s": t3 - t0, "i
 """
 
 
+def _model(kind: str, level: str):
+    return identify.PlantModel(w.robot_type(kind), Level(level), w.Geometry(L, 0.25, 0.0), (np.inf, np.inf), PERIOD)
+
+
+def _log(kind, level, geometry_scale, scales, noise, seed, noise_seed=None):
+    """A 10 s, 50 Hz log integrated by SciPy (the oracle) from the given parameters."""
+    return make_log(
+        kind, level, L=L, geometry_scale=geometry_scale, input_scale=scales, noise_std=noise, n=501, period=PERIOD,
+        seed=seed, noise_seed=noise_seed,
+    )  # fmt: skip
+
+
 def coverage(seeds: int) -> list:
     rows = []
     for kind, level, gs, scales, noise in CONFIGS:
-        model = identify.PlantModel(
-            w.robot_type(kind), Level(level), w.Geometry(L, 0.25, 0.0), (np.inf, np.inf), PERIOD
-        )
+        model = _model(kind, level)
         truth = {"geometry_scale": gs, **{f"input_scale_{i + 1}": s for i, s in enumerate(scales)}}
         truth |= {f"noise_std_{c}": s for c, s in zip(model.channels, noise)}
         est = {k: [] for k in truth}
         t0 = time.time()
         for seed in range(seeds):
-            log = make_log(
-                kind,
-                level,
-                L=L,
-                geometry_scale=gs,
-                input_scale=scales,
-                noise_std=noise,
-                n=501,
-                period=PERIOD,
-                seed=1000 + seed,
-            )
-            ident = identify.identify(model, [log])
+            ident = identify.identify(model, [_log(kind, level, gs, scales, noise, 1000 + seed)])
             for k in truth:
                 e = ident.estimate(k)
                 est[k].append((e.estimate, e.std_error, e.interval_95) if e.identifiable else None)
@@ -133,42 +132,14 @@ def bootstrap(replicates: int) -> list:
     first fit's standard errors (a parametric bootstrap)."""
     rows = []
     for kind, level, gs, scales, noise in CONFIGS:
-        model = identify.PlantModel(
-            w.robot_type(kind), Level(level), w.Geometry(L, 0.25, 0.0), (np.inf, np.inf), PERIOD
-        )
+        model = _model(kind, level)
         seed = 5000
-        first = identify.identify(
-            model,
-            [
-                make_log(
-                    kind,
-                    level,
-                    L=L,
-                    geometry_scale=gs,
-                    input_scale=scales,
-                    noise_std=noise,
-                    n=501,
-                    period=PERIOD,
-                    seed=seed,
-                )
-            ],
-        )
+        first = identify.identify(model, [_log(kind, level, gs, scales, noise, seed)])
         theta = first.theta()
         sigma = [e.estimate for e in first.noise_std]
         reps = []
         for b in range(replicates):
-            log = make_log(
-                kind,
-                level,
-                L=L,
-                geometry_scale=theta[0],
-                input_scale=theta[1:],
-                noise_std=sigma,
-                n=501,
-                period=PERIOD,
-                seed=seed,
-                noise_seed=b,
-            )
+            log = _log(kind, level, theta[0], theta[1:], sigma, seed, noise_seed=b)
             reps.append(identify.identify(model, [log]))
         for e in first.parameters + first.noise_std:
             if not e.identifiable:
