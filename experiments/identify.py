@@ -28,16 +28,12 @@ from wmrjax.problem import Problem
 from wmrjax_cli import files, options
 
 
-def run(
-    out: Path, problem_path: Path, logs, *, holdout=(), period=None, segment=2.0, max_delay=0, progress=None
-) -> dict:
-    """Identify the plant of the problem at ``problem_path`` from ``logs`` (paths); write into ``out``."""
+def run(out: Path, problem: Problem, logs, *, holdout=(), period=None, segment=2.0, max_delay=0, progress=None) -> dict:
+    """Identify the plant of ``problem`` (loaded from its file) from ``logs`` (paths); write into ``out``."""
     say = progress or (lambda msg: print(msg, flush=True))
     common.enable_x64()
     t0 = time.time()
-    problem = Problem.load(problem_path)
-    setting = problem.setting("identify")
-    model = I.sections.plant_model(setting, period)
+    model = I.sections.plant_model(problem.setting("identify"), period)
     fit_logs, held = ([read_log(p, model.robot) for p in paths] for paths in (logs, holdout))
     options = I.FitOptions(segment=segment, max_delay=max_delay)
     say(
@@ -53,11 +49,11 @@ def run(
     if held:
         say(f"predict {len(held)} held-out log(s)")
         summary["holdout"] = _holdout(ident, held)
-    plant = problem.resolved().get("plant", {})
+    plant = summary["problem"].get("plant", {})
     section = I.sections.plant_section(ident, plant, ", ".join(Path(p).name for p in logs))
     files.write_bytes(out / "plant.toml", section.encode())
     written = ["summary.json", "plant.toml", "paths.png"]
-    text = I.sections.with_plant_section(io.read_small_text(problem_path, "problem file"), section)
+    text = I.sections.with_plant_section(io.read_small_text(problem.source, "problem file"), section)
     try:  # the problem with the identified plant, if it loads from --out (relative paths may not)
         Problem.from_dict(tomllib.loads(text), base=out.resolve())
         files.write_bytes(out / "problem.toml", text.encode())
@@ -140,7 +136,8 @@ def main(argv=None) -> int:
     options.configure_xla()  # before JAX starts its backend
     try:
         common.enable_x64()
-        model = I.sections.plant_model(Problem.load(a.file).setting("identify"), a.period)
+        problem = Problem.load(a.file)  # loaded once: a sampled path's spline is built at load
+        model = I.sections.plant_model(problem.setting("identify"), a.period)
         for path in a.log + a.holdout:  # every log checked before anything compiles
             I.check_log(read_log(path, model.robot), model.period, model.input_limit)
     except ValueError as e:
@@ -150,7 +147,7 @@ def main(argv=None) -> int:
         a,
         lambda progress: run(
             a.out,
-            a.file,
+            problem,
             a.log,
             holdout=a.holdout,
             period=a.period,

@@ -23,6 +23,16 @@ PERIOD = 0.02
 NOISE = {"(2,0)": [0.01, 0.01, 0.005], "(1,1)": [0.01, 0.01, 0.005, 0.005]}
 
 
+def synthetic(kind, level, geometry_scale, input_scale, n, seed, noise=None, **kw):
+    """A SciPy-integrated log (identify_oracle) of this file's car geometry and 50 Hz period; the
+    type's noise unless ``noise`` is given."""
+    noise = NOISE[kind] if noise is None else noise
+    return make_log(
+        kind, level, L=0.33, geometry_scale=geometry_scale, input_scale=input_scale, noise_std=noise, n=n,
+        period=PERIOD, seed=seed, **kw,
+    )  # fmt: skip
+
+
 def model(kind, level, limit=(math.inf, math.inf)):
     return I.PlantModel(w.robot_type(kind), Level(level), w.Geometry(0.33, 0.25, 0.0), limit, PERIOD)
 
@@ -30,23 +40,14 @@ def model(kind, level, limit=(math.inf, math.inf)):
 @pytest.fixture(scope="module")
 def car_velocity():
     """Two 8 s logs of a (1,1) car at velocity level: L 6 % long, input scales 0.92 and 1.04."""
-    logs = [
-        make_log(
-            "(1,1)", "velocity", L=0.33, geometry_scale=1.06, input_scale=[0.92, 1.04], noise_std=NOISE["(1,1)"],
-            n=401, period=PERIOD, seed=s, name=f"log{s}",
-        )
-        for s in range(2)
-    ]  # fmt: skip
+    logs = [synthetic("(1,1)", "velocity", 1.06, [0.92, 1.04], 401, s, name=f"log{s}") for s in range(2)]
     return logs, I.identify(model("(1,1)", "velocity"), logs)
 
 
 def test_the_open_loop_model_is_scipys_integration():
     """predict (RK4 through simulate, 4 steps per period) against DOP853 at 1e-12 on a noise-free
     (1,1) torque-level log: the same states to RK4's error at h = 5 ms."""
-    log = make_log(
-        "(1,1)", "torque", L=0.33, geometry_scale=1.1, input_scale=[0.9, 1.05], noise_std=0.0, n=101, period=PERIOD,
-        seed=3,
-    )  # fmt: skip
+    log = synthetic("(1,1)", "torque", 1.1, [0.9, 1.05], 101, 3, noise=0.0)
     m = model("(1,1)", "torque")
     p = I.InputParams(
         w.Geometry(0.33 * 1.1, 0.25 * 1.1, 0.0), jnp.array([0.9, 1.05]), jnp.full(2, jnp.inf), jnp.asarray(log.command)
@@ -60,9 +61,7 @@ def test_the_open_loop_model_is_scipys_integration():
 
 def test_the_jacobian_is_finite_differences():
     """The fit's forward-mode Jacobian in the plant's parameters against central differences."""
-    log = make_log(
-        "(1,1)", "velocity", L=0.33, geometry_scale=1.0, input_scale=1.0, noise_std=0.0, n=41, period=PERIOD, seed=1
-    )
+    log = synthetic("(1,1)", "velocity", 1.0, 1.0, 41, 1, noise=0.0)
     m = model("(1,1)", "velocity")
     seg = I.fit.cut(m, [log], 40, 0, 0)
     theta = np.array([1.05, 0.95, 1.02])
@@ -102,10 +101,7 @@ def test_a_car_is_identified_within_its_intervals(car_velocity):
 @pytest.fixture(scope="module")
 def diff_drive():
     """A 6 s log of a (2,0) robot at torque level: input scales 1.1 and 0.9 (its L and e are not seen)."""
-    log = make_log(
-        "(2,0)", "torque", L=0.33, geometry_scale=1.3, input_scale=[1.1, 0.9], noise_std=NOISE["(2,0)"], n=301,
-        period=PERIOD, seed=7,
-    )  # fmt: skip
+    log = synthetic("(2,0)", "torque", 1.3, [1.1, 0.9], 301, 7)
     return I.identify(model("(2,0)", "torque"), [log])
 
 
@@ -123,17 +119,7 @@ def test_e_of_a_differential_robot_is_not_identifiable_and_a_torque_level_one_is
 
 def test_a_delay_is_found():
     """Commands applied two samples late: the likelihood selects a delay of 2 among 0..3."""
-    log = make_log(
-        "(2,0)",
-        "velocity",
-        L=0.33,
-        geometry_scale=1.0,
-        input_scale=[1.0, 1.0],
-        noise_std=NOISE["(2,0)"],
-        n=301,
-        period=PERIOD,
-        seed=2,
-    )
+    log = synthetic("(2,0)", "velocity", 1.0, [1.0, 1.0], 301, 2)
     late = log._replace(command=np.concatenate([log.command[2:], np.repeat(log.command[-1:], 2, axis=0)]))
     ident = I.identify(model("(2,0)", "velocity"), [late], I.FitOptions(max_delay=3))
     assert ident.delay == 2
@@ -235,17 +221,7 @@ def test_the_command_writes_the_identified_problem(tmp_path):
     that loads, the figure; a bad log is refused before anything runs (status 2, the row named)."""
     from experiments import identify as cli
 
-    log = make_log(
-        "(1,1)",
-        "torque",
-        L=0.33,
-        geometry_scale=1.05,
-        input_scale=[0.95, 1.0],
-        noise_std=NOISE["(1,1)"],
-        n=201,
-        period=PERIOD,
-        seed=4,
-    )
+    log = synthetic("(1,1)", "torque", 1.05, [0.95, 1.0], 201, 4)
     path = _write(tmp_path / "run.csv", "t,x,y,theta,beta1,u1,u2", np.column_stack([log.t, log.posture, log.command]))
     out = tmp_path / "out"
     assert cli.main([str(CAR), "--log", str(path), "--out", str(out)]) == 0  # the session's compilation cache

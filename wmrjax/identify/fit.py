@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wmrjax import _math
 from wmrjax.controllers.law import Level
 from wmrjax.identify.logs import Log, check_log
 from wmrjax.identify.model import InputParams, LoggedInputs, predict
@@ -185,29 +186,38 @@ def cut(model: PlantModel, logs: list, length: int, start: int, delay: int) -> S
         on the same samples).
       delay: the commands' delay [rows]: sample i is driven by the command of row i - delay.
     """
-    out = {k: [] for k in Segments._fields}
+    out = {k: [] for k in Segments._fields if k != "commands"}
     for j, log in enumerate(logs):
         n = len(log.t)
         for i0 in range(start, n - 1, length):
-            rows = np.arange(i0, i0 + length)
-            valid = rows < n
-            rows_c = np.minimum(rows, n - 1)
+            rows = np.minimum(np.arange(i0, i0 + length), n - 1)
             init = log.posture[i0]
             if model.level == Level.TORQUE:
                 init = np.concatenate([init, _initial_velocity(model, log.t[i0:], log.posture[i0:])])
-            out["measured"].append(log.posture[rows_c])
-            out["mask"].append(valid.astype(float))
-            out["commands"].append(log.command[np.clip(rows_c - delay, 0, n - 1)])
+            out["measured"].append(log.posture[rows])
+            out["mask"].append((np.arange(i0, i0 + length) < n).astype(float))
             out["initial"].append(init)
             out["log"].append(j)
             out["first"].append(i0)
     if not out["log"]:
         raise ValueError(f"the logs have no two samples after the first {start} (the largest delay tried)")
-    return Segments(*(np.asarray(out[k], float if k not in ("log", "first") else int) for k in Segments._fields))
+    seg = Segments(
+        *(np.asarray(out[k], int if k in ("log", "first") else float) if k in out else None for k in Segments._fields)
+    )
+    return with_delay(logs, seg, delay)
 
 
-def _wrap(a):
-    return jnp.arctan2(jnp.sin(a), jnp.cos(a))
+def with_delay(logs: list, seg: Segments, delay: int) -> Segments:
+    """``seg`` with the commands of ``delay`` rows earlier: sample i driven by row i - delay (the
+    first row before a log's start). Only the commands change with the delay, so a fit over
+    several delays cuts its logs once."""
+    length = seg.mask.shape[1]
+    commands = []
+    for j, i0 in zip(seg.log, seg.first):
+        n = len(logs[j].t)
+        rows = np.minimum(np.arange(i0, i0 + length), n - 1)
+        commands.append(logs[j].command[np.clip(rows - delay, 0, n - 1)])
+    return seg._replace(commands=np.asarray(commands, float))
 
 
 def full_parameters(free: tuple, theta, n: int):
@@ -224,7 +234,7 @@ def _segment_residual(model: PlantModel, free: tuple, theta, z0, commands, measu
     params = InputParams(geometry, p[1:], jnp.asarray(model.input_limit, p.dtype), commands)
     X = predict(model.system, z0, params, model.period)[:, : model.robot.n_state]
     r = measured - X
-    return jnp.concatenate([r[:, :2], _wrap(r[:, 2:])], axis=1)
+    return jnp.concatenate([r[:, :2], _math.wrap_angle(r[:, 2:])], axis=1)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
@@ -511,8 +521,9 @@ def identify(model: PlantModel, logs: list, options: FitOptions = FitOptions()) 
     names, start = model.names, options.max_delay
     free = tuple(range(len(names)))
     fits, why = [], {}
+    seg0 = cut(model, logs, length, start, 0)
     for d in range(options.max_delay + 1):
-        seg = cut(model, logs, length, start, d)
+        seg = with_delay(logs, seg0, d)
         fit = _fit(model, free, seg, options)
         lost = not_identifiable(names, free, fit)
         if lost:  # held at nominal, the rest fitted again
@@ -558,15 +569,6 @@ def _report(model, logs, checks, options, fit: _Fit, seg, free, why, delay, nll)
                 True,
             )
         )
-    r, mask = fit.state.r, seg.mask
-    rms = np.stack(
-        [
-            np.sqrt(
-                np.einsum("gs,gsi->i", mask[seg.log == j], r[seg.log == j] ** 2) / max(np.sum(mask[seg.log == j]), 1)
-            )
-            for j in range(len(logs))
-        ]
-    )
     return Identification(
         model,
         tuple(params),
@@ -575,9 +577,9 @@ def _report(model, logs, checks, options, fit: _Fit, seg, free, why, delay, nll)
         nll,
         checks,
         tuple(log.name for log in logs),
-        rms,
+        _rms_per_log(fit.state.r, seg, len(logs)),
         seg,
-        seg.measured - r,
+        seg.measured - fit.state.r,
         corr,
         fit.iterations,
         fit.converged,
@@ -599,12 +601,13 @@ def prediction_error(ident: Identification, logs: list, theta=None) -> np.ndarra
     seg = cut(model, logs, length, options.max_delay, ident.delay)
     free = tuple(range(len(model.names)))
     fit = _fit(model, free, seg, options, theta=theta, fit_plant=False)
-    r = fit.state.r
-    return np.stack(
-        [
-            np.sqrt(
-                np.einsum("gs,gsi->i", seg.mask[seg.log == j], r[seg.log == j] ** 2) / np.sum(seg.mask[seg.log == j])
-            )
-            for j in range(len(logs))
-        ]
-    )
+    return _rms_per_log(fit.state.r, seg, len(logs))
+
+
+def _rms_per_log(r, seg: Segments, n_logs: int) -> np.ndarray:
+    """(n_logs, n_X) root-mean-square residual of each log's samples (padding masked out)."""
+    out = []
+    for j in range(n_logs):
+        on = seg.log == j
+        out.append(np.sqrt(np.einsum("gs,gsi->i", seg.mask[on], r[on] ** 2) / max(np.sum(seg.mask[on]), 1.0)))
+    return np.stack(out)
