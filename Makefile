@@ -22,8 +22,8 @@ $(STAMP): $(PY) pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m experiments.section_6_1 --out results/section_6_1
-	$(PY) -m experiments.sweep experiments/sweeps/section_6_1_position_grid.toml --out results/sweeps/section_6_1_position_grid
+	$(PY) -m paper.section_6_1 --out results/section_6_1
+	$(PY) -m wmrjax.sweep wmrjax/examples/section_6_1_position_grid.toml --out results/sweeps/section_6_1_position_grid
 
 test: lint docs
 	$(PY) -m pytest -q -n auto --dist loadfile
@@ -39,7 +39,7 @@ docs: $(STAMP)
 	$(SPHINX)
 
 bench: $(STAMP)
-	$(PY) -m experiments.benchmark --out results/benchmark
+	$(PY) -m benchmarks.benchmark --out results/benchmark
 
 clean:
 	rm -rf results .pytest_cache docs/_build

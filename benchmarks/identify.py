@@ -14,7 +14,7 @@ fit take?
 2. Bootstrap. Per robot one log fitted, then ``--replicates`` logs integrated by SciPy from the
    *fitted* parameters and noise (the same commands, new noise), each fitted: the spread of their
    estimates against the first fit's standard errors.
-3. Time. A 30 s, 50 Hz log of the (1,1) car of ``experiments/problems/car_waypoints.toml``
+3. Time. A 30 s, 50 Hz log of the (1,1) car of ``wmrjax/examples/car_waypoints.toml``
    (torque level) fitted in a fresh process: the fit's wall time cold (compilation included),
    and warm (a second fit of the same shapes).
 
@@ -141,9 +141,7 @@ def bootstrap(replicates: int) -> list:
 def time_one_fit() -> dict:
     """The fit of a 30 s, 50 Hz log of the shipped car, cold then warm (run in a fresh process)."""
     log = _log("(1,1)", "torque", 1.06, [0.92, 1.04], [0.01, 0.01, 0.005, 0.005], 100, n=1501)
-    model = identify.sections.plant_model(
-        Problem.load(ROOT / "experiments/problems/car_waypoints.toml").setting("identify")
-    )
+    model = identify.sections.plant_model(Problem.load(ROOT / "wmrjax/examples/car_waypoints.toml").setting("identify"))
     t1 = time.time()
     ident = identify.identify(model, [log])
     t2 = time.time()

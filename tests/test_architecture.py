@@ -18,9 +18,9 @@ import pytest
 from scipy.linalg import expm, solve_continuous_lyapunov
 
 import wmrjax as w
+from wmrjax import _files as files
 from wmrjax import certify as C
 from wmrjax import references as R
-from wmrjax_cli import files
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -41,61 +41,128 @@ def _imports(path):
     return mods, names
 
 
-LAYERS = ("wmrjax", "wmrjax_cli", "tuning", "experiments")  # bottom to top
+LAYERS = ("wmrjax", "paper", "benchmarks")  # the package, and the repository's scripts above it
+JOBS = ("wmrjax.tune", "wmrjax.sweep")  # the jobs that are whole subpackages
+JOB_MODULES = ("wmrjax.certify.job", "wmrjax.export.job", "wmrjax.identify.job")  # a job beside its library
+CLI = "wmrjax.cli"  # with wmrjax.__main__, its entry point
+PRIVATE_MODULES = ("_cgen", "_files", "_hoist", "_math", "_scalarize", "_simplify", "_validate")
+
+
+def _module(f) -> str:
+    rel = f.relative_to(ROOT).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def _within(m: str, prefixes) -> bool:
+    return any(m == p or m.startswith(p + ".") for p in prefixes)
+
+
+def _import_graph() -> dict:
+    """Module -> the package's modules it imports (function-local imports included): an import of
+    ``a.b`` or ``from a import b`` is an edge to ``a.b`` when that is a module, else to ``a``."""
+    modules = {_module(f): f for f in _sources("wmrjax")}
+    graph = {}
+    for m, f in modules.items():
+        targets = set()
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Import):
+                targets |= {a.name for a in node.names if a.name in modules}
+            elif isinstance(node, ast.ImportFrom) and node.module in modules:
+                targets |= {
+                    f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in modules else node.module
+                    for a in node.names
+                }
+        graph[m] = sorted(targets - {m})
+    return graph
+
+
+def _cycles(graph: dict) -> list:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for u in graph.get(v, ()):
+            if u not in index:
+                visit(u)
+                low[v] = min(low[v], low[u])
+            elif u in on:
+                low[v] = min(low[v], index[u])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                u = stack.pop()
+                on.discard(u)
+                comp.append(u)
+                if u == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_package_has_no_import_cycle():
+    """The package's modules import each other as a DAG (function-local imports count: a cycle
+    held together by them is still a cycle); the scan finds a cycle it is shown."""
+    graph = _import_graph()
+    assert len(graph) > 60 and "wmrjax.simulate" in graph["wmrjax.linearize"]
+    assert not _cycles(graph), f"import cycles: {_cycles(graph)}"
+    assert _cycles({"a": ["b"], "b": ["c"], "c": ["a"], "d": ["a"]}) == [["a", "b", "c"]]
 
 
 def test_layers_never_point_up():
-    """wmrjax (the library) imports none of the others; wmrjax_cli (the command lines' options
-    and files) the library only; tuning the library and wmrjax_cli; experiments anything."""
-    forbidden = {
-        "wmrjax": ("wmrjax_cli", "tuning", "experiments"),
-        "wmrjax_cli": ("tuning", "experiments"),
-        "tuning": ("experiments",),
-    }
-    for pkg, above in forbidden.items():
-        for f in _sources(pkg):
-            mods, _ = _imports(f)
-            bad = [m for m in mods if m.split(".")[0] in above]
-            assert not bad, f"{f.relative_to(ROOT)} imports an upper layer: {bad}"
-    for f in _sources("experiments"):
+    """The core (models, controllers, the run, the problem file, the certificates' mathematics)
+    imports no job and no command line; a job (wmrjax.tune, wmrjax.sweep, the ``job`` module
+    beside a library) never imports the command line; only wmrjax.cli and the scripts above the
+    package (paper/, benchmarks/) import wmrjax.cli; the package imports nothing of the scripts."""
+    for f in _sources("wmrjax"):
+        m = _module(f)
         mods, names = _imports(f)
-        # an experiment that is a package (experiments/sweep/) imports its own modules
-        own = (
-            f"experiments.{f.relative_to(ROOT / 'experiments').parts[0]}" if f.parent != ROOT / "experiments" else None
-        )
-        others = [
-            m
-            for m in mods
-            if m.startswith("experiments.")
-            and m != "experiments.common"
-            and not (own and (m == own or m.startswith(own + ".")))
-        ]
-        others += [n for m, n in names if m == "experiments" and n != "common"]
-        assert not others, f"{f.relative_to(ROOT)} imports another experiment: {others}"
+        targets = mods + [f"{mod}.{n}" for mod, n in names]
+        if not _within(m, (CLI, "wmrjax.__main__")):
+            bad = [t for t in targets if _within(t, (CLI,))]
+            assert not bad, f"{f.relative_to(ROOT)} imports the command line: {bad}"
+        if not _within(m, (CLI, *JOBS, *JOB_MODULES)):
+            bad = [t for t in targets if _within(t, (*JOBS, *JOB_MODULES))]
+            assert not bad, f"{f.relative_to(ROOT)} (the core) imports a job: {bad}"
+        bad = [t for t in mods if t.split(".")[0] in ("paper", "benchmarks", "tests")]
+        assert not bad, f"{f.relative_to(ROOT)} imports a script of the repository: {bad}"
     for pkg in LAYERS:
         for f in _sources(pkg):
             _, names = _imports(f)
             # private names stay in their module (the package's private helper modules excepted)
             private = [
-                (m, n)
-                for m, n in names
-                if n.startswith("_") and n not in ("_cgen", "_hoist", "_math", "_scalarize", "_simplify", "_validate")
+                (m, n) for m, n in names if n.startswith("_") and not n.startswith("__") and n not in PRIVATE_MODULES
             ]
             assert not private, f"{f.relative_to(ROOT)} imports private names {private}"
 
 
-# what the command lines, figures and tables need (the cli extra, the test extra): never the library
-NOT_IN_THE_LIBRARY = ("matplotlib", "pyarrow", "cmaes", "optuna", "scipy", "argparse", "wmrjax_cli")
+# what the wmrjax command's jobs need (the cli extra) and the tests' reference (scipy): never at a
+# module's top in the package (``import wmrjax.tune`` works without them), and argparse only in cli
+OPTIONAL = ("matplotlib", "pyarrow", "cmaes", "optuna", "scipy")
 
 
-def test_the_library_imports_no_command_line_dependency():
-    """No module of wmrjax/ imports, even inside a function, what ``pip install wmrjax`` does not
-    install (matplotlib, pyarrow, cmaes, optuna; scipy is the tests' reference) or the command
-    lines' plumbing (argparse, wmrjax_cli). jax.scipy is JAX's own."""
+def test_the_package_imports_optional_dependencies_only_where_used():
+    """No module of wmrjax/ imports matplotlib, pyarrow, cmaes, optuna or scipy at its top (only
+    inside the function that writes a figure, a table or runs a baseline: ``pip install wmrjax``
+    does not install them); argparse only in wmrjax.cli."""
     for f in _sources("wmrjax"):
-        mods, _ = _imports(f)
-        bad = [m for m in mods if m.split(".")[0] in NOT_IN_THE_LIBRARY]
-        assert not bad, f"{f.relative_to(ROOT)} imports {bad}: not a dependency of the library (pyproject's core)"
+        tree = ast.parse(f.read_text())
+        top = [n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))]
+        mods = [a.name for n in top if isinstance(n, ast.Import) for a in n.names]
+        mods += [n.module for n in top if isinstance(n, ast.ImportFrom) and n.module]
+        bad = [m for m in mods if m.split(".")[0] in OPTIONAL]
+        assert not bad, f"{f.relative_to(ROOT)} imports {bad} at its top: not a dependency of the library"
+        if not _within(_module(f), (CLI, "wmrjax.__main__")):
+            every, _ = _imports(f)
+            assert "argparse" not in every, f"{f.relative_to(ROOT)} parses arguments outside wmrjax.cli"
 
 
 def test_the_library_runs_without_the_cli_extra(tmp_path):
@@ -109,7 +176,7 @@ import wmrjax as w
 ctrl = w.dynamic_linearization("(2,0)")
 params = ctrl.params(w.references.paper_62(), poles=1.0, geometry=w.Geometry(e=0.0))
 tr = w.simulate(ctrl, ctrl.reference_state(0.0, params), params, dt=0.01, n_steps=10)
-upper = sorted(m for m in sys.modules if m.split(".")[0] in ("wmrjax_cli", "tuning", "experiments"))
+upper = sorted(m for m in sys.modules if m.startswith(("wmrjax.cli", "wmrjax.tune", "wmrjax.sweep")))
 print(tr.state.shape, upper)
 """
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
@@ -398,7 +465,7 @@ def test_one_registry_of_reference_families():
     list, set or dict keys) of two or more family names, and every family a problem file may
     name is in the registry."""
     names = set(R.FAMILIES) | {"random"}  # (the tuner once called random_smooth "random")
-    for pkg in ("wmrjax", "tuning", "experiments"):
+    for pkg in LAYERS:
         for f in _sources(pkg):
             if f == ROOT / "wmrjax" / "references.py":
                 continue
@@ -415,22 +482,17 @@ def test_one_initial_state_placement():
     """Initial states near a reference are placed by wmrjax.problem.place only: no other module
     of the library, the tuner or the experiments maps an output jet back (inverse_psi)."""
     allowed = {ROOT / "wmrjax" / "problem.py"} | set((ROOT / "wmrjax" / "controllers").rglob("*.py"))
-    for pkg in ("wmrjax", "tuning", "experiments"):
+    for pkg in LAYERS:
         for f in _sources(pkg):
             if f not in allowed:
                 assert not _calls(f, "inverse_psi"), f"{f.relative_to(ROOT)} places states itself (inverse_psi)"
-    users = [
-        f.relative_to(ROOT).as_posix()
-        for pkg in ("wmrjax", "tuning", "experiments")
-        for f in _sources(pkg)
-        if _calls(f, "place")
-    ]
+    users = [f.relative_to(ROOT).as_posix() for pkg in LAYERS for f in _sources(pkg) if _calls(f, "place")]
     assert {
         "wmrjax/problem.py",
         "wmrjax/certify/empirical.py",
-        "tuning/scenarios.py",
-        "experiments/posture_tracking.py",
-        "experiments/static_tracking.py",
+        "wmrjax/tune/scenarios.py",
+        "paper/posture_tracking.py",
+        "paper/static_tracking.py",
     } <= set(users)
 
 
@@ -439,7 +501,7 @@ def test_no_rk4_step_outside_simulate():
     experiments weighs four stages 1, 2, 2, 1 (the benchmark's NumPy and C reference loops are
     oracles, not the library's integrator)."""
     pattern = re.compile(r"\+\s*2(\.0)?\s*\*\s*\w+\s*\+\s*2(\.0)?\s*\*\s*\w+\s*\+")
-    for pkg in ("wmrjax", "tuning", "experiments"):
+    for pkg in LAYERS:
         for f in _sources(pkg):
             if f.name in ("simulate.py", "benchmark.py"):
                 continue

@@ -77,12 +77,12 @@ def test_forward_and_reverse_modes_agree_and_match_differences(family, kind, lev
 
 
 def test_through_the_tuners_sampled_data_loop():
-    """Zero-order hold, saturation, sensor noise and mismatch (tuning.scenarios.rollout on the
+    """Zero-order hold, saturation, sensor noise and mismatch (wmrjax.tune.scenarios.rollout on the
     problem's sampled-data loop, wmrjax.sampled)."""
-    from tuning import config, loop
-    from tuning.losses import scenario_loss
-    from tuning.scenarios import rollout
     from wmrjax.problem import Problem
+    from wmrjax.tune import config, loop
+    from wmrjax.tune.losses import scenario_loss
+    from wmrjax.tune.scenarios import rollout
 
     box = {"low": -0.5, "high": 0.5}
     problem = Problem.from_dict(

@@ -335,13 +335,13 @@ def test_api_refuses_bad_input_before_any_work(loop61, no_loops, call, match):
 # --- the command lines: concrete cases -----------------------------------------------------------
 
 CLIS = {
-    "section_6_1": "experiments.section_6_1",
-    "section_6_2": "experiments.section_6_2",
-    "posture_tracking": "experiments.posture_tracking",
-    "static_tracking": "experiments.static_tracking",
-    "certify": "experiments.certify",
-    "benchmark": "experiments.benchmark",
-    "tuning": "tuning.cli",
+    "section_6_1": "paper.section_6_1",
+    "section_6_2": "paper.section_6_2",
+    "posture_tracking": "paper.posture_tracking",
+    "static_tracking": "paper.static_tracking",
+    "certify": "wmrjax.cli.certify",
+    "benchmark": "benchmarks.benchmark",
+    "tuning": "wmrjax.cli.tune",
 }
 
 # every numeric option of every command line and the kind of value it takes
@@ -567,7 +567,7 @@ def test_every_cli_option_has_help_with_units():
 
 def _capture_parser(mod):
     """The parser a command line builds (it raises SystemExit on --help; we take it just before)."""
-    from wmrjax_cli import options
+    from wmrjax.cli import options
 
     captured = {}
     original = options.parser

@@ -183,7 +183,7 @@ def test_real_loop_distances_refuses_bad_input_before_running():
 
 
 def test_the_tuner_says_its_radii_are_the_nominal_loops():
-    from tuning import certified
+    from wmrjax.tune import certified
 
     assert certified.problem_loop(_problem().setting("c")) == {
         "features": [],
@@ -196,7 +196,7 @@ def test_the_tuner_says_its_radii_are_the_nominal_loops():
 
 
 def test_the_plant_table_runs_each_feature_alone_then_together():
-    from experiments.plant_table import loops
+    from wmrjax.cli.plant_table import loops
 
     plant = {"input_limit": [2.0, 1.5], "control_period": 0.05, "noise_std": [0.01]}
     assert [label for label, _ in loops(plant)] == [

@@ -15,7 +15,7 @@ import pytest
 
 SCRIPT = """
 import sys, jax
-from wmrjax_cli import options
+from wmrjax.cli import options
 p = options.parser("x", None)
 a = p.parse_args(sys.argv[1:])
 print(options.use_compilation_cache(a), jax.config.jax_compilation_cache_dir,
@@ -54,7 +54,7 @@ def test_an_error_of_the_work_exits_1_without_the_usage(tmp_path, capsys, monkey
     error of the work, not a bad option: exit 1 and ``PROG: error: MESSAGE`` without the usage text,
     its traceback printed only with --verbose. (It was exit 2 with the usage, as if an option were
     wrong, and a bug's traceback was lost.)"""
-    from experiments import section_6_1
+    from paper import section_6_1
 
     def run(*args, **kwargs):
         raise ValueError("the work went wrong")
@@ -73,7 +73,7 @@ def test_an_error_of_the_work_exits_1_without_the_usage(tmp_path, capsys, monkey
 
 
 def test_a_bad_option_still_exits_2_with_the_usage(tmp_path, capsys):
-    from experiments import section_6_1
+    from paper import section_6_1
 
     for argv in (["--dt", "0"], ["--dt", "20"]):  # argparse's own check; a cross-option check
         with pytest.raises(SystemExit) as exc:
@@ -88,7 +88,7 @@ def test_a_bad_option_still_exits_2_with_the_usage(tmp_path, capsys):
 ROOT = Path(__file__).resolve().parent.parent
 HOLDER = """
 import sys, time
-from wmrjax_cli import files
+from wmrjax import _files as files
 files.acquire_output(sys.argv[1], "holder of the test")
 print("locked", flush=True)
 time.sleep(120)
@@ -119,7 +119,7 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
     """A live process holds --out: a sweep into it exits 2 naming that process (pid, command);
     killed with -9, its lock is stale: the next writer names it, takes it over, and removes the
     temporary files a killed atomic write left (in --out and below)."""
-    from wmrjax_cli import files
+    from wmrjax import _files as files
 
     holder = subprocess.Popen(
         [sys.executable, "-c", HOLDER, str(tmp_path)], stdout=subprocess.PIPE, text=True, env=_env()
@@ -129,7 +129,7 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
         spec = tmp_path / "s.toml"
         spec.write_text(SWEEP)
         r = subprocess.run(
-            [sys.executable, "-m", "experiments.sweep", str(spec), "--out", str(tmp_path)],
+            [sys.executable, "-m", "wmrjax", "sweep", str(spec), "--out", str(tmp_path)],
             capture_output=True,
             text=True,
             env=_env(),
@@ -158,7 +158,7 @@ def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
         [
             sys.executable,
             "-c",
-            "import sys; from wmrjax_cli import files; print(files.acquire_output(sys.argv[1], 'taker'))",
+            "import sys; from wmrjax import _files as files; print(files.acquire_output(sys.argv[1], 'taker'))",
             str(tmp_path),
         ],
         capture_output=True,
@@ -177,14 +177,14 @@ def test_two_sweeps_into_one_directory(tmp_path):
     """Two different sweeps started together into one --out: one runs to the end, the other is
     refused (exit 2) while the first holds the directory; the table is the first's alone and its
     lock is gone afterwards. (Both used to exit 0 with rows of one under the other's labels.)"""
-    from wmrjax_cli import files
+    from wmrjax import _files as files
 
     out = tmp_path / "out"
     specs = []
     for poles in (1.0, 2.0):
         specs.append(tmp_path / f"s{poles}.toml")
         specs[-1].write_text(SWEEP + f"[gains]\npoles = {poles}\n")
-    cmd = [sys.executable, "-m", "experiments.sweep", "--out", str(out), "--no-compile-cache"]
+    cmd = [sys.executable, "-m", "wmrjax", "sweep", "--out", str(out), "--no-compile-cache"]
     first = subprocess.Popen(
         cmd + [str(specs[0])], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT
     )
@@ -206,7 +206,7 @@ def test_the_command_lines_say_which_extra_they_need():
     instead of computing and then failing on an import when it writes its figures."""
     code = (
         "import runpy, sys; sys.modules['pyarrow'] = None; sys.argv = ['section_6_1', '--help']; "
-        "runpy.run_module('experiments.section_6_1', run_name='__main__')"
+        "runpy.run_module('paper.section_6_1', run_name='__main__')"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert done.returncode != 0

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from experiments import section_6_1
+from paper import section_6_1
 
 
 def test_section_6_1_outputs(tmp_path):
@@ -48,7 +48,7 @@ def test_section_6_1_outputs(tmp_path):
 
 def test_certify_cli(tmp_path):
     """The CLI writes every key and the map; (1,2)'s curved singular set is covered in test_certify."""
-    from experiments import certify
+    from wmrjax.cli import certify
     from wmrjax.problem import Problem
 
     problem = Problem.from_dict(

@@ -7,7 +7,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from experiments import benchmark as M
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -21,7 +20,7 @@ def test_benchmark_cli_smoke(tmp_path):
         [
             sys.executable,
             "-m",
-            "experiments.benchmark",
+            "benchmarks.benchmark",
             "--out",
             str(tmp_path),
             "--batches",
@@ -87,7 +86,7 @@ def test_cold_start_rows_time_fresh_processes_and_refuse_unknown_jobs(tmp_path, 
     assert {n for n in jobs if n.startswith("sweep_")} == {
         "sweep_" + f.stem for f in (Path(ROOT) / "experiments" / "sweeps").glob("*.toml")
     }
-    rows = M.cold_start_rows({"help": ["experiments.benchmark", "--help"]}, progress=lambda m: None)
+    rows = M.cold_start_rows({"help": ["benchmarks.benchmark", "--help"]}, progress=lambda m: None)
     r = rows["help"]
     assert r["exit"] == 0 and r["cold_s"] > 0 and r["warm_s"] > 0 and r["compile_share"] < 1
     with pytest.raises(SystemExit):

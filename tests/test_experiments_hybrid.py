@@ -7,7 +7,7 @@ import numpy as np
 
 
 def test_section_6_2_outputs(tmp_path):
-    from experiments import section_6_2
+    from paper import section_6_2
 
     s = section_6_2.run(tmp_path, dt=0.02, t_final=15.0, n_batch=8)
     d = json.loads((tmp_path / "summary.json").read_text())

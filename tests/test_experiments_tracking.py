@@ -6,7 +6,7 @@ import numpy as np
 
 
 def test_posture_tracking_smoke(tmp_path):
-    from experiments import posture_tracking
+    from paper import posture_tracking
 
     s = posture_tracking.run(tmp_path, n_random=16, t_final=4.0, dt=0.02, kinds=("(2,1)",), levels=("velocity",))
     for level in ("velocity",):
@@ -24,7 +24,7 @@ def test_posture_tracking_smoke(tmp_path):
 
 
 def test_static_tracking_smoke(tmp_path):
-    from experiments import static_tracking
+    from paper import static_tracking
 
     s = static_tracking.run(tmp_path, n_random=8, t_final=6.0, dt=0.02, kinds=("(2,0)",), levels=("velocity",))
     r = s["cases"]["(2,0) velocity"]["random"]

@@ -1,4 +1,4 @@
-"""The exported control step (wmrjax.export, python -m experiments.export): the JAX step is the
+"""The exported control step (wmrjax.export, wmrjax export): the JAX step is the
 simulator's sample, the generated C (compiled warning-free at -std=c99 -Wall -Wextra -Werror -O2)
 and the serialized artifact (reloaded in a process where wmrjax cannot be imported) agree with
 it over whole closed-loop runs; bad input is refused."""
@@ -18,7 +18,7 @@ import wmrjax as w
 from wmrjax import _cgen
 from wmrjax import export as X
 from wmrjax import references as R
-from wmrjax_cli import export_check as E
+from wmrjax.export import check as E
 
 ROOT = Path(__file__).resolve().parent.parent
 CC = shutil.which("cc")
@@ -67,11 +67,11 @@ def test_torque_level_static_step_agrees_on_a_sampled_path(tmp_path):
 
 @needs_cc
 def test_command_exports_a_problem_file_and_the_robot_loop_compiles(tmp_path):
-    """python -m experiments.export on the user-path problem (20 Hz controller, sampled path):
+    """wmrjax export on the user-path problem (20 Hz controller, sampled path):
     files, summary, agreement; the robot-loop example builds against the generated code and runs."""
     out = tmp_path / "export"
     r = subprocess.run(
-        [sys.executable, "-m", "experiments.export", "experiments/problems/s_path.toml", "--out", str(out),
+        [sys.executable, "-m", "wmrjax", "export", "wmrjax/examples/s_path.toml", "--out", str(out),
          "--samples", "100", "--initial", "3"],
         cwd=ROOT, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
@@ -104,12 +104,12 @@ def test_bad_input_is_refused_before_any_work(tmp_path):
     with pytest.raises(ValueError, match="'while' has no C rule"):
         _cgen.generate(closed, sig)
     r = subprocess.run(
-        [sys.executable, "-m", "experiments.export", "--cc", "no-such-cc", "--out", str(tmp_path / "o")],
+        [sys.executable, "-m", "wmrjax", "export", "--cc", "no-such-cc", "--out", str(tmp_path / "o")],
         cwd=ROOT, capture_output=True, text=True,
     )  # fmt: skip
     assert r.returncode == 2 and "no such compiler" in r.stderr
     r = subprocess.run(
-        [sys.executable, "-m", "experiments.export", "--initial", "99999", "--cc", "none", "--out", str(tmp_path / "o2")],
+        [sys.executable, "-m", "wmrjax", "export", "--initial", "99999", "--cc", "none", "--out", str(tmp_path / "o2")],
         cwd=ROOT, capture_output=True, text=True,
     )  # fmt: skip
     assert r.returncode == 2 and "--initial 99999: the problem has 6561 initial conditions" in r.stderr

@@ -15,10 +15,10 @@ import refpaths
 from scipy.linalg import expm
 
 import wmrjax as w
+from wmrjax import _files as files
 from wmrjax import certify as C
 from wmrjax import references as R
 from wmrjax.controllers import law
-from wmrjax_cli import files
 
 
 def _crossing_state(ctrl, params, t_cross):
@@ -288,7 +288,7 @@ def test_heartbeat_reports_a_silent_stage():
     import io as _io
     import time
 
-    from wmrjax_cli import options
+    from wmrjax.cli import options
 
     buf = _io.StringIO()
     with options.Heartbeat(every=0.05, stream=buf) as hb:

@@ -217,9 +217,9 @@ def test_the_identified_plant_goes_into_the_problem(diff_drive):
 
 
 def test_the_command_writes_the_identified_problem(tmp_path):
-    """python -m experiments.identify: summary.json's parameters block, plant.toml, a problem.toml
+    """wmrjax identify: summary.json's parameters block, plant.toml, a problem.toml
     that loads, the figure; a bad log is refused before anything runs (status 2, the row named)."""
-    from experiments import identify as cli
+    from wmrjax.cli import identify as cli
 
     log = synthetic("(1,1)", "torque", 1.05, [0.95, 1.0], 201, 4)
     path = _write(tmp_path / "run.csv", "t,x,y,theta,beta1,u1,u2", np.column_stack([log.t, log.posture, log.command]))
@@ -246,7 +246,7 @@ def test_a_parquet_log_reads_as_its_csv(tmp_path):
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from experiments import identify as cli
+    from wmrjax.cli import identify as cli
 
     rows = _rows()
     names = ["t", "x", "y", "theta", "u1", "u2"]

@@ -16,11 +16,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from experiments.sweep.report import file_part
+from wmrjax import _files as files
 from wmrjax import io
 from wmrjax import references as R
+from wmrjax.export import check as export_check
 from wmrjax.problem import CASE_NAME_MAX, Problem, ProblemError
-from wmrjax_cli import export_check, files
+from wmrjax.sweep.report import file_part
 
 PROBLEM = """
 [controller]
@@ -174,14 +175,14 @@ def test_torn_write_cleanup_keeps_user_files_in_process(tmp_path):
 def test_one_directory_holds_one_jobs_results(tmp_path):
     """Before: a certification into a finished sweep's --out (directly or through a link) exited 0
     and replaced the sweep's summary.json beside its table."""
-    files.claim_output(tmp_path, "experiments.sweep")
-    files.claim_output(tmp_path, "experiments.sweep")  # the same job again (a rerun, a resume)
-    with pytest.raises(files.OutputLocked, match=r"holds the results of 'experiments.sweep', not of 'experiments.cert"):
-        files.claim_output(tmp_path, "experiments.certify")
+    files.claim_output(tmp_path, "wmrjax.sweep")
+    files.claim_output(tmp_path, "wmrjax.sweep")  # the same job again (a rerun, a resume)
+    with pytest.raises(files.OutputLocked, match=r"holds the results of 'wmrjax.sweep', not of 'experiments.cert"):
+        files.claim_output(tmp_path, "wmrjax.cli.certify")
     link = tmp_path.parent / f"{tmp_path.name}-link"
     link.symlink_to(tmp_path, target_is_directory=True)
     with pytest.raises(files.OutputLocked, match="one directory holds one job's results"):
-        files.claim_output(link, "experiments.certify")
+        files.claim_output(link, "wmrjax.cli.certify")
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
@@ -193,7 +194,7 @@ def test_a_killed_launchers_workers_die_with_it():
             sys.executable,
             "-c",
             "import subprocess, sys, time\n"
-            "from experiments.sweep.cli import die_with_parent\n"
+            "from wmrjax.cli.sweep import die_with_parent\n"
             "w = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'], preexec_fn=die_with_parent)\n"
             "print(w.pid, flush=True)\n"
             "time.sleep(60)\n",
@@ -280,7 +281,7 @@ def test_ctrl_c_leaves_a_resumable_sweep_and_one_line(tmp_path):
         .replace("}}", "}")
         + "block = 256\n"
     )
-    cmd = [sys.executable, "-m", "experiments.sweep", str(spec), "--out", str(tmp_path / "out")]
+    cmd = [sys.executable, "-m", "wmrjax", "sweep", str(spec), "--out", str(tmp_path / "out")]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     blocks = tmp_path / "out" / "blocks"
     for _ in range(1200):  # interrupt once the first blocks are kept

@@ -1,13 +1,13 @@
-"""The probe of bad and hostile inputs (experiments.probe): its oracles' classification on made-up
+"""The probe of bad and hostile inputs (tests.probe): its oracles' classification on made-up
 runs, its case list, and two cheap cases through its command line against this checkout (the
-whole probe runs for minutes: it is run by hand, see docs/experiments/probe.md)."""
+whole probe runs for minutes: it is run by hand, see docs/tests/probe.md)."""
 
 import json
 import subprocess
 import sys
 from pathlib import Path
 
-from experiments.probe import cli, harness, oracles
+from tests.probe import cli, harness, oracles
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -67,7 +67,7 @@ def test_two_cases_through_the_command_line(tmp_path):
         [
             sys.executable,
             "-m",
-            "experiments.probe",
+            "tests.probe",
             "--tree",
             str(ROOT),
             "--out",

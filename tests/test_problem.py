@@ -191,8 +191,8 @@ def test_place_puts_the_error_where_it_says():
 def test_one_run_is_the_sweeps_run():
     """Setting.run of a run's inputs equals the sweep's rollout of that run (one run in the library),
     a digital controller with noise drawn from the run's index included."""
-    from experiments.sweep import run as sweep_run
-    from experiments.sweep import spec as S
+    from wmrjax.sweep import run as sweep_run
+    from wmrjax.sweep import spec as S
 
     p = Problem.from_dict(
         {

@@ -1,13 +1,13 @@
 """The checks that refuse oversized work before compiling, driven by the memory model; and the
-measuring script of the model's calibration (``experiments.benchmark.memory_estimates``, run
-at scale by ``python -m experiments.benchmark``) at a small size."""
+measuring script of the model's calibration (``benchmarks.benchmark.memory_estimates``, run
+at scale by ``python -m benchmarks.benchmark``) at a small size."""
 
 import dataclasses
 from pathlib import Path
 
 import pytest
-
 from experiments import benchmark as M
+
 from wmrjax import resources
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,12 +36,12 @@ def test_oversized_work_is_refused_before_compiling(monkeypatch):
 
 
 def test_oversized_tuning_and_sweeps_are_refused_before_compiling(monkeypatch):
-    """python -m tuning --n-train 1000000 failed allocating 14.6 GB after 6 s; a sweep of 256
+    """wmrjax tune --n-train 1000000 failed allocating 14.6 GB after 6 s; a sweep of 256
     runs of 400000 samples each asked for 8.3 GB per device with no estimate."""
-    from experiments.sweep import run as sweep_run
-    from experiments.sweep import spec as S
-    from tuning import config, loop
     from wmrjax.problem import Problem
+    from wmrjax.sweep import run as sweep_run
+    from wmrjax.sweep import spec as S
+    from wmrjax.tune import config, loop
 
     monkeypatch.setattr(resources, "available_bytes", lambda: 8 * 10**9)
     prob = Problem.load(ROOT / "tuning" / "problems" / "section_6_1.toml")

@@ -14,7 +14,7 @@ from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
 import wmrjax as w
-from experiments.benchmark import numpy_rollout_rhs
+from benchmarks.benchmark import numpy_rollout_rhs
 from wmrjax import references as R
 from wmrjax.controllers.law import Aux
 

@@ -15,10 +15,10 @@ import pyarrow.parquet as pq
 import pytest
 
 import wmrjax as w
-from experiments.sweep import cli as sweep_cli
-from experiments.sweep import run as sweep_run
-from experiments.sweep import spec as S
 from wmrjax import references as R
+from wmrjax.cli import sweep as sweep_cli
+from wmrjax.sweep import run as sweep_run
+from wmrjax.sweep import spec as S
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -184,7 +184,7 @@ def test_two_processes_give_the_same_table(tiny, cache, tmp_path):
         [
             sys.executable,
             "-m",
-            "experiments.sweep",
+            "wmrjax.sweep",
             str(spec),
             "--out",
             str(tmp_path),
@@ -343,7 +343,7 @@ def test_a_dead_worker_stops_the_others(tiny, cache, tmp_path):
     cmd = [
         sys.executable,
         "-m",
-        "experiments.sweep",
+        "wmrjax.sweep",
         str(slow),
         "--out",
         str(tmp_path / "o"),
@@ -420,7 +420,7 @@ def test_static_physical_sweep_starts_on_the_reference_and_draws_reproducibly(tm
 def test_histogram_of_a_constant_margin():
     """A static point law's |det K| = |e sin(delta)| is the same for every run up to its last bits:
     numpy's 50 bins over a range of 1e-16 raised 'Too many bins' and the sweep wrote no summary."""
-    from experiments.sweep.report import _hist_args
+    from wmrjax.sweep.report import _hist_args
 
     x = np.log10(np.full(10, 0.3 * np.sin(1.2))) + np.r_[np.zeros(9), 1e-16]
     with pytest.raises(ValueError, match="Too many bins"):
@@ -433,7 +433,7 @@ def test_histogram_of_a_constant_margin():
 def test_a_directory_where_the_sweep_writes_a_file_is_refused_by_name(tmp_path):
     """A directory named like the state file or a block (the probe of #34: a raw IsADirectoryError
     traceback) is refused naming it, and left in place: it is not the sweep's to remove."""
-    from experiments.sweep import run as sweep_run
+    from wmrjax.sweep import run as sweep_run
 
     (tmp_path / sweep_run.STATE_FILE).mkdir()
     with pytest.raises(ValueError, match=r"sweep_state.json is not a regular file"):

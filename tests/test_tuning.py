@@ -12,10 +12,10 @@ import pytest
 from conftest import DEFAULT_OPT_LEVEL
 from scipy.optimize import minimize_scalar
 
-import tuning
-from tuning import GainSpec, LossWeights, config, loop, mean_loss, mean_loss_and_grad, objective, tune
-from tuning.losses import scenario_loss
+import wmrjax.tune
 from wmrjax.problem import Problem, ProblemError
+from wmrjax.tune import GainSpec, LossWeights, config, loop, mean_loss, mean_loss_and_grad, objective, tune
+from wmrjax.tune.losses import scenario_loss
 
 # one small problem shared by several tests, so its compiled functions are reused
 TINY_DATA = {
@@ -117,7 +117,7 @@ def test_quickly_compiled_programs_match_the_default_ones(tiny):
     """The validation program and the scenario draws compiled at optimization level 0
     (loop.QUICK_COMPILE) give the default programs' numbers to rounding, and the public
     gradient and value functions nest in a user's jit."""
-    from tuning.scenarios import draw_set
+    from wmrjax.tune.scenarios import draw_set
 
     setting, spec, ctx = tiny
     raw = spec.init(1.3)
@@ -149,10 +149,10 @@ def test_quickly_compiled_programs_match_the_default_ones(tiny):
 
 
 def test_batch_reads_shared_inputs_once_and_equals_each_scenario_alone(tiny):
-    """The batched loss takes the inputs every scenario shares once (tuning.scenarios.shared_axes:
+    """The batched loss takes the inputs every scenario shares once (wmrjax.tune.scenarios.shared_axes:
     what depends on them alone is then computed once per batch): it equals each scenario's own
     rollout, run unbatched, to rounding; and what a scenario draws is batched, the rest not."""
-    from tuning.scenarios import DRAWN, rollout, shared_axes
+    from wmrjax.tune.scenarios import DRAWN, rollout, shared_axes
 
     setting, spec, ctx = tiny
     raw = spec.init(1.2)
@@ -178,7 +178,7 @@ def test_set_whose_shared_inputs_differ_is_refused(tiny):
         with pytest.raises(ValueError, match=r"inputs\['limit'\] differ between scenarios \(scenarios \[2\]"):
             fn(spec.init(1.0), bad, setting, spec, ctx.weights)
     nan_everywhere = train._replace(inputs={**train.inputs, "delta": jnp.full_like(train.inputs["delta"], jnp.nan)})
-    tuning.scenarios.check_shared(setting, nan_everywhere)  # the same value (NaN) in every scenario: shared
+    wmrjax.tune.scenarios.check_shared(setting, nan_everywhere)  # the same value (NaN) in every scenario: shared
 
 
 def test_nan_scenario_is_reported_and_excluded(tiny):
@@ -197,7 +197,7 @@ def test_nan_scenario_is_reported_and_excluded(tiny):
 def test_resume_gives_the_same_gains(tmp_path, tiny):
     setting, spec, ctx = tiny
     full = run_tiny(setting)
-    assert isinstance(full, tuning.TuneResult) and full.finished
+    assert isinstance(full, wmrjax.tune.TuneResult) and full.finished
     # the loop's gradient program (its own top-level copy, at LOOP_COMPILE) gives the public
     # function's numbers: the first step's training objective
     default_grad = jax.jit(loop._mean_loss_and_grad, static_argnums=(2, 3), compiler_options=DEFAULT_OPT_LEVEL)
@@ -303,7 +303,7 @@ def test_optax_shape_any_transformation(tiny):
     setting, spec, _ = tiny
     slow = tune(setting, spec, optax.sgd(1e-9), steps=2, scenarios=TS.scenarios, log=lambda *_: None)
     np.testing.assert_allclose(slow.raw, np.asarray(spec.init(1.0)), atol=1e-6)
-    assert set(tuning.TuneResult._fields) == {
+    assert set(wmrjax.tune.TuneResult._fields) == {
         "finished",
         "raw",
         "best_raw",
@@ -334,7 +334,7 @@ def test_bad_tuning_input(tmp_path):
             config.read(Problem.from_dict(data).section("tune"))
     with pytest.raises(ValueError, match="finite and > 0"):
         GainSpec(2, 2).init(-1.0)
-    from tuning.cli import main
+    from wmrjax.cli.tune import main
 
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path), "--n-train", "0"])
@@ -388,7 +388,7 @@ def _tiny_file(tmp_path):
 
 
 def test_cli_writes_summary_and_gains(tmp_path):
-    from tuning import cli
+    from wmrjax.tune import cli
 
     path = _tiny_file(tmp_path)
     out = tmp_path / "out"
@@ -459,7 +459,7 @@ def test_each_log_line_shows_the_parameters_its_loss_was_evaluated_at(tiny):
 def test_radius_change_is_printed_per_slice():
     """Issue 58: the tuned gains' certified region shrank by 80 % (position slice) and only the
     summary and the figure said so; the console now does, with its kind and loop."""
-    from tuning.cli import radius_change_lines
+    from wmrjax.cli.tune import radius_change_lines
 
     radii = {
         "initial": {"lemma2": {}, "exact_map_full": {"radius": 0.5}, "exact_map_position": {"radius": 2.0}},
@@ -477,7 +477,7 @@ def test_listed_plant_scales_are_tuned_over_as_scenarios():
     """Issue 58: a [plant] listing geometry scales (a +-5 % range, to sweep) was refused by the
     tuner; its scenarios now draw a listed value each, around which the mismatch is drawn. A
     single scale is the scenarios' centre (it was ignored: every scenario centred on 1)."""
-    from tuning.scenarios import draw_set
+    from wmrjax.tune.scenarios import draw_set
 
     keys = jax.random.split(jax.random.PRNGKey(0), 64)
     for scales, mismatch in (([0.9, 1.1], 0.0), (1.05, 0.0), (1.05, 0.02)):

@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import pytest
 from test_tuning import TINY, TINY_DATA, TS, run_tiny
 
-from tuning import config, loop, mean_loss, objective
 from wmrjax.problem import ProblemError
+from wmrjax.tune import config, loop, mean_loss, objective
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +42,7 @@ def test_requirement_holds_at_every_step(tiny, free_run, scale):
     with the requirement every step's point, the last and the selected gains keep it, by the
     certify module's own exact_map_radius (scale 1.03: the initial gains miss it and are raised
     to it before the first step)."""
-    from tuning import certified
+    from wmrjax.tune import certified
 
     setting, family, _ = tiny
     initial = _position_radius(setting, family.gains(loop.initial_raw(setting, family)))
@@ -66,7 +66,7 @@ def test_requirement_holds_at_every_step(tiny, free_run, scale):
 
 
 def test_requirement_refuses_what_it_cannot_keep(tiny, tmp_path):
-    from tuning import certified
+    from wmrjax.tune import certified
 
     setting, family, _ = tiny
     # the full slice's radius is capped by the reference's own distance at t = 0 (4.99 = 5 - eps)
@@ -108,8 +108,8 @@ def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch):
     256-run block of fine runs."""
     import importlib
 
-    from tuning import pareto
     from wmrjax import certify
+    from wmrjax.tune import pareto
 
     E = importlib.import_module("wmrjax.certify.empirical")
     programs, window_distances = [], E.window_distances  # what min_distance runs its blocks through
@@ -138,7 +138,7 @@ def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch):
 
 
 def test_requirement_on_type_12_is_refused_with_its_reason():
-    from tuning import certified
+    from wmrjax.tune import certified
 
     pr = TINY.with_values(
         {

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import wmrjax as w
-from tuning import GainSpec, baselines, config, loop
-from tuning.cli import baseline_budget
-from tuning.problems import PROBLEMS, problem_file
+from wmrjax.cli.tune import baseline_budget
+from wmrjax.examples import PROBLEMS, problem_file
 from wmrjax.problem import Problem, ProblemError
+from wmrjax.tune import GainSpec, baselines, config, loop
 
 
 def test_schedule_spec_gives_a_schedule_and_starts_at_the_paper_gains():
@@ -148,7 +148,7 @@ def test_candidate_evaluator_chunks_pads_and_returns_aux():
 
 
 def test_shipped_problems_and_bad_tuning_problems(tmp_path):
-    assert set(PROBLEMS) == {"section_6_1", "car_schedule", "torque_2_1"}
+    assert {"section_6_1", "section_6_1_plant", "s_path", "car_schedule", "torque_2_1"} <= set(PROBLEMS)
     car = Problem.load(problem_file("car_schedule"))
     setting = car.setting("tuning")
     ts = config.read(car.section("tune"))
@@ -164,7 +164,7 @@ def test_shipped_problems_and_bad_tuning_problems(tmp_path):
         loop.check(setting, GainSpec(2, 3, knots=(0.0, 5.0, 12.0)), ts.scenarios, ts.loss)
     with pytest.raises(ValueError, match="certificate term needs a dynamic .* fixed reference"):
         loop.check(setting, ts.gain_spec(setting), ts.scenarios, ts.loss._replace(certificate=1.0))
-    s61 = Problem.load(problem_file("section_6_1"))
+    s61 = Problem.load(problem_file("section_6_1_plant"))
     ts61 = config.read(s61.with_values({"tune.baselines.budget": 0.01}).section("tune"))
     with pytest.raises(ValueError, match="less than one CMA-ES generation"):
         baseline_budget(ts61, ts61.gain_spec(s61.setting("tuning")))
@@ -172,7 +172,7 @@ def test_shipped_problems_and_bad_tuning_problems(tmp_path):
         loop.check(
             s61.with_values({"gains.poles": [1.0, 2.0]}).setting("tuning"), GainSpec(2, 2), ts61.scenarios, ts61.loss
         )
-    from tuning.cli import main
+    from wmrjax.cli.tune import main
 
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path / "o"), "--problem", "car_schedule", "--knots", "1"])
@@ -187,7 +187,7 @@ def test_heading_offset_reaches_the_certificate_term():
     from wmrjax import certify
     from wmrjax import references as R
 
-    problem = Problem.load(problem_file("section_6_1")).with_values(
+    problem = Problem.load(problem_file("section_6_1_plant")).with_values(
         {
             "controller.robot": "(1,1)",
             "geometry.e": 0.3,

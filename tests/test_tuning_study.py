@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from test_tuning import TINY_DATA
 
-from tuning import GainSpec, baselines, loop, study
 from wmrjax.problem import Problem
+from wmrjax.tune import GainSpec, baselines, loop, study
 
 jax.config.update("jax_enable_x64", True)
 TINY = Problem.from_dict(TINY_DATA)

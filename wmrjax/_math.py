@@ -431,3 +431,12 @@ def banded_solve(values, starts, rhs, block: int):
 
     _, x = jax.lax.scan(backward, jnp.zeros_like(y[0]), (X, y), reverse=True)
     return x.reshape(m * b, -1)[pad:]
+
+
+def quantiles(a) -> dict:
+    """Median, 90th and 99th percentiles and the maximum of a 1-D array ({} if empty): the
+    summaries' statistics of a batch of runs."""
+    a = np.asarray(a)
+    if not a.size:
+        return {}
+    return {f"q{int(p)}": float(np.percentile(a, p)) for p in (50, 90, 99)} | {"max": float(a.max())}

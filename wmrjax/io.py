@@ -3,7 +3,7 @@ the columns of a CSV file (:func:`read_csv_columns`), bounded in size and refuse
 message naming the file.
 
 The library writes nothing: results on disk (atomic writers, checkpoints, output locks) are
-the command lines' layer, :mod:`wmrjax_cli.files`.
+the command lines' layer, :mod:`wmrjax._files`.
 """
 
 from __future__ import annotations

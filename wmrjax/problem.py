@@ -1358,7 +1358,7 @@ def _summary_controller(data: dict) -> tuple:
 
 
 def read_gains_file(path: Path, ctrl=None) -> GainsFile:
-    """A tuned-gains file: ``gains.json`` of ``python -m tuning`` (kind ``wmrjax.gains``), or a
+    """A tuned-gains file: ``gains.json`` of ``wmrjax tune`` (kind ``wmrjax.gains``), or a
     tuning ``summary.json`` (its ``tuned_gains``). With ``ctrl``: refused unless tuned for this
     robot type and level, and of its shape."""
 

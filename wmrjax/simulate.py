@@ -6,7 +6,7 @@ Called with concrete arguments it is jitted at this entry point (the closed-loop
 step count and the saving stride are static); called inside an outer ``jit``, ``vmap`` or
 ``grad`` it traces into the outer program, which is the one compiled.
 
-Six implementation choices matter for speed (``experiments/benchmark.py`` times them; its
+Six implementation choices matter for speed (``benchmarks/benchmark.py`` times them; its
 results are on the benchmarks page of the docs):
 
 * what the vector field computes from the time and the parameters alone (the reference's

@@ -1,0 +1,7 @@
+"""``python -m tests.probe --tree DIR --out OUT``: probe a wmrjax checkout (see docs/tests/probe.md)."""
+
+import sys
+
+from tests.probe.cli import main
+
+sys.exit(main())

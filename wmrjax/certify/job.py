@@ -1,0 +1,199 @@
+"""TODO docstring."""
+
+from __future__ import annotations
+
+import time
+
+import jax
+
+from wmrjax import _files as files
+
+
+def settings(problem) -> dict:
+    """The ``[certify]`` section over its defaults, checked key by key."""
+    from wmrjax.problem import check_keys, integer, positive
+
+    c = problem.section("certify")
+    check_keys("certify", c, tuple(CERTIFY_KEYS))
+    out = dict(CERTIFY_KEYS)
+    for k, v in c.items():
+        if k == "eps":
+            out[k] = positive("certify", k, v)
+        else:
+            out[k] = integer("certify", k, v, {"n_empirical": 0, "n_starts": 0, "seed": 0}.get(k, 1))
+    return out
+
+
+def setup(problem, case=None):
+    """``(setting, ctrl, params)`` of the problem's one closed loop to certify (a dynamic law)."""
+    from wmrjax.problem import Law, ProblemError
+
+    setting = problem.setting("certification", case=case)
+    if setting.law != Law.DYNAMIC:
+        raise ProblemError(
+            'certification needs a dynamic linearizing law ([controller] law = "dynamic"): Lemma 2 '
+            "and the exact map are about Table 4's closed loops"
+        )
+    # the certificates are the nominal loop's: a listed [plant] (a swept geometry range) is reported, not refused
+    setting.check_single("certification", keep=("initial", "plant"))
+    return setting, setting.ctrl, setting.params()
+
+
+def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title=""):
+    """PNG: log10 min_t dist over a grid of initial position errors, eps contour, certified circles."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from wmrjax import certify as C
+
+    R = 1.25 * max(v for k, v in block.items() if k.startswith("radius_") and v is not None)
+    xs = np.linspace(-R, R, n_grid)
+    X, Y = np.meshgrid(xs, xs)
+    P = np.asarray(C.slice_basis(ctrl, "position"))
+    errs = np.stack([X.ravel(), Y.ravel()], 1) @ P.T
+    d, s = C.min_distance(ctrl, params, t_final=t_final, initial_errors=jnp.asarray(errs), dt=dt)
+    d = np.where(np.asarray(s), 0.0, np.asarray(d)).reshape(X.shape)
+    plt = files.headless_pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 5.6))
+    im = ax.pcolormesh(X, Y, np.log10(np.maximum(d, 1e-6)), cmap="viridis", shading="auto")
+    fig.colorbar(
+        im,
+        ax=ax,
+        label="log10 min_t dist(zeta(t), singular set)"
+        if C.singular_rows(ctrl)
+        else "log10 min_t dist(zeta(t), singular set) (capped at 1)",
+    )
+    bad = d < eps
+    if bad.any():
+        ax.plot(X[bad], Y[bad], "rs", ms=2.5, label=f"unsafe: comes within eps = {eps}")
+    th = np.linspace(0, 2 * np.pi, 200)
+    for i, (k, lab) in enumerate(
+        [
+            ("radius_paper", "Lemma 2, K2 of (64)"),
+            ("radius_lyapunov", "Lemma 2, Lyapunov K2"),
+            ("radius_exact_norm", "Lemma 2, K2 = ||exp(At)||"),
+            ("radius_exact_map_position_slice", "exact map (position slice)"),
+            ("empirical_radius_position_slice", "empirical (position slice)"),
+        ]
+    ):
+        r = block.get(k)
+        if r is not None:
+            ax.plot(
+                r * np.cos(th),
+                r * np.sin(th),
+                color=f"C{i + 1}",
+                lw=1.4,
+                ls="--" if "empirical" in k else "-",
+                label=f"{lab}: {r:.3g}",
+            )
+    ax.set_xlabel("initial error in x_P [m]")
+    ax.set_ylabel("initial error in y_P [m]")
+    ax.set_title(title or "initial position errors (velocities = reference's)")
+    ax.set_aspect("equal")
+    ax.legend(fontsize=7, loc="upper right")
+    files.write_png(fig, path)
+    plt.close(fig)
+    return {"n_grid": n_grid, "half_width": R, "fraction_unsafe": float(bad.mean())}
+
+
+def run(out, problem, case=None, progress=None) -> dict:
+    """Certify the problem's closed loop; writes ``summary.json`` and ``slice_map.png`` in ``out``."""
+    report_progress = progress or (lambda msg: print(msg, flush=True))
+    stages = []  # (message, time): the timing block charges each stretch to the message ending it
+    started = time.perf_counter()
+
+    def say(msg):
+        stages.append((msg, time.perf_counter()))
+        report_progress(msg)
+
+    jax.config.update("jax_enable_x64", True)  # the job runs in float64
+    t0 = time.time()
+    cfg = settings(problem)
+    setting, ctrl, params = setup(problem, case)
+    t_final, dt = setting.t_final, setting.dt
+    say(f"certify {ctrl.robot.name} ({ctrl.level}) along {setting.reference.name}, T = {t_final} s, eps = {cfg['eps']}")
+    from wmrjax import certify as C
+
+    report = C.analyse(
+        ctrl,
+        params,
+        t_final=t_final,
+        eps=cfg["eps"],
+        dt=dt,
+        n_empirical=cfg["n_empirical"],
+        n_directions=cfg["n_directions"],
+        n_starts=cfg["n_starts"],
+        seed=cfg["seed"],
+        log=say,
+    )
+    exact = {"full": report.exact_full, "position": report.exact_position}
+    falsified = {"full": report.falsified_full, "position": report.falsified_position}
+    problem_block = C.problem_certificate(
+        setting, params, exact, eps=cfg["eps"], falsified=falsified, seed=cfg["seed"], log=say
+    )
+    say(f"slice map ({cfg['map_grid']} x {cfg['map_grid']} runs)")
+    block = report.summary()
+    out.mkdir(parents=True, exist_ok=True)
+    summary = _summary(problem, case, cfg, setting, params, block, problem_block)
+    summary["slice_map"] = slice_map(
+        ctrl,
+        params,
+        block,
+        out / "slice_map.png",
+        t_final=t_final,
+        dt=dt,
+        eps=cfg["eps"],
+        n_grid=cfg["map_grid"],
+        title=f"{ctrl.robot.name} along {setting.reference.name}: initial position errors",
+    )
+    summary["wall_time_s"] = time.time() - t0
+    summary["timing"] = _timing(stages, started, time.perf_counter())
+    files.write_json(out / "summary.json", summary)
+    return summary
+
+
+def _summary(problem, case, cfg: dict, setting, params, block: dict, problem_block: dict) -> dict:
+    """``summary.json`` but the slice map and the timing: the problem, the loop certified, every
+    radius (``block``: the nominal loop's, labelled) and the problem loop's certificate."""
+    from wmrjax import certify as C
+
+    ctrl, gains = setting.ctrl, params.gains
+    return {
+        "experiment": "certify",
+        "problem_name": problem.title,
+        "case": case,
+        "problem": problem.resolved(),
+        "certify": cfg,
+        "robot": ctrl.robot.name,
+        "level": str(ctrl.level),
+        "reference": setting.reference.name,
+        "heading_offset": float(params.reference.heading_offset),
+        "geometry": {k: float(v) for k, v in params.geometry._asdict().items()},
+        "gains": C.plain({"coefficients": gains.coeffs} if not gains.time_varying else {"schedule_knots": gains.times}),
+        "closed_loop_poles_re_im": None
+        if gains.time_varying
+        else [[float(p.real), float(p.imag)] for p in ctrl.error_poles(gains)],
+        "plant": (
+            "every radius but problem_certificate's falsified ones is the nominal continuous loop's "
+            "(radius_labels); problem_certificate is the problem's loop's"
+            if setting.plant
+            else None
+        ),
+        "dt": setting.dt,
+        **block,
+        "radius_labels": C.radius_labels(block),
+        "problem_certificate": problem_block,
+        "plant_warnings": C.real_loop.plant_warnings(problem_block),
+    }
+
+
+def _timing(stages, start: float, end: float) -> list:
+    """Seconds between consecutive progress messages, each charged to the later one (the
+    pipeline reports a stage when it ends: the time is the work behind that line, compiling
+    included); a last entry for what follows the last message."""
+    times = [start] + [t for _, t in stages] + [end]
+    names = [msg for msg, _ in stages] + ["after the last message (figure, summary)"]
+    return [{"stage": m, "seconds": round(b - a, 3)} for m, a, b in zip(names, times[:-1], times[1:])]
+
+
+CERTIFY_KEYS = {"eps": 1e-2, "n_empirical": 4096, "n_directions": 128, "n_starts": 16, "map_grid": 81, "seed": 0}

@@ -1,0 +1,65 @@
+"""TODO docstring."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from wmrjax.tune.pareto import run
+
+
+def parser():
+    from wmrjax.cli import options
+
+    p = options.parser(__doc__.splitlines()[0], "results/pareto")
+    p.add_argument("file", type=Path, help="a problem file (TOML) with a [tune] section")
+    p.add_argument(
+        "--slice",
+        default="full",
+        choices=["full", "position"],
+        help="the slice of initial errors whose exact-map radius is required (default: full)",
+    )
+    g = p.add_mutually_exclusive_group()
+    g.add_argument(
+        "--fractions",
+        type=options.nonnegative,
+        nargs="+",
+        default=None,
+        help="required radii as multiples of the initial gains' radius (default: 0 0.25 0.5 0.75 1 1.25)",
+    )
+    g.add_argument(
+        "--radii", type=options.nonnegative, nargs="+", default=None, help="required radii [output-error units: m, m/s]"
+    )
+    p.add_argument("--eps", type=options.positive, default=None, help="the margin (default: [certify] eps, else 0.01)")
+    return p
+
+
+def main(argv=None) -> int:
+    import jax
+
+    from wmrjax.cli import options
+    from wmrjax.problem import Problem
+
+    p = parser()
+    a = p.parse_args(argv)
+    options.configure_xla()  # before JAX starts its backend
+    jax.config.update("jax_enable_x64", True)
+    try:
+        problem = Problem.load(a.file)
+        from wmrjax.tune import certified, config
+
+        setting = problem.setting("tuning")
+        settings = config.read(problem.section("tune"), problem.section("certify"))
+        certified.check(setting, settings.gain_spec(setting))
+    except ValueError as e:
+        p.error(str(e))
+    s = options.work(p, a, lambda progress: run(problem, a.out, a.slice, a.fractions, a.radii, a.eps, log=progress))
+    for pt in s["points"]:
+        print(
+            f"required {pt['required_radius']:.4g}: radius {pt['tuned_radius']:.4g} (falsified "
+            f"{pt['falsified_radius']}), held-out {pt['heldout_loss']:.4g}, certified {pt['certified']}"
+        )
+    print(
+        f"initial gains: radius {s['initial_gains']['radius']:.4g}, held-out {s['initial_gains']['heldout_loss']:.4g}"
+    )
+    print(f"wrote {a.out}/pareto.csv, pareto.png, summary.json, points/ ({s['wall_time_s']:.0f} s)")
+    return 0

@@ -1,0 +1,119 @@
+"""TODO docstring."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from wmrjax.tune.study import DEFAULT_PROBLEMS, METHODS, problem_path, study
+
+
+def parser():
+    from wmrjax.cli import options
+
+    p = options.parser(__doc__.splitlines()[0], "results/tuning_study")
+    p.add_argument(
+        "--problems",
+        nargs="+",
+        default=list(DEFAULT_PROBLEMS),
+        help="shipped problem names (wmrjax/examples) or problem files (TOML with [tune])",
+    )
+    p.add_argument("--seeds", type=options.count, default=10, help="seeds per problem (scenario sets, streams)")
+    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS, help="methods to run")
+    p.add_argument("--points", type=options.count, default=8, help="log-spaced compute points up to the budget")
+    p.add_argument(
+        "--budget",
+        type=options.positive,
+        default=1.0,
+        help="every baseline's budget as a multiple of the gradient run's forward-rollout equivalents",
+    )
+    p.add_argument("--steps", type=options.count, default=None, help="override every problem's optimizer steps")
+    p.add_argument("--n-train", type=options.count, default=None, help="override every problem's training scenarios")
+    p.add_argument("--n-validation", type=options.count, default=None, help="override the validation scenarios")
+    p.add_argument("--n-heldout", type=options.count, default=None, help="override the held-out scenarios")
+    p.add_argument(
+        "--require-radius",
+        default=None,
+        metavar="R",
+        help="a certified-region requirement for every problem that can keep one (a radius, 'initial' "
+        "or 'box'; see wmrjax tune --help); the others run without and say so",
+    )
+    p.add_argument("--require-slice", default="full", choices=["full", "position"], help="the requirement's slice")
+    return p
+
+
+def overrides(args) -> dict:
+    """The problem-file values the command line's options set."""
+    keys = {
+        "steps": "tune.steps",
+        "n_train": "tune.scenarios.train",
+        "n_validation": "tune.scenarios.validation",
+        "n_heldout": "tune.scenarios.heldout",
+    }
+    return {key: getattr(args, k) for k, key in keys.items() if getattr(args, k, None) is not None}
+
+
+def run(args, log=print) -> dict:
+    """The study of the command line's options (``args`` from :func:`parser`)."""
+    return study(
+        problems_of(args),
+        args.out,
+        seeds=args.seeds,
+        methods=args.methods,
+        points=args.points,
+        budget=args.budget,
+        log=log,
+    )
+
+
+def problems_of(args) -> dict:
+    """The problems of the command line's options, overrides applied: name -> (problem, requirement).
+
+    Raises:
+      ValueError: an unknown problem or unreadable file, two problems of one name, a bad override.
+    """
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # the tuner runs in float64
+    from wmrjax.problem import Problem
+
+    require = None if args.require_radius is None else (_radius(args.require_radius), args.require_slice)
+    problems = {}
+    for spec in args.problems:
+        name, path = problem_path(spec)
+        if name in problems:
+            raise ValueError(f"--problems: two problems named {name!r}")
+        over = overrides(args)
+        problem = Problem.load(path)
+        problems[name] = (problem.with_values(over) if over else problem, require)
+    return problems
+
+
+def _radius(text: str):
+    """``--require-radius``: 'initial', 'box' or a radius >= 0."""
+    if text in ("initial", "box"):
+        return text
+    v = float(text)
+    if not v >= 0 or not np.isfinite(v):
+        raise ValueError(f"--require-radius: expected a radius >= 0, 'initial' or 'box', got {text!r}")
+    return v
+
+
+def main(argv=None) -> int:
+    from wmrjax.cli import options
+
+    p = parser()
+    a = p.parse_args(argv)
+    options.configure_xla()  # before JAX starts its backend
+    try:  # the problems named by the options: a bad one is a bad option
+        problems = problems_of(a)
+    except ValueError as e:
+        options.fail(p, str(e))
+    s = options.work(
+        p,
+        a,
+        lambda progress: study(
+            problems, a.out, seeds=a.seeds, methods=a.methods, points=a.points, budget=a.budget, log=progress
+        ),
+    )
+    print(f"wrote {a.out}/study.csv, summary.json, study.png ({s['wall_time_s']:.0f} s)")
+    return 0

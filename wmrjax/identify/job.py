@@ -1,0 +1,92 @@
+"""TODO docstring."""
+
+from __future__ import annotations
+
+import time
+import tomllib
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from wmrjax import _files as files
+from wmrjax import identify as I
+from wmrjax import io
+from wmrjax.problem import Problem
+
+
+def run(out: Path, problem: Problem, logs, *, holdout=(), period=None, segment=2.0, max_delay=0, progress=None) -> dict:
+    """Identify the plant of ``problem`` (loaded from its file) from ``logs`` (paths); write into ``out``."""
+    say = progress or (lambda msg: print(msg, flush=True))
+    jax.config.update("jax_enable_x64", True)  # the job runs in float64
+    t0 = time.time()
+    model = I.sections.plant_model(problem.setting("identify"), period)
+    fit_logs, held = ([read_log(p, model.robot) for p in paths] for paths in (logs, holdout))
+    options = I.FitOptions(segment=segment, max_delay=max_delay)
+    say(
+        f"identify a {model.robot.name} robot ({model.level}) from {len(fit_logs)} log(s), {sum(len(x.t) for x in fit_logs)} samples"
+    )
+    ident = I.identify(model, fit_logs, options)
+    summary = {
+        "experiment": "identify",
+        "problem_name": problem.title,
+        "problem": problem.resolved(),
+        **ident.summary(),
+    }
+    if held:
+        say(f"predict {len(held)} held-out log(s)")
+        summary["holdout"] = _holdout(ident, held)
+    plant = summary["problem"].get("plant", {})
+    section = I.sections.plant_section(ident, plant, ", ".join(Path(p).name for p in logs))
+    files.write_bytes(out / "plant.toml", section.encode())
+    written = ["summary.json", "plant.toml", "paths.png"]
+    text = I.sections.with_plant_section(io.read_small_text(problem.source, "problem file"), section)
+    try:  # the problem with the identified plant, if it loads from --out (relative paths may not)
+        Problem.from_dict(tomllib.loads(text), base=out.resolve())
+        files.write_bytes(out / "problem.toml", text.encode())
+        written.append("problem.toml")
+    except ValueError as err:
+        summary["problem_toml_not_written"] = f"{err}; put plant.toml's section into the problem file instead"
+    _figure(ident, out / "paths.png")
+    summary["files"] = written
+    summary["wall_time_s"] = time.time() - t0
+    files.write_json(out / "summary.json", summary)
+    return summary
+
+
+def read_log(path: Path, robot):
+    """A CSV log, or a Parquet one (by its ``.parquet`` suffix)."""
+    path = Path(path)
+    if path.suffix != ".parquet":
+        return I.read_log(path, robot)
+    data, header = files.read_parquet_columns(path, I.columns(robot), f"log of a {robot.name} robot")
+    return I.log_from_columns(path.name, data, header, robot)
+
+
+def _holdout(ident, logs) -> dict:
+    fitted = I.prediction_error(ident, logs)
+    nominal = I.prediction_error(ident, logs, theta=np.ones(len(ident.model.names)))
+    ch = ident.model.channels
+    return {
+        log.name: {"identified_rms": dict(zip(ch, map(float, a))), "nominal_rms": dict(zip(ch, map(float, b)))}
+        for log, a, b in zip(logs, fitted, nominal)
+    }
+
+
+def _figure(ident, path: Path) -> None:
+    plt = files.headless_pyplot()
+    n = len(ident.log_names)
+    fig, axes = plt.subplots(1, n, figsize=(5 * n, 4.5), squeeze=False)
+    seg = ident.segments
+    for j, ax in enumerate(axes[0]):
+        rows = np.flatnonzero(seg.log == j)
+        for k, g in enumerate(rows):
+            m = seg.mask[g] > 0
+            ax.plot(*seg.measured[g, m, :2].T, ".", ms=2, color="0.6", label="logged" if k == 0 else None)
+            ax.plot(
+                *ident.predicted[g, m, :2].T, "-", lw=1, color="C0", label="fitted (per segment)" if k == 0 else None
+            )
+        ax.set(xlabel="x [m]", ylabel="y [m]", title=f"{ident.log_names[j]}: logged and fitted paths", aspect="equal")
+        ax.legend(loc="best", fontsize=8)
+    files.write_png(fig, path)
+    plt.close(fig)

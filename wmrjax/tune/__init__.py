@@ -1,0 +1,29 @@
+"""Gain tuning by gradient descent through the simulator (optax): ``wmrjax tune``.
+
+* :mod:`wmrjax.tune.config` -- a run's settings in small groups (the ``[tune]`` section of a problem file);
+* :mod:`wmrjax.tune.gains` -- the gain family: poles from unconstrained parameters (softplus),
+  shared or per output, frozen entries, gain schedules;
+* :mod:`wmrjax.tune.losses` -- the loss terms of a :class:`wmrjax.Trajectory` and their weights;
+* :mod:`wmrjax.tune.scenarios` -- scenarios drawn from a problem, and their rollouts;
+* :mod:`wmrjax.tune.loop` -- :func:`tune`: an optax optimizer through the runs, with held-out early
+  stopping and JSON checkpoints;
+* :mod:`wmrjax.tune.baselines` -- random search and CMA-ES on the same objective.
+
+Example::
+
+    problem = wmrjax.problem.Problem.load("wmrjax/examples/section_6_1_plant.toml")
+    setting = problem.setting("tuning")
+    settings = wmrjax.tune.config.read(problem.section("tune"))
+    result = wmrjax.tune.tune(setting, settings.gain_spec(setting), optax.adam(0.1), steps=40)
+"""
+
+from wmrjax.examples import PROBLEMS, problem_file  # noqa: F401
+from wmrjax.tune.baselines import BaselineRun, cma_es, random_search  # noqa: F401
+from wmrjax.tune.config import Baselines, Optimizer, Scenarios, Stopping, TuneSettings  # noqa: F401
+from wmrjax.tune.gains import GainSpec  # noqa: F401
+from wmrjax.tune.loop import Context, TuneResult, mean_loss, mean_loss_and_grad, objective, tune  # noqa: F401
+from wmrjax.tune.losses import LossWeights, Metrics, metrics  # noqa: F401
+from wmrjax.tune.scenarios import Scenario, rollout  # noqa: F401
+
+GainFamily = GainSpec
+"""The family of tuned gains (another name for :class:`GainSpec`)."""

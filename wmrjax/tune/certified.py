@@ -1,0 +1,336 @@
+r"""The certified region while tuning (issue 32): a required exact-map radius kept throughout,
+and every radius of the initial and the tuned gains, labelled.
+
+The exact-map radius (:func:`wmrjax.certify.exact_map_radius`) is the largest ball of initial
+output errors, in the full error space or the position slice, from which the linearized error
+:math:`\tilde\zeta(t) = \Phi(t, 0)\tilde\zeta(0)` stays eps away from the singular set over the
+horizon. It is a minimum over time of closed-form problems in :math:`\Phi(t, 0)` (no rollout),
+so it is cheap and, for the linear singular sets of (2,0), (2,1) and (1,1), differentiable in
+the gains (:func:`wmrjax.certify.differentiable_exact_map_radius`). The tuner
+
+* starts from a point that meets the requirement (when the initial gains do not, it first climbs
+  the radius's gradient until they do: :func:`restore`);
+* removes from each loss gradient the part that would shrink the radius while the radius is
+  within :data:`BAND` of the requirement (gradient projection on the one active constraint);
+* accepts an optimizer step where the radius still meets the requirement; otherwise projects it
+  back onto the requirement along the radius's gradient (a few Newton steps), or failing that
+  halves it back toward the last accepted point (:func:`feasible_step`).
+
+Every accepted point therefore holds the requirement, not just the last. For (1,2), whose
+singular set is curved, the radius is a branch and bound over (t, heading) with a proved lower
+bound (:func:`wmrjax.certify.curved_exact_map_radius`): not differentiable, and far too slow
+to evaluate at every step (thousands of boxes per round, a dozen rounds), so a
+requirement on (1,2) is refused; tune without it and
+certify the result (``wmrjax certify ... --gains``), or require a Lemma 2 radius
+through the certificate term of the loss.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wmrjax import certify
+from wmrjax.problem import ProblemError, check_keys, positive
+
+SLICES = ("full", "position")
+DEFAULT_EPS = 1e-2  # the certify command's default margin [output-error units]
+BAND = 0.02  # project the gradient when the radius is within 2 % of the requirement
+MAX_HALVINGS = 30  # a rejected step is halved at most this often (2^-30 of it), then not taken
+RESTORE_STEPS = 200  # ascent steps on the radius when the initial gains miss the requirement
+RESTORE_STEP = 0.2  # their first length in the unconstrained parameters
+RESTORE_MARGIN = 1e-3  # the ascent and the projection aim this fraction above the requirement
+PROJECTION_STEPS = 5  # Newton steps projecting a step back onto the requirement
+
+
+class Requirement(NamedTuple):
+    """The initial errors the tuned gains must stay certified for (``[tune.requirement]``).
+
+    Attributes:
+      radius: the required exact-map radius [output-error units: m, m/s, ...]; or ``"initial"``
+        (the initial gains' radius: keep the region the user has) or ``"box"`` (the smallest
+        ball holding the problem's ``[initial]`` box in the slice).
+      slice: ``"full"`` (every output-error component: position and velocity errors, what a
+        start of the ``[initial]`` box differs in) or ``"position"`` (the position error only,
+        the paper's setting).
+      eps: the margin to the singular set (the problem's ``[certify] eps`` by default).
+    """
+
+    radius: float | str
+    slice: str = "full"
+    eps: float = DEFAULT_EPS
+
+
+def read(table: dict | None, certify_section: dict) -> Requirement | None:
+    """The :class:`Requirement` of a ``[tune.requirement]`` table (None when absent)."""
+    if not table:
+        return None
+    check_keys("tune.requirement", table, Requirement._fields)
+    if "radius" not in table:
+        raise ProblemError('[tune.requirement] radius: required (a radius >= 0, "initial" or "box")')
+    r = table["radius"]
+    if not (
+        r in ("initial", "box")
+        or (isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and r >= 0)
+    ):
+        raise ProblemError(f'[tune.requirement] radius: expected a radius >= 0, "initial" or "box", got {r!r}')
+    sl = table.get("slice", "full")
+    if sl not in SLICES:
+        raise ProblemError(f"[tune.requirement] slice: expected one of {SLICES}, got {sl!r}")
+    eps = positive("tune.requirement", "eps", table.get("eps", certify_section.get("eps", DEFAULT_EPS)))
+    return Requirement(float(r) if not isinstance(r, str) else r, sl, float(eps))
+
+
+def check(setting, family) -> None:
+    """ValueError when the problem has no exact-map radius to keep: a static law, a random
+    reference family (no fixed reference), or type (1,2) (see the module docstring)."""
+    from wmrjax.controllers.dynamic import DynamicLinearization
+    from wmrjax.references import FAMILIES
+
+    if not isinstance(setting.ctrl, DynamicLinearization):
+        raise ValueError("a certified-region requirement needs a dynamic linearizing law (only those are certified)")
+    if FAMILIES[setting.data["reference"]["family"]].kind == "random":
+        raise ValueError("a certified-region requirement needs a fixed reference, not a random family")
+    if certify.singular_rows(setting.ctrl) is None:
+        raise ValueError(
+            "a certified-region requirement on type (1,2) is not supported: its exact-map radius (a "
+            "curved singular set) is a branch and bound taking minutes per evaluation, without a "
+            "gradient; tune without it and certify the tuned gains (wmrjax certify "
+            "PROBLEM --gains gains.json), or weight the loss's certificate term (Lemma 2)"
+        )
+
+
+class Radius(NamedTuple):
+    """The radius as the loop uses it.
+
+    Attributes:
+      value: ``raw -> radius`` (a float).
+      value_and_grad: ``raw -> (radius, gradient in raw)``.
+      label: what it is, for the summary.
+    """
+
+    value: Callable
+    value_and_grad: Callable | None
+    label: str
+
+
+def radius_function(setting, family, req: Requirement) -> Radius:
+    """The exact-map radius of the gains ``family.gains(raw)`` on the problem's reference,
+    nominal geometry and horizon (:func:`wmrjax.certify.differentiable_exact_map_radius`)."""
+    check(setting, family)
+    base = setting.params()
+    kw = dict(t_final=setting.t_final, eps=req.eps, basis=req.slice)
+    fn = lambda raw: certify.differentiable_exact_map_radius(setting.ctrl, base._replace(gains=family.gains(raw)), **kw)
+    vg = jax.jit(jax.value_and_grad(fn))
+    return Radius(lambda raw: float(vg(raw)[0]), vg, f"exact map ({req.slice})")
+
+
+def required_radius(setting, req: Requirement, radius: Radius, raw0) -> float:
+    """The requirement as a number: ``"initial"`` is the radius at ``raw0``, ``"box"`` the
+    half-diagonal of the ``[initial]`` box in the slice."""
+    if req.radius == "initial":
+        return radius.value(raw0)
+    if req.radius == "box":
+        from wmrjax.problem import Space
+
+        if Space(setting.data["initial"].get("space", "output")) != Space.OUTPUT:
+            raise ValueError(
+                '[tune.requirement] radius = "box" needs output-space initial errors ([initial] space '
+                '= "output"): the radius is a ball of output errors'
+            )
+        keys = ("x", "y") if req.slice == "position" else ("x", "y", "vx", "vy")
+        return float(math.sqrt(sum(_half_width(setting.data["initial"].get(k, 0.0)) ** 2 for k in keys)))
+    return float(req.radius)
+
+
+def _half_width(v) -> float:
+    """The largest |value| of one ``[initial]`` key (a number, a list or a ``{low, high}`` box)."""
+    if isinstance(v, dict):
+        return max(abs(float(v.get("low", 0.0))), abs(float(v.get("high", 0.0))))
+    return float(np.max(np.abs(np.asarray(v, float)))) if np.size(v) else 0.0
+
+
+def project(grad, r: float, g_r, required: float):
+    """The loss gradient without the part that would shrink the radius, when the radius is within
+    :data:`BAND` of ``required`` (a descent step moves by about ``-grad``; it lowers the radius
+    where ``grad . g_r > 0``)."""
+    if r > required * (1.0 + BAND):
+        return grad
+    g, gr = np.asarray(grad, float), np.asarray(g_r, float)
+    dot, nn = float(np.sum(g * gr)), float(np.sum(gr * gr))
+    if dot <= 0.0 or nn == 0.0:
+        return grad
+    return jnp.asarray(g - dot / nn * gr, dtype=jnp.asarray(grad).dtype)
+
+
+def feasible_step(raw, proposal, radius: Radius, required: float):
+    """``(accepted point, its radius, halvings)`` for an optimizer's ``proposal`` from ``raw``.
+
+    A proposal below ``required`` is first projected back along the radius's gradient (Newton
+    steps on ``radius = required (1 + RESTORE_MARGIN)``, at most :data:`PROJECTION_STEPS`): the
+    iterate slides along the boundary instead of stopping at it (a step tangent to it still
+    loses radius at second order where the radius is concave). Where that fails the step is halved back toward ``raw``: the furthest of
+    ``raw + 2^-k (proposal - raw)`` that meets ``required``, else ``raw`` itself (``halvings``
+    is then ``MAX_HALVINGS + 1``; -1 marks a projected step).
+    """
+    proposal = jnp.asarray(proposal)
+    r = radius.value(proposal)
+    if r >= required:
+        return proposal, r, 0
+    p, target = proposal, required * (1.0 + RESTORE_MARGIN)
+    for _ in range(PROJECTION_STEPS):
+        rv, g = radius.value_and_grad(p)
+        gg = float(jnp.sum(g * g))
+        if float(rv) >= target or gg == 0.0 or not np.isfinite(gg):
+            break
+        p = p + (target - float(rv)) / gg * g
+    r = radius.value(p)
+    if r >= required:
+        return p, r, -1
+    raw = np.asarray(raw)
+    for k in range(1, MAX_HALVINGS + 1):
+        cand = jnp.asarray(raw + 0.5**k * (np.asarray(proposal) - raw))
+        r = radius.value(cand)
+        if r >= required:
+            return cand, r, k
+    return jnp.asarray(raw), radius.value(jnp.asarray(raw)), MAX_HALVINGS + 1
+
+
+def restore(raw, radius: Radius, required: float, log=print):
+    """Climb the radius from ``raw`` until it meets ``required`` (normalised gradient steps,
+    lengthened after an improvement, halved after a failure); ValueError when it cannot."""
+    r = radius.value(raw)
+    if r >= required:
+        return raw, r
+    target, step = required * (1.0 + RESTORE_MARGIN), RESTORE_STEP
+    for _ in range(RESTORE_STEPS):
+        r, g = radius.value_and_grad(raw)
+        if float(r) >= target:
+            break
+        gn = float(jnp.linalg.norm(g))
+        if gn == 0.0:
+            break
+        trial = raw + step * g / gn
+        rt = float(radius.value_and_grad(trial)[0])
+        if rt > float(r):
+            raw, step = trial, step * 1.5
+        else:
+            step *= 0.5
+    r = radius.value(raw)
+    if r < required:
+        raise ValueError(
+            f"the requirement {required:.4g} is beyond what this gain family reaches from the initial gains "
+            f"(the radius climbed to {r:.4g} in {RESTORE_STEPS} ascent steps): lower it"
+        )
+    log(f"requirement {required:.4g}: the initial gains' radius raised to {r:.4g} before tuning")
+    return raw, r
+
+
+# --- every radius of a set of gains, labelled ----------------------------------------------------
+
+K2_LABELS = {
+    "paper": "Lemma 2, K2 of eq (64) (the double pole at -1 only)",
+    "lyapunov": "Lemma 2, automatic Lyapunov K2",
+    "exact_norm": "Lemma 2, K2 = ||e^{At}||",
+}
+SCHEDULE_K2_LABEL = "Lemma 2, K2 = ||Phi(t, 0)|| (gain schedule)"
+
+
+def radii(setting, gains, *, eps: float, falsify=False, seed: int = 0, n_starts: int = 16) -> dict:
+    """Every radius of ``gains`` on the problem, as the certify module computes it (plain JSON).
+
+    Lemma 2 with each K2 that applies, the exact-map radius of the full error space and of the
+    position slice (with the proved lower bound for (1,2)), and with ``falsify`` the falsified
+    radius (an upper bound, from rollouts; :func:`wmrjax.certify.falsified_radius` started from
+    the largest Lemma 2 radius, as :func:`wmrjax.certify.analyse` does).
+
+    Each exact-map block also has ``worst_error_rollouts`` (:func:`worst_error_rollouts`): the
+    map's own worst initial error simulated at 0.99 and 1.01 times its size.
+
+    Args:
+      setting: the problem's :class:`wmrjax.problem.Setting`; gains: the gains to certify.
+      eps: the margin; seed: the falsifier's PRNG seed; n_starts: its gradient starts.
+      falsify: True (both slices), a slice name (that one only) or False.
+    """
+    ctrl, T = setting.ctrl, setting.t_final
+    params = setting.params(gains=gains)
+    report = certify.lemma2(ctrl, params, t_final=T, eps=eps)
+    out = {"eps": eps, "t_final": T, "lemma2": {}}
+    nominal = [str(certify.Feature.NOMINAL)]
+    for name, c in report.certificates().items():
+        label = SCHEDULE_K2_LABEL if gains.time_varying else K2_LABELS[name]
+        out["lemma2"][name] = {
+            "radius": float(c.radius),
+            "label": label,
+            "covers": nominal,
+            "kind": str(certify.Kind.PROVED_ON_TIME_GRID),
+        }
+    certified = max(v["radius"] for v in out["lemma2"].values())
+    keys = jax.random.split(jax.random.PRNGKey(seed))
+    for basis, key in zip(SLICES, keys):
+        em = certify.exact_map_radius(ctrl, params, t_final=T, eps=eps, basis=basis)
+        block = {"radius": float(em.radius), "label": f"exact map ({basis})", "covers": nominal}
+        block["kind"] = str(certify.Kind.ATTAINED)  # its lower bound (proved) below, where there is one
+        if em.lower_bound is not None:
+            block["lower_bound"] = float(em.lower_bound)
+        block["worst_error_rollouts"] = worst_error_rollouts(setting, params, em, eps)
+        if falsify is True or falsify == basis:
+            f = certify.falsified_radius(
+                ctrl, params, t_final=T, eps=eps, key=key, dt=setting.dt, basis=basis, n_starts=n_starts, r_lo=certified
+            )
+            block["falsified"] = None if f.radius is None else float(f.radius)
+            block["falsified_over_exact"] = None if f.radius is None else float(f.radius) / float(em.radius)
+        out[f"exact_map_{basis}"] = block
+    return out
+
+
+def problem_loop(setting) -> dict:
+    """What the radii above cover against the problem's loop: its plant features
+    (:func:`wmrjax.certify.plant_features`) and whether a proof covers them (not yet for any:
+    every radius of the tuner, and its requirement, is the nominal continuous loop's)."""
+    features = [str(f) for f in certify.plant_features(setting)]
+    return {
+        "features": features,
+        "covered": not features,
+        "note": (
+            "every radius here and the requirement are the nominal continuous loop's; no proof covers "
+            f"this problem's {', '.join(features)} (wmrjax certify gives the problem "
+            "loop's falsified radius)"
+            if features
+            else "the problem's loop is the nominal one"
+        ),
+    }
+
+
+CONFIRM_SCALES = (0.99, 1.01)  # the exact map's worst initial error, simulated this much inside and outside
+
+
+def worst_error_rollouts(setting, params, em, eps: float) -> dict:
+    """The exact map's worst initial error simulated (RK4 at a tenth of the problem's step) at
+    :data:`CONFIRM_SCALES` times its size: inside, the run must stay eps away; outside, it must
+    come within eps or turn singular. Both holding confirms by rollouts that the radius is
+    right to 1 % (an upper bound found where a falsifier's search may miss a brief approach)."""
+    x = jnp.asarray(em.worst_error)[None]
+    d = certify.min_distance(
+        setting.ctrl,
+        params,
+        initial_errors=jnp.concatenate([x * s for s in CONFIRM_SCALES]),
+        t_final=setting.t_final,
+        # two runs: the falsifier's confirmation program (its step and blocks), not 256-run blocks
+        dt=certify.CONFIRM_DT_FACTOR * setting.dt,
+        block=certify.CONFIRM_BLOCK,
+        shared=False,
+    )
+    dist, sing = np.asarray(d.distance), np.asarray(d.singular)
+    inside_ok = bool(dist[0] >= eps and not sing[0])
+    outside_fails = bool(dist[1] < eps or sing[1])
+    return {
+        "scales": list(CONFIRM_SCALES),
+        "min_distance": dist.tolist(),
+        "singular": sing.tolist(),
+        "confirmed": inside_ok and outside_fails,
+    }
