@@ -23,7 +23,7 @@ venv: $(STAMP)
 
 demo: $(STAMP)
 	$(PY) -m paper.section_6_1 --out results/section_6_1
-	$(PY) -m wmrjax.sweep wmrjax/examples/section_6_1_position_grid.toml --out results/sweeps/section_6_1_position_grid
+	$(VENV)/bin/wmrjax sweep section_6_1_position_grid --out results/sweeps/section_6_1_position_grid
 
 test: lint docs
 	$(PY) -m pytest -q -n auto --dist loadfile

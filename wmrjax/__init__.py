@@ -6,6 +6,7 @@ import; call ``jax.config.update("jax_enable_x64", True)`` in your entry point.
 """
 
 from wmrjax import autodiff, certify, controllers, export, io, linearize, references, resources, robots, xla_cpu  # noqa: F401
+from wmrjax._rk4 import rk4_step  # noqa: F401
 from wmrjax.autodiff import batch_value_and_grad, value_and_grad  # noqa: F401
 from wmrjax.controllers import (  # noqa: F401
     Aux,
@@ -37,7 +38,6 @@ from wmrjax.simulate import (  # noqa: F401
     Trajectory,
     batch_map,
     batch_mesh,
-    rk4_step,
     scalar_parts,
     scalarized,
     shard_batch,

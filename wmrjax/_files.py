@@ -14,12 +14,19 @@ plain numeric arrays only, and checkpoints are JSON.
 
 from __future__ import annotations
 
+import io as _io
 import json
 import os
+import socket
+import sys
 import tempfile
+import time
+import uuid
 from pathlib import Path
 from typing import Callable, NamedTuple
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import io
@@ -120,7 +127,6 @@ def write_checkpoint(path, *, fingerprint: str, config: dict, step: int, trees: 
       trees: name -> pytree of arrays (e.g. parameters, optimizer state), stored as leaf lists.
       state: any JSON-able dict (histories, counters).
     """
-    import jax
 
     leaves = {k: [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(t)] for k, t in trees.items()}
     return write_json(
@@ -138,8 +144,6 @@ def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) ->
       ValueError: a checkpoint of another configuration (naming the keys that differ), or one
         whose trees do not match the templates (missing, truncated or reshaped leaves).
     """
-    import jax
-    import jax.numpy as jnp
 
     path = Path(path)
     if path.exists() and not path.is_file():
@@ -225,7 +229,6 @@ def headless_pyplot():
 
 def write_png(fig, path, dpi: int = 120) -> Path:
     """Render a matplotlib figure to PNG and write it atomically."""
-    import io as _io
 
     buf = _io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
@@ -309,7 +312,6 @@ def _process_start(pid: int) -> str | None:
 
 def _alive(owner: dict) -> bool:
     """Whether the lock's owner is a live process on this host."""
-    import socket
 
     if owner.get("host") != socket.gethostname():
         return True  # another host's process: cannot tell, assume alive
@@ -350,10 +352,6 @@ def acquire_output(out, command: str) -> str | None:
     Raises:
       OutputLocked: a live process (named) holds the lock.
     """
-    import socket
-    import sys
-    import time
-    import uuid
 
     out = Path(out)
     path = out / LOCK_NAME

@@ -19,9 +19,11 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.experimental import jet
 
 from wmrjax import _math, _simplify
+from wmrjax._rk4 import rk4_step
 
 # relative degree above which the Taylor-mode construction is used (see output_jet)
 NESTED_MAX_DEGREE = 2
@@ -184,8 +186,6 @@ def transition_matrix(gains, t, *, n_steps: int | None = None):
 
 def _rk4_transition(gains, P, a, b, n_steps: int):
     """P advanced from time a to b by n_steps equal RK4 steps of dP/dt = A(t) P."""
-    from wmrjax.simulate import rk4_step  # the one RK4 step (simulate's), imported when used
-
     h = (b - a) / n_steps
     field = lambda s, P: (companion(gains.coeffs_at(s)) @ P, None)
 
@@ -212,7 +212,6 @@ def transition_matrices(gains, ts, *, max_step: float):
     Returns:
       (T, r m, r m) array, in the order of ``ts``.
     """
-    import numpy as np
 
     tv = np.asarray(ts, dtype=float)
     if tv.ndim != 1 or not np.all(np.isfinite(tv)) or np.any(tv < 0):

@@ -18,6 +18,7 @@ import dataclasses
 import functools
 import math
 import warnings
+from pathlib import Path
 from typing import Any, Callable
 
 import jax
@@ -25,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import jet
 
-from wmrjax import _math, _simplify, resources
+from wmrjax import _math, _simplify, io, resources
 from wmrjax._validate import check_real, concrete
 
 
@@ -765,9 +766,6 @@ def load_samples(
         64 MiB, not UTF-8, a column named twice, missing columns, ...), or what
         :func:`from_samples` refuses.
     """
-    from pathlib import Path
-
-    from wmrjax import io
 
     path = Path(path)
     col = io.read_csv_columns(path, ("t", "x", "y"), "reference samples")

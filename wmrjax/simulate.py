@@ -61,8 +61,9 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 from jax.extend import core as jex_core
 
-from wmrjax import _hoist, _scalarize, _simplify, resources
+from wmrjax import _hoist, _rk4, _scalarize, _simplify, resources
 from wmrjax._validate import check_finite, check_int, concrete, is_concrete
+from wmrjax.references import DOMAIN_RTOL, Reference
 
 # from this many steps on, reverse-mode differentiation checkpoints the saving chunks too
 TWO_LEVEL_CHECKPOINT_STEPS = 2000
@@ -148,49 +149,8 @@ class Trajectory(NamedTuple):
     diagnostics: Diagnostics
 
 
-def _is_continuous(x) -> bool:
-    return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
-
-
-def _held(k) -> bool:
-    """A derivative known to be zero when the step is traced (a held value: it needs no arithmetic)."""
-    return not isinstance(k, jax.core.Tracer) and not np.any(np.asarray(k))
-
-
-def _axpy(z, a, k):
-    """``z + a k`` on the continuous (floating) leaves of a state pytree; discrete and held leaves kept."""
-    return jax.tree_util.tree_map(lambda zi, ki: zi + a * ki if _is_continuous(zi) and not _held(ki) else zi, z, k)
-
-
-def rk4_step(field, t, z, dt):
-    """One classical RK4 step of ``dz/dt = field(t, z)[0]``; returns ``(z_next, aux_at_t)``.
-
-    ``z`` may be a pytree: its floating leaves are integrated, its integer leaves (discrete
-    state such as a mode) are held and change only in a system's ``post_step``.
-    """
-    z_next, aux, _, _ = _rk4(field, t, z, dt)
-    return z_next, aux
-
-
-def _rk4(field, t, z, dt, at=None):
-    """RK4 step returning ``(z_next, aux_at_t, k1, k4)`` (the stages the error estimate needs).
-    ``at``: what ``field`` takes in place of each stage's time (four values, e.g. the rows of a
-    table of time-dependent values, :mod:`wmrjax._hoist`); None: the stage times."""
-    a1, a2, a3, a4 = (t, t + 0.5 * dt, t + 0.5 * dt, t + dt) if at is None else at
-    k1, aux = field(a1, z)
-    k2, _ = field(a2, _axpy(z, 0.5 * dt, k1))
-    k3, _ = field(a3, _axpy(z, 0.5 * dt, k2))
-    k4, _ = field(a4, _axpy(z, dt, k3))
-    combine = lambda zi, a, b, c, d: (
-        zi + (dt / 6.0) * (a + 2.0 * b + 2.0 * c + d)
-        if _is_continuous(zi) and not all(map(_held, (a, b, c, d)))
-        else zi
-    )
-    return jax.tree_util.tree_map(combine, z, k1, k2, k3, k4), aux, k1, k4
-
-
 def _rk4_stage_loop(field, t, z, dt, parts, rebuild, rows=None):
-    """:func:`_rk4` of ``field(t, z, p)``, ``p = rebuild(parts)``, with its four stages run by a
+    """:func:`wmrjax._rk4.rk4_stages` of ``field(t, z, p)``, ``p = rebuild(parts)``, with its four stages run by a
     loop over one copy of the field, on scalars. ``rows``: what ``field`` takes in place of the
     stage times t, t + dt/2 and t + dt (a step's three rows of a table, :mod:`wmrjax._hoist`);
     None: the times.
@@ -201,7 +161,7 @@ def _rk4_stage_loop(field, t, z, dt, parts, rebuild, rows=None):
     the parameters (``parts``, from :func:`scalar_parts`) enter the body as scalars. Each stage
     is checkpointed: reverse mode stores a stage's input (a few scalars), not the residuals of
     the field's linearization, and recomputes them stage by stage. The arithmetic is
-    :func:`_rk4`'s in the same order, except that the first stage adds ``0 * dt * 0`` to the
+    :func:`wmrjax._rk4.rk4_stages`'s in the same order, except that the first stage adds ``0 * dt * 0`` to the
     state (a ``-0.0`` component becomes ``+0.0``) and every stage computes the field's aux (the
     first one's is kept); XLA fuses the two programs differently, so the numbers agree to
     rounding (4e-16 on 300 steps of the section 6.1 loop).
@@ -214,7 +174,7 @@ def _rk4_stage_loop(field, t, z, dt, parts, rebuild, rows=None):
     def stage(carry, stage_xs, zs, parts, rows):
         k_prev, acc, k1, aux = carry  # tuples of scalars: the continuous leaves of k; aux
         i, node, weight = stage_xs
-        z_i = _axpy(_from_scalars(zs, z), node * dt, _from_continuous(k_prev, k_like))
+        z_i = _rk4.axpy(_from_scalars(zs, z), node * dt, _from_continuous(k_prev, k_like))
         # a row of the table selected on scalars (stage 0: t, 3: t + dt, else t + dt/2): no array
         pick = lambda a, b, c: jnp.where(i == 0, a, jnp.where(i == 3, c, b))
         at = t + node * dt if rows is None else jax.tree_util.tree_map(pick, *rows)
@@ -233,7 +193,7 @@ def _rk4_stage_loop(field, t, z, dt, parts, rebuild, rows=None):
         lambda c, xs: body(c, xs, zs, parts, rows), (zero_k, zero_k, zero_k, zero_aux), (jnp.arange(4), nodes, weights)
     )
     acc = _from_continuous(acc, k_like)
-    combine = lambda zi, s: zi + (dt / 6.0) * s if _is_continuous(zi) else zi
+    combine = lambda zi, s: zi + (dt / 6.0) * s if _rk4.is_continuous(zi) else zi
     return (
         jax.tree_util.tree_map(combine, z, acc),
         _from_scalars(aux, aux_like),
@@ -245,7 +205,7 @@ def _rk4_stage_loop(field, t, z, dt, parts, rebuild, rows=None):
 def _continuous(tree):
     """The floating leaves of a pytree, flattened to one tuple of scalars."""
     return tuple(
-        x for leaf in jax.tree_util.tree_leaves(tree) if _is_continuous(leaf) for x in jnp.reshape(leaf, (-1,))
+        x for leaf in jax.tree_util.tree_leaves(tree) if _rk4.is_continuous(leaf) for x in jnp.reshape(leaf, (-1,))
     )
 
 
@@ -256,7 +216,7 @@ def _from_continuous(scalars, like):
     out, i = [], 0
     for leaf in leaves:
         shape = np.shape(leaf)
-        if not _is_continuous(leaf):
+        if not _rk4.is_continuous(leaf):
             out.append(jnp.zeros(shape, leaf.dtype))
             continue
         n = int(np.prod(shape))
@@ -369,7 +329,7 @@ def scalar_parts(tree):
       body can take it as a static argument (and be traced once for all such trees).
     """
     leaves, treedef = jax.tree_util.tree_flatten(tree)
-    split = [_is_continuous(x) and np.ndim(x) > 0 and 0 < np.size(x) <= _scalarize.MAX_ELEMENTS for x in leaves]
+    split = [_rk4.is_continuous(x) and np.ndim(x) > 0 and 0 < np.size(x) <= _scalarize.MAX_ELEMENTS for x in leaves]
     parts = [tuple(jnp.unstack(jnp.reshape(x, (-1,)))) if s else x for x, s in zip(leaves, split)]
     return parts, _Rebuild(treedef, tuple(np.shape(x) for x in leaves), tuple(split))
 
@@ -428,7 +388,7 @@ def _period_advance(field_s, t, z, dt, every: int, estimate: bool, parts, rebuil
     ``p = rebuild(parts)``): the held ones come out as the same values, with no arithmetic."""
     _, aux = field_s(t, z, rebuild(parts))
     leaves, treedef = jax.tree_util.tree_flatten(z)
-    moving = [_is_continuous(x) and not h for x, h in zip(leaves, jax.tree_util.tree_leaves(held_mask))]
+    moving = [_rk4.is_continuous(x) and not h for x, h in zip(leaves, jax.tree_util.tree_leaves(held_mask))]
     like = [x for x, m in zip(leaves, moving) if m]
 
     def merge(mov, hel):
@@ -443,7 +403,7 @@ def _period_advance(field_s, t, z, dt, every: int, estimate: bool, parts, rebuil
             return [k for k, m in zip(jax.tree_util.tree_leaves(dz), moving) if m], a
 
         zj = _from_scalars(zt, like)
-        z_next, _, k1, k4 = _rk4(f_moving, t + j.astype(dt.dtype) * dt, zj, dt)
+        z_next, _, k1, k4 = _rk4.rk4_stages(f_moving, t + j.astype(dt.dtype) * dt, zj, dt)
         if estimate:
             e = jax.lax.stop_gradient(_error_estimate(dt, k4_prev, _continuous(k1), _continuous(zj)))
             est = jnp.maximum(est, jnp.where(j == 0, 0.0, e))
@@ -459,14 +419,14 @@ def _period_advance(field_s, t, z, dt, every: int, estimate: bool, parts, rebuil
 
 
 def _first_float(z):
-    leaves = [x for x in jax.tree_util.tree_leaves(z) if _is_continuous(x)]
+    leaves = [x for x in jax.tree_util.tree_leaves(z) if _rk4.is_continuous(x)]
     return jnp.reshape(leaves[0], (-1,))[0]
 
 
 @functools.partial(jax.jit, static_argnames=("system", "n_steps", "save_every", "save_fn", "rewrites"))
 def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn=None, rewrites=True):
     # rewrites (WMRJAX_JAXPR_REWRITES, which the rewriters read as this traces): a key of the compiled program
-    dtype = jnp.result_type(*[x for x in jax.tree_util.tree_leaves(z0) if _is_continuous(x)])
+    dtype = jnp.result_type(*[x for x in jax.tree_util.tree_leaves(z0) if _rk4.is_continuous(x)])
     dt = jnp.asarray(dt, dtype)
     t0 = jnp.asarray(t0, dtype)
     estimate = error_tol is not None  # static: None compiles the loop without the error estimate
@@ -611,7 +571,9 @@ def _advance(loop: _Loop, t, z, i, p, parts, k4_prev, est_ok, x=()):
         z_next, aux, k1, k4 = _rk4_stage_loop(field, t, z, dt, q_parts, rebuild, x if loop.hoisted else None)
     else:
         q = rebuild(q_parts)
-        z_next, aux, k1, k4 = _rk4(lambda a, zz: field(a, zz, q), t, z, dt, _stage_rows(x) if loop.hoisted else None)
+        z_next, aux, k1, k4 = _rk4.rk4_stages(
+            lambda a, zz: field(a, zz, q), t, z, dt, _stage_rows(x) if loop.hoisted else None
+        )
     jumped = jnp.array(False)
     if loop.post_step is not None:  # hybrid systems: discrete transition at the end of the step
         z_post = loop.post_step(t + dt, z_next, p)
@@ -687,7 +649,6 @@ def _outside_samples(params, t0, t_final):
     when ``simulate`` is called is refused before compiling (the controllers' ``check_run``); one
     traced under jit or vmap is known only here, and fails the run at t0 (False for paths defined
     at every time)."""
-    from wmrjax.references import DOMAIN_RTOL, Reference
 
     is_ref = lambda x: isinstance(x, Reference)
     outside = jnp.zeros((), bool)
@@ -1068,7 +1029,7 @@ def _prepared_state(system, z0):
     z0 = jax.tree_util.tree_map(  # numbers keep their dtype, booleans become floats
         lambda x: jnp.asarray(x) if jnp.issubdtype(jnp.result_type(x), jnp.number) else jnp.asarray(x, floating), z0
     )
-    if not any(_is_continuous(x) for x in jax.tree_util.tree_leaves(z0)):
+    if not any(_rk4.is_continuous(x) for x in jax.tree_util.tree_leaves(z0)):
         z0 = jax.tree_util.tree_map(lambda x: x.astype(floating), z0)  # an all-integer vector is a state
     n = getattr(system, "n_state", None)
     size = sum(int(np.size(x)) for x in jax.tree_util.tree_leaves(z0))
@@ -1086,7 +1047,7 @@ def _prepared_state(system, z0):
             raise ValueError(f"z0 must be real, got a complex state of dtype {jnp.result_type(leaf)}")
         check_finite("z0", leaf)
     z0 = jax.tree_util.tree_map(  # float32 with float64 enabled: promote, never mix
-        lambda x: x.astype(floating) if _is_continuous(x) and jnp.result_type(x) != floating else x, z0
+        lambda x: x.astype(floating) if _rk4.is_continuous(x) and jnp.result_type(x) != floating else x, z0
     )
     return z0, size
 

@@ -5,13 +5,16 @@ from __future__ import annotations
 import time
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
 from wmrjax import _files as files
+from wmrjax import certify as C
+from wmrjax.problem import Law, ProblemError, check_keys, integer, positive
 
 
 def settings(problem) -> dict:
     """The ``[certify]`` section over its defaults, checked key by key."""
-    from wmrjax.problem import check_keys, integer, positive
 
     c = problem.section("certify")
     check_keys("certify", c, tuple(CERTIFY_KEYS))
@@ -26,7 +29,6 @@ def settings(problem) -> dict:
 
 def setup(problem, case=None):
     """``(setting, ctrl, params)`` of the problem's one closed loop to certify (a dynamic law)."""
-    from wmrjax.problem import Law, ProblemError
 
     setting = problem.setting("certification", case=case)
     if setting.law != Law.DYNAMIC:
@@ -41,10 +43,6 @@ def setup(problem, case=None):
 
 def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title=""):
     """PNG: log10 min_t dist over a grid of initial position errors, eps contour, certified circles."""
-    import jax.numpy as jnp
-    import numpy as np
-
-    from wmrjax import certify as C
 
     R = 1.25 * max(v for k, v in block.items() if k.startswith("radius_") and v is not None)
     xs = np.linspace(-R, R, n_grid)
@@ -112,7 +110,6 @@ def run(out, problem, case=None, progress=None) -> dict:
     setting, ctrl, params = setup(problem, case)
     t_final, dt = setting.t_final, setting.dt
     say(f"certify {ctrl.robot.name} ({ctrl.level}) along {setting.reference.name}, T = {t_final} s, eps = {cfg['eps']}")
-    from wmrjax import certify as C
 
     report = C.analyse(
         ctrl,
@@ -155,7 +152,6 @@ def run(out, problem, case=None, progress=None) -> dict:
 def _summary(problem, case, cfg: dict, setting, params, block: dict, problem_block: dict) -> dict:
     """``summary.json`` but the slice map and the timing: the problem, the loop certified, every
     radius (``block``: the nominal loop's, labelled) and the problem loop's certificate."""
-    from wmrjax import certify as C
 
     ctrl, gains = setting.ctrl, params.gains
     return {

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax import _math
+from wmrjax import _math, linearize
 from wmrjax._validate import concrete
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 from wmrjax.references import check_domain
@@ -233,7 +233,6 @@ def k2_transition(gains, ts):
     Args:
       gains: :class:`wmrjax.Gains` or :class:`wmrjax.GainSchedule`; ts: (T,) concrete times >= 0 [s].
     """
-    from wmrjax import linearize
 
     Phi = linearize.transition_matrices(gains, np.asarray(ts), max_step=TRANSITION_STEP)
     return jax.vmap(_math.spectral_norm)(Phi)

@@ -40,9 +40,12 @@ import os
 import sys
 from pathlib import Path
 
+import wmrjax as w
 from wmrjax import examples
+from wmrjax import references as R
 from wmrjax.certify.job import run, settings, setup
-from wmrjax.cli import common
+from wmrjax.cli import common, options
+from wmrjax.problem import Problem
 
 DEFAULT_PROBLEM = examples.problem_file("section_6_1")
 EMPIRICAL_GRID = 48  # radii per ray of certify.empirical_radius (its n_grid)
@@ -67,9 +70,6 @@ def problem_from_args(a):
     As before problem files: ``--robot`` or ``--reference`` without ``--geometry`` take the
     paper's geometry along (62) and (66) where the paper has one, else the type's default
     (its Table 4 row), and the type's default heading offset unless ``--heading-offset``."""
-    import wmrjax as w
-    from wmrjax import references as R
-    from wmrjax.problem import Problem
 
     problem = Problem.load(a.file if a.file is not None else DEFAULT_PROBLEM)
     values = {key: getattr(a, k) for k, key in _KEYS.items() if getattr(a, k) is not None}
@@ -95,22 +95,21 @@ def problem_from_args(a):
             values["reference.heading_offset"] = None
     if a.geometry is not None:
         values["geometry"] = dict(zip(("L", "e", "delta"), a.geometry))
-    return problem.with_values(values) if values else problem
+    return options.with_set(problem.with_values(values) if values else problem, a)
 
 
 def _parser():
     """The command's options."""
-    from wmrjax import references as R
-    from wmrjax.cli import options
 
     p = common.parser(__doc__.splitlines()[0], "results/certify")
     p.add_argument(
         "file",
-        type=Path,
+        type=options.problem_file,
         nargs="?",
         default=None,
-        help="a problem file (TOML; default: wmrjax/examples/section_6_1.toml)",
+        help="a problem file (TOML) or a shipped example (default: section_6_1)",
     )
+    options.add_set(p)
     p.add_argument("--case", default=None, help="the [[case]] to certify, when the problem has several")
     p.add_argument("--robot", default=None, help="robot type: (2,0), (2,1), (1,1) or (1,2)")
     p.add_argument("--reference", default=None, choices=sorted(R.REFERENCES), help="a named reference")
@@ -131,7 +130,6 @@ def _parser():
 
 def _check_options(p) -> None:
     """Options of the checks, the heading offset, the geometry and the devices."""
-    from wmrjax.cli import options
 
     p.add_argument("--eps", type=options.positive, default=None, help="Lemma 2's margin eps [zeta units: m, m/s]")
     p.add_argument("--dt", type=options.positive, default=None, help="RK4 step of the empirical checks [s]")
@@ -200,7 +198,6 @@ def _report(s: dict, out: Path) -> int:
 
 
 def main(argv=None) -> int:
-    from wmrjax.cli import options
 
     p = _parser()
     a = p.parse_args(argv)

@@ -22,17 +22,24 @@ import sys
 from pathlib import Path
 
 from wmrjax import examples
-from wmrjax.cli import common
+from wmrjax.cli import common, options
 from wmrjax.export.job import DEFAULT_PERIOD, check_initial, run, setup
+from wmrjax.problem import Problem
 
 DEFAULT_PROBLEM = examples.problem_file("section_6_1")
 
 
 def _parser():
-    from wmrjax.cli import options
 
     p = common.parser(__doc__.splitlines()[0], "results/export")
-    p.add_argument("file", type=Path, nargs="?", default=None, help="a problem file (TOML; default: section 6.1)")
+    p.add_argument(
+        "file",
+        type=options.problem_file,
+        nargs="?",
+        default=None,
+        help="a problem file (TOML) or a shipped example (default: section_6_1)",
+    )
+    options.add_set(p)
     p.add_argument("--case", default=None, help="the [[case]] to export, when the problem has several")
     p.add_argument("--gains", type=Path, default=None, help="a tuned-gains file (gains.json of wmrjax tune)")
     p.add_argument(
@@ -56,8 +63,6 @@ def _parser():
 
 
 def main(argv=None) -> int:
-    from wmrjax.cli import options
-    from wmrjax.problem import Problem
 
     p = _parser()
     a = p.parse_args(argv)
@@ -70,6 +75,7 @@ def main(argv=None) -> int:
         problem = Problem.load(a.file if a.file is not None else DEFAULT_PROBLEM)
         if a.gains is not None:
             problem = problem.with_values({"gains": {"file": str(a.gains.resolve())}})
+        problem = options.with_set(problem, a)
         setting, _, _ = setup(problem, a.case)
         if a.initial is not None:  # refused here, before the export's work, not after
             check_initial(setting, a.initial)

@@ -26,8 +26,11 @@ from wmrjax.problem import Problem
 def _parser():
     p = common.parser(__doc__.splitlines()[0], "results/identify")
     p.add_argument(
-        "file", type=Path, help="the problem file of the robot (TOML): its type, level, geometry and [plant]"
+        "file",
+        type=options.problem_file,
+        help="the problem file of the robot (TOML): its type, level, geometry and [plant]",
     )
+    options.add_set(p)
     p.add_argument("--log", type=Path, action="append", required=True, help="a log to fit (CSV or Parquet; repeat)")
     p.add_argument("--holdout", type=Path, action="append", default=[], help="a log held out of the fit, predicted")
     p.add_argument(
@@ -54,7 +57,7 @@ def main(argv=None) -> int:
     options.configure_xla()  # before JAX starts its backend
     try:
         common.enable_x64()
-        problem = Problem.load(a.file)  # loaded once: a sampled path's spline is built at load
+        problem = options.with_set(Problem.load(a.file), a)  # loaded once: a sampled path's spline is built at load
         model = I.sections.plant_model(problem.setting("identify"), a.period)
         for path in a.log + a.holdout:  # every log checked before anything compiles
             I.check_log(read_log(path, model.robot), model.period, model.input_limit)

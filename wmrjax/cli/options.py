@@ -17,18 +17,25 @@ from __future__ import annotations
 
 import _thread
 import argparse
+import atexit
 import math
 import os
+import re
 import signal
 import sys
 import threading
 import time
+import tomllib
 import traceback
 import uuid
+import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
-from wmrjax import resources
+import jax
+
+from wmrjax import _files as files
+from wmrjax import examples, resources, xla_cpu
 
 # --- argument types ------------------------------------------------------------------------------
 
@@ -109,6 +116,57 @@ grid_size = _integer(2, what="grid size")  # points per axis of a grid
 # --- the parser ------------------------------------------------------------------------------------
 
 
+def problem_file(text: str) -> Path:
+    """A problem file, or the name of a shipped example (:mod:`wmrjax.examples`: ``s_path``)."""
+    path = Path(text)
+    if path.suffix or os.sep in text or path.exists():
+        return path
+    try:
+        return examples.problem_file(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+_DOTTED_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
+
+
+def key_value(text: str) -> tuple:
+    """``KEY=VALUE``: a dotted key of the problem file and a TOML value (``0.02``, ``[5.5, 1.0]``,
+    ``"(1,1)"``); a value that is not TOML is taken as a string (``robot.type=(1,1)``)."""
+    key, sep, value = text.partition("=")
+    key = key.strip()
+    if not sep or not _DOTTED_KEY.fullmatch(key):
+        raise argparse.ArgumentTypeError(
+            f"expected KEY=VALUE with a dotted key (plant.control_period=0.02), got {text!r}"
+        )
+    try:
+        return key, tomllib.loads(f"v = {value.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        return key, value.strip()
+
+
+def add_set(p: argparse.ArgumentParser) -> None:
+    """``--set KEY=VALUE`` (repeatable): one value of the problem file by its dotted key, applied
+    after the job's own options (see :func:`with_set`)."""
+    p.add_argument(
+        "--set",
+        dest="set_values",
+        type=key_value,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="set one value of the problem file by its dotted key, a TOML value (--set plant.control_period=0.02, "
+        "--set plant.input_limit=[5.5,1.0]); repeat for several; applied after the other options",
+    )
+
+
+def with_set(problem, args):
+    """The problem with ``--set`` applied (:meth:`wmrjax.problem.Problem.with_values`, validated
+    when the job reads its setting)."""
+    values = dict(args.set_values)
+    return problem.with_values(values) if values else problem
+
+
 class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
     """Help text with each option's default appended."""
 
@@ -146,9 +204,6 @@ def configure_xla(devices: int | None = None) -> None:
     loop compiled into one kernel; ``devices`` host devices, one per core, if given). Call it
     right after parsing, before any JAX work: XLA reads its flags when JAX's backend starts
     (called in-process after that, e.g. from a test, it only sets the environment its workers get)."""
-    import warnings
-
-    from wmrjax import xla_cpu
 
     with warnings.catch_warnings():
         # a command line called from Python after JAX started: its loops keep the caller's setting
@@ -165,7 +220,6 @@ def use_compilation_cache(args) -> Path | None:
     path = None if args.no_compile_cache else args.compile_cache
     if path is None:
         return None
-    import jax
 
     path = Path(path).expanduser()
     try:
@@ -250,9 +304,6 @@ def prepare_output(p, out: Path, lock: bool = True) -> Path:
     into the same directory is refused, naming the first; temporary files of a killed write are
     removed); exits with a usage error if any of this fails. The lock's token is
     ``os.environ[wmrjax._files.LOCK_ENV]`` afterwards, for worker processes."""
-    import atexit
-
-    from wmrjax import _files as files
 
     out = Path(out)
     if out.exists() and not out.is_dir():

@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
-from pathlib import Path
+import jax
 
+from wmrjax.cli import options
+from wmrjax.problem import Problem
 from wmrjax.tune.pareto import run
 
 
 def parser():
-    from wmrjax.cli import options
 
     p = options.parser(__doc__.splitlines()[0], "results/pareto")
-    p.add_argument("file", type=Path, help="a problem file (TOML) with a [tune] section")
+    p.add_argument(
+        "file", type=options.problem_file, help="a problem file (TOML) with a [tune] section, or a shipped example"
+    )
+    options.add_set(p)
     p.add_argument(
         "--slice",
         default="full",
@@ -34,17 +38,13 @@ def parser():
 
 
 def main(argv=None) -> int:
-    import jax
-
-    from wmrjax.cli import options
-    from wmrjax.problem import Problem
 
     p = parser()
     a = p.parse_args(argv)
     options.configure_xla()  # before JAX starts its backend
     jax.config.update("jax_enable_x64", True)
     try:
-        problem = Problem.load(a.file)
+        problem = options.with_set(Problem.load(a.file), a)
         from wmrjax.tune import certified, config
 
         setting = problem.setting("tuning")

@@ -20,7 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from wmrjax.cli import common
+from wmrjax import certify as C
+from wmrjax.cli import common, options
+from wmrjax.problem import Problem
 from wmrjax.tune.certified import DEFAULT_EPS
 
 FACTORS = (0.90, 0.95, 0.98, 0.995)
@@ -42,7 +44,6 @@ def loops(plant: dict) -> list:
 
 def run(out: Path, problem, basis: str = "position", progress=print) -> dict:
     """The table of ``problem`` (a :class:`wmrjax.problem.Problem` with a ``[plant]``)."""
-    from wmrjax import certify as C
 
     common.enable_x64()
     plant = problem.data.get("plant")
@@ -92,17 +93,18 @@ def table(summary: dict) -> str:
 
 
 def main(argv=None) -> int:
-    from wmrjax.cli import options
-    from wmrjax.problem import Problem
 
     p = common.parser(__doc__.splitlines()[0], "results/plant_table")
-    p.add_argument("file", type=Path, help="a problem file with a [plant] section")
+    p.add_argument(
+        "file", type=options.problem_file, help="a problem file with a [plant] section, or a shipped example"
+    )
+    options.add_set(p)
     p.add_argument("--slice", default="position", choices=["position", "full"], help="the slice of initial errors")
     a = p.parse_args(argv)
     options.configure_xla()  # before JAX starts its backend (the runs are vmapped on one device)
     try:
         common.enable_x64()
-        problem = Problem.load(a.file)
+        problem = options.with_set(Problem.load(a.file), a)
     except ValueError as e:
         p.error(str(e))
     s = options.work(p, a, lambda progress: run(a.out, problem, a.slice, progress=progress))

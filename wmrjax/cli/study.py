@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 
+from wmrjax.cli import options
+from wmrjax.problem import Problem
 from wmrjax.tune.study import DEFAULT_PROBLEMS, METHODS, problem_path, study
 
 
 def parser():
-    from wmrjax.cli import options
 
     p = options.parser(__doc__.splitlines()[0], "results/tuning_study")
     p.add_argument(
@@ -71,10 +73,8 @@ def problems_of(args) -> dict:
     Raises:
       ValueError: an unknown problem or unreadable file, two problems of one name, a bad override.
     """
-    import jax
 
     jax.config.update("jax_enable_x64", True)  # the tuner runs in float64
-    from wmrjax.problem import Problem
 
     require = None if args.require_radius is None else (_radius(args.require_radius), args.require_slice)
     problems = {}
@@ -99,7 +99,6 @@ def _radius(text: str):
 
 
 def main(argv=None) -> int:
-    from wmrjax.cli import options
 
     p = parser()
     a = p.parse_args(argv)

@@ -12,7 +12,13 @@ import sys
 import time
 from pathlib import Path
 
-from wmrjax.cli import common
+import jax
+
+from wmrjax import _files as files
+from wmrjax.cli import common, options
+from wmrjax.problem import CASE_NAME, Problem, ProblemError
+from wmrjax.sweep import report, run
+from wmrjax.sweep import spec as S
 
 DOC = """Run a sweep file: a controller over robots, references, initial conditions, gains and
 actuator limits. Writes DIR/runs.parquet (one row per run), DIR/summary.json and PNG maps.
@@ -20,10 +26,14 @@ A killed sweep resumes from its finished blocks when rerun with the same file an
 
 
 def parser():
-    from wmrjax.cli import options
 
     p = common.parser(DOC, default_out=None)
-    p.add_argument("spec", type=Path, help="the sweep file (TOML; see docs/problem_files.md and wmrjax/examples/)")
+    p.add_argument(
+        "spec",
+        type=options.problem_file,
+        help="the problem file to sweep (TOML; see docs/problem_files.md), or a shipped example",
+    )
+    options.add_set(p)
     p.add_argument("--out", type=Path, default=None, help="output directory (default: results/sweeps/<spec name>)")
     p.add_argument("--fresh", action="store_true", help="discard finished blocks of an earlier run in --out")
     p.add_argument(
@@ -57,7 +67,6 @@ def parser():
 def main(argv=None) -> int:
     p = parser()
     a = p.parse_args(argv)
-    from wmrjax.cli import options
 
     distributed = a.coordinator is not None
     if distributed and (a.process_id is None or a.num_processes is None):
@@ -100,9 +109,8 @@ def main(argv=None) -> int:
 
 def problem_of(a):
     """The sweep file's problem, paired with ``--gains`` files as cases (``default`` and one per file)."""
-    from wmrjax.problem import CASE_NAME, Problem, ProblemError
 
-    problem = Problem.load(a.spec)
+    problem = options.with_set(Problem.load(a.spec), a)
     if not a.gains:
         return problem
     if "case" in problem.data:
@@ -119,11 +127,8 @@ def problem_of(a):
 
 def _launch(p, a, devices: int) -> int:
     """Start ``--processes`` local processes (jax.distributed over 127.0.0.1) and wait for them."""
-    from wmrjax.cli import options
-    from wmrjax.sweep import spec as S
 
     common.enable_x64()
-    from wmrjax.sweep import run
 
     try:  # refuse a bad file or another sweep's --out here, before starting anything
         plan = S.plan(problem_of(a))
@@ -209,18 +214,14 @@ def _wait(procs: list, a) -> int:
 
 
 def _run(p, a, pid: int, n_proc: int) -> int:
-    from wmrjax.cli import options
 
     t_start = time.perf_counter()
     common.enable_x64()
-    import jax
 
     if n_proc > 1:
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
         jax.distributed.initialize(coordinator_address=a.coordinator, num_processes=n_proc, process_id=pid)
     options.use_compilation_cache(a)
-    from wmrjax.sweep import report, run
-    from wmrjax.sweep import spec as S
 
     def barrier(name):
         if n_proc > 1:
@@ -252,7 +253,6 @@ def _run(p, a, pid: int, n_proc: int) -> int:
     t0 = time.perf_counter()
     stats = run.compute(plan, a.out, process_id=pid, num_processes=n_proc)
     stats["wall_s"] = time.perf_counter() - t0
-    from wmrjax import _files as files
 
     files.write_json(a.out / "blocks" / f"process_{pid}.json", stats)
     barrier("sweep-computed")

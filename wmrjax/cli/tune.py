@@ -23,13 +23,20 @@ import argparse
 import sys
 from pathlib import Path
 
+import jax
+
+import wmrjax as w
+from wmrjax import references as R
+from wmrjax.cli import options
+from wmrjax.examples import PROBLEMS, problem_file
+from wmrjax.problem import Problem
 from wmrjax.tune.job import baseline_budget, run
+from wmrjax.tune.losses import LossWeights
 
 _S = "(default: the file's)"
 
 
 def parser():
-    from wmrjax.cli import options
 
     p = options.parser(__doc__.splitlines()[0], "results/tuning")
     _add_problem_options(p)
@@ -42,11 +49,16 @@ def parser():
 
 def _add_problem_options(p) -> None:
     """The problem file or shipped problem, the robot, the task, the reference and the initial errors."""
-    from wmrjax.cli import options
-    from wmrjax.examples import PROBLEMS
 
     S = _S
-    p.add_argument("file", type=Path, nargs="?", default=None, help="a problem file (TOML) with a [tune] section")
+    p.add_argument(
+        "file",
+        type=options.problem_file,
+        nargs="?",
+        default=None,
+        help="a problem file (TOML) with a [tune] section, or a shipped example",
+    )
+    options.add_set(p)
     p.add_argument(
         "--problem",
         default=None,
@@ -94,7 +106,6 @@ def _add_problem_options(p) -> None:
 
 def _add_tuning_options(p) -> None:
     """The scenario counts, the optimizer and the gain family."""
-    from wmrjax.cli import options
 
     S = _S
     p.add_argument("--n-train", type=options.count, default=None, help=f"training scenarios per step {S}")
@@ -148,7 +159,6 @@ def _add_tuning_options(p) -> None:
 
 def _add_plant_options(p) -> None:
     """The plant's mismatch, actuator limits, noise, controller period and horizon."""
-    from wmrjax.cli import options
 
     S = _S
     p.add_argument(
@@ -180,8 +190,6 @@ def _add_plant_options(p) -> None:
 
 def _add_loss_and_baseline_options(p) -> None:
     """The loss weights, the baselines and the seed."""
-    from wmrjax.cli import options
-    from wmrjax.tune.losses import LossWeights
 
     S = _S
     for f in LossWeights._fields:
@@ -235,7 +243,6 @@ def _required(text: str):
     """``--require-radius``: a radius >= 0, ``initial`` or ``box``."""
     if text in ("initial", "box"):
         return text
-    from wmrjax.cli import options
 
     return options.nonnegative(text)
 
@@ -269,9 +276,6 @@ _KEYS = {
 
 def problem_from_args(a):
     """The problem file (or shipped problem) with every option given on the command line applied."""
-    from wmrjax.examples import problem_file
-    from wmrjax.problem import Problem
-    from wmrjax.tune.losses import LossWeights
 
     if a.file is not None and a.problem is not None:
         raise ValueError("give a problem file or --problem NAME, not both")
@@ -301,13 +305,12 @@ def problem_from_args(a):
     for f in LossWeights._fields:
         if getattr(a, f"w_{f}") is not None:
             values[f"tune.loss.{f}"] = getattr(a, f"w_{f}")
-    return problem.with_values(values) if values else problem
+    return options.with_set(problem.with_values(values) if values else problem, a)
 
 
 def _law_values(a, problem, values) -> dict:
     """``--task`` and ``--robot`` as before problem files: the point task (and type (3,0)) take a
     static law, whose initial errors are physical (the output box's x and y kept)."""
-    import wmrjax as w
 
     if a.task is None and a.robot is None:
         return {}
@@ -323,7 +326,6 @@ def _law_values(a, problem, values) -> dict:
 
 def _reference_values(text: str) -> dict:
     """``--reference``: a family name, or a CSV file of samples (t, x, y)."""
-    from wmrjax import references as R
 
     if text in R.FAMILIES:
         return {"reference": {"family": text}}
@@ -334,12 +336,10 @@ def _reference_values(text: str) -> dict:
 
 
 def main(argv=None) -> int:
-    from wmrjax.cli import options
 
     p = parser()
     a = p.parse_args(argv)
     options.configure_xla()  # before JAX starts its backend
-    import jax
 
     jax.config.update("jax_enable_x64", True)  # float64 from the first check on (run() sets it too)
     try:

@@ -41,6 +41,7 @@ import numpy as np
 
 from wmrjax import _math, robots
 from wmrjax._validate import concrete
+from wmrjax.controllers.dynamic import dynamic_linearization
 from wmrjax.controllers.law import (
     Extension,
     Level,
@@ -473,7 +474,6 @@ def controller(robot, level: Level | str = Level.VELOCITY, task: Task | str = Ta
     ``initial_state_from_physical(X, u, params)`` an initial state, and its ``vector_field``
     runs under :func:`wmrjax.simulate` (vmap over states, references, gains, geometry).
     """
-    from wmrjax.controllers.dynamic import dynamic_linearization
 
     rt = robots.robot_type(robot)
     task, level = check_task(task), check_level(level)

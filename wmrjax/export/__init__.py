@@ -45,8 +45,9 @@ from wmrjax import _cgen
 from wmrjax._validate import concrete
 from wmrjax.controllers.law import Level
 from wmrjax.controllers.plant import PlantLoop
-from wmrjax.controllers.sampled import SampledLoop, SampledParams, SampledState
+from wmrjax.controllers.sampled import SampledLoop, SampledParams, SampledState, sampled
 from wmrjax.references import DOMAIN_RTOL
+from wmrjax.simulate import scalarized, simulate
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,7 +221,6 @@ def export_artifact(step: ControlStep) -> bytes:
 def program(step: ControlStep):
     """The step's scalar program: a closed jaxpr of ``(t, measured, state)`` on float64, re-emitted
     on scalars and simplified as the simulator's loop body is (:func:`wmrjax.scalarized`)."""
-    from wmrjax.simulate import scalarized
 
     if not jax.config.read("jax_enable_x64"):
         raise ValueError("generate_c needs float64: jax.config.update('jax_enable_x64', True) first")
@@ -281,8 +281,6 @@ def reference_run(step: ControlStep, ctrl, params, z0, *, period: float, n_sampl
     Returns:
       :class:`Run`.
     """
-    from wmrjax.controllers.sampled import sampled
-    from wmrjax.simulate import simulate
 
     dt = period / steps_per_sample
     n_steps = n_samples * steps_per_sample

@@ -6,17 +6,18 @@ import time
 from pathlib import Path
 
 import jax
+import numpy as np
 
+from wmrjax import _files as files
+from wmrjax import export as X
 from wmrjax.export.check import C_FLAGS, verify, write_export
+from wmrjax.problem import place
 
 
 def initial_state(setting, params, index: int | None = None):
     """``(z0, index)``: the law's state at one of the problem's initial conditions: ``index``, or by
     default the smallest non-zero initial error (a transient, which the largest errors of a map
     may not survive)."""
-    import numpy as np
-
-    from wmrjax.problem import place
 
     errors = setting.initial_errors()
     if index is None:
@@ -46,10 +47,6 @@ def run(
     out: Path, problem, *, case=None, period=None, n_samples=None, initial=None, cc="cc", tolerance=1e-12, progress=None
 ) -> dict:
     """Export and check the problem's controller; writes the files and ``summary.json`` into ``out``."""
-    import numpy as np
-
-    from wmrjax import _files as files
-    from wmrjax import export as X
 
     say = progress or (lambda msg: print(msg, flush=True))
     jax.config.update("jax_enable_x64", True)  # the job runs in float64

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from wmrjax import _files, _math
+from wmrjax import _files, _math, certify
 from wmrjax.sweep import spec as S
 from wmrjax.sweep.run import OUTCOMES
 
@@ -140,7 +140,6 @@ def certified_radii(plan: S.Plan) -> dict:
     """Certified radii of the position slice (group name -> radii) for every group that is one
     dynamic closed loop (one geometry, reference and gains; no plant) swept over initial output
     errors."""
-    from wmrjax import certify
 
     if not (plan.law == "dynamic" and plan.space == "output"):
         return {}

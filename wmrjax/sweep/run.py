@@ -15,10 +15,16 @@ from __future__ import annotations
 import json
 import sys
 import time
+import zipfile
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from wmrjax import _files as files
+from wmrjax import _math, resources
+from wmrjax.problem import law_state
 from wmrjax.sweep import spec as S
 
 RESULT_COLUMNS = (
@@ -42,11 +48,6 @@ STATE_FILE = "sweep_state.json"
 def rollout_fn(plan: S.Plan, group: S.Group):
     """``one(varying) -> results`` for one run of ``group`` (pure; batched by the caller), with
     ``varying`` the run's inputs that differ across the group (:func:`payload`)."""
-    import jax
-    import jax.numpy as jnp
-
-    from wmrjax import _math
-    from wmrjax.problem import law_state
 
     ctrl = group.ctrl
     system = group.system()
@@ -104,7 +105,6 @@ def split(group: S.Group):
     for every run of the group, and their values. Constant leaves are compiled in (XLA folds
     them: the §6.1 loop runs twice as fast with its fixed geometry, gains and reference folded
     than with them as per-run arrays); the others are batched."""
-    import jax
 
     src = _sources(group)
     leaves, treedef = jax.tree_util.tree_flatten(src)
@@ -122,7 +122,6 @@ def split(group: S.Group):
 def payload(group: S.Group, start: int, n: int, pad_to: int, constant: list) -> list:
     """The varying rollout inputs (leaves, in :func:`split`'s order; ``constant`` is its mask) of
     runs ``start .. start + n - 1`` of ``group``, padded (with copies of the last run) to ``pad_to``."""
-    import jax
 
     runs = np.arange(start, start + n)
     if pad_to > n:
@@ -182,7 +181,6 @@ def estimate(plan: S.Plan, devices: int, processes: int = 1):
     """The sweep's memory on this machine (:mod:`wmrjax.resources`): every device of every local
     process runs a block at a time, holding each run's samples (every ``distance_every`` steps;
     host devices share the machine's memory), beside each process's reference checks."""
-    from wmrjax import resources
 
     n_state = max(int(getattr(g.system(), "n_state", None) or g.ctrl.n_state) for g in plan.groups)
     samples = plan.n_steps // plan.save_every + 1
@@ -193,7 +191,6 @@ def estimate(plan: S.Plan, devices: int, processes: int = 1):
 
 def check_memory(plan: S.Plan, devices: int, processes: int = 1) -> None:
     """ValueError before anything compiles when the sweep would not fit in memory."""
-    from wmrjax import resources
 
     resources.check_fits(
         estimate(plan, devices, processes),
@@ -216,7 +213,6 @@ def block_problem(plan: S.Plan, out: Path, b: int) -> str | None:
     """Why block ``b``'s file cannot be used (None: it can, or it does not exist yet): torn
     (not a readable ``.npz``), of another sweep, of another place in the plan, or lacking a
     result column."""
-    import zipfile
 
     path = block_path(out, b)
     if not path.exists():
@@ -278,7 +274,6 @@ def prepare(plan: S.Plan, out: Path, fresh: bool) -> int:
     Raises:
       ValueError: the directory holds blocks of another sweep (and ``fresh`` is False).
     """
-    from wmrjax import _files as files
 
     _check_is_a_file(out / STATE_FILE)  # not even --fresh replaces a directory
     state = None if fresh else read_state(out)  # --fresh discards even a corrupt state file
@@ -302,9 +297,6 @@ def prepare(plan: S.Plan, out: Path, fresh: bool) -> int:
 def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int = 1) -> dict:
     """Compute this process's share of the blocks that are not on disk yet (block ``b`` belongs
     to process ``b % num_processes``); returns timing figures."""
-    import jax
-
-    from wmrjax import _files as files
 
     devices = jax.local_devices()
     D = len(devices)
@@ -362,8 +354,6 @@ def assemble(plan: S.Plan, out: Path):
     """Stream every block into ``runs.parquet`` (one row group per block) with its swept values;
     returns the path. Memory: one block at a time."""
     import pyarrow as pa
-
-    from wmrjax import _files as files
 
     blocks = plan.blocks()
     missing = [b for b in range(len(blocks)) if not block_path(out, b).exists()]

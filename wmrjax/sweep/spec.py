@@ -32,6 +32,7 @@ from wmrjax.problem import (  # noqa: F401  (the file form's helpers, as the swe
     positive,
     unravel,
 )
+from wmrjax.problem import controller as make
 
 SpecError = ProblemError  # a sweep file that cannot run (the name the sweep's callers know)
 Group = Setting  # one group of runs: one case, robot type and level
@@ -150,6 +151,5 @@ def plan(problem: Problem) -> Plan:
 
 def controller(law, kind: str, level, task):
     """The controller of a group (:func:`wmrjax.problem.controller`)."""
-    from wmrjax.problem import controller as make
 
     return make(law, kind, level, task)

@@ -41,6 +41,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wmrjax.tune import loop
+
 
 class BaselineRun(NamedTuple):
     """One seed of one baseline (plain Python values: JSON-ready)."""
@@ -357,7 +359,6 @@ def _optuna(
 def requirement_check(setting, family, requirement, raw0) -> Callable:
     """``feasible(raw) -> bool`` of a :class:`wmrjax.tune.certified.Requirement`: the exact-map radius of
     the gains at or above the required one (as :func:`wmrjax.tune.loop.keep` resolves it from ``raw0``)."""
-    from wmrjax.tune import loop
 
     kept = loop.keep(setting, family, requirement, raw0)
     return lambda raw: bool(kept.radius.value(jnp.asarray(raw)) >= kept.required)

@@ -35,7 +35,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import certify
+from wmrjax.controllers.dynamic import DynamicLinearization
 from wmrjax.problem import ProblemError, check_keys, positive
+from wmrjax.references import FAMILIES
 
 SLICES = ("full", "position")
 DEFAULT_EPS = 1e-2  # the certify command's default margin [output-error units]
@@ -88,8 +90,6 @@ def read(table: dict | None, certify_section: dict) -> Requirement | None:
 def check(setting, family) -> None:
     """ValueError when the problem has no exact-map radius to keep: a static law, a random
     reference family (no fixed reference), or type (1,2) (see the module docstring)."""
-    from wmrjax.controllers.dynamic import DynamicLinearization
-    from wmrjax.references import FAMILIES
 
     if not isinstance(setting.ctrl, DynamicLinearization):
         raise ValueError("a certified-region requirement needs a dynamic linearizing law (only those are certified)")

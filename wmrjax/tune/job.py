@@ -7,18 +7,22 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
+import numpy as np
+
 from wmrjax import _files as files
+from wmrjax import references as R
+from wmrjax.problem import gains_file_dict, gains_owner, law_state
+from wmrjax.tune import baselines, certified, config, loop
+from wmrjax.tune.scenarios import rollout
 
 
 def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsify: bool = False) -> dict:
     """Tune, evaluate, run the baselines, write ``gains.json``, the figures and ``summary.json``;
     returns the summary (``falsify``: falsify the exact-map radii of the initial and tuned gains)."""
-    import jax
 
     jax.config.update("jax_enable_x64", True)  # this entry point runs in float64
-    import jax.numpy as jnp
-
-    from wmrjax.tune import config, loop
 
     say = progress or log
     setting = problem.setting("tuning")
@@ -68,7 +72,6 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
 
 def _gradient(problem, setting, settings, family, out: Path, log):
     """The gradient loop, with the later programs compiled on a second thread: ``(result, programs)``."""
-    from wmrjax.tune import loop
 
     programs = {}
     second = ThreadPoolExecutor(max_workers=1)
@@ -110,7 +113,6 @@ def _gradient(problem, setting, settings, family, out: Path, log):
 def _evaluate(train_eval, heldout_eval, paper_raw, tuned_raw, say, log):
     """The initial and the tuned gains on the training and held-out scenarios:
     ``((train initial, train tuned), (held-out initial, held-out tuned), held-out validity, metrics)``."""
-    import numpy as np
 
     say("evaluating the initial and the tuned gains on the held-out scenarios")
     both = np.stack([np.asarray(paper_raw), np.asarray(tuned_raw)])
@@ -126,7 +128,6 @@ def _evaluate(train_eval, heldout_eval, paper_raw, tuned_raw, say, log):
 
 def _write(out: Path, problem, setting, family, res, runs, paper_raw, tuned_raw, programs, radius) -> None:
     """Write ``gains.json``, ``history.json`` and the figures."""
-    from wmrjax.problem import gains_file_dict
 
     files.write_json(out / "gains.json", gains_file_dict(family.gains(tuned_raw), setting.ctrl))
     files.write_json(
@@ -185,7 +186,6 @@ def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say,
 
 def _baseline_runs(settings, family, train_eval, paper_raw, budget: int, pop: int, say):
     """Run random search and CMA-ES for every seed: ``(runs by name, wall time by name)``."""
-    from wmrjax.tune import baselines
 
     b = settings.baselines
     runs = {"random_search": [], "cma_es": []}
@@ -227,9 +227,6 @@ def _baseline_runs(settings, family, train_eval, paper_raw, budget: int, pop: in
 
 def _baseline_report(name: str, rs, heldout_eval, hist, budget: int, wall: float, log):
     """One baseline's report over its seeds and the gradient rollouts to match it (None: never)."""
-    import numpy as np
-
-    from wmrjax.tune import baselines
 
     held = heldout_eval(np.stack([np.asarray(r.best_raw) for r in rs]))
     reach = [baselines.rollouts_to_reach(hist, r.best_loss) for r in rs]
@@ -269,9 +266,6 @@ def _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify: bool):
     """Every radius of the initial and the tuned gains (:func:`wmrjax.tune.certified.radii`), the
     requirement and how it was kept; None where the problem has no certificate (a static law,
     a random reference family) with the reason."""
-    import numpy as np
-
-    from wmrjax.tune import certified
 
     try:
         certified.check(setting, family)
@@ -322,11 +316,6 @@ def _summary(
     radius,
     grad_wall,
 ) -> dict:
-    import jax
-    import numpy as np
-
-    from wmrjax.problem import gains_owner
-    from wmrjax.tune import loop
 
     hist = res.history
     m_paper, m_tuned = (jax.tree_util.tree_map(lambda x: x[i], ho_m) for i in (0, 1))
@@ -397,12 +386,6 @@ def _programs(ctx) -> dict:
       ``trajectories(gains) -> (output positions (n, 2), position errors (n, 2))`` of held-out
       scenario 0 at the controller's samples, that ``scenario`` and its sample times ``t`` [s].
     """
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    from wmrjax.tune import baselines, loop
-    from wmrjax.tune.scenarios import rollout
 
     setting, family, weights, cert = ctx.setting, ctx.family, ctx.weights, ctx.certificate
 
@@ -417,7 +400,6 @@ def _programs(ctx) -> dict:
     @functools.partial(jax.jit, compiler_options=loop.QUICK_COMPILE)
     def trajectories(gains):  # the tracked point and its position error at the samples
         _, tr, params = rollout(setting, gains, sc, trajectory=True)
-        from wmrjax.problem import law_state
 
         zs = law_state(setting.system(), jax.tree_util.tree_map(lambda x: x[:-1], tr.state))
         err = jax.vmap(lambda tt, z: setting.ctrl.error(tt, z, params)[0])(jnp.asarray(t), zs)
@@ -436,10 +418,6 @@ def _programs(ctx) -> dict:
 def _warm_up(programs, ctx, raw) -> None:
     """Compile the validation program and ``programs`` by calling each once (an evaluation
     runs one chunk of 16 candidates)."""
-    import jax
-    import numpy as np
-
-    from wmrjax.tune import loop
 
     loop.validation_loss(raw, ctx.sets.validation, ctx.setting, ctx.family, ctx.weights)
     programs["evaluate_on"](np.asarray(raw)[None], ctx.sets.train)
@@ -458,7 +436,6 @@ def _preload() -> None:
 
 
 def _gains_report(spec, raw):
-    import numpy as np
 
     pos = np.asarray(spec.positive(raw))
     params = dict(zip(spec.names(), pos.tolist())) if spec.shared and not spec.knots else pos.tolist()
@@ -475,7 +452,6 @@ def _gains_report(spec, raw):
 
 def _band(runs):
     """(rollouts, median, low, high) of the best-so-far curves of several seeds."""
-    import numpy as np
 
     n = min(len(r.best_so_far) for r in runs)
     curves = np.stack([np.asarray(r.best_so_far[:n]) for r in runs])
@@ -484,9 +460,6 @@ def _band(runs):
 
 
 def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, programs):
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
 
     plt = files.headless_pyplot()
     fig, ax = plt.subplots(figsize=(6.8, 4.3))
@@ -537,7 +510,6 @@ def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, progra
 
     sc, t = programs["scenario"], programs["t"]
     fig, axs = plt.subplots(1, 2, figsize=(11, 4.4))
-    from wmrjax import references as R
 
     ref = R.Reference(
         sc.inputs["reference"], sc.inputs["heading_offset"], setting.reference.path, setting.reference.name
@@ -565,7 +537,6 @@ def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, progra
 def _radii_figure(out, title, radii: dict) -> None:
     """``radii.png``: every radius of the initial and the tuned gains side by side, the
     falsified ones and the requirement marked."""
-    import numpy as np
 
     plt = files.headless_pyplot()
     rows = [(f"lemma2_{k}", v["label"]) for k, v in radii["initial"]["lemma2"].items()]

@@ -22,6 +22,8 @@ import optax
 
 import wmrjax as w
 from wmrjax import _files as files
+from wmrjax import certify, resources
+from wmrjax.controllers.dynamic import DynamicLinearization
 from wmrjax.references import FAMILIES
 from wmrjax.tune import certified
 from wmrjax.tune.config import Scenarios, Stopping
@@ -116,7 +118,6 @@ def check(setting, family: GainSpec, scenarios: Scenarios, loss: LossWeights) ->
     """ValueError for what cannot be tuned, before anything compiles: a static law at torque
     level, a certificate term without a dynamic law and a fixed reference, a family of
     another shape, or the problem's initial gains outside the family."""
-    from wmrjax.controllers.dynamic import DynamicLinearization
 
     ctrl = setting.ctrl
     random_reference = FAMILIES[setting.data["reference"]["family"]].kind == "random"
@@ -186,7 +187,6 @@ _draw_batch = jax.jit(
 def certificate(setting, weight: float, eps: float = CERTIFICATE_EPS, n_t: int = CERTIFICATE_TIMES):
     """The certificate term's data: M1 of the problem's own reference (heading offset
     included) in closed form over [0, t_final], or None when ``weight`` is 0."""
-    from wmrjax import certify
 
     if weight <= 0:
         return None
@@ -411,7 +411,6 @@ KEY_BYTES = 8  # a PRNG key per scenario (two uint32)
 def check_memory(setting, scenarios: Scenarios) -> None:
     """ValueError before anything compiles when a gradient step over ``scenarios.train`` runs
     (reverse mode through every step) would not fit in memory (:mod:`wmrjax.resources`)."""
-    from wmrjax import resources
 
     n_state = int(getattr(setting.system(), "n_state", None) or setting.ctrl.n_state)
     est = resources.Estimate(resources.gradient_bytes(scenarios.train, setting.n_steps, n_state), 0.0)

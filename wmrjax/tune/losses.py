@@ -5,10 +5,11 @@ from __future__ import annotations
 import dataclasses
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax import certify
+from wmrjax import certify, linearize
 from wmrjax.problem import law_state
 
 # the barrier term starts below this |det K| (a margin of the law's regularity)
@@ -66,7 +67,6 @@ class SampleTerms:
     sampled: bool
 
     def __call__(self, t, z, aux):
-        import jax.numpy as jnp
 
         if not self.sampled:
             return z
@@ -85,8 +85,6 @@ def metrics(setting, tr, params, inputs: dict, margin_safe: float = MARGIN_SAFE)
       inputs: the run's inputs (``input_scale``, ``limit`` of the plant).
       margin_safe: the barrier term is ``relu(1 - ``|det K|`` / margin_safe)^2``.
     """
-    import jax
-    import jax.numpy as jnp
 
     ctrl = setting.ctrl
     n = tr.t.shape[0] - 1
@@ -119,7 +117,6 @@ def scenario_loss(m: Metrics, w: LossWeights):
 def certificate_radius(gains, m1, ts, eps):
     r"""Lemma 2 radius for these gains (differentiable in them): the automatic Lyapunov K2 for
     constant gains, :math:`K_2(t) = \|\Phi(t, 0)\|` for a :class:`wmrjax.GainSchedule`."""
-    from wmrjax import linearize
 
     if gains.time_varying:
         k2 = certify.k2_transition(gains, ts)

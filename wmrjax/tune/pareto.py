@@ -29,7 +29,11 @@ import json
 import time
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
+
 from wmrjax import _files as files
+from wmrjax.tune import certified, config, loop
 
 AGREEMENT = 0.01  # a point is certified when falsified / exact - 1 <= this
 COLUMNS = (
@@ -62,9 +66,6 @@ def point_id(problem, slice_: str, eps: float, required: float) -> str:
 def tune_point(problem, required: float, slice_: str, eps: float, log=print) -> dict:
     """One point: tune with the requirement, then the held-out loss and the certificate of the
     tuned gains (exact map of the slice, falsified in it)."""
-    import jax.numpy as jnp
-
-    from wmrjax.tune import certified, config, loop
 
     setting = problem.setting("tuning")
     settings = config.read(problem.section("tune"), problem.section("certify"))
@@ -113,12 +114,8 @@ def tune_point(problem, required: float, slice_: str, eps: float, log=print) -> 
 
 def run(problem, out: Path, slice_: str = "full", fractions=None, radii=None, eps=None, log=print) -> dict:
     """Every point (resuming finished ones), then the table, the figure and ``summary.json``."""
-    import jax
 
     jax.config.update("jax_enable_x64", True)
-    import jax.numpy as jnp
-
-    from wmrjax.tune import certified, config, loop
 
     t0 = time.perf_counter()
     setting = problem.setting("tuning")
@@ -153,9 +150,6 @@ def run(problem, out: Path, slice_: str = "full", fractions=None, radii=None, ep
 
 def _initial_point(setting, family, settings, raw0) -> dict:
     """The initial gains' held-out and training losses on the points' scenario sets."""
-    import jax.numpy as jnp
-
-    from wmrjax.tune import loop
 
     ctx = loop.prepare(setting, family, settings.scenarios, settings.loss, settings.seed)
     raw = jnp.asarray(raw0)
@@ -166,7 +160,6 @@ def _initial_point(setting, family, settings, raw0) -> dict:
 
 def _write(out, problem, setting, family, raw0, slice_, eps, initial, points, wall) -> dict:
     """``pareto.csv``, ``pareto.png`` and ``summary.json`` of the finished points."""
-    from wmrjax.tune import config
 
     settings = config.read(problem.section("tune"), problem.section("certify"))
     base = {"radius": initial, **_initial_point(setting, family, settings, raw0)}

@@ -51,6 +51,7 @@ the same way):
 from __future__ import annotations
 
 import csv
+import functools
 import hashlib
 import io as _stdio
 import json
@@ -58,9 +59,13 @@ import time
 from pathlib import Path
 from typing import NamedTuple
 
+import jax
 import numpy as np
 
 from wmrjax import _files as files
+from wmrjax.examples import PROBLEMS
+from wmrjax.tune import baselines, certified, config, loop
+from wmrjax.tune.scenarios import draw_set
 
 BASES = ("gradient", "random_search", "cma_es", "optuna_tpe", "optuna_cmaes")
 METHODS = tuple(m + v for m in BASES for v in ("", "_resampled"))
@@ -74,7 +79,6 @@ FIELDS = ("problem", "method", "seed", "point", "compute_fwd", "seconds", "heldo
 def problem_path(spec: str) -> tuple[str, Path]:
     """``(name, file)`` of a shipped problem name or a problem file (ValueError otherwise); a
     relative path that does not exist from here is looked up from the repository's root."""
-    from wmrjax.examples import PROBLEMS
 
     if spec in PROBLEMS:
         return spec, PROBLEMS[spec]
@@ -106,10 +110,6 @@ class Plan(NamedTuple):
 def plan(name: str, problem, require=None) -> Plan:
     """The :class:`Plan` of a problem; ``require`` (a radius, 'initial' or 'box', and a slice)
     replaces its requirement where the problem can keep one."""
-    import jax
-
-    from wmrjax.tune import baselines, certified, config, loop
-    from wmrjax.tune.scenarios import draw_set
 
     note = ""
     if require is not None:
@@ -147,9 +147,6 @@ def measure_cost(p: Plan, repeats: int = 3) -> dict:
     evaluation of B scenarios (a 16-candidate chunk of the baselines' evaluator over 16), after
     compilation, the fastest of ``repeats`` (the least disturbed by other work on the machine);
     their ratio is a gradient rollout in forward rollouts."""
-    import jax
-
-    from wmrjax.tune import loop
 
     ctx = loop.prepare(p.setting, p.family, p.settings.scenarios, p.settings.loss, 0)
     raw = jax.numpy.asarray(p.raw0)
@@ -214,7 +211,6 @@ def gradient_trace(p: Plan, seed: int, resample: bool, cost: dict) -> Trace:
     and bookkeeping programs, in its first step, so that step is charged the measured time of
     one gradient step and one validation instead (``cost``: :func:`measure_cost`)."""
     ratio = cost["ratio"]
-    from wmrjax.tune import loop
 
     s = p.settings
     scen = s.scenarios._replace(resample=resample)
@@ -250,11 +246,6 @@ def gradient_trace(p: Plan, seed: int, resample: bool, cost: dict) -> Trace:
 def baseline_trace(p: Plan, method: str, seed: int, resample: bool, sets, budget: int) -> Trace:
     """Run one baseline of :mod:`wmrjax.tune.baselines` on the seed's training set (or resampled
     batches: the draws of the gradient's steps) and return its :class:`Trace`."""
-    import functools
-
-    import jax
-
-    from wmrjax.tune import baselines
 
     s, b = p.settings, p.settings.baselines
     stream = jax.random.fold_in(jax.random.PRNGKey(seed), 3)  # tune()'s stream of resampled batches
@@ -289,7 +280,6 @@ def at_points(trace: Trace, points, raw0):
 def run_seed(p: Plan, seed: int, methods, points, cost: dict, budget: float, say=print) -> dict:
     """Every method on one seed: ``{"initial_heldout", "methods": {method: {compute_fwd,
     seconds, heldout_loss (lists over points), total_compute_fwd, total_seconds}}}``."""
-    from wmrjax.tune import loop
 
     s = p.settings
     sets = loop.prepare(p.setting, p.family, s.scenarios, s.loss, seed).sets
