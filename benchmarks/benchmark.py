@@ -993,20 +993,23 @@ def memory_estimates(progress=print) -> dict:
 _S_PATH = "wmrjax/examples/s_path.toml"
 
 
+TUNING_EXAMPLES = ("car_schedule", "section_6_1_plant", "torque_2_1")  # the shipped problems with [tune]
+SWEEP_EXAMPLES = ("random_references", "sampled_lane_change", "section_6_1_position_grid")  # the shipped sweeps
+
+
 def cold_start_jobs() -> dict:
     """The default jobs a user starts, by name: ``python -m`` arguments before ``--out``."""
-    root = Path(__file__).resolve().parent.parent
     jobs = {"section_6_1": ["paper.section_6_1"], "section_6_2": ["paper.section_6_2"]}
     from wmrjax.controllers import TABLE4  # the types with a dynamic linearizing law: certify's
 
     for t in sorted(TABLE4):
-        jobs[f"certify_{t}_figure_eight"] = ["wmrjax.cli.certify", "--robot", t, "--reference", "figure_eight"]
-    for f in sorted((root / "tuning" / "problems").glob("*.toml")):
-        jobs[f"tuning_{f.stem}"] = ["tuning", "--problem", f.stem]
-    for f in sorted((root / "experiments" / "sweeps").glob("*.toml")):
-        jobs[f"sweep_{f.stem}"] = ["wmrjax.sweep", str(f.relative_to(root))]
-    for job, module in (("sweep", "wmrjax.sweep"), ("tuning", "tuning"), ("certify", "wmrjax.cli.certify")):
-        jobs[f"s_path_{job}"] = [module, _S_PATH]
+        jobs[f"certify_{t}_figure_eight"] = ["wmrjax", "certify", "--robot", t, "--reference", "figure_eight"]
+    for name in TUNING_EXAMPLES:
+        jobs[f"tuning_{name}"] = ["wmrjax", "tune", name]
+    for name in SWEEP_EXAMPLES:
+        jobs[f"sweep_{name}"] = ["wmrjax", "sweep", name]
+    for job, cmd in (("sweep", "sweep"), ("tuning", "tune"), ("certify", "certify")):
+        jobs[f"s_path_{job}"] = ["wmrjax", cmd, _S_PATH]
     return jobs
 
 
@@ -1178,7 +1181,7 @@ def _tuner_options(p) -> None:
     p.add_argument(
         "--c-source",
         type=Path,
-        default=here / "experiments" / "bench" / "closed_loop_simd.c",
+        default=here / "benchmarks" / "bench" / "closed_loop_simd.c",
         help="the hand-vectorised C loop (the ceiling; skipped if missing)",
     )
     p.add_argument(

@@ -45,7 +45,7 @@ LAYERS = ("wmrjax", "paper", "benchmarks")  # the package, and the repository's 
 JOBS = ("wmrjax.tune", "wmrjax.sweep")  # the jobs that are whole subpackages
 JOB_MODULES = ("wmrjax.certify.job", "wmrjax.export.job", "wmrjax.identify.job")  # a job beside its library
 CLI = "wmrjax.cli"  # with wmrjax.__main__, its entry point
-PRIVATE_MODULES = ("_cgen", "_files", "_hoist", "_math", "_scalarize", "_simplify", "_validate")
+PRIVATE_MODULES = ("_cgen", "_files", "_hoist", "_math", "_rk4", "_scalarize", "_simplify", "_validate")
 
 
 def _module(f) -> str:
@@ -163,6 +163,24 @@ def test_the_package_imports_optional_dependencies_only_where_used():
         if not _within(_module(f), (CLI, "wmrjax.__main__")):
             every, _ = _imports(f)
             assert "argparse" not in every, f"{f.relative_to(ROOT)} parses arguments outside wmrjax.cli"
+
+
+def test_function_local_imports_give_their_reason():
+    """An import inside a function of wmrjax/ is an exception (an optional dependency, a POSIX-only
+    or private JAX module, an import a job makes only when asked): its line says why in a comment.
+    Everything else is imported at the module's top."""
+    bare = []
+    for f in _sources("wmrjax"):
+        lines = f.read_text().splitlines()
+        for fn in ast.walk(ast.parse("\n".join(lines))):
+            if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for st in ast.walk(fn):
+                if isinstance(st, (ast.Import, ast.ImportFrom)):
+                    text = " ".join(lines[st.lineno - 1 : st.end_lineno])
+                    if "#" not in text:
+                        bare.append(f"{f.relative_to(ROOT)}:{st.lineno}")
+    assert not bare, f"function-local imports without a reason: {sorted(set(bare))}"
 
 
 def test_the_library_runs_without_the_cli_extra(tmp_path):

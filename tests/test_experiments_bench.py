@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from experiments import benchmark as M
+
+from benchmarks import benchmark as M
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -83,9 +84,10 @@ def test_cold_start_rows_time_fresh_processes_and_refuse_unknown_jobs(tmp_path, 
     assert {"section_6_1", "section_6_2", "s_path_certify", "tuning_car_schedule", "certify_(1,2)_figure_eight"} <= set(
         jobs
     )
-    assert {n for n in jobs if n.startswith("sweep_")} == {
-        "sweep_" + f.stem for f in (Path(ROOT) / "experiments" / "sweeps").glob("*.toml")
-    }
+    assert {n for n in jobs if n.startswith("sweep_")} == {"sweep_" + n for n in M.SWEEP_EXAMPLES}
+    assert all(
+        (Path(ROOT) / "wmrjax" / "examples" / f"{n}.toml").is_file() for n in M.SWEEP_EXAMPLES + M.TUNING_EXAMPLES
+    )
     rows = M.cold_start_rows({"help": ["benchmarks.benchmark", "--help"]}, progress=lambda m: None)
     r = rows["help"]
     assert r["exit"] == 0 and r["cold_s"] > 0 and r["warm_s"] > 0 and r["compile_share"] < 1

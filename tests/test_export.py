@@ -37,7 +37,7 @@ def _checked(tmp_path, ctrl, params, z0, period, n_samples):
 def test_section_6_1_step_c_and_artifact_agree_over_a_run(tmp_path):
     """The paper's §6.1 loop (2,0), e = 0, poles -1, reference (62), initial condition (63): 500
     periods of 10 ms. Measured: JAX step vs simulator 9e-16, C vs JAX 5e-16, artifact 0."""
-    from experiments import common
+    from paper import common
 
     ctrl, params, z0, _ = common.section_6_1_setup()
     step, c = _checked(tmp_path, ctrl, params, z0, 0.01, 500)
@@ -87,7 +87,7 @@ def test_command_exports_a_problem_file_and_the_robot_loop_compiles(tmp_path):
 
 
 def test_bad_input_is_refused_before_any_work(tmp_path):
-    from experiments import common
+    from paper import common
 
     ctrl, params, _, _ = common.section_6_1_setup()
     with pytest.raises(ValueError, match="C identifier"):

@@ -18,7 +18,7 @@ from wmrjax.controllers.law import Level
 from wmrjax.problem import Problem
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-CAR = ROOT / "experiments" / "problems" / "car_waypoints.toml"
+CAR = ROOT / "wmrjax" / "examples" / "car_waypoints.toml"
 PERIOD = 0.02
 NOISE = {"(2,0)": [0.01, 0.01, 0.005], "(1,1)": [0.01, 0.01, 0.005, 0.005]}
 
@@ -169,7 +169,7 @@ def test_saturated_commands_are_reported_not_refused(tmp_path):
     assert check.saturated == (1, 0) and check.n_samples == 5
 
 
-SECTION_6_1 = ROOT / "experiments" / "problems" / "section_6_1.toml"
+SECTION_6_1 = ROOT / "wmrjax" / "examples" / "section_6_1.toml"
 PLANT = "[plant]\ninput_limit = [3.0, 2.0]   # kept\ncontrol_period = 0.02\ngeometry_scale = [0.95, 1.05]\n\n"
 
 

@@ -175,14 +175,14 @@ def test_torn_write_cleanup_keeps_user_files_in_process(tmp_path):
 def test_one_directory_holds_one_jobs_results(tmp_path):
     """Before: a certification into a finished sweep's --out (directly or through a link) exited 0
     and replaced the sweep's summary.json beside its table."""
-    files.claim_output(tmp_path, "wmrjax.sweep")
-    files.claim_output(tmp_path, "wmrjax.sweep")  # the same job again (a rerun, a resume)
-    with pytest.raises(files.OutputLocked, match=r"holds the results of 'wmrjax.sweep', not of 'experiments.cert"):
-        files.claim_output(tmp_path, "wmrjax.cli.certify")
+    files.claim_output(tmp_path, "wmrjax sweep")
+    files.claim_output(tmp_path, "wmrjax sweep")  # the same job again (a rerun, a resume)
+    with pytest.raises(files.OutputLocked, match=r"holds the results of 'wmrjax sweep', not of 'wmrjax cert"):
+        files.claim_output(tmp_path, "wmrjax certify")
     link = tmp_path.parent / f"{tmp_path.name}-link"
     link.symlink_to(tmp_path, target_is_directory=True)
     with pytest.raises(files.OutputLocked, match="one directory holds one job's results"):
-        files.claim_output(link, "wmrjax.cli.certify")
+        files.claim_output(link, "wmrjax certify")
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")

@@ -1,6 +1,6 @@
 """The probe of bad and hostile inputs (tests.probe): its oracles' classification on made-up
 runs, its case list, and two cheap cases through its command line against this checkout (the
-whole probe runs for minutes: it is run by hand, see docs/tests/probe.md)."""
+whole probe runs for minutes: it is run by hand, see docs/commands/probe.md)."""
 
 import json
 import subprocess

@@ -13,7 +13,7 @@ import wmrjax as w
 from wmrjax.problem import Problem, ProblemError, Space, Task, gains_file_dict, place, read_gains_file
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-S_PATH = ROOT / "experiments" / "problems" / "s_path.toml"
+S_PATH = ROOT / "wmrjax" / "examples" / "s_path.toml"
 
 BASE = {
     "controller": {"law": "dynamic", "robot": "(2,0)"},

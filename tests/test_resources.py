@@ -6,8 +6,8 @@ import dataclasses
 from pathlib import Path
 
 import pytest
-from experiments import benchmark as M
 
+from benchmarks import benchmark as M
 from wmrjax import resources
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,7 +44,7 @@ def test_oversized_tuning_and_sweeps_are_refused_before_compiling(monkeypatch):
     from wmrjax.tune import config, loop
 
     monkeypatch.setattr(resources, "available_bytes", lambda: 8 * 10**9)
-    prob = Problem.load(ROOT / "tuning" / "problems" / "section_6_1.toml")
+    prob = Problem.load(ROOT / "wmrjax" / "examples" / "section_6_1_plant.toml")
     setting = prob.setting("tuning")
     sc = config.read(prob.section("tune")).scenarios
     loop.check_memory(setting, sc)

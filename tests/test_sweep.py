@@ -184,7 +184,8 @@ def test_two_processes_give_the_same_table(tiny, cache, tmp_path):
         [
             sys.executable,
             "-m",
-            "wmrjax.sweep",
+            "wmrjax",
+            "sweep",
             str(spec),
             "--out",
             str(tmp_path),
@@ -294,7 +295,7 @@ def test_cli_refuses_bad_files_and_options(tmp_path, capsys):
 
 @pytest.mark.parametrize("name", ["section_6_1_position_grid", "random_references", "sampled_lane_change"])
 def test_shipped_sweeps_are_valid(name):
-    plan = S.load(ROOT / "experiments" / "sweeps" / f"{name}.toml")
+    plan = S.load(ROOT / "wmrjax" / "examples" / f"{name}.toml")
     expect = {
         "section_6_1_position_grid": 81 * 81,
         "random_references": 8 * 32 * 32,
@@ -343,7 +344,8 @@ def test_a_dead_worker_stops_the_others(tiny, cache, tmp_path):
     cmd = [
         sys.executable,
         "-m",
-        "wmrjax.sweep",
+        "wmrjax",
+        "sweep",
         str(slow),
         "--out",
         str(tmp_path / "o"),

@@ -388,7 +388,7 @@ def _tiny_file(tmp_path):
 
 
 def test_cli_writes_summary_and_gains(tmp_path):
-    from wmrjax.tune import cli
+    from wmrjax.cli import tune as cli
 
     path = _tiny_file(tmp_path)
     out = tmp_path / "out"

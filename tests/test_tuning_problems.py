@@ -154,7 +154,7 @@ def test_shipped_problems_and_bad_tuning_problems(tmp_path):
     ts = config.read(car.section("tune"))
     assert setting.ctrl.robot.name == "(1,1)" and ts.gain_spec(setting).size == 24
     assert Problem.load(problem_file("torque_2_1")).setting("tuning").ctrl.level == "torque"
-    with pytest.raises(ValueError, match="problem must be one of"):
+    with pytest.raises(ValueError, match="problem must be a file or one of"):
         problem_file("car")
     with pytest.raises(ProblemError, match="at least 2 knots"):
         config.read(car.with_values({"tune.family.knots": 1}).section("tune"))

@@ -219,10 +219,10 @@ def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) ->
 
 def headless_pyplot():
     """``matplotlib.pyplot`` on the non-interactive Agg backend (for writing PNG files)."""
-    import matplotlib
+    import matplotlib  # optional dependency (the cli extra): only a figure needs it
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # optional dependency (the cli extra): only a figure needs it
 
     return plt
 
@@ -245,7 +245,7 @@ def write_parquet(path, batches) -> Path:
       path: target ``.parquet`` path.
       batches: an iterable of record batches sharing one schema (the first batch's).
     """
-    import pyarrow.parquet as pq
+    import pyarrow.parquet as pq  # optional dependency (the cli extra): only the Parquet table needs it
 
     def write(fh):
         writer = None
@@ -269,7 +269,7 @@ def read_parquet_columns(path, cols: tuple, what: str) -> tuple:
       ValueError: not a regular file, larger than :data:`wmrjax.io.MAX_FILE_BYTES`, not Parquet, or
         a missing column; naming the file.
     """
-    import pyarrow.parquet as pq
+    import pyarrow.parquet as pq  # optional dependency (the cli extra): only the Parquet table needs it
 
     path = Path(path)
     name = io.excerpt(str(path), 200)

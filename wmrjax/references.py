@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
 import math
 import warnings
 from pathlib import Path
@@ -810,8 +811,6 @@ class Family:
     def options(self) -> dict:
         """Option name -> default value (named families: the constructor's keyword defaults)."""
         if self.kind == "named":
-            import inspect
-
             sig = inspect.signature(self.make)
             return {k: v.default for k, v in sig.parameters.items() if k != "heading_offset"}
         return dict(self.defaults)

@@ -133,7 +133,7 @@ def _cgroup_available() -> int | None:
 def _address_space_available() -> int | None:
     """``RLIMIT_AS`` less the address space the process holds (``VmSize``) [bytes], None if unlimited."""
     try:
-        import resource
+        import resource  # POSIX only: absent on Windows
 
         soft, _ = resource.getrlimit(resource.RLIMIT_AS)
     except (ImportError, OSError, ValueError):  # pragma: no cover - non-POSIX

@@ -1,4 +1,4 @@
-"""``python -m tests.probe --tree DIR --out OUT``: probe a wmrjax checkout (see docs/tests/probe.md)."""
+"""``python -m tests.probe --tree DIR --out OUT``: probe a wmrjax checkout (see docs/commands/probe.md)."""
 
 import sys
 

@@ -1,7 +1,7 @@
 """Oracle builders: the common shapes of "what a user should see".
 
 Every builder returns ``oracle(run) -> (outcome, evidence)``. The rules (the probe's page,
-``docs/tests/probe.md``):
+``docs/commands/probe.md``):
 
 * GOOD -- refused with a clear message (a ``ValueError`` naming what was wrong; a command line's
   exit status 1 or 2 with a one-line ``error:`` message, no traceback), before any time loop was

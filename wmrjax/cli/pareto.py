@@ -6,6 +6,7 @@ import jax
 
 from wmrjax.cli import options
 from wmrjax.problem import Problem
+from wmrjax.tune import certified, config
 from wmrjax.tune.pareto import run
 
 
@@ -45,8 +46,6 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     try:
         problem = options.with_set(Problem.load(a.file), a)
-        from wmrjax.tune import certified, config
-
         setting = problem.setting("tuning")
         settings = config.read(problem.section("tune"), problem.section("certify"))
         certified.check(setting, settings.gain_spec(setting))

@@ -142,7 +142,8 @@ def _launch(p, a, devices: int) -> int:
     base = [
         sys.executable,
         "-m",
-        "wmrjax.sweep",
+        "wmrjax",
+        "sweep",
         str(a.spec),
         "--out",
         str(a.out),
@@ -225,7 +226,7 @@ def _run(p, a, pid: int, n_proc: int) -> int:
 
     def barrier(name):
         if n_proc > 1:
-            from jax.experimental import multihost_utils
+            from jax.experimental import multihost_utils  # jax.distributed only: a one-process sweep never loads it
 
             multihost_utils.sync_global_devices(name)
 

@@ -30,6 +30,7 @@ from wmrjax import references as R
 from wmrjax.cli import options
 from wmrjax.examples import PROBLEMS, problem_file
 from wmrjax.problem import Problem
+from wmrjax.tune import certified, config, loop
 from wmrjax.tune.job import baseline_budget, run
 from wmrjax.tune.losses import LossWeights
 
@@ -344,15 +345,11 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)  # float64 from the first check on (run() sets it too)
     try:
         problem = problem_from_args(a)
-        from wmrjax.tune import config, loop
-
         setting = problem.setting("tuning")
         settings = config.read(problem.section("tune"), problem.section("certify"))
         family = settings.gain_spec(setting)
         loop.check(setting, family, settings.scenarios, settings.loss)
         if settings.requirement is not None:
-            from wmrjax.tune import certified
-
             certified.check(setting, family)
         baseline_budget(settings, family)
     except ValueError as e:

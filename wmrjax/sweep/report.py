@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from wmrjax import _files, _math, certify
+from wmrjax.problem import Task
 from wmrjax.sweep import spec as S
 from wmrjax.sweep.run import OUTCOMES
 
@@ -51,7 +52,7 @@ def label(col: str) -> str:
 
 
 def read_table(path: Path, columns=None) -> dict:
-    import pyarrow.parquet as pq
+    import pyarrow.parquet as pq  # optional dependency (the cli extra): only the Parquet table needs it
 
     t = pq.read_table(path, columns=columns)
     return {name: t.column(name).to_numpy(zero_copy_only=False) for name in t.column_names}
@@ -83,7 +84,6 @@ def quantiles(a) -> dict:
 
 
 def summarize(plan: S.Plan, table: dict, certified: dict) -> dict:
-    from wmrjax.problem import Task  # here: JAX is imported after the device options are set
 
     n = len(table["run"])
     counts = {o: int(np.sum(table["outcome"] == o)) for o in OUTCOMES}
@@ -289,7 +289,7 @@ def _map_figure(
     ux, uy = np.unique(xa), np.unique(yb)
     grid = a not in random_cols and b not in random_cols and len(xa) == len(ux) * len(uy) > 1
     if grid and len(ux) > 1 and len(uy) > 1:  # a full grid: cells that touch
-        from matplotlib.colors import ListedColormap
+        from matplotlib.colors import ListedColormap  # optional dependency (the cli extra): only a figure needs it
 
         code = np.full((len(uy), len(ux)), np.nan)
         code[np.searchsorted(uy, yb), np.searchsorted(ux, xa)] = [OUTCOMES.index(o) for o in oc]

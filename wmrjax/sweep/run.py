@@ -24,7 +24,7 @@ import numpy as np
 
 from wmrjax import _files as files
 from wmrjax import _math, resources
-from wmrjax.problem import law_state
+from wmrjax.problem import Task, law_state
 from wmrjax.sweep import spec as S
 
 RESULT_COLUMNS = (
@@ -353,7 +353,7 @@ def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int 
 def assemble(plan: S.Plan, out: Path):
     """Stream every block into ``runs.parquet`` (one row group per block) with its swept values;
     returns the path. Memory: one block at a time."""
-    import pyarrow as pa
+    import pyarrow as pa  # optional dependency (the cli extra): only the Parquet table needs it
 
     blocks = plan.blocks()
     missing = [b for b in range(len(blocks)) if not block_path(out, b).exists()]
@@ -408,7 +408,6 @@ OUTCOMES = ("converged", "not_converged", "singular", "failed")
 def classify(plan: S.Plan, res: dict) -> dict:
     """``converged`` (regular, final errors within the tolerances), ``singular`` (flagged
     singular), ``failed`` (non-finite or inaccurate), else ``not_converged``."""
-    from wmrjax.problem import Task  # here: JAX is imported after the device options are set
 
     pos_ok = res["final_position_error"] <= plan.position_tol
     head_ok = res["final_heading_error"] <= plan.heading_tol

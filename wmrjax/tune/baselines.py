@@ -196,7 +196,7 @@ def cma_es(
 ) -> BaselineRun:
     """CMA-ES over the free unconstrained parameters, whole generations within the budget (one
     generation is one batch of ``scenarios_for``)."""
-    from cmaes import CMA
+    from cmaes import CMA  # optional dependency (the cli extra): only the CMA-ES baseline needs it
 
     t0 = time.perf_counter()
     free = _free_mask(spec)
@@ -236,7 +236,7 @@ def optuna_tpe(
 ) -> BaselineRun:
     """Optuna's TPE sampler (its defaults, ``seed``) on the free unconstrained parameters in
     :func:`raw_box`, ``batch`` trials asked, simulated together and told at a time."""
-    import optuna
+    import optuna  # optional dependency (the cli extra): only the Optuna baseline needs it
 
     sampler = optuna.samplers.TPESampler(seed=seed)
     lo, hi = raw_box(spec, raw0, low, high)
@@ -278,7 +278,7 @@ def optuna_cmaes(
     unconstrained parameters becomes ``sigma`` over the narrowest side of the box (so no parameter
     starts with a step below ``sigma``, the step of :func:`cma_es`).
     """
-    import optuna
+    import optuna  # optional dependency (the cli extra): only the Optuna baseline needs it
 
     lo, hi = raw_box(spec, raw0, low, high)
     free = _free_mask(spec)
@@ -323,7 +323,7 @@ def _optuna(
     that needs a completed trial, as the CMA-ES sampler does, then models from it), then batches
     of ``batch`` trials until ``budget_rollouts // n_train`` candidates; batch ``k`` of
     ``scenarios_for`` is the k-th scored."""
-    import optuna
+    import optuna  # optional dependency (the cli extra): only the Optuna baseline needs it
 
     t0 = time.perf_counter()
     optuna.logging.set_verbosity(optuna.logging.WARNING)  # no line per trial

@@ -36,7 +36,7 @@ import numpy as np
 
 from wmrjax import certify
 from wmrjax.controllers.dynamic import DynamicLinearization
-from wmrjax.problem import ProblemError, check_keys, positive
+from wmrjax.problem import ProblemError, Space, check_keys, positive
 from wmrjax.references import FAMILIES
 
 SLICES = ("full", "position")
@@ -135,8 +135,6 @@ def required_radius(setting, req: Requirement, radius: Radius, raw0) -> float:
     if req.radius == "initial":
         return radius.value(raw0)
     if req.radius == "box":
-        from wmrjax.problem import Space
-
         if Space(setting.data["initial"].get("space", "output")) != Space.OUTPUT:
             raise ValueError(
                 '[tune.requirement] radius = "box" needs output-space initial errors ([initial] space '

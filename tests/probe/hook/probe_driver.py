@@ -144,22 +144,22 @@ def same_output(out, ref, kind: str):
     )
 
 
-def finished(spec: str, out: str, command: str = "wmrjax.sweep") -> dict:
-    """``python -m COMMAND SPEC --out OUT`` as if just run: the first time in a probe run it runs
+def finished(spec: str, out: str, command: tuple = ("wmrjax", "sweep")) -> dict:
+    """``python -m wmrjax JOB SPEC --out OUT`` as if just run: the first time in a probe run it runs
     into the run's fixture directory (``$PROBE_FIXTURES``), later it is a copy of that output
     (without the writer's lock); returns the run's facts (see :meth:`Proc.finish`)."""
     import hashlib
 
     with open(spec, "rb") as f:
-        key = hashlib.sha256(command.encode() + f.read()).hexdigest()[:16]
+        key = hashlib.sha256(" ".join(command).encode() + f.read()).hexdigest()[:16]
     root = os.environ.get("PROBE_FIXTURES")
     if not root:
-        return run("-m", command, spec, "--out", out)
+        return run("-m", *command, spec, "--out", out)
     cached = os.path.join(root, key)
     facts = read_json(cached + ".json")
     if facts is None:
         shutil.rmtree(cached, ignore_errors=True)
-        facts = run("-m", command, spec, "--out", cached)
+        facts = run("-m", *command, spec, "--out", cached)
         with open(cached + ".json", "w") as f:
             json.dump(facts, f)
     copytree(cached, out)
