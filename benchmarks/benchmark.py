@@ -34,6 +34,7 @@ import time
 from pathlib import Path
 
 from paper import common
+from wmrjax.cli import machine, running
 
 N_STEPS = 1000
 DT = 0.01
@@ -1205,9 +1206,7 @@ def _run_worker(a) -> int:
     """A fresh-process worker: its measurement printed as JSON."""
     import json
 
-    from wmrjax.cli import options
-
-    options.use_compilation_cache(a)
+    machine.use_compilation_cache(a)
     res = (
         compile_worker(a.case, a.worker_batch)
         if a.worker == "compile"
@@ -1270,18 +1269,17 @@ def _print_summary(s: dict, out: Path) -> None:
 
 
 def main(argv=None) -> int:
-    from wmrjax.cli import options
 
     p = _parser()
     a = p.parse_args(argv)
-    options.configure_xla(a.devices)  # before JAX starts its backend (a worker's too)
+    machine.configure_xla(a.devices)  # before JAX starts its backend (a worker's too)
     if a.worker:
         return _run_worker(a)
     unknown = [n for n in a.cold_start if n not in cold_start_jobs() and a.cold_start != ["all"]]
     if unknown:  # before any work
         p.error(f"argument --cold-start: unknown job(s) {unknown}; expected 'all' or some of {list(cold_start_jobs())}")
-    options.prepare_output(p, a.out)
-    options.use_compilation_cache(a)
+    running.prepare_output(p, a.out)
+    machine.use_compilation_cache(a)
     s = run(
         a.out,
         a.batches,

@@ -37,7 +37,7 @@ import numpy as np
 
 import wmrjax as w
 from wmrjax import identify
-from wmrjax.cli import options
+from wmrjax.cli import machine
 from wmrjax.controllers.law import Level
 from wmrjax.problem import Problem
 
@@ -200,7 +200,7 @@ def main(argv=None) -> int:
     p.add_argument("--replicates", type=int, default=200, help="the parametric bootstrap's fits per robot")
     p.add_argument("--time-one", action="store_true", help=argparse.SUPPRESS)  # the timing's fresh process
     a = p.parse_args(argv)
-    options.configure_xla()  # before JAX starts its backend
+    machine.configure_xla()  # before JAX starts its backend
     jax.config.update("jax_enable_x64", True)
     if a.time_one:
         print(json.dumps(time_one_fit()))

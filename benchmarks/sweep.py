@@ -123,7 +123,7 @@ def run(out: Path, runs: int, block: int, progress=print) -> dict:
 
 
 def main(argv=None) -> int:
-    from wmrjax.cli import options
+    from wmrjax.cli import machine, options, running
 
     p = common.parser(__doc__.splitlines()[0], "results/sweep_benchmark")
     p.add_argument(
@@ -131,8 +131,8 @@ def main(argv=None) -> int:
     )
     p.add_argument("--block", type=options.count, default=1024, help="runs per block")
     a = p.parse_args(argv)
-    options.configure_xla()  # before JAX starts its backend
-    options.prepare_output(p, a.out)
+    machine.configure_xla()  # before JAX starts its backend
+    running.prepare_output(p, a.out)
     res = run(a.out, a.runs, a.block)
     one, two = res["one_process"], res["two_processes"]
     print(

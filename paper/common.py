@@ -11,7 +11,7 @@ import numpy as np
 
 import wmrjax as w
 from wmrjax import Level, references
-from wmrjax.cli import options
+from wmrjax.cli import machine, options, running
 from wmrjax.cli.common import enable_x64, parser, pyplot, quantiles, save_figure, write_json, write_npz
 
 __all__ = [
@@ -56,8 +56,8 @@ def tracking_cli(argv, doc, default_out, kinds, run_fn) -> int:
     p.add_argument("--seed", type=options.seed, default=0, help="PRNG seed of the random references and initial errors")
     p.add_argument("--types", nargs="+", default=list(kinds), help=f"subset of {' '.join(kinds)}")
     a = p.parse_args(argv)
-    options.configure_xla()  # before JAX starts its backend
-    options.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=a.n_random, n_state=7, saved_every=10)
+    machine.configure_xla()  # before JAX starts its backend
+    machine.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=a.n_random, n_state=7, saved_every=10)
     try:
         chosen = tuple(w.robot_type(k).name for k in a.types)
     except ValueError as exc:
@@ -66,7 +66,7 @@ def tracking_cli(argv, doc, default_out, kinds, run_fn) -> int:
     if bad:
         p.error(f"argument --types: {bad} not among this experiment's types {list(kinds)}")
     t0 = time.perf_counter()
-    options.work(
+    running.work(
         p, a, lambda progress: run_fn(a.out, a.n_random, a.t_final, a.dt, a.seed, kinds=chosen, progress=progress)
     )
     print(f"wrote {a.out}/summary.json and one PNG per type ({time.perf_counter() - t0:.0f} s)", file=sys.stdout)

@@ -220,15 +220,15 @@ def _figures(out, t, state, ref, eta1, eta1_ref):
 
 
 def main(argv=None) -> int:
-    from wmrjax.cli import options
+    from wmrjax.cli import machine, options, running
 
     p = common.parser(__doc__.splitlines()[0], "results/section_6_1")
     p.add_argument("--dt", type=options.positive, default=0.01, help="RK4 step [s]")
     p.add_argument("--t-final", type=options.positive, default=10.0, help="horizon [s]")
     a = p.parse_args(argv)
-    options.configure_xla()  # before JAX starts its backend
-    options.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=4096)
-    s = options.work(p, a, lambda progress: run(a.out, a.dt, a.t_final, progress=progress))
+    machine.configure_xla()  # before JAX starts its backend
+    machine.check_horizon(p, t_final=a.t_final, dt=a.dt, batch=4096)
+    s = running.work(p, a, lambda progress: run(a.out, a.dt, a.t_final, progress=progress))
     sim = s["simulation"]
     print(
         f"section 6.1: min eta1 = {sim['min_eta1']:.4f} m/s at t = {sim['t_min_eta1']:.2f} s; "

@@ -271,7 +271,7 @@ def _figures(out, t, st, u, ref, eta1_ref, t_sw, r_s, batch):
 
 
 def main(argv=None) -> int:
-    from wmrjax.cli import options
+    from wmrjax.cli import machine, options, running
 
     p = common.parser(__doc__.splitlines()[0], "results/section_6_2")
     p.add_argument("--dt", type=options.positive, default=0.01, help="RK4 step [s]")
@@ -296,18 +296,18 @@ def main(argv=None) -> int:
         "--lam", type=options.positive, default=None, help="stabilizer gain lambda [1/s] (None: the paper's 40)"
     )
     a = p.parse_args(argv)
-    options.configure_xla()  # before JAX starts its backend
+    machine.configure_xla()  # before JAX starts its backend
     if not a.t_final > 10.0:
         p.error(
             f"argument --t-final: must exceed 10 s (the reference (66) stops at t = 10 s and parking follows), "
             f"got {a.t_final}"
         )
-    n = options.check_horizon(p, t_final=a.t_final, dt=a.dt, n_state=10)  # the single run keeps every step
+    n = machine.check_horizon(p, t_final=a.t_final, dt=a.dt, n_state=10)  # the single run keeps every step
     if a.n_batch:  # the batch keeps each run's first and last state
-        options.check_horizon(
+        machine.check_horizon(
             p, t_final=a.t_final, dt=a.dt, batch=a.n_batch, n_state=10, saved_every=n, fix="lower --n-batch"
         )
-    s = options.work(
+    s = running.work(
         p,
         a,
         lambda progress: run(

@@ -15,10 +15,10 @@ import pytest
 
 SCRIPT = """
 import sys, jax
-from wmrjax.cli import options
+from wmrjax.cli import machine, options
 p = options.parser("x", None)
 a = p.parse_args(sys.argv[1:])
-print(options.use_compilation_cache(a), jax.config.jax_compilation_cache_dir,
+print(machine.use_compilation_cache(a), jax.config.jax_compilation_cache_dir,
       jax.config.jax_persistent_cache_min_compile_time_secs)
 """
 

@@ -288,10 +288,10 @@ def test_heartbeat_reports_a_silent_stage():
     import io as _io
     import time
 
-    from wmrjax.cli import options
+    from wmrjax.cli import running
 
     buf = _io.StringIO()
-    with options.Heartbeat(every=0.05, stream=buf) as hb:
+    with running.Heartbeat(every=0.05, stream=buf) as hb:
         hb.stage("compiling the rollout")
         time.sleep(0.6)
         hb.stage("writing figures")

@@ -194,7 +194,7 @@ def test_a_killed_launchers_workers_die_with_it():
             sys.executable,
             "-c",
             "import subprocess, sys, time\n"
-            "from wmrjax.cli.sweep import die_with_parent\n"
+            "from wmrjax.cli.launch import die_with_parent\n"
             "w = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'], preexec_fn=die_with_parent)\n"
             "print(w.pid, flush=True)\n"
             "time.sleep(60)\n",

@@ -145,6 +145,6 @@ def test_every_command_line_calls_configure_xla_in_main():
     for path, text in mains.items():
         body = text[text.index("def main(") :]
         uses_tracking_cli = "common.tracking_cli(" in body
-        assert uses_tracking_cli or "options.configure_xla(" in body, path
+        assert uses_tracking_cli or "machine.configure_xla(" in body, path
     common = (ROOT / "paper" / "common.py").read_text()
-    assert "options.configure_xla()" in common[common.index("def tracking_cli(") :]
+    assert "machine.configure_xla()" in common[common.index("def tracking_cli(") :]

@@ -19,29 +19,16 @@ from __future__ import annotations
 
 import shutil
 import sys
-from pathlib import Path
 
-from wmrjax import examples
-from wmrjax.cli import common, options
+from wmrjax.cli import common, machine, options, problem_args, running
 from wmrjax.export.job import DEFAULT_PERIOD, check_initial, run, setup
-from wmrjax.problem import Problem
-
-DEFAULT_PROBLEM = examples.problem_file("section_6_1")
 
 
 def _parser():
 
     p = common.parser(__doc__.splitlines()[0], "results/export")
-    p.add_argument(
-        "file",
-        type=options.problem_file,
-        nargs="?",
-        default=None,
-        help="a problem file (TOML) or a shipped example (default: section_6_1)",
-    )
-    options.add_set(p)
+    problem_args.add_problem_options(p, default="section_6_1")
     p.add_argument("--case", default=None, help="the [[case]] to export, when the problem has several")
-    p.add_argument("--gains", type=Path, default=None, help="a tuned-gains file (gains.json of wmrjax tune)")
     p.add_argument(
         "--period",
         type=options.positive,
@@ -66,22 +53,19 @@ def main(argv=None) -> int:
 
     p = _parser()
     a = p.parse_args(argv)
-    options.configure_xla()  # before JAX starts its backend
+    machine.configure_xla()  # before JAX starts its backend
     cc = None if a.cc == "none" else a.cc
     if cc is not None and shutil.which(cc) is None:
         options.fail(p, f"--cc {a.cc}: no such compiler on PATH (give another, or --cc none to skip the C checks)")
     try:
         common.enable_x64()
-        problem = Problem.load(a.file if a.file is not None else DEFAULT_PROBLEM)
-        if a.gains is not None:
-            problem = problem.with_values({"gains": {"file": str(a.gains.resolve())}})
-        problem = options.with_set(problem, a)
+        problem = problem_args.problem_from_args(a)
         setting, _, _ = setup(problem, a.case)
         if a.initial is not None:  # refused here, before the export's work, not after
             check_initial(setting, a.initial)
     except ValueError as e:
         p.error(str(e))
-    s = options.work(
+    s = running.work(
         p,
         a,
         lambda progress: run(

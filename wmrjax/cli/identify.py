@@ -18,19 +18,13 @@ import sys
 from pathlib import Path
 
 from wmrjax import identify as I
-from wmrjax.cli import common, options
+from wmrjax.cli import common, machine, options, problem_args, running
 from wmrjax.identify.job import read_log, run
-from wmrjax.problem import Problem
 
 
 def _parser():
     p = common.parser(__doc__.splitlines()[0], "results/identify")
-    p.add_argument(
-        "file",
-        type=options.problem_file,
-        help="the problem file of the robot (TOML): its type, level, geometry and [plant]",
-    )
-    options.add_set(p)
+    problem_args.add_problem_options(p, needs="of the robot: its type, level, geometry and [plant]")
     p.add_argument("--log", type=Path, action="append", required=True, help="a log to fit (CSV or Parquet; repeat)")
     p.add_argument("--holdout", type=Path, action="append", default=[], help="a log held out of the fit, predicted")
     p.add_argument(
@@ -54,16 +48,16 @@ def _parser():
 def main(argv=None) -> int:
     p = _parser()
     a = p.parse_args(argv)
-    options.configure_xla()  # before JAX starts its backend
+    machine.configure_xla()  # before JAX starts its backend
     try:
         common.enable_x64()
-        problem = options.with_set(Problem.load(a.file), a)  # loaded once: a sampled path's spline is built at load
+        problem = problem_args.problem_from_args(a)  # loaded once: a sampled path's spline is built at load
         model = I.sections.plant_model(problem.setting("identify"), a.period)
         for path in a.log + a.holdout:  # every log checked before anything compiles
             I.check_log(read_log(path, model.robot), model.period, model.input_limit)
     except ValueError as e:
         p.error(str(e))
-    s = options.work(
+    s = running.work(
         p,
         a,
         lambda progress: run(

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import jax
 
-from wmrjax.cli import options
-from wmrjax.problem import Problem
+from wmrjax.cli import machine, options, problem_args, running
 from wmrjax.tune import certified, config
 from wmrjax.tune.pareto import run
 
@@ -13,10 +12,7 @@ from wmrjax.tune.pareto import run
 def parser():
 
     p = options.parser(__doc__.splitlines()[0], "results/pareto")
-    p.add_argument(
-        "file", type=options.problem_file, help="a problem file (TOML) with a [tune] section, or a shipped example"
-    )
-    options.add_set(p)
+    problem_args.add_problem_options(p, needs="with a [tune] section")
     p.add_argument(
         "--slice",
         default="full",
@@ -42,16 +38,16 @@ def main(argv=None) -> int:
 
     p = parser()
     a = p.parse_args(argv)
-    options.configure_xla()  # before JAX starts its backend
+    machine.configure_xla()  # before JAX starts its backend
     jax.config.update("jax_enable_x64", True)
     try:
-        problem = options.with_set(Problem.load(a.file), a)
+        problem = problem_args.problem_from_args(a)
         setting = problem.setting("tuning")
         settings = config.read(problem.section("tune"), problem.section("certify"))
         certified.check(setting, settings.gain_spec(setting))
     except ValueError as e:
         p.error(str(e))
-    s = options.work(p, a, lambda progress: run(problem, a.out, a.slice, a.fractions, a.radii, a.eps, log=progress))
+    s = running.work(p, a, lambda progress: run(problem, a.out, a.slice, a.fractions, a.radii, a.eps, log=progress))
     for pt in s["points"]:
         print(
             f"required {pt['required_radius']:.4g}: radius {pt['tuned_radius']:.4g} (falsified "

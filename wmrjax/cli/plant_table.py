@@ -21,8 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from wmrjax import certify as C
-from wmrjax.cli import common, options
-from wmrjax.problem import Problem
+from wmrjax.cli import common, machine, problem_args, running
 from wmrjax.tune.certified import DEFAULT_EPS
 
 FACTORS = (0.90, 0.95, 0.98, 0.995)
@@ -95,19 +94,16 @@ def table(summary: dict) -> str:
 def main(argv=None) -> int:
 
     p = common.parser(__doc__.splitlines()[0], "results/plant_table")
-    p.add_argument(
-        "file", type=options.problem_file, help="a problem file with a [plant] section, or a shipped example"
-    )
-    options.add_set(p)
+    problem_args.add_problem_options(p, needs="with a [plant] section")
     p.add_argument("--slice", default="position", choices=["position", "full"], help="the slice of initial errors")
     a = p.parse_args(argv)
-    options.configure_xla()  # before JAX starts its backend (the runs are vmapped on one device)
+    machine.configure_xla()  # before JAX starts its backend (the runs are vmapped on one device)
     try:
         common.enable_x64()
-        problem = options.with_set(Problem.load(a.file), a)
+        problem = problem_args.problem_from_args(a)
     except ValueError as e:
         p.error(str(e))
-    s = options.work(p, a, lambda progress: run(a.out, problem, a.slice, progress=progress))
+    s = running.work(p, a, lambda progress: run(a.out, problem, a.slice, progress=progress))
     print(f"nominal {s['slice']}-slice radius {s['nominal_radius']:.4f} (proved), eps = {s['eps']}:")
     print(table(s))
     return 0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from wmrjax.cli import options
+from wmrjax.cli import machine, options, running
 from wmrjax.problem import Problem
 from wmrjax.tune.study import DEFAULT_PROBLEMS, METHODS, problem_path, study
 
@@ -102,12 +102,12 @@ def main(argv=None) -> int:
 
     p = parser()
     a = p.parse_args(argv)
-    options.configure_xla()  # before JAX starts its backend
+    machine.configure_xla()  # before JAX starts its backend
     try:  # the problems named by the options: a bad one is a bad option
         problems = problems_of(a)
     except ValueError as e:
         options.fail(p, str(e))
-    s = options.work(
+    s = running.work(
         p,
         a,
         lambda progress: study(

@@ -5,9 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import socket
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -15,8 +12,8 @@ from pathlib import Path
 import jax
 
 from wmrjax import _files as files
-from wmrjax.cli import common, options
-from wmrjax.problem import CASE_NAME, Problem, ProblemError
+from wmrjax.cli import common, launch, machine, options, problem_args, running
+from wmrjax.problem import CASE_NAME, ProblemError
 from wmrjax.sweep import report, run
 from wmrjax.sweep import spec as S
 
@@ -28,16 +25,11 @@ A killed sweep resumes from its finished blocks when rerun with the same file an
 def parser():
 
     p = common.parser(DOC, default_out=None)
-    p.add_argument(
-        "spec",
-        type=options.problem_file,
-        help="the problem file to sweep (TOML; see docs/problem_files.md), or a shipped example",
-    )
-    options.add_set(p)
+    problem_args.add_problem_options(p, needs="to sweep (see docs/problem_files.md)")
     p.add_argument("--out", type=Path, default=None, help="output directory (default: results/sweeps/<spec name>)")
     p.add_argument("--fresh", action="store_true", help="discard finished blocks of an earlier run in --out")
     p.add_argument(
-        "--gains",
+        "--compare-gains",
         type=Path,
         nargs="+",
         default=None,
@@ -67,7 +59,7 @@ def parser():
 def main(argv=None) -> int:
     p = parser()
     a = p.parse_args(argv)
-
+    a.argv = list(sys.argv[1:] if argv is None else argv)  # a launcher's workers get the same problem
     distributed = a.coordinator is not None
     if distributed and (a.process_id is None or a.num_processes is None):
         options.fail(p, "--coordinator needs --process-id and --num-processes")
@@ -77,10 +69,10 @@ def main(argv=None) -> int:
         options.fail(p, f"--process-id {a.process_id} must be < --num-processes {a.num_processes}")
     if distributed and a.processes != 1:
         options.fail(p, "--processes starts local processes itself; do not combine it with --coordinator")
-    if not a.spec.is_file():
-        options.fail(p, f"sweep file {str(a.spec)!r} not found")
+    if not a.file.is_file():
+        options.fail(p, f"sweep file {str(a.file)!r} not found")
     if a.out is None:
-        a.out = Path("results") / "sweeps" / a.spec.stem
+        a.out = Path("results") / "sweeps" / a.file.stem
     n_proc = a.num_processes if distributed else a.processes
     cores = os.cpu_count() or 1
     # more processes or host devices than cores run no faster (many more run much slower) and
@@ -92,126 +84,49 @@ def main(argv=None) -> int:
             p, f"--devices {a.devices} is more than this machine's {cores} cores (JAX host devices run one per core)"
         )
     devices = a.devices or max(1, cores // n_proc)
-    options.configure_xla(devices)  # before JAX starts its backend
+    machine.configure_xla(devices)  # before JAX starts its backend
     # one writer per --out: the launching process (its workers inherit the lock's token), or
     # process 0 of a run over several hosts
-    options.prepare_output(p, a.out, lock=not distributed or a.process_id == 0)
+    running.prepare_output(p, a.out, lock=not distributed or a.process_id == 0)
     try:
-        with options.reliable_interrupt():
+        with running.reliable_interrupt():
             if a.processes > 1:
-                return _launch(p, a, devices)
+                _prepare(p, a, devices)
+                return launch.launch(a, devices)
             return _run(p, a, a.process_id or 0, a.num_processes or 1)
     except ValueError as err:  # raised by the work (the file and --out were checked before it): exit 1
-        options.fail_work(p, str(err), verbose=a.verbose)
+        running.fail_work(p, str(err), verbose=a.verbose)
     except KeyboardInterrupt:  # Ctrl-C: the finished blocks are kept, one line instead of a traceback
-        options.interrupted(p, a.out)
+        running.interrupted(p, a.out)
 
 
 def problem_of(a):
-    """The sweep file's problem, paired with ``--gains`` files as cases (``default`` and one per file)."""
-
-    problem = options.with_set(Problem.load(a.spec), a)
-    if not a.gains:
+    """The sweep file's problem, paired with ``--compare-gains`` files as cases (``default`` and one per file)."""
+    problem = problem_args.problem_from_args(a)
+    if not a.compare_gains:
         return problem
     if "case" in problem.data:
         raise ProblemError(
-            "--gains pairs the file's own gains with tuned ones as [[case]]s; this file has [[case]]s "
+            "--compare-gains pairs the file's own gains with tuned ones as [[case]]s; this file has [[case]]s "
             "already: add the tuned gains there"
         )
-    names = ["tuned"] if len(a.gains) == 1 else [f.resolve().parent.name for f in a.gains]
+    files = a.compare_gains
+    names = ["tuned"] if len(files) == 1 else [f.resolve().parent.name for f in files]
     if len(set(names)) != len(names) or not all(CASE_NAME.fullmatch(n) for n in names):
-        names = [f"tuned_{i + 1}" for i in range(len(a.gains))]
-    cases = [{"name": "default"}] + [{"name": n, "gains": {"file": str(f.resolve())}} for n, f in zip(names, a.gains)]
+        names = [f"tuned_{i + 1}" for i in range(len(files))]
+    cases = [{"name": "default"}] + [{"name": n, "gains": {"file": str(f.resolve())}} for n, f in zip(names, files)]
     return problem.with_values({"case": cases})
 
 
-def _launch(p, a, devices: int) -> int:
-    """Start ``--processes`` local processes (jax.distributed over 127.0.0.1) and wait for them."""
-
+def _prepare(p, a, devices: int) -> None:
+    """Before starting processes: refuse a bad file or another sweep's --out, check the memory."""
     common.enable_x64()
-
-    try:  # refuse a bad file or another sweep's --out here, before starting anything
+    try:
         plan = S.plan(problem_of(a))
         run.check_memory(plan, devices, a.processes)
         run.prepare(plan, a.out, a.fresh)
     except ValueError as err:
         options.fail(p, str(err))
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    base = [
-        sys.executable,
-        "-m",
-        "wmrjax",
-        "sweep",
-        str(a.spec),
-        "--out",
-        str(a.out),
-        "--devices",
-        str(devices),
-        "--coordinator",
-        f"127.0.0.1:{port}",
-        "--num-processes",
-        str(a.processes),
-    ]
-    if a.gains:
-        base += ["--gains", *[str(f) for f in a.gains]]
-    if a.no_compile_cache:
-        base.append("--no-compile-cache")
-    elif a.compile_cache is not None:
-        base += ["--compile-cache", str(a.compile_cache)]
-    procs = [subprocess.Popen(base + ["--process-id", str(i)], preexec_fn=die_with_parent) for i in range(a.processes)]
-    try:
-        return _wait(procs, a)
-    except BaseException:  # Ctrl-C or a kill of the launcher: its workers do not outlive it
-        for pr in procs:
-            if pr.poll() is None:
-                pr.terminate()
-        raise
-
-
-def die_with_parent() -> None:
-    """In a worker, before it runs: ask Linux to send it SIGTERM when its launcher dies (even by
-    SIGKILL), so that no orphan keeps computing and later overwrites the next command's table
-    and summary under a lock it no longer has. Elsewhere a no-op (the launcher still stops
-    its workers on any exception)."""
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes  # Linux only: prctl(PR_SET_PDEATHSIG)
-
-    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
-
-
-# how often the launcher looks at its processes [s]
-POLL_S = 0.2
-
-
-def _wait(procs: list, a) -> int:
-    """Wait for the local processes; when one fails, stop the others at once (they would wait
-    at the next barrier for minutes and abort with a stack dump) and say how to resume."""
-    while True:
-        codes = [pr.poll() for pr in procs]
-        bad = [i for i, c in enumerate(codes) if c not in (None, 0)]
-        if bad or all(c == 0 for c in codes):
-            break
-        time.sleep(POLL_S)
-    if not bad:
-        return 0
-    for pr in procs:
-        if pr.poll() is None:
-            pr.terminate()
-    for pr in procs:
-        try:
-            pr.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            pr.kill()
-            pr.wait()
-    print(
-        f"process {bad[0]} of {len(procs)} failed (exit code {codes[bad[0]]}); the others were stopped. Finished "
-        f"blocks are kept in {a.out}: run the same command again to resume",
-        file=sys.stderr,
-    )
-    return codes[bad[0]] if codes[bad[0]] > 0 else 1
 
 
 def _run(p, a, pid: int, n_proc: int) -> int:
@@ -222,7 +137,7 @@ def _run(p, a, pid: int, n_proc: int) -> int:
     if n_proc > 1:
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
         jax.distributed.initialize(coordinator_address=a.coordinator, num_processes=n_proc, process_id=pid)
-    options.use_compilation_cache(a)
+    machine.use_compilation_cache(a)
 
     def barrier(name):
         if n_proc > 1:
@@ -235,7 +150,7 @@ def _run(p, a, pid: int, n_proc: int) -> int:
         plan = S.plan(problem_of(a))
         run.check_memory(plan, len(jax.local_devices()))  # this process's share (the launcher checked all)
         say(
-            f"{a.spec}: {plan.n_runs} runs in {len(plan.blocks())} blocks of {plan.block} "
+            f"{a.file}: {plan.n_runs} runs in {len(plan.blocks())} blocks of {plan.block} "
             f"({len(plan.groups)} group(s); {plan.n_steps} RK4 steps each), {n_proc} process(es) x "
             f"{len(jax.local_devices())} device(s)"
         )
@@ -259,18 +174,9 @@ def _run(p, a, pid: int, n_proc: int) -> int:
     barrier("sweep-computed")
     if pid != 0:
         return 0
-    say("writing runs.parquet")
-    path = run.assemble(plan, a.out)
-    table = report.read_table(path, columns=report.columns_needed(plan))
-    say("certified radii and figures")
-    certified = report.certified_radii(plan)
-    summary = report.summarize(plan, table, certified)
+    say("writing runs.parquet, certified radii and figures")
     procs = [json.loads((a.out / "blocks" / f"process_{i}.json").read_text()) for i in range(n_proc)]
-    summary = _header(a, plan) | summary
-    summary["execution"] = _execution(plan, n_proc, len(jax.local_devices()), procs)
-    summary["figures"] = report.figures(plan, table, certified, a.out)
-    summary["wall_time_s"] = time.perf_counter() - t_start
-    files.write_json(a.out / "summary.json", summary)
+    summary = report.finish(plan, a.out, str(a.file), procs, len(jax.local_devices()), t_start)
     c = summary["counts"]
     print(
         f"{plan.n_runs} runs: {c['converged']} converged, {c['not_converged']} not converged, {c['singular']} "
@@ -278,41 +184,3 @@ def _run(p, a, pid: int, n_proc: int) -> int:
         f"{len(summary['figures'])} figures ({summary['wall_time_s']:.0f} s)"
     )
     return 0
-
-
-def _header(a, plan) -> dict:
-    """The sweep's identifying fields, which lead summary.json."""
-    return {
-        "sweep": str(a.spec),
-        "title": plan.spec.get("title", a.spec.stem),
-        "law": str(plan.law),
-        "task": str(plan.task),
-        "initial_space": str(plan.space),
-        "swept": plan.swept,
-        "fingerprint": plan.fingerprint,
-        "t_final": plan.t_final,
-        "dt": plan.dt,
-        "n_steps": plan.n_steps,
-        "cases": [c for c, _ in plan.problem.cases() if c is not None],
-        "problem": plan.problem.resolved(),
-    }
-
-
-def _execution(plan, n_proc: int, n_devices: int, procs: list) -> dict:
-    """The execution block of summary.json, from the per-process block stats."""
-    computed = sum(s["runs_computed"] for s in procs)
-    compute_wall = max(s["wall_s"] for s in procs)
-    return {
-        "processes": n_proc,
-        "devices_per_process": n_devices,
-        "block": plan.block,
-        "blocks": len(plan.blocks()),
-        "runs_computed": computed,
-        "runs_resumed": plan.n_runs - computed,
-        "compute_wall_s": compute_wall,
-        "first_calls_s": max(s["first_calls_s"] for s in procs),
-        "throughput_runs_per_s": computed / compute_wall if compute_wall > 0 and computed else None,
-        "throughput_trajectory_steps_per_s": computed * plan.n_steps / compute_wall
-        if compute_wall > 0 and computed
-        else None,
-    }

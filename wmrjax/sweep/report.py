@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import itertools
 import re
+import time
 from pathlib import Path
 
 import numpy as np
 
 from wmrjax import _files, _math, certify
 from wmrjax.problem import Task
+from wmrjax.sweep import run
 from wmrjax.sweep import spec as S
 from wmrjax.sweep.run import OUTCOMES
 
@@ -382,3 +384,64 @@ def _hist_args(x):
         mid = float(np.mean(x))
         return x, np.array([mid - 0.5, mid + 0.5])
     return x, HIST_BINS
+
+
+def header(plan, source: str) -> dict:
+    """The sweep's identifying fields, which lead summary.json (``source``: the problem file)."""
+    return {
+        "sweep": source,
+        "title": plan.spec.get("title", Path(source).stem),
+        "law": str(plan.law),
+        "task": str(plan.task),
+        "initial_space": str(plan.space),
+        "swept": plan.swept,
+        "fingerprint": plan.fingerprint,
+        "t_final": plan.t_final,
+        "dt": plan.dt,
+        "n_steps": plan.n_steps,
+        "cases": [c for c, _ in plan.problem.cases() if c is not None],
+        "problem": plan.problem.resolved(),
+    }
+
+
+def execution(plan, n_proc: int, n_devices: int, procs: list) -> dict:
+    """The execution block of summary.json, from the per-process block stats."""
+    computed = sum(s["runs_computed"] for s in procs)
+    compute_wall = max(s["wall_s"] for s in procs)
+    return {
+        "processes": n_proc,
+        "devices_per_process": n_devices,
+        "block": plan.block,
+        "blocks": len(plan.blocks()),
+        "runs_computed": computed,
+        "runs_resumed": plan.n_runs - computed,
+        "compute_wall_s": compute_wall,
+        "first_calls_s": max(s["first_calls_s"] for s in procs),
+        "throughput_runs_per_s": computed / compute_wall if compute_wall > 0 and computed else None,
+        "throughput_trajectory_steps_per_s": computed * plan.n_steps / compute_wall
+        if compute_wall > 0 and computed
+        else None,
+    }
+
+
+def finish(plan, out: Path, source: str, procs: list, n_devices: int, t_start: float) -> dict:
+    """After every block is computed: the table ``runs.parquet``, the certified radii, the figures
+    and ``summary.json`` (written atomically); returns the summary.
+
+    Args:
+      plan: the sweep's plan (:func:`wmrjax.sweep.spec.plan`).
+      out: the output directory.
+      source: the problem file, as the user named it.
+      procs: each process's block statistics (``blocks/process_<i>.json``).
+      n_devices: JAX devices per process.
+      t_start: ``time.perf_counter()`` when the job started (for ``wall_time_s``).
+    """
+    path = run.assemble(plan, out)
+    table = read_table(path, columns=columns_needed(plan))
+    certified = certified_radii(plan)
+    summary = header(plan, source) | summarize(plan, table, certified)
+    summary["execution"] = execution(plan, len(procs), n_devices, procs)
+    summary["figures"] = figures(plan, table, certified, out)
+    summary["wall_time_s"] = time.perf_counter() - t_start
+    _files.write_json(out / "summary.json", summary)
+    return summary
