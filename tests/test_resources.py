@@ -36,7 +36,7 @@ def test_oversized_work_is_refused_before_compiling(monkeypatch):
 
 
 def test_oversized_tuning_and_sweeps_are_refused_before_compiling(monkeypatch):
-    """wmrjax tune --n-train 1000000 failed allocating 14.6 GB after 6 s; a sweep of 256
+    """wmrjax tune --set tune.scenarios.train=1000000 failed allocating 14.6 GB after 6 s; a sweep of 256
     runs of 400000 samples each asked for 8.3 GB per device with no estimate."""
     from wmrjax.problem import Problem
     from wmrjax.sweep import run as sweep_run
@@ -51,12 +51,15 @@ def test_oversized_tuning_and_sweeps_are_refused_before_compiling(monkeypatch):
     with pytest.raises(
         ValueError,
         match=r"a gradient step over 1000000 training scenarios of 1000 steps needs about "
-        r"130 GB .* lower the training scenarios \(--n-train\)",
+        r"130 GB .* lower the training scenarios \(\[tune.scenarios\] train\)",
     ):
         loop.check_memory(setting, sc._replace(train=10**6))
     # the probe's tuning-n-heldout-1e8: every scenario set is drawn at once (no estimate: the
     # process ran into the memory limit, its heartbeat printing "still working")
-    with pytest.raises(ValueError, match=r"drawing 100000\d+ scenarios .* held-out 100000000\) .* --n-heldout"):
+    with pytest.raises(
+        ValueError,
+        match=r"drawing 100000\d+ scenarios .* held-out 100000000\) .* \[tune.scenarios\] train, validation or heldout",
+    ):
         loop.check_memory(setting, sc._replace(heldout=10**8))
     plan = S.load(M.SWEEP_FILE)
     sweep_run.check_memory(plan, 1)

@@ -337,7 +337,7 @@ def test_bad_tuning_input(tmp_path):
     from wmrjax.cli.tune import main
 
     with pytest.raises(SystemExit):
-        main(["--out", str(tmp_path), "--n-train", "0"])
+        main(["--out", str(tmp_path), "--set", "tune.scenarios.train=0"])
 
 
 def _tiny_file(tmp_path):

@@ -175,7 +175,7 @@ def test_shipped_problems_and_bad_tuning_problems(tmp_path):
     from wmrjax.cli.tune import main
 
     with pytest.raises(SystemExit):
-        main(["--out", str(tmp_path / "o"), "--problem", "car_schedule", "--knots", "1"])
+        main(["car_schedule", "--out", str(tmp_path / "o"), "--set", "tune.family.knots=1"])
     with pytest.raises(SystemExit):
         main([str(tmp_path / "missing.toml"), "--out", str(tmp_path / "o")])
 

@@ -62,8 +62,8 @@ SWEEP_FILES = {"a.toml": specs.sweep(1.0), "b.toml": specs.sweep(2.0)}
 
 
 def _concurrency() -> list[Case]:
-    tune0 = ("-m", "wmrjax", "tune", "tune.toml", "--seed", "0")
-    tune1 = ("-m", "wmrjax", "tune", "tune.toml", "--seed", "1")
+    tune0 = ("-m", "wmrjax", "tune", "tune.toml", "--set", "tune.seed=0")
+    tune1 = ("-m", "wmrjax", "tune", "tune.toml", "--set", "tune.seed=1")
     both = {"a.toml": specs.sweep(1.0), "tune.toml": specs.TUNE}
     return [
         Case(
@@ -80,7 +80,7 @@ def _concurrency() -> list[Case]:
         Case(
             "two-tunings-one-out",
             CAT,
-            "two tunings (--seed 0 and --seed 1) started together into one --out",
+            "two tunings (--set tune.seed=0 and tune.seed=1) started together into one --out",
             _two_writers_oracle,
             code=_two_writers(tune0, tune1, "tune", "tune"),
             files={"tune.toml": specs.TUNE},

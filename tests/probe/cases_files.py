@@ -236,9 +236,9 @@ CLI = [
     Case(
         "sweep-gains-option-dev-zero",
         CAT,
-        "wmrjax sweep --gains /dev/zero",
+        "wmrjax sweep --compare-gains /dev/zero",
         cli_refuses(NOT_REGULAR),
-        argv=(*_SWEEP, "--gains", "/dev/zero"),
+        argv=(*_SWEEP, "--compare-gains", "/dev/zero"),
         files={"s.toml": specs.sweep(1.0)},
     ),
     Case(

@@ -320,9 +320,9 @@ CLI_CASES += [
     Case(
         "tuning-knot-times-decreasing",
         CAT,
-        "wmrjax tune --knot-times 5 1 (not increasing)",
+        "wmrjax tune --set tune.family.knot_times=[5,1] (not increasing)",
         cli_refuses(r"knot"),
-        argv=("-m", "wmrjax", "tune", "--knot-times", "5", "1", *specs.TUNE_SMALL, "--out", "out"),
+        argv=("-m", "wmrjax", "tune", "--set", "tune.family.knot_times=[5,1]", *specs.TUNE_SMALL, "--out", "out"),
     ),
     Case(
         "certify-static-law-file",

@@ -112,24 +112,16 @@ TUNE_DICT = {
 
 # the options that make the shipped section_6_1 tuning problem small
 TUNE_SMALL = (
-    "--steps",
-    "2",
-    "--n-train",
-    "2",
-    "--n-validation",
-    "2",
-    "--n-heldout",
-    "2",
-    "--baseline-seeds",
-    "1",
-    "--baseline-budget",
-    "1",
-    "--cma-population",
-    "2",
+    *("--set", "tune.steps=2", "--set", "tune.scenarios.train=2", "--set", "tune.scenarios.validation=2"),
+    *("--set", "tune.scenarios.heldout=2", "--set", "tune.baselines.seeds=1", "--set", "tune.baselines.budget=1"),
+    *("--set", "tune.baselines.cma_population=2"),
 )
 
 # the certification with small counts and no falsifier (its shortest run)
-CERTIFY_SMALL = ("--n-starts", "0", "--n-empirical", "8", "--n-directions", "4", "--map-grid", "2")
+CERTIFY_SMALL = (
+    *("--set", "certify.n_starts=0", "--set", "certify.n_empirical=8", "--set", "certify.n_directions=4"),
+    *("--set", "certify.map_grid=2"),
+)
 
 
 def circle_csv(t0: float = 0.0, t1: float = 4.0, n: int = 81, header: str = "t,x,y", sep: str = ",") -> str:

@@ -417,7 +417,7 @@ def check_memory(setting, scenarios: Scenarios) -> None:
     resources.check_fits(
         est,
         f"a gradient step over {scenarios.train} training scenarios of {setting.n_steps} steps",
-        "lower the training scenarios (--n-train) or the horizon, or raise dt",
+        "lower the training scenarios ([tune.scenarios] train) or the horizon, or raise dt",
     )
     # every scenario set is drawn at once and held for the whole tuning (a held-out set of 1e8
     # scenarios ran into the memory limit with no estimate): its arrays, sized from one scenario
@@ -428,7 +428,7 @@ def check_memory(setting, scenarios: Scenarios) -> None:
         resources.Estimate(SCENARIO_COPIES * n_all * (per + KEY_BYTES), 0.0),
         f"drawing {n_all} scenarios (training {scenarios.train}, validation {scenarios.validation}, "
         f"held-out {scenarios.heldout}) of {per} bytes each",
-        "lower --n-train, --n-validation or --n-heldout",
+        "lower [tune.scenarios] train, validation or heldout",
     )
 
 
