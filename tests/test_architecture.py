@@ -183,6 +183,17 @@ def test_function_local_imports_give_their_reason():
     assert not bare, f"function-local imports without a reason: {sorted(set(bare))}"
 
 
+def test_every_module_says_what_it_is():
+    """Every module of the package and of the repository's scripts opens with a docstring, and
+    none is a placeholder."""
+    for pkg in LAYERS:
+        for f in _sources(pkg):
+            doc = ast.get_docstring(ast.parse(f.read_text()))
+            if f.name == "__init__.py" and not f.read_text().strip():
+                continue  # an empty namespace marker (paper/)
+            assert doc and len(doc) > 20 and "TODO" not in doc, f"{f.relative_to(ROOT)}: {doc!r}"
+
+
 def test_the_library_runs_without_the_cli_extra(tmp_path):
     """With matplotlib, pyarrow, cmaes and optuna made unimportable, ``import wmrjax`` and a short
     simulation work, and nothing of the upper layers is loaded."""

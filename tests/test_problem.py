@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import wmrjax as w
-from wmrjax.problem import Problem, ProblemError, Space, Task, gains_file_dict, place, read_gains_file
+from wmrjax.problem import JOB_SECTIONS, Problem, ProblemError, Space, Task, gains_file_dict, place, read_gains_file
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 S_PATH = ROOT / "wmrjax" / "examples" / "s_path.toml"
@@ -224,3 +224,23 @@ def test_one_run_is_the_sweeps_run():
     zf = np.asarray(tr.final_state.plant[:2])
     pos = np.hypot(*(zf - np.asarray(g.reference.posture(2.0)[:2])))
     np.testing.assert_allclose(float(got["final_position_error"]), pos, rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("certify.epz", 1, r"\[certify\]: unknown key\(s\) \['epz'\]"),
+        ("certify.eps", 0, r"\[certify\] eps: expected a number > 0"),
+        ("classify.position_tol", -1, r"\[classify\] position_tol: expected a number > 0"),
+        ("tune.steps", 0, r"\[tune\] steps: expected an integer >= 1, got 0"),
+        ("tune.loss.tracking", -1, r"\[tune.loss\] tracking"),
+    ],
+)
+def test_every_job_section_is_validated_when_the_file_is_loaded(key, value, message):
+    """[tune], [certify] and [classify] are checked with the rest of the file (by the schema their
+    job contributes: wmrjax.problem.JOB_SECTIONS), not only by the job that reads them: a sweep
+    of a file whose [certify] has a typo is refused too."""
+    good = Problem.load(S_PATH)
+    assert set(JOB_SECTIONS) == {"tune", "certify", "classify"}
+    with pytest.raises(ValueError, match=message):
+        good.with_values({key: value})

@@ -388,12 +388,14 @@ def _tiny_file(tmp_path):
 
 
 def test_cli_writes_summary_and_gains(tmp_path):
+    from wmrjax.cli import problem_args
     from wmrjax.cli import tune as cli
+    from wmrjax.tune import job
 
     path = _tiny_file(tmp_path)
     out = tmp_path / "out"
-    problem = cli.problem_from_args(cli.parser().parse_args([str(path), "--out", str(out)]))
-    s = cli.run(problem, out, fresh=True, log=lambda *_: None)
+    problem = problem_args.problem_from_args(cli.parser().parse_args([str(path), "--out", str(out)]))
+    s = job.run(problem, out, fresh=True, log=lambda *_: None)
     on_disk = json.loads((out / "summary.json").read_text())
     hist = json.loads((out / "history.json").read_text())
     assert on_disk["rollouts"] == 6 * 3 and len(hist["gradient"]) == 6 and on_disk["n_parameters"] == 2

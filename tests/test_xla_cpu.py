@@ -5,6 +5,7 @@ the call comes before JAX starts is each main's order, read in review)."""
 
 import ast
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -135,7 +136,8 @@ def _mains():
     """Every command line's module (a ``main`` function), as source text."""
     for path in sorted([*ROOT.glob("wmrjax/cli/*.py"), *ROOT.glob("paper/*.py"), *ROOT.glob("benchmarks/*.py")]):
         text = path.read_text()
-        if "\ndef main(" in text and path.name != "__init__.py":  # wmrjax.cli.main dispatches to a job's
+        uses_jax = re.search(r"^(import|from) (jax|wmrjax|paper)\b", text, re.M)  # not a driver of processes
+        if "\ndef main(" in text and path.name != "__init__.py" and uses_jax:  # wmrjax.cli.main dispatches to a job's
             yield path.relative_to(ROOT), text
 
 

@@ -54,6 +54,7 @@ import dataclasses
 import enum
 import functools
 import hashlib
+import importlib
 import json
 import math
 import re
@@ -94,6 +95,11 @@ SECTIONS = (
     "tune",
     "certify",
 )
+JOB_SECTIONS = {"tune": "wmrjax.tune.config", "certify": "wmrjax.certify.job", "classify": "wmrjax.sweep.spec"}
+"""A job's own section -> the module that owns its schema, whose ``read_section(data)`` checks it
+key by key over its defaults (each written there once) and returns the job's settings. A file
+is validated whole when it is loaded; the module is imported only when the file has its
+section, so the core imports no job."""
 CASE_SECTIONS = ("controller", "geometry", "plant", "reference", "initial", "gains")
 GEOMETRY_KEYS = ("L", "e", "delta")
 GAIN_FILE_KIND = "wmrjax.gains"
@@ -390,6 +396,9 @@ class Problem:
         unknown = sorted(set(self.data) - set(SECTIONS))
         if unknown:
             raise ProblemError(f"unknown section(s) {unknown}; expected some of {list(SECTIONS)}")
+        for name, module in JOB_SECTIONS.items():
+            if name in self.data:  # the job's own schema, from the module that owns it
+                importlib.import_module(module).read_section(self.data)
         out = []
         for name, data in self.cases():
             out += _settings(data, self.base, name)

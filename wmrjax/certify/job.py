@@ -1,4 +1,7 @@
-"""TODO docstring."""
+"""The certification job (``wmrjax certify``): the ``[certify]`` section, the problem's one dynamic
+closed loop, :func:`wmrjax.certify.analyse` on it (Lemma 2 three ways, the exact map, the
+empirical and falsified radii, the problem loop's falsified radius), the slice map, and
+``summary.json`` with what each radius covers and whether it is proved or estimated."""
 
 from __future__ import annotations
 
@@ -12,18 +15,26 @@ from wmrjax import _files as files
 from wmrjax import certify as C
 from wmrjax.problem import Law, ProblemError, check_keys, integer, positive
 
+CERTIFY_KEYS = {"eps": 1e-2, "n_empirical": 4096, "n_directions": 128, "n_starts": 16, "map_grid": 81, "seed": 0}
+"""The ``[certify]`` keys and their defaults (eps [output-error units: m, m/s]), written once."""
+
 
 def settings(problem) -> dict:
-    """The ``[certify]`` section over its defaults, checked key by key."""
+    """The ``[certify]`` section of a problem over its defaults (:func:`read_section`)."""
+    return read_section(problem.data)
 
-    c = problem.section("certify")
+
+def read_section(data: dict) -> dict:
+    """The ``[certify]`` section of a problem's data over :data:`CERTIFY_KEYS`, checked key by key
+    (the schema :data:`wmrjax.problem.JOB_SECTIONS` validates at load)."""
+    c = data.get("certify", {})
     check_keys("certify", c, tuple(CERTIFY_KEYS))
     out = dict(CERTIFY_KEYS)
     for k, v in c.items():
         if k == "eps":
             out[k] = positive("certify", k, v)
         else:
-            out[k] = integer("certify", k, v, {"n_empirical": 0, "n_starts": 0, "seed": 0}.get(k, 1))
+            out[k] = integer("certify", k, v, {"n_empirical": 0, "n_starts": 0, "seed": 0, "map_grid": 2}.get(k, 1))
     return out
 
 
@@ -190,6 +201,3 @@ def _timing(stages, start: float, end: float) -> list:
     times = [start] + [t for _, t in stages] + [end]
     names = [msg for msg, _ in stages] + ["after the last message (figure, summary)"]
     return [{"stage": m, "seconds": round(b - a, 3)} for m, a, b in zip(names, times[:-1], times[1:])]
-
-
-CERTIFY_KEYS = {"eps": 1e-2, "n_empirical": 4096, "n_directions": 128, "n_starts": 16, "map_grid": 81, "seed": 0}

@@ -1,4 +1,9 @@
-"""TODO docstring."""
+"""Tracking against the certified region: a Pareto front from tuned, certified points
+(``wmrjax pareto``; the front itself: :mod:`wmrjax.tune.pareto`).
+
+    wmrjax pareto wmrjax/examples/s_path.toml --out results/s_path/pareto \\
+        --slice position --fractions 0 0.25 0.5 0.75 1 1.25
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,9 @@
-"""TODO docstring."""
+"""Multi-seed study on equal terms: the gradient tuner against the baselines users would pick,
+held-out loss against compute (``wmrjax study``; the study itself: :mod:`wmrjax.tune.study`).
+
+    wmrjax study --out results/tuning_study
+    wmrjax study --problems section_6_1_plant wmrjax/examples/s_path.toml --seeds 10 --out DIR
+"""
 
 from __future__ import annotations
 

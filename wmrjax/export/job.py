@@ -1,4 +1,8 @@
-"""TODO docstring."""
+"""The export job (``wmrjax export``): the problem's controller as a C99 step and a
+``jax.export`` artifact (:func:`wmrjax.export.control_step`, :func:`wmrjax.export.generate_c`,
+:func:`wmrjax.export.export_artifact`), each checked against the
+simulator over a run (:mod:`wmrjax.export.check`), with an example robot loop and
+``summary.json``."""
 
 from __future__ import annotations
 

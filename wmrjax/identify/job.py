@@ -1,4 +1,7 @@
-"""TODO docstring."""
+"""The identification job (``wmrjax identify``): the logs read and checked, the plant fitted
+(:func:`wmrjax.identify.identify`), held-out logs predicted, and ``summary.json``,
+``plant.toml``/``problem.toml`` (the problem with the identified ``[plant]``) and a figure
+written."""
 
 from __future__ import annotations
 

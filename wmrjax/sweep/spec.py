@@ -107,10 +107,7 @@ def plan(problem: Problem) -> Plan:
         tol = None
     elif not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and np.isfinite(tol) and tol > 0):
         raise SpecError(f'[simulation] error_tol: expected a number > 0 or "none", got {tol!r}')
-    cls = problem.data.get("classify", {})
-    check_keys("classify", cls, ("position_tol", "heading_tol"))
-    position_tol = positive("classify", "position_tol", cls.get("position_tol", 0.01))
-    heading_tol = positive("classify", "heading_tol", cls.get("heading_tol", 0.01))
+    position_tol, heading_tol = read_section(problem.data)
     swept = []  # columns with more than one value within a group (defaults differ across groups)
     for g in groups:
         for a in g.axes:
@@ -153,3 +150,14 @@ def controller(law, kind: str, level, task):
     """The controller of a group (:func:`wmrjax.problem.controller`)."""
 
     return make(law, kind, level, task)
+
+
+def read_section(data: dict) -> tuple[float, float]:
+    """``(position_tol, heading_tol)`` of a problem's ``[classify]`` section ([m], [rad]; 0.01
+    each by default): the schema :data:`wmrjax.problem.JOB_SECTIONS` validates at load."""
+    cls = data.get("classify", {})
+    check_keys("classify", cls, ("position_tol", "heading_tol"))
+    return (
+        positive("classify", "position_tol", cls.get("position_tol", 0.01)),
+        positive("classify", "heading_tol", cls.get("heading_tol", 0.01)),
+    )

@@ -35,12 +35,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import certify
+from wmrjax.certify.job import CERTIFY_KEYS
 from wmrjax.controllers.dynamic import DynamicLinearization
 from wmrjax.problem import ProblemError, Space, check_keys, positive
 from wmrjax.references import FAMILIES
 
 SLICES = ("full", "position")
-DEFAULT_EPS = 1e-2  # the certify command's default margin [output-error units]
+DEFAULT_EPS = CERTIFY_KEYS["eps"]  # the certification's default margin [output-error units]
 BAND = 0.02  # project the gradient when the radius is within 2 % of the requirement
 MAX_HALVINGS = 30  # a rejected step is halved at most this often (2^-30 of it), then not taken
 RESTORE_STEPS = 200  # ascent steps on the radius when the initial gains miss the requirement

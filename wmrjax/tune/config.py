@@ -174,6 +174,12 @@ class TuneSettings(NamedTuple):
 FAMILY_KEYS = ("parameterization", "shared", "knots", "knot_times", "min_damping", "frozen")
 
 
+def read_section(data: dict) -> TuneSettings:
+    """The :class:`TuneSettings` of a problem's data (its ``[tune]`` and ``[certify]`` sections):
+    the schema :data:`wmrjax.problem.JOB_SECTIONS` validates at load."""
+    return read(data.get("tune", {}), data.get("certify", {}))
+
+
 def read(tune: dict, certify: dict | None = None) -> TuneSettings:
     """The :class:`TuneSettings` of a ``[tune]`` section (a dict), checked key by key
     (``certify``: the problem's ``[certify]`` section, whose eps a requirement defaults to)."""

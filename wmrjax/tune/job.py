@@ -1,4 +1,7 @@
-"""TODO docstring."""
+"""The tuning job (``wmrjax tune``): the gradient run through the simulator
+(:func:`wmrjax.tune.loop.tune`, resumable), its evaluation on held-out scenarios, the baselines
+(random search and CMA-ES) at the same budget, the certified radii of the initial and tuned
+gains, and ``gains.json``, ``history.json``, the figures and ``summary.json``."""
 
 from __future__ import annotations
 
