@@ -2,6 +2,8 @@
 
 import dataclasses
 import os
+import pathlib
+import re
 import subprocess
 import sys
 import textwrap
@@ -104,7 +106,7 @@ def test_vmap_equals_python_loop_and_jit_equals_nojit(paper61):
 
 
 @dataclasses.dataclass(frozen=True)
-class _CountingLoop:
+class _CountingLoop(w.ClosedLoop):
     """The §6.1 closed loop, counting how often its vector field is traced (a test's counter)."""
 
     ctrl: object
@@ -224,7 +226,7 @@ def test_on_reference_stays_on_reference(paper61):
 
 
 @dataclasses.dataclass(frozen=True)
-class _Falling:
+class _Falling(w.ClosedLoop):
     """z' = -1 from z = 1: margin |z| hits zero at t = 1; control log(z) is NaN after."""
 
     n_state: int = 1
@@ -254,7 +256,7 @@ def test_nonfinite_run_is_flagged():
 
 
 @dataclasses.dataclass(frozen=True)
-class _Overflowing:
+class _Overflowing(w.ClosedLoop):
     """x' = 0 except at t = 0.5, where x' = +M below x = 1 and -M above, M near the float max.
 
     With dt = 0.125 the step ending at t = 0.5 has stages 0, 0, 0, +M: it lands at dt M / 6
@@ -358,3 +360,31 @@ def test_batch_map_chunks_for_cpu_caches_and_not_on_accelerators():
     assert default_chunk(gpus) is None and default_chunk(gpus, BATCH_REVERSE_CHUNK) is None
     assert default_chunk(batch_mesh()) == CPU_CHUNK == 512
     assert default_chunk(batch_mesh(), BATCH_REVERSE_CHUNK) == 256
+
+
+def test_the_protocol_declares_every_hook_the_run_reads():
+    """wmrjax.ClosedLoop declares every attribute of a system the run, the problem file and the
+    memory model read (no getattr probe for an undeclared hook); an object that is not one is
+    refused before anything compiles, naming the base to subclass."""
+    read = set()
+    for mod in ("simulate.py", "problem.py", "resources.py"):
+        text = (pathlib.Path(w.__file__).parent / mod).read_text()
+        read |= set(re.findall(r"\bsystem\.([a-z_]+)\(?", text))
+    assert {
+        "vector_field",
+        "post_step",
+        "sample_every",
+        "sample",
+        "held",
+        "final_report",
+        "check_run",
+        "law_state",
+    } <= read
+    assert read <= set(dir(w.ClosedLoop)), sorted(read - set(dir(w.ClosedLoop)))
+
+    class Duck:  # the old duck-typed protocol: a vector field and nothing declared
+        def vector_field(self, t, z, params):
+            return -z, None
+
+    with pytest.raises(ValueError, match="system must be a wmrjax.ClosedLoop"):
+        w.simulate(Duck(), jnp.ones(1), None, dt=0.1, n_steps=2)

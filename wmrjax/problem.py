@@ -697,8 +697,7 @@ AXIS_OF = {
 
 def law_state(system, z):
     """The law's own state ``(X, compensator...)`` of a closed loop's state (batched or not)."""
-    fn = getattr(system, "law_state", None)
-    return z if fn is None else fn(z)
+    return system.law_state(z)
 
 
 # --- the one placement of an initial state near a reference ---------------------------------

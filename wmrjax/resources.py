@@ -170,24 +170,15 @@ def check_bytes(horizon: float, jet_floats: int) -> float:
     return points * GRID_COPIES * (jet_floats + GRID_EXTRA_FLOATS) * 8
 
 
-def jet_floats(system) -> int:
-    """Numbers per time in ``system``'s reference check (0 without one): its outputs' jets up to
-    the relative degree."""
-    while getattr(system, "check_reference", None) is None and getattr(system, "ctrl", None) is not None:
-        system = system.ctrl  # a plant or sampled-data loop checks its law's reference
-    r, m = getattr(system, "relative_degree", None), getattr(system, "m", None)
-    if getattr(system, "check_reference", None) is None or not isinstance(r, int) or not isinstance(m, int):
-        return 0
-    return (r + 1) * m
-
-
 def run_estimate(
     system, *, n_steps: int, save_every: int, n_state: int, itemsize: int, horizon: float, runs: int = 1
 ) -> Estimate:
     """One call of :func:`wmrjax.simulate` (or ``runs`` of them batched): saved samples on the
     device, the reference check on the host."""
     samples = n_steps // save_every + 1
-    return Estimate(samples_bytes(samples, n_state, itemsize, runs), check_bytes(horizon, jet_floats(system)))
+    return Estimate(
+        samples_bytes(samples, n_state, itemsize, runs), check_bytes(horizon, system.reference_jet_floats())
+    )
 
 
 def gradient_bytes(runs: int, n_steps: int, n_state: int, itemsize: int = 8) -> float:

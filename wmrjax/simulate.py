@@ -64,6 +64,7 @@ from jax.extend import core as jex_core
 from wmrjax import _hoist, _rk4, _scalarize, _simplify, resources
 from wmrjax._validate import check_finite, check_int, concrete, is_concrete
 from wmrjax.references import DOMAIN_RTOL, Reference
+from wmrjax.system import ClosedLoop
 
 # from this many steps on, reverse-mode differentiation checkpoints the saving chunks too
 TWO_LEVEL_CHECKPOINT_STEPS = 2000
@@ -373,7 +374,7 @@ def _scalar_field(system, t, z, params):
 def _sampler(system):
     """``(sample, sample_every)`` of a sampled-data system (``(None, None)`` otherwise): its
     ``sample(k, t, z, params)`` and its steps per sample."""
-    every = getattr(system, "sample_every", None)
+    every = system.sample_every
     if every is None:
         return None, None
     return system.sample, int(every)  # re-emitted on scalars with the step that calls it
@@ -437,7 +438,7 @@ def _simulate(system, z0, params, dt, t0, n_steps, save_every, margin_floor, err
     # the largest laws run their RK stages in a loop over one copy of it (STAGE_LOOP_MIN_EQUATIONS)
     field_s, closed, out_tree = _scalar_field(system, t0, z0, params)
     field = lambda t, z: field_s(t, z, params)
-    post_step = getattr(system, "post_step", None)
+    post_step = system.post_step
     sample, sample_every = _sampler(system)
     params_parts, rebuild_params = scalar_parts(params)
     # the field's state-independent part (the reference's jet, a schedule) tabulated before the
@@ -765,7 +766,7 @@ def _finish(loop: _Loop, field, carry, recs, z0, params, t0, n_steps, save_every
     # a step was too inaccurate exactly when the largest estimate of the live run exceeds the
     # tolerance (the estimate stops growing at the failure): derived here, not carried
     diag = Diagnostics(*diag[:6], inaccurate=diag.error_estimate > error_tol, error_estimate=diag.error_estimate)
-    final_report = getattr(system, "final_report", None)
+    final_report = system.final_report
     if final_report is not None:  # e.g. the internal dynamics of a static law
         diag = diag._replace(internal=final_report(t_final, z_final, params))
     states, controls, margins, valids = recs
@@ -959,15 +960,18 @@ def simulate(
         what the system's ``check_run`` refuses, or a ``WMRJAX_JAXPR_REWRITES`` other than 0 or 1
         (all checked before compilation).
     """
+    if not isinstance(system, ClosedLoop):
+        raise ValueError(
+            "system must be a wmrjax.ClosedLoop (subclass it: define vector_field and the hooks it needs), "
+            f"got {type(system).__name__}"
+        )
     n_steps, save_every = _check_steps(system, n_steps, save_every)
     dtv, t0v = _check_scalars(dt, t0, margin_floor, error_tol)
     z0, size = _prepared_state(system, z0)
     # the reference check runs (and takes memory) only with concrete times
     horizon = n_steps * float(dtv) if dtv is not None and t0v is not None else 0.0
     _check_memory(system, n_steps, save_every, size, jnp.result_type(float), horizon)
-    check_run = getattr(system, "check_run", None)
-    if check_run is not None:
-        check_run(params, t0=t0, dt=dt, n_steps=n_steps)
+    system.check_run(params, t0=t0, dt=dt, n_steps=n_steps)
     if save_fn is not None and not callable(save_fn):
         raise ValueError(f"save_fn must be a function (t, z, aux) -> pytree, got {type(save_fn).__name__}")
     rewrites = _simplify.rewrites_enabled()
@@ -985,8 +989,8 @@ def _check_steps(system, n_steps, save_every):
     save_every = check_int("save_every", save_every, 1)
     if save_every > n_steps:
         raise ValueError(f"save_every must be <= n_steps ({n_steps}), got {save_every}")
-    every = getattr(system, "sample_every", None)
-    if every is not None and getattr(system, "post_step", None) is not None:
+    every = system.sample_every
+    if every is not None and system.post_step is not None:
         raise ValueError(
             f"{type(system).__name__} has both post_step and sample_every: a system is hybrid or sampled, not both"
         )
@@ -1031,11 +1035,11 @@ def _prepared_state(system, z0):
     )
     if not any(_rk4.is_continuous(x) for x in jax.tree_util.tree_leaves(z0)):
         z0 = jax.tree_util.tree_map(lambda x: x.astype(floating), z0)  # an all-integer vector is a state
-    n = getattr(system, "n_state", None)
+    n = system.n_state
     size = sum(int(np.size(x)) for x in jax.tree_util.tree_leaves(z0))
     is_array = isinstance(z0, jax.Array)
     if (is_array and z0.ndim != 1) or (n is not None and size != n):
-        names = getattr(system, "state_names", None)
+        names = system.state_names
         raise ValueError(
             f"z0 must be an unbatched state of shape ({n},)"
             + (f" = ({', '.join(names)})" if names else "")

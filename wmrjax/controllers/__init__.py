@@ -10,16 +10,7 @@
 
 from wmrjax.controllers.dynamic import TABLE4, DynamicLinearization, DynamicParams, Table4Row, dynamic_linearization  # noqa: F401
 from wmrjax.controllers.hybrid import Hybrid, HybridParams, HybridState, TimeVarying, hybrid_parking, stabilizer  # noqa: F401
-from wmrjax.controllers.law import (  # noqa: F401
-    DET_FLOOR,
-    Aux,
-    ClosedLoop,
-    Extension,
-    Level,
-    LinearizingController,
-    LinearizingLaw,
-    Task,
-)
+from wmrjax.controllers.law import DET_FLOOR, Aux, Extension, Level, LinearizingController, LinearizingLaw, Task  # noqa: F401
 from wmrjax.controllers.plant import PlantLoop, PlantParams, with_plant  # noqa: F401
 from wmrjax.controllers.sampled import SampledLoop, SampledParams, SampledState, measurement_noise, sampled  # noqa: F401
 from wmrjax.controllers.static import (  # noqa: F401
@@ -33,3 +24,4 @@ from wmrjax.controllers.static import (  # noqa: F401
     static_linearization,
     steering_constant,
 )
+from wmrjax.system import ClosedLoop  # noqa: F401

@@ -48,6 +48,7 @@ from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams, dyna
 from wmrjax.controllers.law import Aux, Level
 from wmrjax.references import Reference
 from wmrjax.robots import Geometry
+from wmrjax.system import ClosedLoop
 
 PAPER_R_SWITCH = float(np.sqrt(np.sqrt(2.0) / 10.0))  # x^2 + y^2 = sqrt(2)/10  ->  r_s = 0.376 m
 PAPER_LAMBDA = 40.0
@@ -90,7 +91,7 @@ class StabilizerParams(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True)
-class TimeVarying:
+class TimeVarying(ClosedLoop):
     """The stabilizer alone as a closed loop on (x, y, theta) (for :func:`wmrjax.simulate`)."""
 
     psi: Callable = identity
@@ -147,7 +148,7 @@ class HybridState(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True)
-class Hybrid:
+class Hybrid(ClosedLoop):
     """Dynamic linearization, then the time-varying stabilizer (paper §6.2), for type (2,0), e = 0.
 
     State :class:`HybridState`: the discrete fields change only at the switch

@@ -1,7 +1,7 @@
 r"""What every linearizing controller shares: the closed-loop protocol and one law.
 
-* :class:`ClosedLoop` is all :func:`wmrjax.simulate` needs: ``vector_field``, optionally
-  ``post_step``, and the state's size and names.
+* :class:`~wmrjax.system.ClosedLoop` (:mod:`wmrjax.system`) is what :func:`wmrjax.simulate`
+  runs; :class:`LinearizingController` is one.
 * :class:`Extension` is the mechanics of one table row at velocity level: the outputs, the
   compensator states that delay some input combinations, and how the new inputs U drive
   the plant (Table 4). A static law (Table 3) is the same with no compensator and U = u.
@@ -29,7 +29,7 @@ import enum
 import functools
 import math
 import warnings
-from typing import Any, Callable, NamedTuple, Protocol, runtime_checkable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -42,6 +42,7 @@ from wmrjax.gains import Gains, GainSchedule
 from wmrjax.references import Reference, check_domain, spline_degree_for
 from wmrjax.resources import REFERENCE_GRID_STEP
 from wmrjax.robots import Geometry, RobotType
+from wmrjax.system import ClosedLoop
 
 # |det K| below this is treated as singular inside the law (the division is clamped);
 # runs report the true margin so such events are flagged.
@@ -91,26 +92,6 @@ class Aux(NamedTuple):
     control: jnp.ndarray
     margin: jnp.ndarray
     regularity: Any = None
-
-
-@runtime_checkable
-class ClosedLoop(Protocol):
-    """The closed-loop protocol of :func:`wmrjax.simulate` (static, hashable objects).
-
-    Attributes:
-      n_state: size of the (flattened) state.
-      state_names: one name per flattened state component.
-
-    Its methods: ``vector_field(t, z, params) -> (dz/dt, Aux)``, where ``z`` and ``dz/dt``
-    share one pytree structure and integer leaves are discrete state (held constant by the
-    integrator); optionally ``post_step(t, z, params) -> z``, a discrete transition after
-    every step.
-    """
-
-    n_state: int
-    state_names: tuple
-
-    def vector_field(self, t, z, params: Any) -> tuple[Any, Aux]: ...
 
 
 # --- geometry requirements (keyword facts of the table rows) -------------------------------
@@ -643,7 +624,7 @@ def check_regular(ctrl, z, params, name: str, law_name: str, table: str, regular
         )
 
 
-class LinearizingController:
+class LinearizingController(ClosedLoop):
     """What both sibling controllers delegate to their :class:`LinearizingLaw` (a method mixin).
 
     :class:`~wmrjax.controllers.DynamicLinearization` and
@@ -677,6 +658,10 @@ class LinearizingController:
     @property
     def n_state(self) -> int:
         return self.law.n_state
+
+    def reference_jet_floats(self) -> int:
+        """The reference check's numbers per time: every output's jet up to the relative degree."""
+        return (self.relative_degree + 1) * self.m
 
     @property
     def path_order(self) -> int:
@@ -824,7 +809,7 @@ class LinearizingController:
         """ValueError if [t0, t_final] leaves the reference's samples or its check would not fit in memory."""
         check_domain(params.reference, t0, t_final)
         resources.check_fits(
-            resources.Estimate(0.0, resources.check_bytes(t_final - t0, resources.jet_floats(self))),
+            resources.Estimate(0.0, resources.check_bytes(t_final - t0, self.reference_jet_floats())),
             f"the reference check over [{t0:g}, {t_final:g}] s (its derivatives every {REFERENCE_GRID_STEP / 2:g} s)",
             "shorten the horizon",
         )

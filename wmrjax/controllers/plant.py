@@ -34,6 +34,7 @@ from wmrjax import robots
 from wmrjax._validate import concrete
 from wmrjax.controllers.law import Aux, Level
 from wmrjax.robots import Geometry
+from wmrjax.system import ClosedLoop
 
 
 class PlantParams(NamedTuple):
@@ -54,7 +55,7 @@ class PlantParams(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True)
-class PlantLoop:
+class PlantLoop(ClosedLoop):
     """A linearizing controller closed around a saturating, mismatched plant (static, hashable).
 
     Build it with :func:`with_plant`; simulate it with :func:`wmrjax.simulate` like the
@@ -168,8 +169,12 @@ class PlantLoop:
         return jnp.concatenate([xdot, zdot_law[n:], v]), Aux(v, jnp.abs(reg), reg)
 
     def final_report(self, t, z, params: PlantParams):
-        report = getattr(self.ctrl, "final_report", None)
+        report = self.ctrl.final_report
         return None if report is None else report(t, self.law_state(z), params.law)
+
+    def reference_jet_floats(self) -> int:
+        """The controller's reference check (the loop checks its law's reference)."""
+        return self.ctrl.reference_jet_floats()
 
     def check_run(self, params, *, t0, dt, n_steps: int) -> None:
         """The controller's checks on ``params.law`` (and that these are :class:`PlantParams`)."""

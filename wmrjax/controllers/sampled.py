@@ -38,6 +38,7 @@ from wmrjax._validate import check_int, concrete
 from wmrjax.controllers.law import Aux, Level
 from wmrjax.controllers.plant import PlantLoop, PlantParams
 from wmrjax.robots import Geometry
+from wmrjax.system import ClosedLoop
 
 
 class SampledState(NamedTuple):
@@ -82,7 +83,7 @@ class SampledParams(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True)
-class SampledLoop:
+class SampledLoop(ClosedLoop):
     """A linearizing controller run at a fixed period with a zero-order hold (static, hashable).
 
     Build it with :func:`sampled`; simulate it with :func:`wmrjax.simulate`, with ``z0`` from
@@ -220,8 +221,12 @@ class SampledLoop:
         )
 
     def final_report(self, t, z, params: SampledParams):
-        report = getattr(self.ctrl, "final_report", None)
+        report = self.ctrl.final_report
         return None if report is None else report(t, self.law_state(z), params.plant.law)
+
+    def reference_jet_floats(self) -> int:
+        """The controller's reference check (the loop checks its law's reference)."""
+        return self.ctrl.reference_jet_floats()
 
     def check_run(self, params, *, t0, dt, n_steps: int) -> None:
         """The controller's checks on its parameters, and a whole number of periods."""

@@ -20,6 +20,7 @@ from wmrjax import robots
 from wmrjax.controllers.law import Aux, Level
 from wmrjax.robots import Geometry, RobotType
 from wmrjax.simulate import simulate
+from wmrjax.system import ClosedLoop
 
 
 class LoggedState(NamedTuple):
@@ -52,7 +53,7 @@ class InputParams(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True)
-class LoggedInputs:
+class LoggedInputs(ClosedLoop):
     """A robot driven open loop by a table of commands held over each period (static, hashable).
 
     Attributes:

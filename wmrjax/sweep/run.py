@@ -182,10 +182,10 @@ def estimate(plan: S.Plan, devices: int, processes: int = 1):
     process runs a block at a time, holding each run's samples (every ``distance_every`` steps;
     host devices share the machine's memory), beside each process's reference checks."""
 
-    n_state = max(int(getattr(g.system(), "n_state", None) or g.ctrl.n_state) for g in plan.groups)
+    n_state = max(int(g.system().n_state or g.ctrl.n_state) for g in plan.groups)
     samples = plan.n_steps // plan.save_every + 1
     per_block = resources.samples_bytes(samples, n_state, 8, plan.block)
-    check = max(resources.check_bytes(plan.t_final, resources.jet_floats(g.ctrl)) for g in plan.groups)
+    check = max(resources.check_bytes(plan.t_final, g.ctrl.reference_jet_floats()) for g in plan.groups)
     return resources.Estimate(per_block * devices * processes, check * processes, processes)
 
 

@@ -412,7 +412,7 @@ def check_memory(setting, scenarios: Scenarios) -> None:
     """ValueError before anything compiles when a gradient step over ``scenarios.train`` runs
     (reverse mode through every step) would not fit in memory (:mod:`wmrjax.resources`)."""
 
-    n_state = int(getattr(setting.system(), "n_state", None) or setting.ctrl.n_state)
+    n_state = int(setting.system().n_state or setting.ctrl.n_state)
     est = resources.Estimate(resources.gradient_bytes(scenarios.train, setting.n_steps, n_state), 0.0)
     resources.check_fits(
         est,
