@@ -35,6 +35,10 @@ JOBS = {
         ["experiments.certify", "experiments/problems/s_path.toml"],
         ["wmrjax", "certify", "wmrjax/examples/s_path.toml"],
     ),
+    "identify": (
+        ["experiments.identify", "experiments/problems/car_waypoints.toml", "--log", "LOG"],
+        ["wmrjax", "identify", "wmrjax/examples/car_waypoints.toml", "--log", "LOG"],
+    ),
     "export": (
         ["experiments.export", "experiments/problems/s_path.toml"],
         ["wmrjax", "export", "wmrjax/examples/s_path.toml"],
@@ -43,6 +47,24 @@ JOBS = {
 
 # a key that measures time or the machine, not the answer
 TIMING = re.compile(r"wall|time|_s$|seconds|elapsed|throughput|first_calls|stages|timing|compile|heartbeat|memory")
+
+
+def car_log(path: Path) -> Path:
+    """A 10 s, 50 Hz log of the shipped (1,1) car (L = 0.33 m, torque level) integrated by SciPy
+    (the tests' oracle), with 5 % geometry and input-scale errors and sensor noise, as CSV."""
+    sys.path.insert(0, str(ROOT / "tests"))  # the oracle is the tests' own SciPy integration
+    from identify_oracle import make_log  # noqa: E402 -- found through the line above
+
+    noise = [0.01, 0.01, 0.005, 0.005]
+    log = make_log(
+        "(1,1)", "torque", L=0.33, geometry_scale=1.05, input_scale=[0.95, 1.0], noise_std=noise, n=501,
+        period=0.02, seed=4,
+    )  # fmt: skip
+    rows = [[*map(float, (t, *x, *u))] for t, x, u in zip(log.t, log.posture, log.command)]
+    lines = ["t,x,y,theta,beta1,u1,u2"] + [",".join(repr(v) for v in r) for r in rows]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+    return path
 
 
 def _run(tree: Path, argv: list, out: Path) -> float:
@@ -108,8 +130,9 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
     rows = {}
+    log = str(car_log(a.out.resolve() / "car_log.csv"))
     for job in a.jobs:
-        old_argv, new_argv = JOBS[job]
+        old_argv, new_argv = ([log if x == "LOG" else x for x in argv] for argv in JOBS[job])
         outs = {"old": (a.out / job / "old").resolve(), "new": (a.out / job / "new").resolve()}
         walls = {"old": _run(a.old.resolve(), old_argv, outs["old"]), "new": _run(ROOT, new_argv, outs["new"])}
         trees = {str(a.old.resolve()): str(ROOT), str(outs["old"]): str(outs["new"])}
