@@ -127,7 +127,6 @@ def write_checkpoint(path, *, fingerprint: str, config: dict, step: int, trees: 
       trees: name -> pytree of arrays (e.g. parameters, optimizer state), stored as leaf lists.
       state: any JSON-able dict (histories, counters).
     """
-
     leaves = {k: [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves(t)] for k, t in trees.items()}
     return write_json(
         path, {"fingerprint": fingerprint, "config": config, "step": step, "trees": leaves, "state": state}
@@ -144,7 +143,6 @@ def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) ->
       ValueError: a checkpoint of another configuration (naming the keys that differ), or one
         whose trees do not match the templates (missing, truncated or reshaped leaves).
     """
-
     path = Path(path)
     if path.exists() and not path.is_file():
         raise ValueError(f"checkpoint {path} is not a regular file; remove it (or start fresh)")
@@ -229,7 +227,6 @@ def headless_pyplot():
 
 def write_png(fig, path, dpi: int = 120) -> Path:
     """Render a matplotlib figure to PNG and write it atomically."""
-
     buf = _io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
     return write_bytes(path, buf.getvalue())
@@ -312,7 +309,6 @@ def _process_start(pid: int) -> str | None:
 
 def _alive(owner: dict) -> bool:
     """Whether the lock's owner is a live process on this host."""
-
     if owner.get("host") != socket.gethostname():
         return True  # another host's process: cannot tell, assume alive
     pid = owner.get("pid")
@@ -352,7 +348,6 @@ def acquire_output(out, command: str) -> str | None:
     Raises:
       OutputLocked: a live process (named) holds the lock.
     """
-
     out = Path(out)
     path = out / LOCK_NAME
     token = uuid.uuid4().hex

@@ -212,7 +212,6 @@ def transition_matrices(gains, ts, *, max_step: float):
     Returns:
       (T, r m, r m) array, in the order of ``ts``.
     """
-
     tv = np.asarray(ts, dtype=float)
     if tv.ndim != 1 or not np.all(np.isfinite(tv)) or np.any(tv < 0):
         raise ValueError(f"ts must be a 1-D array of finite times >= 0, got shape {tv.shape}")

@@ -451,7 +451,6 @@ class Problem:
 
 def _family_of(ref):
     """The registry's family a ``[reference]`` section names (None if it names none)."""
-
     return R.FAMILIES.get(ref.get("family")) if isinstance(ref, dict) else None
 
 
@@ -553,7 +552,6 @@ class Setting:
 
     def system(self):
         """The closed loop a run simulates: the controller, with a plant, or sampled."""
-
         if self.control_period is not None:
             return sampled(self.ctrl, self.steps_per_sample)
         return with_plant(self.ctrl) if self.plant else self.ctrl
@@ -570,13 +568,11 @@ class Setting:
             )
 
     def geometry(self, i: int = 0):
-
         geo = self.axis("geometry").payload
         return Geometry(**{k: float(geo[k][i]) for k in GEOMETRY_KEYS})
 
     def gains(self, i: int = 0):
         """The i-th gains of the axis: :class:`wmrjax.Gains` or :class:`wmrjax.GainSchedule`."""
-
         return jax.tree_util.tree_map(lambda x: x[i], self.axis("gains").payload["gains"])
 
     def params(self, *, gains=None, reference: int = 0, geometry: int = 0):
@@ -591,7 +587,6 @@ class Setting:
     def inputs(self, idx: list | None = None) -> dict:
         """Every run input at its axis's level, or (with ``idx``, per-axis indices of some runs)
         per run: key -> array (or pytree) with a leading axis."""
-
         geo, plant, ref, gains, init = (a.payload for a in self.axes)
         src = {
             "L": geo["L"],
@@ -612,7 +607,6 @@ class Setting:
 
     def run_inputs(self, i: int) -> dict:
         """The inputs of run ``i`` (its flat index, last axis fastest), unbatched: for :meth:`run`."""
-
         if not 0 <= i < self.size:
             raise ProblemError(f"run index {i} outside [0, {self.size}) of this setting")
         idx = list(np.unravel_index(np.array([i]), self.shape))
@@ -639,7 +633,6 @@ class Setting:
           ``(trajectory, params)``: the :class:`wmrjax.Trajectory` of :meth:`system`, and the
           law's parameters (reference, gains, nominal geometry) of this run.
         """
-
         ctrl = self.ctrl
         g = Geometry(L=p["L"], e=p["e"], delta=p["delta"])
         ref = R.Reference(p["reference"], p["heading_offset"], self.reference.path, self.reference.name)
@@ -736,7 +729,6 @@ def place(ctrl, params, error, space, task, branch, t0=0.0, rest: bool = False):
     Returns:
       The controller's state, shape (ctrl.n_state,).
     """
-
     t0 = jnp.asarray(t0, jnp.result_type(float))
     d = jnp.asarray(error, t0.dtype)
     if isinstance(ctrl, DynamicLinearization):
@@ -754,7 +746,6 @@ def place(ctrl, params, error, space, task, branch, t0=0.0, rest: bool = False):
 
 
 def _place_static(ctrl, params, d, task, t0, rest):
-
     ref, g = params.reference, params.geometry
     post = ref.posture(t0)
     steer = _steering(ctrl, params, t0)
@@ -774,7 +765,6 @@ def _place_static(ctrl, params, d, task, t0, rest):
 
 def _steering(ctrl, params, t0):
     """The initial steering angles: the steering reference's where the law has one, else 0."""
-
     n = ctrl.robot.delta_s
     b = (
         jnp.reshape(params.steering(t0), (-1,))
@@ -790,7 +780,6 @@ def _steering(ctrl, params, t0):
 
 def controller(law, kind: str, level, task):
     """The controller of a law, robot type, level and task (ProblemError if there is none)."""
-
     try:
         if Law(law) == Law.DYNAMIC:
             return dynamic_linearization(kind, str(level))
@@ -1022,7 +1011,6 @@ def reference_axis(rs, base: Path, law, kind, path_order: int):
     """``(axis, references)`` of a ``[reference]`` section: the references (their heading offsets
     applied; offsets fastest) and their columns. A sampled path's spline keeps the law's
     ``path_order`` (its ``ctrl.path_order``) continuous."""
-
     if not isinstance(rs, dict) or "family" not in rs:
         raise ProblemError(f"[reference]: needs family = one of {list(R.FAMILIES)}")
     fam = R.FAMILIES[choice("reference", "family", rs["family"], tuple(R.FAMILIES))]
@@ -1072,7 +1060,6 @@ def _named_references(fam, rs, base, law, path_order):
 
 def random_options(rs) -> dict:
     """The options of a random family (``[reference] options``) over its defaults, checked."""
-
     opts = R.FAMILIES["random_smooth"].options()
     given = rs.get("options", {})
     check_keys("reference.options", given, tuple(opts))
@@ -1112,7 +1099,6 @@ def _random_references(fam, rs, base, law, path_order):
 def _draw_references(make, opts: tuple, seed: int, count: int):
     """``count`` references of a random family, one program (eagerly, each of the draw's small
     operations compiled on its first use took seconds)."""
-
     keys = jax.random.split(jax.random.PRNGKey(seed), count)
     return jax.vmap(lambda k: make(k, **dict(opts)))(keys)
 
@@ -1187,7 +1173,6 @@ def _read_csv(path: Path, cols: tuple) -> dict:
 
 
 def _default_offset(law, kind):
-
     if Law(law) == Law.DYNAMIC:
         return float(controllers.TABLE4[kind].default_heading_offset)
     return 0.0
@@ -1201,7 +1186,6 @@ GAIN_KEYS = ("poles", "omega", "zeta", "lam", "coefficients", "schedule", "file"
 def gains_axis(gs, ctrl, base: Path) -> Axis:
     """The gains of a ``[gains]`` section: poles, damping factors (omega, zeta, lam), Hurwitz
     coefficients, a schedule, or tuned-gains files; lists are an axis."""
-
     check_keys("gains", gs, GAIN_KEYS)
     m, r = ctrl.m, ctrl.relative_degree
     forms = [k for k in ("poles", "omega", "coefficients", "schedule", "file") if k in gs]
@@ -1252,7 +1236,6 @@ def _checked(ctrl, gains, where):
 
 
 def _gains_from_coefficients(v, m, r):
-
     a = np.asarray(v, float) if isinstance(v, list) else None
     if a is None or a.shape not in ((m, r), (r,)) or not np.all(np.isfinite(a)):
         raise ProblemError(
@@ -1263,7 +1246,6 @@ def _gains_from_coefficients(v, m, r):
 
 
 def _damping(gs, ctrl):
-
     m, r = ctrl.m, ctrl.relative_degree
     if not ("omega" in gs and "zeta" in gs):
         raise ProblemError("[gains]: give either poles, or omega and zeta (and lam for an odd relative degree)")
@@ -1290,7 +1272,6 @@ def _damping(gs, ctrl):
 def _schedule(s, ctrl):
     """A :class:`wmrjax.GainSchedule` from ``{ knots = [...], omega = ..., zeta = ..., lam = ... }``
     (values per knot, output and factor: (K, m, r // 2); lam (K, m) for an odd r)."""
-
     check_keys("gains.schedule", s, ("knots", "omega", "zeta", "lam"), ("knots", "omega", "zeta"))
     try:
         lam = None if "lam" not in s else np.asarray(s["lam"], float)
@@ -1312,7 +1293,6 @@ class GainsFile:
 
     def to_problem(self) -> dict:
         """The ``[gains]`` section that gives these gains inline."""
-
         if getattr(self.gains, "time_varying", False):
             g = self.gains
             return {
@@ -1369,7 +1349,6 @@ def read_gains_file(path: Path, ctrl=None) -> GainsFile:
     """A tuned-gains file: ``gains.json`` of ``wmrjax tune`` (kind ``wmrjax.gains``), or a
     tuning ``summary.json`` (its ``tuned_gains``). With ``ctrl``: refused unless tuned for this
     robot type and level, and of its shape."""
-
     text = read_text(path, "[gains] file")
     where = f"[gains] file {str(path)!r}"
     try:

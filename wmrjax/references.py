@@ -767,7 +767,6 @@ def load_samples(
         64 MiB, not UTF-8, a column named twice, missing columns, ...), or what
         :func:`from_samples` refuses.
     """
-
     path = Path(path)
     col = io.read_csv_columns(path, ("t", "x", "y"), "reference samples")
     return from_samples(

@@ -650,7 +650,6 @@ def _outside_samples(params, t0, t_final):
     when ``simulate`` is called is refused before compiling (the controllers' ``check_run``); one
     traced under jit or vmap is known only here, and fails the run at t0 (False for paths defined
     at every time)."""
-
     is_ref = lambda x: isinstance(x, Reference)
     outside = jnp.zeros((), bool)
     for ref in (x for x in jax.tree_util.tree_leaves(params, is_leaf=is_ref) if is_ref(x)):

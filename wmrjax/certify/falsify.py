@@ -506,7 +506,6 @@ def _pad(u, Q):
 @functools.partial(jax.jit, static_argnums=(0, 5, 6))
 def _instantaneous(ctrl, params, radius, P, us, steps, learning_rate):
     """Adam on the sphere for the distance of zeta_ref(0) + radius P u/|u| to the singular set (no rollout)."""
-
     r = ctrl.relative_degree
     jet0 = ctrl.reference_jet(jnp.zeros((), us.dtype), params)[:r]
 

@@ -40,7 +40,6 @@ def read_section(data: dict) -> dict:
 
 def setup(problem, case=None):
     """``(setting, ctrl, params)`` of the problem's one closed loop to certify (a dynamic law)."""
-
     setting = problem.setting("certification", case=case)
     if setting.law != Law.DYNAMIC:
         raise ProblemError(
@@ -54,7 +53,6 @@ def setup(problem, case=None):
 
 def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title=""):
     """PNG: log10 min_t dist over a grid of initial position errors, eps contour, certified circles."""
-
     R = 1.25 * max(v for k, v in block.items() if k.startswith("radius_") and v is not None)
     xs = np.linspace(-R, R, n_grid)
     X, Y = np.meshgrid(xs, xs)
@@ -163,7 +161,6 @@ def run(out, problem, case=None, progress=None) -> dict:
 def _summary(problem, case, cfg: dict, setting, params, block: dict, problem_block: dict) -> dict:
     """``summary.json`` but the slice map and the timing: the problem, the loop certified, every
     radius (``block``: the nominal loop's, labelled) and the problem loop's certificate."""
-
     ctrl, gains = setting.ctrl, params.gains
     return {
         "experiment": "certify",

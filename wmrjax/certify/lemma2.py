@@ -233,7 +233,6 @@ def k2_transition(gains, ts):
     Args:
       gains: :class:`wmrjax.Gains` or :class:`wmrjax.GainSchedule`; ts: (T,) concrete times >= 0 [s].
     """
-
     Phi = linearize.transition_matrices(gains, np.asarray(ts), max_step=TRANSITION_STEP)
     return jax.vmap(_math.spectral_norm)(Phi)
 

@@ -25,7 +25,6 @@ from wmrjax.export.job import DEFAULT_PERIOD, check_initial, run, setup
 
 
 def _parser():
-
     p = common.parser(__doc__.splitlines()[0], "results/export")
     problem_args.add_problem_options(p, default="section_6_1")
     p.add_argument("--case", default=None, help="the [[case]] to export, when the problem has several")

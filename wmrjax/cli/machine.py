@@ -20,7 +20,6 @@ def configure_xla(devices: int | None = None) -> None:
     loop compiled into one kernel; ``devices`` host devices, one per core, if given). Call it
     right after parsing, before any JAX work: XLA reads its flags when JAX's backend starts
     (called in-process after that, e.g. from a test, it only sets the environment its workers get)."""
-
     with warnings.catch_warnings():
         # a command line called from Python after JAX started: its loops keep the caller's setting
         warnings.simplefilter("ignore", RuntimeWarning)

@@ -15,7 +15,6 @@ from wmrjax.tune.pareto import run
 
 
 def parser():
-
     p = options.parser(__doc__.splitlines()[0], "results/pareto")
     problem_args.add_problem_options(p, needs="with a [tune] section")
     p.add_argument(

@@ -43,7 +43,6 @@ def loops(plant: dict) -> list:
 
 def run(out: Path, problem, basis: str = "position", progress=print) -> dict:
     """The table of ``problem`` (a :class:`wmrjax.problem.Problem` with a ``[plant]``)."""
-
     common.enable_x64()
     plant = problem.data.get("plant")
     if not plant:

@@ -40,7 +40,6 @@ def prepare_output(p, out: Path, lock: bool = True) -> Path:
     into the same directory is refused, naming the first; temporary files of a killed write are
     removed); exits with a usage error if any of this fails. The lock's token is
     ``os.environ[wmrjax._files.LOCK_ENV]`` afterwards, for worker processes."""
-
     out = Path(out)
     if out.exists() and not out.is_dir():
         fail(p, f"--out {out} exists and is not a directory")

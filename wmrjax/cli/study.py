@@ -16,7 +16,6 @@ from wmrjax.tune.study import DEFAULT_PROBLEMS, METHODS, problem_path, study
 
 
 def parser():
-
     p = options.parser(__doc__.splitlines()[0], "results/tuning_study")
     p.add_argument(
         "--problems",
@@ -78,7 +77,6 @@ def problems_of(args) -> dict:
     Raises:
       ValueError: an unknown problem or unreadable file, two problems of one name, a bad override.
     """
-
     jax.config.update("jax_enable_x64", True)  # the tuner runs in float64
 
     require = None if args.require_radius is None else (_radius(args.require_radius), args.require_slice)

@@ -23,7 +23,6 @@ A killed sweep resumes from its finished blocks when rerun with the same file an
 
 
 def parser():
-
     p = common.parser(DOC, default_out=None)
     problem_args.add_problem_options(p, needs="to sweep (see docs/problem_files.md)")
     p.add_argument("--out", type=Path, default=None, help="output directory (default: results/sweeps/<spec name>)")

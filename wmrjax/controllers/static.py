@@ -474,7 +474,6 @@ def controller(robot, level: Level | str = Level.VELOCITY, task: Task | str = Ta
     ``initial_state_from_physical(X, u, params)`` an initial state, and its ``vector_field``
     runs under :func:`wmrjax.simulate` (vmap over states, references, gains, geometry).
     """
-
     rt = robots.robot_type(robot)
     task, level = check_task(task), check_level(level)
     if rt.omnidirectional:

@@ -221,7 +221,6 @@ def export_artifact(step: ControlStep) -> bytes:
 def program(step: ControlStep):
     """The step's scalar program: a closed jaxpr of ``(t, measured, state)`` on float64, re-emitted
     on scalars and simplified as the simulator's loop body is (:func:`wmrjax.scalarized`)."""
-
     if not jax.config.read("jax_enable_x64"):
         raise ValueError("generate_c needs float64: jax.config.update('jax_enable_x64', True) first")
     return jax.make_jaxpr(scalarized(step.fn))(*_specs(step, jnp.float64))
@@ -281,7 +280,6 @@ def reference_run(step: ControlStep, ctrl, params, z0, *, period: float, n_sampl
     Returns:
       :class:`Run`.
     """
-
     dt = period / steps_per_sample
     n_steps = n_samples * steps_per_sample
     z0 = jnp.asarray(z0, jnp.result_type(float))

@@ -45,7 +45,6 @@ class CStep:
         self._d = ctypes.POINTER(ctypes.c_double)
 
     def __call__(self, t, measured, state):
-
         m = np.ascontiguousarray(measured, np.float64)
         s = np.array(state, np.float64)  # updated in place: a copy
         c = np.zeros(self.n_command)
@@ -64,7 +63,6 @@ def relative_error(a, b) -> float:
     """Largest ``|a - b|`` over a run, relative to the largest ``|b|`` of that output over the run
     (all its components: a component that stays at rounding level, e.g. a turn rate on a straight
     path, is measured against the output's scale, not its own); 0 for empty outputs."""
-
     a, b = np.asarray(a, float), np.asarray(b, float)
     if a.size == 0:
         return 0.0
@@ -149,7 +147,6 @@ print(json.dumps(out))
 def reload_in_fresh_process(artifact: Path, run, directory: Path) -> dict:
     """Drive the serialized artifact over ``run`` in a new Python process that imports jax and
     NumPy only (its ``wmrjax_imported`` says whether anything imported wmrjax)."""
-
     data = directory / "run_for_reload.npz"
     np.savez(data, t=np.asarray(run.t), measured=np.asarray(run.measured), state0=np.asarray(run.initial_state))
     # -I (isolated): neither the working directory nor PYTHONPATH nor the user's site is on
@@ -166,7 +163,6 @@ def reload_in_fresh_process(artifact: Path, run, directory: Path) -> dict:
 def verify(step, run, *, period: float, directory: Path, cc: str | None) -> dict:
     """The export checked over one closed-loop run of the simulator (:func:`wmrjax.export.reference_run`;
     see the module's docstring): the largest relative differences, and the C step's time."""
-
     cmd, st, reg = X.drive(jax.jit(step.fn), run)
     # the step at each sample from the simulator's own controller state: the same computation
     per_sample = jax.jit(jax.vmap(step.fn))(run.t, run.measured, run.state)[0]
@@ -188,7 +184,6 @@ def _verify_in(
     step, run, cmd, st, reg, out: dict, directory: Path, scratch: Path, cc: str | None, period: float
 ) -> dict:
     """:func:`verify`'s checks of the written files, on copies in ``scratch``."""
-
     for name in (f"{step.name}.h", f"{step.name}.c", f"{step.name}.jax_export"):  # what write_export wrote
         shutil.copyfile(directory / name, scratch / name, follow_symlinks=False)
     art = reload_in_fresh_process(scratch / f"{step.name}.jax_export", run, scratch)
@@ -220,7 +215,6 @@ def _verify_in(
 
 def write_export(step, directory: Path) -> list:
     """The C files, the artifact and the robot-loop example into ``directory``; their names."""
-
     written = []
     for fname, text in X.generate_c(step).items():
         files.write_bytes(directory / fname, text.encode())

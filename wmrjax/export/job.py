@@ -22,7 +22,6 @@ def initial_state(setting, params, index: int | None = None):
     """``(z0, index)``: the law's state at one of the problem's initial conditions: ``index``, or by
     default the smallest non-zero initial error (a transient, which the largest errors of a map
     may not survive)."""
-
     errors = setting.initial_errors()
     if index is None:
         norms = np.linalg.norm(errors, axis=1)
@@ -51,7 +50,6 @@ def run(
     out: Path, problem, *, case=None, period=None, n_samples=None, initial=None, cc="cc", tolerance=1e-12, progress=None
 ) -> dict:
     """Export and check the problem's controller; writes the files and ``summary.json`` into ``out``."""
-
     say = progress or (lambda msg: print(msg, flush=True))
     jax.config.update("jax_enable_x64", True)  # the job runs in float64
     t0 = time.time()

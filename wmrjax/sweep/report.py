@@ -142,7 +142,6 @@ def certified_radii(plan: S.Plan) -> dict:
     """Certified radii of the position slice (group name -> radii) for every group that is one
     dynamic closed loop (one geometry, reference and gains; no plant) swept over initial output
     errors."""
-
     if not (plan.law == "dynamic" and plan.space == "output"):
         return {}
     out = {}

@@ -48,7 +48,6 @@ STATE_FILE = "sweep_state.json"
 def rollout_fn(plan: S.Plan, group: S.Group):
     """``one(varying) -> results`` for one run of ``group`` (pure; batched by the caller), with
     ``varying`` the run's inputs that differ across the group (:func:`payload`)."""
-
     ctrl = group.ctrl
     system = group.system()
     dynamic = plan.law == S.Law.DYNAMIC
@@ -105,7 +104,6 @@ def split(group: S.Group):
     for every run of the group, and their values. Constant leaves are compiled in (XLA folds
     them: the §6.1 loop runs twice as fast with its fixed geometry, gains and reference folded
     than with them as per-run arrays); the others are batched."""
-
     src = _sources(group)
     leaves, treedef = jax.tree_util.tree_flatten(src)
     # the initial conditions (and run indices) are always batched: they carry the batch axis
@@ -122,7 +120,6 @@ def split(group: S.Group):
 def payload(group: S.Group, start: int, n: int, pad_to: int, constant: list) -> list:
     """The varying rollout inputs (leaves, in :func:`split`'s order; ``constant`` is its mask) of
     runs ``start .. start + n - 1`` of ``group``, padded (with copies of the last run) to ``pad_to``."""
-
     runs = np.arange(start, start + n)
     if pad_to > n:
         runs = np.concatenate([runs, np.full(pad_to - n, runs[-1])])
@@ -181,7 +178,6 @@ def estimate(plan: S.Plan, devices: int, processes: int = 1):
     """The sweep's memory on this machine (:mod:`wmrjax.resources`): every device of every local
     process runs a block at a time, holding each run's samples (every ``distance_every`` steps;
     host devices share the machine's memory), beside each process's reference checks."""
-
     n_state = max(int(g.system().n_state or g.ctrl.n_state) for g in plan.groups)
     samples = plan.n_steps // plan.save_every + 1
     per_block = resources.samples_bytes(samples, n_state, 8, plan.block)
@@ -191,7 +187,6 @@ def estimate(plan: S.Plan, devices: int, processes: int = 1):
 
 def check_memory(plan: S.Plan, devices: int, processes: int = 1) -> None:
     """ValueError before anything compiles when the sweep would not fit in memory."""
-
     resources.check_fits(
         estimate(plan, devices, processes),
         f"{processes} process(es) x {devices} device(s), each running a block of {plan.block} runs "
@@ -213,7 +208,6 @@ def block_problem(plan: S.Plan, out: Path, b: int) -> str | None:
     """Why block ``b``'s file cannot be used (None: it can, or it does not exist yet): torn
     (not a readable ``.npz``), of another sweep, of another place in the plan, or lacking a
     result column."""
-
     path = block_path(out, b)
     if not path.exists():
         return None
@@ -274,7 +268,6 @@ def prepare(plan: S.Plan, out: Path, fresh: bool) -> int:
     Raises:
       ValueError: the directory holds blocks of another sweep (and ``fresh`` is False).
     """
-
     _check_is_a_file(out / STATE_FILE)  # not even --fresh replaces a directory
     state = None if fresh else read_state(out)  # --fresh discards even a corrupt state file
     blocks = plan.blocks()
@@ -297,7 +290,6 @@ def prepare(plan: S.Plan, out: Path, fresh: bool) -> int:
 def compute(plan: S.Plan, out: Path, *, process_id: int = 0, num_processes: int = 1) -> dict:
     """Compute this process's share of the blocks that are not on disk yet (block ``b`` belongs
     to process ``b % num_processes``); returns timing figures."""
-
     devices = jax.local_devices()
     D = len(devices)
     blocks = plan.blocks()
@@ -408,7 +400,6 @@ OUTCOMES = ("converged", "not_converged", "singular", "failed")
 def classify(plan: S.Plan, res: dict) -> dict:
     """``converged`` (regular, final errors within the tolerances), ``singular`` (flagged
     singular), ``failed`` (non-finite or inaccurate), else ``not_converged``."""
-
     pos_ok = res["final_position_error"] <= plan.position_tol
     head_ok = res["final_heading_error"] <= plan.heading_tol
     conv = ~res["failed"] & pos_ok & (head_ok if plan.task == Task.POSTURE else True)

@@ -148,7 +148,6 @@ def plan(problem: Problem) -> Plan:
 
 def controller(law, kind: str, level, task):
     """The controller of a group (:func:`wmrjax.problem.controller`)."""
-
     return make(law, kind, level, task)
 
 

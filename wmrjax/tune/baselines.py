@@ -359,7 +359,6 @@ def _optuna(
 def requirement_check(setting, family, requirement, raw0) -> Callable:
     """``feasible(raw) -> bool`` of a :class:`wmrjax.tune.certified.Requirement`: the exact-map radius of
     the gains at or above the required one (as :func:`wmrjax.tune.loop.keep` resolves it from ``raw0``)."""
-
     kept = loop.keep(setting, family, requirement, raw0)
     return lambda raw: bool(kept.radius.value(jnp.asarray(raw)) >= kept.required)
 

@@ -91,7 +91,6 @@ def read(table: dict | None, certify_section: dict) -> Requirement | None:
 def check(setting, family) -> None:
     """ValueError when the problem has no exact-map radius to keep: a static law, a random
     reference family (no fixed reference), or type (1,2) (see the module docstring)."""
-
     if not isinstance(setting.ctrl, DynamicLinearization):
         raise ValueError("a certified-region requirement needs a dynamic linearizing law (only those are certified)")
     if FAMILIES[setting.data["reference"]["family"]].kind == "random":

@@ -24,7 +24,6 @@ from wmrjax.tune.scenarios import rollout
 def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsify: bool = False) -> dict:
     """Tune, evaluate, run the baselines, write ``gains.json``, the figures and ``summary.json``;
     returns the summary (``falsify``: falsify the exact-map radii of the initial and tuned gains)."""
-
     jax.config.update("jax_enable_x64", True)  # this entry point runs in float64
 
     say = progress or log
@@ -75,7 +74,6 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
 
 def _gradient(problem, setting, settings, family, out: Path, log):
     """The gradient loop, with the later programs compiled on a second thread: ``(result, programs)``."""
-
     programs = {}
     second = ThreadPoolExecutor(max_workers=1)
 
@@ -116,7 +114,6 @@ def _gradient(problem, setting, settings, family, out: Path, log):
 def _evaluate(train_eval, heldout_eval, paper_raw, tuned_raw, say, log):
     """The initial and the tuned gains on the training and held-out scenarios:
     ``((train initial, train tuned), (held-out initial, held-out tuned), held-out validity, metrics)``."""
-
     say("evaluating the initial and the tuned gains on the held-out scenarios")
     both = np.stack([np.asarray(paper_raw), np.asarray(tuned_raw)])
     tr_paper, tr_tuned = (float(v) for v in train_eval(both))
@@ -131,7 +128,6 @@ def _evaluate(train_eval, heldout_eval, paper_raw, tuned_raw, say, log):
 
 def _write(out: Path, problem, setting, family, res, runs, paper_raw, tuned_raw, programs, radius) -> None:
     """Write ``gains.json``, ``history.json`` and the figures."""
-
     files.write_json(out / "gains.json", gains_file_dict(family.gains(tuned_raw), setting.ctrl))
     files.write_json(
         out / "history.json",
@@ -189,7 +185,6 @@ def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say,
 
 def _baseline_runs(settings, family, train_eval, paper_raw, budget: int, pop: int, say):
     """Run random search and CMA-ES for every seed: ``(runs by name, wall time by name)``."""
-
     b = settings.baselines
     runs = {"random_search": [], "cma_es": []}
     t_base = {"random_search": 0.0, "cma_es": 0.0}
@@ -230,7 +225,6 @@ def _baseline_runs(settings, family, train_eval, paper_raw, budget: int, pop: in
 
 def _baseline_report(name: str, rs, heldout_eval, hist, budget: int, wall: float, log):
     """One baseline's report over its seeds and the gradient rollouts to match it (None: never)."""
-
     held = heldout_eval(np.stack([np.asarray(r.best_raw) for r in rs]))
     reach = [baselines.rollouts_to_reach(hist, r.best_loss) for r in rs]
     rep = {
@@ -269,7 +263,6 @@ def _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify: bool):
     """Every radius of the initial and the tuned gains (:func:`wmrjax.tune.certified.radii`), the
     requirement and how it was kept; None where the problem has no certificate (a static law,
     a random reference family) with the reason."""
-
     try:
         certified.check(setting, family)
     except ValueError as err:
@@ -389,7 +382,6 @@ def _programs(ctx) -> dict:
       ``trajectories(gains) -> (output positions (n, 2), position errors (n, 2))`` of held-out
       scenario 0 at the controller's samples, that ``scenario`` and its sample times ``t`` [s].
     """
-
     setting, family, weights, cert = ctx.setting, ctx.family, ctx.weights, ctx.certificate
 
     def objective(raw, scen):
@@ -421,7 +413,6 @@ def _programs(ctx) -> dict:
 def _warm_up(programs, ctx, raw) -> None:
     """Compile the validation program and ``programs`` by calling each once (an evaluation
     runs one chunk of 16 candidates)."""
-
     loop.validation_loss(raw, ctx.sets.validation, ctx.setting, ctx.family, ctx.weights)
     programs["evaluate_on"](np.asarray(raw)[None], ctx.sets.train)
     size = lambda sc: jax.tree_util.tree_leaves(sc)[0].shape[0]
@@ -439,7 +430,6 @@ def _preload() -> None:
 
 
 def _gains_report(spec, raw):
-
     pos = np.asarray(spec.positive(raw))
     params = dict(zip(spec.names(), pos.tolist())) if spec.shared and not spec.knots else pos.tolist()
     return {
@@ -455,7 +445,6 @@ def _gains_report(spec, raw):
 
 def _band(runs):
     """(rollouts, median, low, high) of the best-so-far curves of several seeds."""
-
     n = min(len(r.best_so_far) for r in runs)
     curves = np.stack([np.asarray(r.best_so_far[:n]) for r in runs])
     x = (np.arange(n) + 1) * runs[0].rollouts_per_candidate
@@ -463,7 +452,6 @@ def _band(runs):
 
 
 def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, programs):
-
     plt = files.headless_pyplot()
     fig, ax = plt.subplots(figsize=(6.8, 4.3))
     ax.semilogy([h["rollouts"] for h in hist], [h["train_loss"] for h in hist], "C0", label="gradient (train)")
@@ -540,7 +528,6 @@ def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, progra
 def _radii_figure(out, title, radii: dict) -> None:
     """``radii.png``: every radius of the initial and the tuned gains side by side, the
     falsified ones and the requirement marked."""
-
     plt = files.headless_pyplot()
     rows = [(f"lemma2_{k}", v["label"]) for k, v in radii["initial"]["lemma2"].items()]
     rows += [(f"exact_map_{b}", f"exact map ({b})") for b in ("full", "position")]

@@ -118,7 +118,6 @@ def check(setting, family: GainSpec, scenarios: Scenarios, loss: LossWeights) ->
     """ValueError for what cannot be tuned, before anything compiles: a static law at torque
     level, a certificate term without a dynamic law and a fixed reference, a family of
     another shape, or the problem's initial gains outside the family."""
-
     ctrl = setting.ctrl
     random_reference = FAMILIES[setting.data["reference"]["family"]].kind == "random"
     # a random family's references are drawn per scenario (its count is a sweep's)
@@ -187,7 +186,6 @@ _draw_batch = jax.jit(
 def certificate(setting, weight: float, eps: float = CERTIFICATE_EPS, n_t: int = CERTIFICATE_TIMES):
     """The certificate term's data: M1 of the problem's own reference (heading offset
     included) in closed form over [0, t_final], or None when ``weight`` is 0."""
-
     if weight <= 0:
         return None
     params = setting.params()
@@ -411,7 +409,6 @@ KEY_BYTES = 8  # a PRNG key per scenario (two uint32)
 def check_memory(setting, scenarios: Scenarios) -> None:
     """ValueError before anything compiles when a gradient step over ``scenarios.train`` runs
     (reverse mode through every step) would not fit in memory (:mod:`wmrjax.resources`)."""
-
     n_state = int(setting.system().n_state or setting.ctrl.n_state)
     est = resources.Estimate(resources.gradient_bytes(scenarios.train, setting.n_steps, n_state), 0.0)
     resources.check_fits(

@@ -67,7 +67,6 @@ class SampleTerms:
     sampled: bool
 
     def __call__(self, t, z, aux):
-
         if not self.sampled:
             return z
         return (jnp.sum(z.error[: self.m] ** 2), z.command, jnp.asarray(aux.margin))
@@ -85,7 +84,6 @@ def metrics(setting, tr, params, inputs: dict, margin_safe: float = MARGIN_SAFE)
       inputs: the run's inputs (``input_scale``, ``limit`` of the plant).
       margin_safe: the barrier term is ``relu(1 - ``|det K|`` / margin_safe)^2``.
     """
-
     ctrl = setting.ctrl
     n = tr.t.shape[0] - 1
     saved = jax.tree_util.tree_map(lambda x: x[:n], tr.state)
@@ -117,7 +115,6 @@ def scenario_loss(m: Metrics, w: LossWeights):
 def certificate_radius(gains, m1, ts, eps):
     r"""Lemma 2 radius for these gains (differentiable in them): the automatic Lyapunov K2 for
     constant gains, :math:`K_2(t) = \|\Phi(t, 0)\|` for a :class:`wmrjax.GainSchedule`."""
-
     if gains.time_varying:
         k2 = certify.k2_transition(gains, ts)
     else:

@@ -66,7 +66,6 @@ def point_id(problem, slice_: str, eps: float, required: float) -> str:
 def tune_point(problem, required: float, slice_: str, eps: float, log=print) -> dict:
     """One point: tune with the requirement, then the held-out loss and the certificate of the
     tuned gains (exact map of the slice, falsified in it)."""
-
     setting = problem.setting("tuning")
     settings = config.read(problem.section("tune"), problem.section("certify"))
     family = settings.gain_spec(setting)
@@ -114,7 +113,6 @@ def tune_point(problem, required: float, slice_: str, eps: float, log=print) -> 
 
 def run(problem, out: Path, slice_: str = "full", fractions=None, radii=None, eps=None, log=print) -> dict:
     """Every point (resuming finished ones), then the table, the figure and ``summary.json``."""
-
     jax.config.update("jax_enable_x64", True)
 
     t0 = time.perf_counter()
@@ -150,7 +148,6 @@ def run(problem, out: Path, slice_: str = "full", fractions=None, radii=None, ep
 
 def _initial_point(setting, family, settings, raw0) -> dict:
     """The initial gains' held-out and training losses on the points' scenario sets."""
-
     ctx = loop.prepare(setting, family, settings.scenarios, settings.loss, settings.seed)
     raw = jnp.asarray(raw0)
     val, ok, _ = loop.mean_loss(raw, ctx.sets.heldout, setting, family, ctx.weights)
@@ -160,7 +157,6 @@ def _initial_point(setting, family, settings, raw0) -> dict:
 
 def _write(out, problem, setting, family, raw0, slice_, eps, initial, points, wall) -> dict:
     """``pareto.csv``, ``pareto.png`` and ``summary.json`` of the finished points."""
-
     settings = config.read(problem.section("tune"), problem.section("certify"))
     base = {"radius": initial, **_initial_point(setting, family, settings, raw0)}
     buf = _stdio.StringIO()

@@ -79,7 +79,6 @@ FIELDS = ("problem", "method", "seed", "point", "compute_fwd", "seconds", "heldo
 def problem_path(spec: str) -> tuple[str, Path]:
     """``(name, file)`` of a shipped problem name or a problem file (ValueError otherwise); a
     relative path that does not exist from here is looked up from the repository's root."""
-
     if spec in PROBLEMS:
         return spec, PROBLEMS[spec]
     for path in (Path(spec), REPO / spec):
@@ -110,7 +109,6 @@ class Plan(NamedTuple):
 def plan(name: str, problem, require=None) -> Plan:
     """The :class:`Plan` of a problem; ``require`` (a radius, 'initial' or 'box', and a slice)
     replaces its requirement where the problem can keep one."""
-
     note = ""
     if require is not None:
         trial = problem.with_values({"tune.requirement": {"radius": require[0], "slice": require[1]}})
@@ -147,7 +145,6 @@ def measure_cost(p: Plan, repeats: int = 3) -> dict:
     evaluation of B scenarios (a 16-candidate chunk of the baselines' evaluator over 16), after
     compilation, the fastest of ``repeats`` (the least disturbed by other work on the machine);
     their ratio is a gradient rollout in forward rollouts."""
-
     ctx = loop.prepare(p.setting, p.family, p.settings.scenarios, p.settings.loss, 0)
     raw = jax.numpy.asarray(p.raw0)
     # the loop's own program (compiled at LOOP_COMPILE), so the ratio is what tune() pays
@@ -246,7 +243,6 @@ def gradient_trace(p: Plan, seed: int, resample: bool, cost: dict) -> Trace:
 def baseline_trace(p: Plan, method: str, seed: int, resample: bool, sets, budget: int) -> Trace:
     """Run one baseline of :mod:`wmrjax.tune.baselines` on the seed's training set (or resampled
     batches: the draws of the gradient's steps) and return its :class:`Trace`."""
-
     s, b = p.settings, p.settings.baselines
     stream = jax.random.fold_in(jax.random.PRNGKey(seed), 3)  # tune()'s stream of resampled batches
     kw = dict(
@@ -280,7 +276,6 @@ def at_points(trace: Trace, points, raw0):
 def run_seed(p: Plan, seed: int, methods, points, cost: dict, budget: float, say=print) -> dict:
     """Every method on one seed: ``{"initial_heldout", "methods": {method: {compute_fwd,
     seconds, heldout_loss (lists over points), total_compute_fwd, total_seconds}}}``."""
-
     s = p.settings
     sets = loop.prepare(p.setting, p.family, s.scenarios, s.loss, seed).sets
     chosen = {}
