@@ -793,7 +793,7 @@ if hasattr(L, "prepare"):
     from wmrjax.examples import problem_file
     from wmrjax.problem import Problem
     problem = Problem.load(problem_file(name))
-    s = problem.setting("tuning"); ts = config.read(problem.section("tune")); fam = ts.gain_spec(s)
+    s = problem.setting("tuning"); ts = config.read(problem.section("tune")); fam = ts.gain_family(s)
     ctx = L.prepare(s, fam, ts.scenarios, ts.loss, ts.seed)
     raw = L.initial_raw(s, fam)
     args, static = (raw, ctx.sets.train, s, fam, ctx.weights), (2, 3)
@@ -914,7 +914,7 @@ from wmrjax.tune import config, loop
 prob = Problem.load("wmrjax/examples/section_6_1_plant.toml")
 setting = prob.setting("tuning")
 ts = config.read(prob.section("tune"))
-fam = ts.gain_spec(setting)
+fam = ts.gain_family(setting)
 out = []
 for n in (64, 2048):
     sc = ts.scenarios._replace(train=n, validation=4, heldout=4)

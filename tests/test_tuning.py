@@ -14,7 +14,7 @@ from scipy.optimize import minimize_scalar
 
 import wmrjax.tune
 from wmrjax.problem import Problem, ProblemError
-from wmrjax.tune import GainSpec, LossWeights, config, loop, mean_loss, mean_loss_and_grad, objective, tune
+from wmrjax.tune import GainFamily, LossWeights, config, loop, mean_loss, mean_loss_and_grad, objective, tune
 from wmrjax.tune.losses import scenario_loss
 
 # one small problem shared by several tests, so its compiled functions are reused
@@ -46,7 +46,7 @@ TS = config.read(TINY.section("tune"))
 
 
 def run_tiny(setting, family=None, out=None, steps=None, **kw):
-    family = family or TS.gain_spec(setting)
+    family = family or TS.gain_family(setting)
     steps = steps or TS.steps
     return tune(
         setting,
@@ -66,20 +66,20 @@ def run_tiny(setting, family=None, out=None, steps=None, **kw):
 @pytest.fixture(scope="module")
 def tiny():
     setting = TINY.setting("tuning")
-    family = TS.gain_spec(setting)
+    family = TS.gain_family(setting)
     return setting, family, loop.prepare(setting, family, TS.scenarios, TS.loss, TS.seed)
 
 
 def test_gain_spec_maps_paper_poles_and_is_hurwitz(rng):
-    spec = GainSpec(2, 2)
+    spec = GainFamily(2, 2)
     np.testing.assert_allclose(spec.coefficients(spec.init(1.0)), [[1.0, 2.0]] * 2, atol=1e-12)  # (s + 1)^2
-    spec3 = GainSpec(2, 3, shared=False)
+    spec3 = GainFamily(2, 3, shared=False)
     np.testing.assert_allclose(spec3.coefficients(spec3.init([1.0, 2.0, 3.0]))[0], [6.0, 11.0, 6.0], rtol=1e-12)
     for _ in range(10):  # any raw gives a Hurwitz polynomial
         c = np.asarray(spec3.coefficients(jnp.asarray(rng.normal(size=(2, 3)) * 3)))
         for row in c:
             assert np.all(np.roots(np.concatenate([[1.0], row[::-1]])).real < 0)
-    frozen = GainSpec(1, 2, frozen=(1,))
+    frozen = GainFamily(1, 2, frozen=(1,))
     g = jax.grad(lambda r: jnp.sum(frozen.coefficients(r)))(frozen.init(1.0))
     assert g[1] == 0.0 and g[0] != 0.0
 
@@ -279,7 +279,7 @@ def test_converges_to_analytic_optimum():
     )
     setting = problem.setting("tuning")
     ts = config.read(problem.section("tune"))
-    family = ts.gain_spec(setting)
+    family = ts.gain_family(setting)
     res = tune(
         setting,
         family,
@@ -333,7 +333,7 @@ def test_bad_tuning_input(tmp_path):
         with pytest.raises(ProblemError, match=msg):
             config.read(Problem.from_dict(data).section("tune"))
     with pytest.raises(ValueError, match="finite and > 0"):
-        GainSpec(2, 2).init(-1.0)
+        GainFamily(2, 2).init(-1.0)
     from wmrjax.cli.tune import main
 
     with pytest.raises(SystemExit):
@@ -487,7 +487,7 @@ def test_listed_plant_scales_are_tuned_over_as_scenarios():
         data["plant"]["geometry_scale"] = scales
         data["plant"]["input_scale"] = scales
         setting = Problem.from_dict(data).setting("tuning")
-        loop.check(setting, TS.gain_spec(setting), TS.scenarios, TS.loss)
+        loop.check(setting, TS.gain_family(setting), TS.scenarios, TS.loss)
         sc = draw_set(setting, mismatch, keys)
         g = np.asarray(sc.inputs["geometry_scale"])
         u = np.asarray(sc.inputs["input_scale"])
@@ -503,7 +503,7 @@ def test_listed_plant_scales_are_tuned_over_as_scenarios():
     data["plant"]["input_limit"] = [[5.5, 1.0], [4.0, 1.0]]
     setting = Problem.from_dict(data).setting("tuning")
     with pytest.raises(ValueError, match="tuning takes one \\[plant\\] input_limit"):
-        loop.check(setting, TS.gain_spec(setting), TS.scenarios, TS.loss)
+        loop.check(setting, TS.gain_family(setting), TS.scenarios, TS.loss)
 
 
 def test_more_knots_than_steps_are_refused_before_anything_is_built():
@@ -513,7 +513,7 @@ def test_more_knots_than_steps_are_refused_before_anything_is_built():
     problem = Problem.from_dict(data)
     settings = config.read(problem.section("tune"))
     with pytest.raises(ProblemError, match=r"1000000 knots on a horizon of 40 steps .* at most one per step \(41\)"):
-        settings.gain_spec(problem.setting("tuning"))
+        settings.gain_family(problem.setting("tuning"))
     data["tune"]["family"] = {"knots": 41}
     problem = Problem.from_dict(data)
-    assert len(config.read(problem.section("tune")).gain_spec(problem.setting("tuning")).knots) == 41
+    assert len(config.read(problem.section("tune")).gain_family(problem.setting("tuning")).knots) == 41

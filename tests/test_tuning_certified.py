@@ -13,7 +13,7 @@ from wmrjax.tune import config, loop, mean_loss, objective
 @pytest.fixture(scope="module")
 def tiny():
     setting = TINY.setting("tuning")
-    family = TS.gain_spec(setting)
+    family = TS.gain_family(setting)
     return setting, family, loop.prepare(setting, family, TS.scenarios, TS.loss, TS.seed)
 
 
@@ -82,7 +82,7 @@ def test_requirement_refuses_what_it_cannot_keep(tiny, tmp_path):
         }
     ).setting("tuning")
     with pytest.raises(ValueError, match="dynamic linearizing law"):
-        certified.check(static, TS.gain_spec(static))
+        certified.check(static, TS.gain_family(static))
     for table, match in (
         ({"radius": "big"}, "radius: expected"),
         ({"radius": -1.0}, "radius: expected"),
@@ -153,4 +153,4 @@ def test_requirement_on_type_12_is_refused_with_its_reason():
     )
     st = pr.setting("tuning")
     with pytest.raises(ValueError, match=r"\(1,2\) is not supported: .*branch and bound"):
-        certified.check(st, TS.gain_spec(st))
+        certified.check(st, TS.gain_family(st))

@@ -11,11 +11,11 @@ import wmrjax as w
 from wmrjax.cli.tune import baseline_budget
 from wmrjax.examples import PROBLEMS, problem_file
 from wmrjax.problem import Problem, ProblemError
-from wmrjax.tune import GainSpec, baselines, config, loop
+from wmrjax.tune import GainFamily, baselines, config, loop
 
 
 def test_schedule_spec_gives_a_schedule_and_starts_at_the_paper_gains():
-    spec = GainSpec(2, 3, shared=False, knots=(0.0, 5.0, 10.0))
+    spec = GainFamily(2, 3, shared=False, knots=(0.0, 5.0, 10.0))
     assert spec.shape == (3, 2, 3) and spec.size == 18
     raw = spec.init(1.0)
     s = spec.gains(raw)
@@ -26,16 +26,16 @@ def test_schedule_spec_gives_a_schedule_and_starts_at_the_paper_gains():
     c = np.asarray(spec.gains(bumped).coeffs_at(5.0))
     assert c[0, 0] > 1.0 and np.allclose(c[1], [1.0, 3.0, 3.0])
     np.testing.assert_allclose(spec.gains(bumped).coeffs_at(0.0), [[1.0, 3.0, 3.0]] * 2, rtol=1e-12)
-    shared = GainSpec(2, 2, knots=(0.0, 1.0))  # one schedule for both outputs
+    shared = GainFamily(2, 2, knots=(0.0, 1.0))  # one schedule for both outputs
     np.testing.assert_allclose(shared.coefficients(shared.init(1.0)), [[[1.0, 2.0]] * 2] * 2, rtol=1e-12)
     assert shared.gains(shared.init(1.0)).shape == (2, 2)
-    floor = GainSpec(2, 2, min_damping=0.5)
+    floor = GainFamily(2, 2, min_damping=0.5)
     np.testing.assert_allclose(floor.positive(floor.init(1.0)), [1.0, 1.0], rtol=1e-12)
     assert float(floor.positive(jnp.array([0.0, -50.0]))[1]) >= 0.5
     with pytest.raises(ValueError, match="knots must be >= 2"):
-        GainSpec(2, 2, knots=(0.0,))
+        GainFamily(2, 2, knots=(0.0,))
     with pytest.raises(ValueError, match="damping parameterization"):
-        GainSpec(2, 2, knots=(0.0, 1.0), parameterization="poles")
+        GainFamily(2, 2, knots=(0.0, 1.0), parameterization="poles")
 
 
 @pytest.mark.parametrize("level", ["velocity", "torque"])
@@ -103,7 +103,7 @@ def test_sampled_loop_fails_frozen_at_the_last_good_state():
 def test_cma_es_and_random_search_on_a_known_quadratic():
     """A quadratic with its minimum at raw = (0.3, -0.2): CMA-ES gets within 1e-3, random search
     samples inside its box and keeps frozen entries; the accounting is n_train per candidate."""
-    spec = GainSpec(1, 2)
+    spec = GainFamily(1, 2)
     target = np.array([0.3, -0.2])
     evaluate = lambda raws: np.sum((np.asarray(raws).reshape(-1, 2) - target) ** 2, axis=1)
     run = baselines.cma_es(
@@ -112,7 +112,7 @@ def test_cma_es_and_random_search_on_a_known_quadratic():
     assert run.rollouts == 8 * 60 * 4 and len(run.best_so_far) == 480 and run.best_loss < 1e-6
     assert run.rollouts_to_best == 4 * (1 + int(np.argmin(run.best_so_far)))
     np.testing.assert_allclose(run.best_raw, target, atol=1e-3)
-    frozen = GainSpec(1, 2, frozen=(1,))
+    frozen = GainFamily(1, 2, frozen=(1,))
     rs = baselines.random_search(
         frozen, evaluate, np.array([0.0, 0.7]), budget_rollouts=40, n_train=4, seed=0, low=0.2, high=5.0
     )
@@ -152,7 +152,7 @@ def test_shipped_problems_and_bad_tuning_problems(tmp_path):
     car = Problem.load(problem_file("car_schedule"))
     setting = car.setting("tuning")
     ts = config.read(car.section("tune"))
-    assert setting.ctrl.robot.name == "(1,1)" and ts.gain_spec(setting).size == 24
+    assert setting.ctrl.robot.name == "(1,1)" and ts.gain_family(setting).size == 24
     assert Problem.load(problem_file("torque_2_1")).setting("tuning").ctrl.level == "torque"
     with pytest.raises(ValueError, match="problem must be a file or one of"):
         problem_file("car")
@@ -161,16 +161,16 @@ def test_shipped_problems_and_bad_tuning_problems(tmp_path):
     with pytest.raises(ProblemError, match=r"knot_times: expected >= 2 strictly increasing"):
         config.read(car.with_values({"tune.family.knot_times": [0.0, 5.0, 5.0]}).section("tune"))
     with pytest.raises(ValueError, match="reach beyond the horizon"):
-        loop.check(setting, GainSpec(2, 3, knots=(0.0, 5.0, 12.0)), ts.scenarios, ts.loss)
+        loop.check(setting, GainFamily(2, 3, knots=(0.0, 5.0, 12.0)), ts.scenarios, ts.loss)
     with pytest.raises(ValueError, match="certificate term needs a dynamic .* fixed reference"):
-        loop.check(setting, ts.gain_spec(setting), ts.scenarios, ts.loss._replace(certificate=1.0))
+        loop.check(setting, ts.gain_family(setting), ts.scenarios, ts.loss._replace(certificate=1.0))
     s61 = Problem.load(problem_file("section_6_1_plant"))
     ts61 = config.read(s61.with_values({"tune.baselines.budget": 0.01}).section("tune"))
     with pytest.raises(ValueError, match="less than one CMA-ES generation"):
-        baseline_budget(ts61, ts61.gain_spec(s61.setting("tuning")))
+        baseline_budget(ts61, ts61.gain_family(s61.setting("tuning")))
     with pytest.raises(ValueError, match="takes one value of \\[gains\\]"):
         loop.check(
-            s61.with_values({"gains.poles": [1.0, 2.0]}).setting("tuning"), GainSpec(2, 2), ts61.scenarios, ts61.loss
+            s61.with_values({"gains.poles": [1.0, 2.0]}).setting("tuning"), GainFamily(2, 2), ts61.scenarios, ts61.loss
         )
     from wmrjax.cli.tune import main
 

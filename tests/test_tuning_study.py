@@ -10,7 +10,7 @@ import pytest
 from test_tuning import TINY_DATA
 
 from wmrjax.problem import Problem
-from wmrjax.tune import GainSpec, baselines, loop, study
+from wmrjax.tune import GainFamily, baselines, loop, study
 
 jax.config.update("jax_enable_x64", True)
 TINY = Problem.from_dict(TINY_DATA)
@@ -65,7 +65,7 @@ def test_optuna_baselines_respect_budget_frozen_and_seed_and_improve(tiny):
 def test_feasible_rejects_and_scenarios_for_resamples_every_baseline():
     """A candidate the check rejects scores +inf and is never the best (the quadratic's minimum
     is rejected); with scenarios_for each batch is scored on its own draw, batch by batch."""
-    spec = GainSpec(1, 2)
+    spec = GainFamily(1, 2)
     feasible = lambda raw: raw[0] >= 0.5
     kw = dict(budget_rollouts=4 * 60, n_train=4, seed=3)
     box = dict(low=0.2, high=5.0)

@@ -336,7 +336,7 @@ from wmrjax.tune import config, tune
 P = Problem.from_dict(DATA)
 TS = config.read(P.section("tune"))
 setting = P.setting("tuning")
-fam = TS.gain_spec(setting)
+fam = TS.gain_family(setting)
 def go(out, steps=None, **kw):
     steps = steps or TS.steps
     return tune(setting, fam, TS.optimizer.build(steps), steps=steps, scenarios=TS.scenarios, loss=TS.loss,

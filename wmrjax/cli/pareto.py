@@ -48,7 +48,7 @@ def main(argv=None) -> int:
         problem = problem_args.problem_from_args(a)
         setting = problem.setting("tuning")
         settings = config.read(problem.section("tune"), problem.section("certify"))
-        certified.check(setting, settings.gain_spec(setting))
+        certified.check(setting, settings.gain_family(setting))
     except ValueError as e:
         p.error(str(e))
     s = running.work(p, a, lambda progress: run(problem, a.out, a.slice, a.fractions, a.radii, a.eps, log=progress))

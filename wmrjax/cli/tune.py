@@ -53,7 +53,7 @@ def main(argv=None) -> int:
         problem = problem_args.problem_from_args(a)
         setting = problem.setting("tuning")
         settings = config.read(problem.section("tune"), problem.section("certify"))
-        family = settings.gain_spec(setting)
+        family = settings.gain_family(setting)
         loop.check(setting, family, settings.scenarios, settings.loss)
         if settings.requirement is not None:
             certified.check(setting, family)

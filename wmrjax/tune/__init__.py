@@ -14,16 +14,13 @@ Example::
     problem = wmrjax.problem.Problem.load("wmrjax/examples/section_6_1_plant.toml")
     setting = problem.setting("tuning")
     settings = wmrjax.tune.config.read(problem.section("tune"))
-    result = wmrjax.tune.tune(setting, settings.gain_spec(setting), optax.adam(0.1), steps=40)
+    result = wmrjax.tune.tune(setting, settings.gain_family(setting), optax.adam(0.1), steps=40)
 """
 
 from wmrjax.examples import PROBLEMS, problem_file  # noqa: F401
 from wmrjax.tune.baselines import BaselineRun, cma_es, random_search  # noqa: F401
 from wmrjax.tune.config import Baselines, Optimizer, Scenarios, Stopping, TuneSettings  # noqa: F401
-from wmrjax.tune.gains import GainSpec  # noqa: F401
+from wmrjax.tune.gains import GainFamily  # noqa: F401
 from wmrjax.tune.loop import Context, TuneResult, mean_loss, mean_loss_and_grad, objective, tune  # noqa: F401
 from wmrjax.tune.losses import LossWeights, Metrics, metrics  # noqa: F401
 from wmrjax.tune.scenarios import Scenario, rollout  # noqa: F401
-
-GainFamily = GainSpec
-"""The family of tuned gains (another name for :class:`GainSpec`)."""

@@ -1,6 +1,6 @@
 r"""Derivative-free baselines on the same terms as the gradient tuner.
 
-Both search the same unconstrained parameters ``raw`` of the same :class:`wmrjax.tune.GainSpec`
+Both search the same unconstrained parameters ``raw`` of the same :class:`wmrjax.tune.GainFamily`
 (frozen entries stay at their initial values), are scored by the same training objective
 (:func:`wmrjax.tune.loop.objective`: mean valid loss plus the failure penalty, plus the certificate
 term when weighted) on the same training scenarios, and are charged the same way: one rollout
@@ -15,7 +15,7 @@ is one scenario simulated once, so a candidate costs ``n_train`` rollouts.
 * :func:`optuna_tpe` and :func:`optuna_cmaes` -- Optuna's TPE sampler and its CMA-ES sampler,
   what a user reaching for a tuning library would pick, through Optuna's ask-and-tell interface
   on the free unconstrained parameters in a box (random search's box mapped through
-  :meth:`wmrjax.tune.GainSpec.raw_from_positive`, widened to hold the initial gains); both are told
+  :meth:`wmrjax.tune.GainFamily.raw_from_positive`, widened to hold the initial gains); both are told
   the initial gains first (enqueued trial 0), then ask a batch of trials at a time, simulate it
   in one batched call and tell the objectives.
 
@@ -95,9 +95,9 @@ def candidate_evaluator(objective_fn: Callable, shape, chunk: int = 16, compiler
     return evaluate
 
 
-def _free_mask(spec):
-    mask = np.ones(spec.size, bool)
-    mask[list(spec.frozen)] = False
+def _free_mask(family):
+    mask = np.ones(family.size, bool)
+    mask[list(family.frozen)] = False
     return mask
 
 
@@ -131,27 +131,27 @@ def _score(evaluate, raws, k: int, feasible, scenarios_for):
     return v
 
 
-def log_box(spec, low: float, high: float):
-    """``(lo, hi)``, each of shape ``spec.shape``: the log of random search's positive box (rates
+def log_box(family, low: float, high: float):
+    """``(lo, hi)``, each of shape ``family.shape``: the log of random search's positive box (rates
     in [low, high] 1/s, dampings in [0.3, 3] and above ``min_damping``)."""
-    kinds = spec.kinds()
-    lo = np.where(kinds == "damping", np.log(max(0.3, 1.01 * spec.min_damping)), np.log(low))
-    hi = np.where(kinds == "damping", np.log(max(3.0, 2.0 * spec.min_damping)), np.log(high))
+    kinds = family.kinds()
+    lo = np.where(kinds == "damping", np.log(max(0.3, 1.01 * family.min_damping)), np.log(low))
+    hi = np.where(kinds == "damping", np.log(max(3.0, 2.0 * family.min_damping)), np.log(high))
     return lo, hi
 
 
-def raw_box(spec, raw0, low: float, high: float):
+def raw_box(family, raw0, low: float, high: float):
     """``(lo, hi)`` flat: random search's box in the unconstrained parameters (the map is
     increasing), widened to hold ``raw0`` (a sampler's initial point must lie in its domain)."""
-    lo, hi = log_box(spec, low, high)
-    r_lo = np.asarray(spec.raw_from_positive(np.exp(lo)), float).reshape(-1)
-    r_hi = np.asarray(spec.raw_from_positive(np.exp(hi)), float).reshape(-1)
+    lo, hi = log_box(family, low, high)
+    r_lo = np.asarray(family.raw_from_positive(np.exp(lo)), float).reshape(-1)
+    r_hi = np.asarray(family.raw_from_positive(np.exp(hi)), float).reshape(-1)
     x0 = np.asarray(raw0, float).reshape(-1)
     return np.minimum(r_lo, x0), np.maximum(r_hi, x0)
 
 
 def random_search(
-    spec,
+    family,
     evaluate,
     raw0,
     *,
@@ -169,10 +169,10 @@ def random_search(
     t0 = time.perf_counter()
     n_cand = max(1, budget_rollouts // n_train)
     rng = np.random.default_rng(seed)
-    lo, hi = log_box(spec, low, high)
-    u = rng.uniform(size=(n_cand,) + spec.shape)
-    raws = np.asarray(spec.raw_from_positive(np.exp(lo + (hi - lo) * u)))
-    free = _free_mask(spec).reshape(spec.shape)
+    lo, hi = log_box(family, low, high)
+    u = rng.uniform(size=(n_cand,) + family.shape)
+    raws = np.asarray(family.raw_from_positive(np.exp(lo + (hi - lo) * u)))
+    free = _free_mask(family).reshape(family.shape)
     raws = np.where(free, raws, np.asarray(raw0))
     vals, secs = [], []
     for k, i in enumerate(range(0, n_cand, batch)):
@@ -182,7 +182,7 @@ def random_search(
 
 
 def cma_es(
-    spec,
+    family,
     evaluate,
     raw0,
     *,
@@ -199,7 +199,7 @@ def cma_es(
     from cmaes import CMA  # optional dependency (the cli extra): only the CMA-ES baseline needs it
 
     t0 = time.perf_counter()
-    free = _free_mask(spec)
+    free = _free_mask(family)
     x0 = np.asarray(raw0, float).reshape(-1)
     n_gen = budget_rollouts // (population * n_train)
     if n_gen < 1:
@@ -212,16 +212,16 @@ def cma_es(
         xs = np.stack([opt.ask() for _ in range(population)])
         full = np.repeat(x0[None], population, axis=0)
         full[:, free] = xs
-        v = _score(evaluate, full.reshape((population,) + spec.shape), k, feasible, scenarios_for)
+        v = _score(evaluate, full.reshape((population,) + family.shape), k, feasible, scenarios_for)
         opt.tell([(x, float(min(f, TOLD_CAP))) for x, f in zip(xs, v)])
         vals.append(v)
-        raws.append(full.reshape((population,) + spec.shape))
+        raws.append(full.reshape((population,) + family.shape))
         secs += [time.perf_counter() - t0] * population
     return _record("cma_es", seed, np.concatenate(vals), np.concatenate(raws), n_train, secs)
 
 
 def optuna_tpe(
-    spec,
+    family,
     evaluate,
     raw0,
     *,
@@ -239,11 +239,11 @@ def optuna_tpe(
     import optuna  # optional dependency (the cli extra): only the Optuna baseline needs it
 
     sampler = optuna.samplers.TPESampler(seed=seed)
-    lo, hi = raw_box(spec, raw0, low, high)
+    lo, hi = raw_box(family, raw0, low, high)
     return _optuna(
         "optuna_tpe",
         sampler,
-        spec,
+        family,
         evaluate,
         raw0,
         (lo, hi),
@@ -257,7 +257,7 @@ def optuna_tpe(
 
 
 def optuna_cmaes(
-    spec,
+    family,
     evaluate,
     raw0,
     *,
@@ -280,8 +280,8 @@ def optuna_cmaes(
     """
     import optuna  # optional dependency (the cli extra): only the Optuna baseline needs it
 
-    lo, hi = raw_box(spec, raw0, low, high)
-    free = _free_mask(spec)
+    lo, hi = raw_box(family, raw0, low, high)
+    free = _free_mask(family)
     x0 = {f"raw_{i}": float(v) for i, v in enumerate(np.asarray(raw0, float).reshape(-1)) if free[i]}
     with warnings.catch_warnings():  # x0 and sigma0 are deprecated (still in 5.x): the user's choice here
         warnings.simplefilter("ignore")
@@ -291,7 +291,7 @@ def optuna_cmaes(
     return _optuna(
         "optuna_cmaes",
         sampler,
-        spec,
+        family,
         evaluate,
         raw0,
         (lo, hi),
@@ -307,7 +307,7 @@ def optuna_cmaes(
 def _optuna(
     method: str,
     sampler,
-    spec,
+    family,
     evaluate,
     raw0,
     box,
@@ -327,7 +327,7 @@ def _optuna(
 
     t0 = time.perf_counter()
     optuna.logging.set_verbosity(optuna.logging.WARNING)  # no line per trial
-    free = _free_mask(spec)
+    free = _free_mask(family)
     x0 = np.asarray(raw0, float).reshape(-1)
     names = [f"raw_{i}" for i in np.flatnonzero(free)]
     lo, hi = box
@@ -346,7 +346,7 @@ def _optuna(
             trials = [study.ask(dists) for _ in range(size)]
             full = np.repeat(x0[None], size, axis=0)
             full[:, free] = [[t.params[n] for n in names] for t in trials]
-            full = full.reshape((size,) + spec.shape)
+            full = full.reshape((size,) + family.shape)
             v = _score(evaluate, full, k, feasible, scenarios_for)
             for t, f in zip(trials, v):
                 study.tell(t, float(min(f, TOLD_CAP)))

@@ -3,7 +3,7 @@
     [tune]
     seed = 0                  # scenario draws and baseline streams
     steps = 40                # optimizer steps
-    [tune.family]             # the tuned gains (wmrjax.tune.GainSpec)
+    [tune.family]             # the tuned gains (wmrjax.tune.GainFamily)
     parameterization = "damping"    # or "poles" (real poles only)
     shared = true             # one polynomial for every output
     knots = 0                 # a gain schedule with K >= 2 knots on [0, t_final] (or knot_times = [...])
@@ -54,7 +54,7 @@ import optax
 from wmrjax.problem import ProblemError, check_keys, integer, nonnegative, positive
 from wmrjax.tune import certified
 from wmrjax.tune.certified import Requirement
-from wmrjax.tune.gains import GainSpec
+from wmrjax.tune.gains import GainFamily
 from wmrjax.tune.losses import LossWeights
 
 
@@ -135,7 +135,7 @@ class TuneSettings(NamedTuple):
     seed: int = 0
     requirement: Requirement | None = None
 
-    def gain_spec(self, setting) -> GainSpec:
+    def gain_family(self, setting) -> GainFamily:
         """The gain family for the problem's controller (knots uniform on [0, t_final] when given as a count)."""
         f = self.family
         n_knots = len(f.get("knot_times", ())) or f.get("knots", 0)
@@ -149,7 +149,7 @@ class TuneSettings(NamedTuple):
             tuple(float(t) for t in np.linspace(0.0, setting.t_final, f["knots"])) if f.get("knots") else ()
         )
         try:
-            return GainSpec(
+            return GainFamily(
                 setting.ctrl.m,
                 setting.ctrl.relative_degree,
                 f.get("shared", True),

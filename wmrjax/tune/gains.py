@@ -40,7 +40,7 @@ def softplus_inverse(y):
 
 
 @dataclasses.dataclass(frozen=True)
-class GainSpec:
+class GainFamily:
     """Static description of the tuned gains (hashable; not a pytree).
 
     Attributes:

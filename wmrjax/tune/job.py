@@ -29,7 +29,7 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
     say = progress or log
     setting = problem.setting("tuning")
     settings = config.read(problem.section("tune"), problem.section("certify"))
-    family = settings.gain_spec(setting)
+    family = settings.gain_family(setting)
     out.mkdir(parents=True, exist_ok=True)
     if fresh and (out / "checkpoint.json").exists():
         (out / "checkpoint.json").unlink()
@@ -429,17 +429,17 @@ def _preload() -> None:
     files.headless_pyplot()
 
 
-def _gains_report(spec, raw):
-    pos = np.asarray(spec.positive(raw))
-    params = dict(zip(spec.names(), pos.tolist())) if spec.shared and not spec.knots else pos.tolist()
+def _gains_report(family, raw):
+    pos = np.asarray(family.positive(raw))
+    params = dict(zip(family.names(), pos.tolist())) if family.shared and not family.knots else pos.tolist()
     return {
-        "parameterization": spec.parameterization,
-        "shared_across_outputs": spec.shared,
-        "knots_s": list(spec.knots),
-        "parameter_names": spec.names(),
+        "parameterization": family.parameterization,
+        "shared_across_outputs": family.shared,
+        "knots_s": list(family.knots),
+        "parameter_names": family.names(),
         "parameters": params,
-        "coefficients_k0_to_kr-1": np.asarray(spec.coefficients(raw)).tolist(),
-        "closed_loop_poles_re_im": spec.closed_loop_poles(raw),
+        "coefficients_k0_to_kr-1": np.asarray(family.coefficients(raw)).tolist(),
+        "closed_loop_poles_re_im": family.closed_loop_poles(raw),
     }
 
 
@@ -451,7 +451,7 @@ def _band(runs):
     return x, np.median(curves, axis=0), curves.min(axis=0), curves.max(axis=0)
 
 
-def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, programs):
+def _figures(out, title, setting, family, hist, runs, paper_raw, tuned_raw, programs):
     plt = files.headless_pyplot()
     fig, ax = plt.subplots(figsize=(6.8, 4.3))
     ax.semilogy([h["rollouts"] for h in hist], [h["train_loss"] for h in hist], "C0", label="gradient (train)")
@@ -471,30 +471,30 @@ def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, progra
     plt.close(fig)
 
     ts = np.linspace(0.0, setting.t_final, 201)
-    fig, axs = plt.subplots(1, spec.r, figsize=(3.6 * spec.r, 3.4), squeeze=False)
-    names = spec.names()
+    fig, axs = plt.subplots(1, family.r, figsize=(3.6 * family.r, 3.4), squeeze=False)
+    names = family.names()
     # one program for both schedules (a jit per schedule compiled twice)
     schedule_at = jax.jit(lambda gains, ts: jax.vmap(gains.parameters_at)(ts))
     for raw, lab, ls in ((paper_raw, "initial", "--"), (tuned_raw, "tuned", "-")):
-        gains = spec.gains(raw)
-        if spec.knots:
+        gains = family.gains(raw)
+        if family.knots:
             pos = np.asarray(schedule_at(gains, jnp.asarray(ts)))  # (T, m, r)
         else:  # (T, 1 or m, r)
-            one = np.asarray(spec.positive(raw)).reshape(-1, spec.r)
+            one = np.asarray(family.positive(raw)).reshape(-1, family.r)
             pos = np.broadcast_to(one, (len(ts),) + one.shape)
-        for j in range(spec.r):
+        for j in range(family.r):
             for i in range(pos.shape[1]):
                 axs[0, j].plot(ts, pos[:, i, j], f"C{i}{ls}", lw=1.2, label=f"{lab}, output {i + 1}")
-    for j in range(spec.r):
+    for j in range(family.r):
         unit = "" if names[j].startswith("zeta") else " [1/s]"
         axs[0, j].set_title(names[j] + unit)
         axs[0, j].set_xlabel("t [s]")
         axs[0, j].grid(alpha=0.3)
-        if spec.knots:
-            for tk in spec.knots:
+        if family.knots:
+            for tk in family.knots:
                 axs[0, j].axvline(tk, color="0.7", lw=0.6)
     axs[0, 0].legend(fontsize=6)
-    fig.suptitle(f"{title}: gains over time (grey: knots)" if spec.knots else f"{title}: gains")
+    fig.suptitle(f"{title}: gains over time (grey: knots)" if family.knots else f"{title}: gains")
     fig.tight_layout()
     files.write_png(fig, out / "schedule.png")
     plt.close(fig)
@@ -508,7 +508,7 @@ def _figures(out, title, setting, spec, hist, runs, paper_raw, tuned_raw, progra
     pos_ref = np.asarray(jax.jit(jax.vmap(ref.position))(t))
     axs[0].plot(pos_ref[:, 0], pos_ref[:, 1], "k--", lw=1.2, label="reference")
     for raw, lab, c in ((paper_raw, "initial gains", "C3"), (tuned_raw, "tuned", "C0")):
-        xy, err = (np.asarray(x) for x in programs["trajectories"](spec.gains(raw)))
+        xy, err = (np.asarray(x) for x in programs["trajectories"](family.gains(raw)))
         axs[0].plot(xy[:, 0], xy[:, 1], c, lw=1.2, label=lab)
         axs[1].semilogy(t, np.maximum(np.hypot(err[:, 0], err[:, 1]), 1e-8), c, label=lab)
     axs[0].set_xlabel("x [m]")

@@ -2,7 +2,7 @@
 problem's closed loop, with a held-out split, early stopping and atomic JSON checkpoints.
 
 :func:`tune` takes a problem's :class:`wmrjax.problem.Setting`, a gain family
-(:class:`wmrjax.tune.GainSpec`) and an ``optax.GradientTransformation`` and returns a
+(:class:`wmrjax.tune.GainFamily`) and an ``optax.GradientTransformation`` and returns a
 :class:`TuneResult`; the configuration comes in small groups (:mod:`wmrjax.tune.config`).
 """
 
@@ -27,7 +27,7 @@ from wmrjax.controllers.dynamic import DynamicLinearization
 from wmrjax.references import FAMILIES
 from wmrjax.tune import certified
 from wmrjax.tune.config import Scenarios, Stopping
-from wmrjax.tune.gains import GainSpec
+from wmrjax.tune.gains import GainFamily
 from wmrjax.tune.losses import LossWeights, certificate_radius, scenario_loss
 from wmrjax.tune.scenarios import Scenario, check_shared, draw_set, rollout, shared_axes
 
@@ -63,7 +63,7 @@ class Context(NamedTuple):
     weights (an array) and the certificate term's data (None without it)."""
 
     setting: object
-    family: GainSpec
+    family: GainFamily
     sets: ScenarioSets
     weights: jnp.ndarray
     certificate: Certificate | None
@@ -114,7 +114,7 @@ class TuneResult(NamedTuple):
 # --- set-up --------------------------------------------------------------------------------------
 
 
-def check(setting, family: GainSpec, scenarios: Scenarios, loss: LossWeights) -> None:
+def check(setting, family: GainFamily, scenarios: Scenarios, loss: LossWeights) -> None:
     """ValueError for what cannot be tuned, before anything compiles: a static law at torque
     level, a certificate term without a dynamic law and a fixed reference, a family of
     another shape, or the problem's initial gains outside the family."""
@@ -143,7 +143,7 @@ def check(setting, family: GainSpec, scenarios: Scenarios, loss: LossWeights) ->
     initial_raw(setting, family)
 
 
-def initial_raw(setting, family: GainSpec):
+def initial_raw(setting, family: GainFamily):
     """The family's parameters of the problem's ``[gains]`` (poles: real poles; omega and zeta:
     damping factors), from which the tuner starts."""
     gs = setting.data.get("gains", {"poles": 1.0})
@@ -193,14 +193,14 @@ def certificate(setting, weight: float, eps: float = CERTIFICATE_EPS, n_t: int =
     return Certificate(ts, certify.m1_closed_form(setting.ctrl, params, ts), eps, float(weight))
 
 
-def certificate_term(family: GainSpec, raw, cert: Certificate | None):
+def certificate_term(family: GainFamily, raw, cert: Certificate | None):
     """``-weight x`` the Lemma 2 radius of the gains (0 without the term); differentiable in raw."""
     if cert is None:
         return jnp.zeros(())
     return -cert.weight * certificate_radius(family.gains(raw), cert.m1, cert.ts, cert.eps)
 
 
-def prepare(setting, family: GainSpec, scenarios: Scenarios, loss: LossWeights, seed: int) -> Context:
+def prepare(setting, family: GainFamily, scenarios: Scenarios, loss: LossWeights, seed: int) -> Context:
     """Check, draw the scenario sets and compute the certificate term's data."""
     check(setting, family, scenarios, loss)
     sets = _draw_sets(setting, scenarios, jax.random.PRNGKey(seed))
@@ -280,7 +280,7 @@ def objective(loss, ok):
 
 
 _objective_plus = jax.jit(lambda loss, ok, extra: objective(loss, ok) + extra)
-_positive = jax.jit(lambda spec, raw: spec.positive(raw), static_argnums=0)
+_positive = jax.jit(lambda family, raw: family.positive(raw), static_argnums=0)
 
 
 # --- checkpoints -----------------------------------------------------------------------------------
@@ -290,7 +290,7 @@ STATE_KEYS = ("history", "best", "best_raw", "since_best", "rollouts", "excluded
 
 def fingerprint(
     setting,
-    family: GainSpec,
+    family: GainFamily,
     scenarios: Scenarios,
     loss: LossWeights,
     stopping: Stopping,
@@ -431,7 +431,7 @@ def check_memory(setting, scenarios: Scenarios) -> None:
 
 def tune(
     setting,
-    family: GainSpec,
+    family: GainFamily,
     optimizer: optax.GradientTransformation,
     *,
     steps: int,
@@ -456,7 +456,7 @@ def tune(
 
     Args:
       setting: the problem's :class:`wmrjax.problem.Setting` (one value of every axis).
-      family: the tuned gains (:class:`wmrjax.tune.GainSpec`); the run starts from the problem's
+      family: the tuned gains (:class:`wmrjax.tune.GainFamily`); the run starts from the problem's
         ``[gains]`` (:func:`initial_raw`).
       optimizer: any ``optax.GradientTransformation`` (e.g. :meth:`wmrjax.tune.Optimizer.build`).
       steps: optimizer steps.
@@ -493,7 +493,7 @@ def tune(
     )
 
 
-def _begin(setting, family: GainSpec, optimizer, scenarios, loss, seed: int, run_id: str, requirement, log):
+def _begin(setting, family: GainFamily, optimizer, scenarios, loss, seed: int, run_id: str, requirement, log):
     """The scenarios, the certificate's gradient and the starting point: ``(ctx, cert_vg, raw, opt_state, run_id)``."""
     check_memory(setting, scenarios)
     ctx = prepare(setting, family, scenarios, loss, seed)
@@ -591,7 +591,7 @@ def _start(ckpt, fp: str, steps: int, raw, opt_state, log):
     return 0, raw, opt_state, state
 
 
-def keep(setting, family: GainSpec, requirement, raw0) -> Kept:
+def keep(setting, family: GainFamily, requirement, raw0) -> Kept:
     """The :class:`Kept` of a requirement, its radius function built and its value resolved
     (``"initial"``: the radius at ``raw0``, the initial gains)."""
     radius = certified.radius_function(setting, family, requirement)

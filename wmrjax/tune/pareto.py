@@ -68,7 +68,7 @@ def tune_point(problem, required: float, slice_: str, eps: float, log=print) -> 
     tuned gains (exact map of the slice, falsified in it)."""
     setting = problem.setting("tuning")
     settings = config.read(problem.section("tune"), problem.section("certify"))
-    family = settings.gain_spec(setting)
+    family = settings.gain_family(setting)
     req = certified.Requirement(float(required), slice_, float(eps))
     res = loop.tune(
         setting,
@@ -118,7 +118,7 @@ def run(problem, out: Path, slice_: str = "full", fractions=None, radii=None, ep
     t0 = time.perf_counter()
     setting = problem.setting("tuning")
     settings = config.read(problem.section("tune"), problem.section("certify"))
-    family = settings.gain_spec(setting)
+    family = settings.gain_family(setting)
     eps = float(eps if eps is not None else problem.section("certify").get("eps", certified.DEFAULT_EPS))
     raw0 = loop.initial_raw(setting, family)
     initial = certified.radius_function(setting, family, certified.Requirement(0.0, slice_, eps)).value(

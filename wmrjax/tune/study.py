@@ -5,7 +5,7 @@ held-out loss against compute.
     wmrjax study --problems section_6_1_plant wmrjax/examples/s_path.toml --seeds 10 --out DIR
 
 Per problem (a shipped name or a problem file) and seed s, every method below searches the same
-gains (:class:`wmrjax.tune.GainSpec`), is scored by the same training objective
+gains (:class:`wmrjax.tune.GainFamily`), is scored by the same training objective
 (:func:`wmrjax.tune.loop.objective`, certificate term included) on the same scenarios, under the same
 certified-region requirement when the problem has one (``[tune.requirement]`` or
 ``--require-radius``): the gradient keeps it (:mod:`wmrjax.tune.certified`), a baseline rejects a
@@ -76,15 +76,15 @@ VERSION = 1  # bump when what a seed's file holds changes (its fingerprint then 
 FIELDS = ("problem", "method", "seed", "point", "compute_fwd", "seconds", "heldout_loss")
 
 
-def problem_path(spec: str) -> tuple[str, Path]:
+def problem_path(family: str) -> tuple[str, Path]:
     """``(name, file)`` of a shipped problem name or a problem file (ValueError otherwise); a
     relative path that does not exist from here is looked up from the repository's root."""
-    if spec in PROBLEMS:
-        return spec, PROBLEMS[spec]
-    for path in (Path(spec), REPO / spec):
+    if family in PROBLEMS:
+        return family, PROBLEMS[family]
+    for path in (Path(family), REPO / family):
         if path.is_file():
             return path.stem, path
-    raise ValueError(f"--problems: {spec!r} is neither a shipped problem ({', '.join(sorted(PROBLEMS))}) nor a file")
+    raise ValueError(f"--problems: {family!r} is neither a shipped problem ({', '.join(sorted(PROBLEMS))}) nor a file")
 
 
 # --- one problem ----------------------------------------------------------------------------------
@@ -114,13 +114,13 @@ def plan(name: str, problem, require=None) -> Plan:
         trial = problem.with_values({"tune.requirement": {"radius": require[0], "slice": require[1]}})
         s = trial.setting("tuning")
         try:
-            certified.check(s, config.read(trial.section("tune"), trial.section("certify")).gain_spec(s))
+            certified.check(s, config.read(trial.section("tune"), trial.section("certify")).gain_family(s))
             problem = trial
         except ValueError as err:  # e.g. a random reference family: no fixed path to certify
             note = f"requirement not applied: {err}"
     setting = problem.setting("tuning")
     settings = config.read(problem.section("tune"), problem.section("certify"))
-    family = settings.gain_spec(setting)
+    family = settings.gain_family(setting)
     loop.check(setting, family, settings.scenarios, settings.loss)
     raw0 = np.asarray(loop.initial_raw(setting, family))
     weights = jax.numpy.asarray(tuple(settings.loss), float)
@@ -450,7 +450,7 @@ def problem_cost(p: Plan, out: Path, say=print) -> dict:
 
 
 def study(problems: dict, out, *, seeds: int, methods=METHODS, points: int = 8, budget: float = 1.0, log=print) -> dict:
-    """Run (or resume) the study of ``problems`` (name -> (Problem, requirement spec or None))
+    """Run (or resume) the study of ``problems`` (name -> (Problem, requirement family or None))
     into ``out`` and write its three files; returns the summary."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
