@@ -34,7 +34,6 @@ def parser():
     g.add_argument(
         "--radii", type=options.nonnegative, nargs="+", default=None, help="required radii [output-error units: m, m/s]"
     )
-    p.add_argument("--eps", type=options.positive, default=None, help="the margin (default: [certify] eps, else 0.01)")
     return p
 
 
@@ -51,7 +50,7 @@ def main(argv=None) -> int:
         certified.check(setting, settings.gain_family(setting))
     except ValueError as e:
         p.error(str(e))
-    s = running.work(p, a, lambda progress: run(problem, a.out, a.slice, a.fractions, a.radii, a.eps, log=progress))
+    s = running.work(p, a, lambda progress: run(problem, a.out, a.slice, a.fractions, a.radii, log=progress))
     for pt in s["points"]:
         print(
             f"required {pt['required_radius']:.4g}: radius {pt['tuned_radius']:.4g} (falsified "

@@ -3,6 +3,7 @@ held-out loss against compute (``wmrjax study``; the study itself: :mod:`wmrjax.
 
     wmrjax study --out results/tuning_study
     wmrjax study --problems section_6_1_plant wmrjax/examples/s_path.toml --seeds 10 --out DIR
+    wmrjax study --problems s_path --seeds 2 --set tune.steps=10 --out DIR   # every problem smaller
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from wmrjax.cli import machine, options, running
+from wmrjax.cli import machine, options, problem_args, running
 from wmrjax.problem import Problem
 from wmrjax.tune.study import DEFAULT_PROBLEMS, METHODS, problem_path, study
 
@@ -32,10 +33,15 @@ def parser():
         default=1.0,
         help="every baseline's budget as a multiple of the gradient run's forward-rollout equivalents",
     )
-    p.add_argument("--steps", type=options.count, default=None, help="override every problem's optimizer steps")
-    p.add_argument("--n-train", type=options.count, default=None, help="override every problem's training scenarios")
-    p.add_argument("--n-validation", type=options.count, default=None, help="override the validation scenarios")
-    p.add_argument("--n-heldout", type=options.count, default=None, help="override the held-out scenarios")
+    p.add_argument(
+        "--set",
+        dest="set_values",
+        type=problem_args.key_value,
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="one value of every problem by its dotted key, a TOML value (tune.steps=10, tune.scenarios.train=16)",
+    )
     p.add_argument(
         "--require-radius",
         default=None,
@@ -45,17 +51,6 @@ def parser():
     )
     p.add_argument("--require-slice", default="full", choices=["full", "position"], help="the requirement's slice")
     return p
-
-
-def overrides(args) -> dict:
-    """The problem-file values the command line's options set."""
-    keys = {
-        "steps": "tune.steps",
-        "n_train": "tune.scenarios.train",
-        "n_validation": "tune.scenarios.validation",
-        "n_heldout": "tune.scenarios.heldout",
-    }
-    return {key: getattr(args, k) for k, key in keys.items() if getattr(args, k, None) is not None}
 
 
 def run(args, log=print) -> dict:
@@ -85,7 +80,7 @@ def problems_of(args) -> dict:
         name, path = problem_path(spec)
         if name in problems:
             raise ValueError(f"--problems: two problems named {name!r}")
-        over = overrides(args)
+        over = dict(args.set_values)
         problem = Problem.load(path)
         problems[name] = (problem.with_values(over) if over else problem, require)
     return problems
