@@ -1,4 +1,4 @@
-"""The shared command-line layer (wmrjax_cli): the persistent compilation cache (in subprocesses: it is
+"""The shared command-line layer (wmrjax.cli): the persistent compilation cache (in subprocesses: it is
 global JAX configuration, which the library itself never touches), how a failed run ends (a bad
 option: exit 2 with the usage; an error of the work: exit 1, its traceback under --verbose), and one
 writer per output directory."""

@@ -1,16 +1,17 @@
-"""What every command line of this project shares: argument types that refuse bad values at
-parse time, cross-argument checks, the output directory made and test-written before any
-work, progress lines while long stages run, and how a failed run ends.
+"""What every command line of this project shares at parse time: argument types that refuse
+bad values, the parser (``--out``, the compilation cache, ``--verbose``) and :func:`fail`.
 
-The experiments (``python -m experiments.*``) and the tuner (``wmrjax tune``) build
-their parsers with :func:`parser` and declare each option with one of the types below, so a
-bad value stops the program in milliseconds with ``argument --name: ...`` naming the option
-and the expected form, before JAX compiles anything. Nothing here imports JAX at module level.
+The ``wmrjax`` jobs and the repository's scripts (``python -m paper.*``, ``benchmarks.*``)
+build their parsers with :func:`parser` and declare each option with one of the types below,
+so a bad value stops the program in milliseconds with ``argument --name: ...`` naming the
+option and the expected form, before JAX compiles anything. The problem's options are
+:mod:`wmrjax.cli.problem_args`; the machine set-up :mod:`wmrjax.cli.machine`; the work and how
+it ends :mod:`wmrjax.cli.running`.
 
 Exit statuses: 2 with the usage text for a bad option (argparse's own errors and the checks
 made with :func:`fail` before the work starts); 1 for an error of the work itself (a
-``ValueError`` raised by it, see :func:`work`): ``PROG: error: MESSAGE`` without the usage,
-its traceback shown with ``--verbose``.
+``ValueError`` raised by it, see :func:`wmrjax.cli.running.work`): ``PROG: error: MESSAGE``
+without the usage, its traceback shown with ``--verbose``.
 """
 
 from __future__ import annotations
