@@ -1057,7 +1057,7 @@ def _parser():
     """The command's options (the workers' hidden ones included)."""
     from wmrjax.cli import options
 
-    p = common.parser(__doc__.splitlines()[0], "results/benchmark", compile_cache=False)  # it times compilation
+    p = options.parser(__doc__.splitlines()[0], "results/benchmark", compile_cache=False)  # it times compilation
     p.add_argument(
         "--batches",
         type=options.count,

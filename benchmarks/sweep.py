@@ -20,7 +20,8 @@ import sys
 import time
 from pathlib import Path
 
-from wmrjax.cli import common
+from wmrjax import _files as files
+from wmrjax.cli import machine, options
 
 SPEC = """title = "scale benchmark: the section 6.1 loop over {n} x {n} initial position errors"
 [controller]
@@ -118,14 +119,14 @@ def run(out: Path, runs: int, block: int, progress=print) -> dict:
             pq.read_table(out / "one_process" / "runs.parquet")
         )
     )
-    common.write_json(out / "summary.json", res)
+    files.write_json(out / "summary.json", res)
     return res
 
 
 def main(argv=None) -> int:
-    from wmrjax.cli import machine, options, running
+    from wmrjax.cli import running
 
-    p = common.parser(__doc__.splitlines()[0], "results/sweep_benchmark")
+    p = options.parser(__doc__.splitlines()[0], "results/sweep_benchmark")
     p.add_argument(
         "--runs", type=options.count, default=1_000_000, help="runs per sweep (rounded down to a square grid)"
     )

@@ -11,12 +11,15 @@ import numpy as np
 
 import wmrjax as w
 from wmrjax import Level, references
+from wmrjax._files import headless_pyplot as pyplot
+from wmrjax._files import write_json, write_npz
+from wmrjax._files import write_png as save_figure
+from wmrjax._math import quantiles
 from wmrjax.cli import machine, options, running
-from wmrjax.cli.common import enable_x64, parser, pyplot, quantiles, save_figure, write_json, write_npz
+from wmrjax.cli.machine import enable_x64
 
 __all__ = [
     "enable_x64",
-    "parser",
     "pyplot",
     "quantiles",
     "save_figure",
@@ -49,7 +52,7 @@ def section_6_1_setup():
 
 def tracking_cli(argv, doc, default_out, kinds, run_fn) -> int:
     """The command line shared by the tracking experiments."""
-    p = parser(doc.splitlines()[0], default_out)
+    p = options.parser(doc.splitlines()[0], default_out)
     p.add_argument("--n-random", type=options.count, default=1024, help="random references per (type, level)")
     p.add_argument("--t-final", type=options.positive, default=15.0, help="horizon [s]")
     p.add_argument("--dt", type=options.positive, default=0.01, help="RK4 step [s]")

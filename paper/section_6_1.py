@@ -15,6 +15,7 @@ from __future__ import annotations
 import sys
 
 from paper import common
+from wmrjax.cli import options
 
 
 def run(
@@ -220,9 +221,9 @@ def _figures(out, t, state, ref, eta1, eta1_ref):
 
 
 def main(argv=None) -> int:
-    from wmrjax.cli import machine, options, running
+    from wmrjax.cli import machine, running
 
-    p = common.parser(__doc__.splitlines()[0], "results/section_6_1")
+    p = options.parser(__doc__.splitlines()[0], "results/section_6_1")
     p.add_argument("--dt", type=options.positive, default=0.01, help="RK4 step [s]")
     p.add_argument("--t-final", type=options.positive, default=10.0, help="horizon [s]")
     a = p.parse_args(argv)

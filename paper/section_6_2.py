@@ -18,6 +18,7 @@ import math
 import sys
 
 from paper import common
+from wmrjax.cli import options
 
 
 def setup(r_switch=None, lam=None):
@@ -271,9 +272,9 @@ def _figures(out, t, st, u, ref, eta1_ref, t_sw, r_s, batch):
 
 
 def main(argv=None) -> int:
-    from wmrjax.cli import machine, options, running
+    from wmrjax.cli import machine, running
 
-    p = common.parser(__doc__.splitlines()[0], "results/section_6_2")
+    p = options.parser(__doc__.splitlines()[0], "results/section_6_2")
     p.add_argument("--dt", type=options.positive, default=0.01, help="RK4 step [s]")
     p.add_argument(
         "--t-final",

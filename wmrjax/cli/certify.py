@@ -42,14 +42,14 @@ import sys
 from pathlib import Path
 
 from wmrjax.certify.job import run, settings, setup
-from wmrjax.cli import common, machine, options, problem_args, running
+from wmrjax.cli import machine, options, problem_args, running
 
 EMPIRICAL_GRID = 48  # radii per ray of certify.empirical_radius (its n_grid)
 
 
 def _parser():
     """The job's options: the problem (:mod:`wmrjax.cli.problem_args`), the case, the devices."""
-    p = common.parser(__doc__.splitlines()[0], "results/certify")
+    p = options.parser(__doc__.splitlines()[0], "results/certify")
     problem_args.add_problem_options(p, default="section_6_1")
     p.add_argument("--case", default=None, help="the [[case]] to certify, when the problem has several")
     p.add_argument(
@@ -96,7 +96,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     machine.configure_xla(a.devices)  # before JAX starts its backend
     try:
-        common.enable_x64()
+        machine.enable_x64()
         problem = problem_args.problem_from_args(a)
         cfg = settings(problem)
         setting, _, _ = setup(problem, a.case)

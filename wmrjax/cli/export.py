@@ -20,12 +20,12 @@ from __future__ import annotations
 import shutil
 import sys
 
-from wmrjax.cli import common, machine, options, problem_args, running
+from wmrjax.cli import machine, options, problem_args, running
 from wmrjax.export.job import DEFAULT_PERIOD, check_initial, run, setup
 
 
 def _parser():
-    p = common.parser(__doc__.splitlines()[0], "results/export")
+    p = options.parser(__doc__.splitlines()[0], "results/export")
     problem_args.add_problem_options(p, default="section_6_1")
     p.add_argument("--case", default=None, help="the [[case]] to export, when the problem has several")
     p.add_argument(
@@ -57,7 +57,7 @@ def main(argv=None) -> int:
     if cc is not None and shutil.which(cc) is None:
         options.fail(p, f"--cc {a.cc}: no such compiler on PATH (give another, or --cc none to skip the C checks)")
     try:
-        common.enable_x64()
+        machine.enable_x64()
         problem = problem_args.problem_from_args(a)
         setting, _, _ = setup(problem, a.case)
         if a.initial is not None:  # refused here, before the export's work, not after

@@ -18,12 +18,12 @@ import sys
 from pathlib import Path
 
 from wmrjax import identify as I
-from wmrjax.cli import common, machine, options, problem_args, running
+from wmrjax.cli import machine, options, problem_args, running
 from wmrjax.identify.job import read_log, run
 
 
 def _parser():
-    p = common.parser(__doc__.splitlines()[0], "results/identify")
+    p = options.parser(__doc__.splitlines()[0], "results/identify")
     problem_args.add_problem_options(p, needs="of the robot: its type, level, geometry and [plant]")
     p.add_argument("--log", type=Path, action="append", required=True, help="a log to fit (CSV or Parquet; repeat)")
     p.add_argument("--holdout", type=Path, action="append", default=[], help="a log held out of the fit, predicted")
@@ -50,7 +50,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     machine.configure_xla()  # before JAX starts its backend
     try:
-        common.enable_x64()
+        machine.enable_x64()
         problem = problem_args.problem_from_args(a)  # loaded once: a sampled path's spline is built at load
         model = I.sections.plant_model(problem.setting("identify"), a.period)
         for path in a.log + a.holdout:  # every log checked before anything compiles

@@ -15,6 +15,11 @@ from wmrjax import resources, xla_cpu
 from wmrjax.cli.options import fail
 
 
+def enable_x64() -> None:
+    """The jobs run in float64 (the library never flips this on import)."""
+    jax.config.update("jax_enable_x64", True)
+
+
 def configure_xla(devices: int | None = None) -> None:
     """This project's XLA:CPU settings for the process (:func:`wmrjax.configure_cpu`: every time
     loop compiled into one kernel; ``devices`` host devices, one per core, if given). Call it

@@ -20,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from wmrjax import _files as files
 from wmrjax import certify as C
-from wmrjax.cli import common, machine, problem_args, running
+from wmrjax.cli import machine, options, problem_args, running
 from wmrjax.tune.certified import DEFAULT_EPS
 
 FACTORS = (0.90, 0.95, 0.98, 0.995)
@@ -43,7 +44,7 @@ def loops(plant: dict) -> list:
 
 def run(out: Path, problem, basis: str = "position", progress=print) -> dict:
     """The table of ``problem`` (a :class:`wmrjax.problem.Problem` with a ``[plant]``)."""
-    common.enable_x64()
+    machine.enable_x64()
     plant = problem.data.get("plant")
     if not plant:
         raise ValueError("the problem has no [plant] section: its loop is the nominal one")
@@ -73,7 +74,7 @@ def run(out: Path, problem, basis: str = "position", progress=print) -> dict:
         "rows": rows,
     }
     out.mkdir(parents=True, exist_ok=True)
-    common.write_json(out / "summary.json", summary)
+    files.write_json(out / "summary.json", summary)
     return summary
 
 
@@ -92,13 +93,13 @@ def table(summary: dict) -> str:
 
 def main(argv=None) -> int:
 
-    p = common.parser(__doc__.splitlines()[0], "results/plant_table")
+    p = options.parser(__doc__.splitlines()[0], "results/plant_table")
     problem_args.add_problem_options(p, needs="with a [plant] section")
     p.add_argument("--slice", default="position", choices=["position", "full"], help="the slice of initial errors")
     a = p.parse_args(argv)
     machine.configure_xla()  # before JAX starts its backend (the runs are vmapped on one device)
     try:
-        common.enable_x64()
+        machine.enable_x64()
         problem = problem_args.problem_from_args(a)
     except ValueError as e:
         p.error(str(e))

@@ -12,7 +12,7 @@ from pathlib import Path
 import jax
 
 from wmrjax import _files as files
-from wmrjax.cli import common, launch, machine, options, problem_args, running
+from wmrjax.cli import launch, machine, options, problem_args, running
 from wmrjax.problem import CASE_NAME, ProblemError
 from wmrjax.sweep import report, run
 from wmrjax.sweep import spec as S
@@ -23,7 +23,7 @@ A killed sweep resumes from its finished blocks when rerun with the same file an
 
 
 def parser():
-    p = common.parser(DOC, default_out=None)
+    p = options.parser(DOC, default_out=None)
     problem_args.add_problem_options(p, needs="to sweep (see docs/problem_files.md)")
     p.add_argument("--out", type=Path, default=None, help="output directory (default: results/sweeps/<spec name>)")
     p.add_argument("--fresh", action="store_true", help="discard finished blocks of an earlier run in --out")
@@ -119,7 +119,7 @@ def problem_of(a):
 
 def _prepare(p, a, devices: int) -> None:
     """Before starting processes: refuse a bad file or another sweep's --out, check the memory."""
-    common.enable_x64()
+    machine.enable_x64()
     try:
         plan = S.plan(problem_of(a))
         run.check_memory(plan, devices, a.processes)
@@ -131,7 +131,7 @@ def _prepare(p, a, devices: int) -> None:
 def _run(p, a, pid: int, n_proc: int) -> int:
 
     t_start = time.perf_counter()
-    common.enable_x64()
+    machine.enable_x64()
 
     if n_proc > 1:
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
