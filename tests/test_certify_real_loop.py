@@ -156,8 +156,9 @@ def test_binding_limits_fail_inside_the_nominal_certificate_confirmed_by_scipy(n
     pc = C.problem_certificate(setting, params, exact, eps=EPS, n_directions=8)
     assert pc["loop"] == ["input_limit"]
     b = pc["position"]
-    assert b["radius"] is None and b["kind"] is None and b["not_covered"] == ["input_limit"]
-    assert b["falsified_radius"] < b["nominal_radius"]  # saturation fails inside the nominal ball
+    # limits alone are covered by a proof (the saturation-free radius, tests/test_saturation.py)
+    assert b["kind"] == "proved" and b["covers"] == ["nominal", "input_limit"] and b["not_covered"] == []
+    assert b["radius"] <= b["falsified_radius"] < b["nominal_radius"]  # saturation fails inside the nominal ball
     (msg,) = [m for m in C.real_loop.plant_warnings(pc) if "position" in m]
     assert "does not hold for this problem's loop (input_limit)" in msg
     # the reported failure, integrated independently (DOP853): |chi1| dips below eps (inside one

@@ -18,11 +18,15 @@ else keyword-only; each returns a NamedTuple with fixed fields:
 * :mod:`~wmrjax.certify.falsify` -- falsification (an upper bound): instantaneous, sampling
   and gradient stages, failures confirmed on a finer simulation;
 * :mod:`~wmrjax.certify.pipeline` -- :func:`analyse`, all of the above in one report;
+* :mod:`~wmrjax.certify.saturation` -- the saturation-free radius (proved by affine
+  enclosures, :mod:`~wmrjax.certify.affine` over :mod:`~wmrjax.certify.interval`): inside it a
+  saturating plant's loop is the nominal one;
 * :mod:`~wmrjax.certify.real_loop` -- what each radius covers (:class:`Feature`, :class:`Kind`)
   and the problem's own loop (limits, a digital controller, mismatch, noise): its falsified
   radius and the problem's certificate (:func:`problem_certificate`).
 
-Every radius above but the real loop's is the *nominal continuous* loop's.
+Every radius above but the real loop's and the saturation-free one is the *nominal continuous*
+loop's.
 
 Only dynamic linearizing laws are certified: a static law raises ``ValueError``.
 """
@@ -76,3 +80,4 @@ from wmrjax.certify.real_loop import (  # noqa: F401
     real_loop_distances,
     real_loop_falsified_radius,
 )
+from wmrjax.certify.saturation import SaturationFreeRadius, saturation_free_radius  # noqa: F401

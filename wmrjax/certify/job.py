@@ -188,6 +188,7 @@ def _summary(problem, case, cfg: dict, setting, params, block: dict, problem_blo
         "radius_labels": C.radius_labels(block),
         "problem_certificate": problem_block,
         "plant_warnings": C.real_loop.plant_warnings(problem_block),
+        "alarms": list(block.get("alarms", [])) + C.real_loop.problem_alarms(problem_block),
     }
 
 

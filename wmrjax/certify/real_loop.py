@@ -40,6 +40,7 @@ from wmrjax._validate import check_int, check_positive
 from wmrjax.certify.empirical import sample_sphere
 from wmrjax.certify.exact_map import singular_rows, slice_basis
 from wmrjax.certify.lemma2 import check_dynamic
+from wmrjax.certify.saturation import saturation_free_radius
 from wmrjax.problem import Space, Task, law_state, place
 from wmrjax.simulate import fixed_blocks
 
@@ -437,9 +438,14 @@ def problem_certificate(
     the loop the problem describes, what it covers, and the real loop's falsified radius.
 
     Without a ``[plant]`` the problem's loop is the nominal one: its radius is the exact map's
-    proved lower bound (``covers`` ["nominal"], ``kind`` "proved"). With one, no proof in this
-    package covers its features yet, so ``radius`` and ``kind`` are None, ``not_covered`` lists
-    the features, and the nominal radius is reported beside it as the nominal loop's.
+    proved lower bound (``covers`` ["nominal"], ``kind`` "proved"). With input limits the
+    saturation-free radius (:func:`wmrjax.certify.saturation_free_radius`) is computed and
+    reported (``saturation_free``); where limits are the plant's only feature, the problem's
+    radius is the smaller of it and the exact map's proved bound (``covers`` ["nominal",
+    "input_limit"], ``kind`` "proved", ``bound_by`` which of the two). For any other feature (a
+    controller period, mismatch, noise) no proof in this package covers it yet: ``radius`` and
+    ``kind`` are None, ``not_covered`` lists the features, and the nominal radius is reported
+    beside it as the nominal loop's.
 
     Args:
       setting: the problem's :class:`wmrjax.problem.Setting`; params: the law's parameters.
@@ -461,16 +467,27 @@ def problem_certificate(
         nominal = float(em.radius) if em.lower_bound is None else float(em.lower_bound)
         kind = Kind.ATTAINED if em.lower_bound is None else Kind.PROVED
         block = {"nominal_radius": nominal, "nominal_kind": str(kind)}
-        if features and not np.isfinite(float(em.radius)):  # nothing reaches the singular set: no scale to search
-            block.update(radius=None, worst_error=None, covers=[], not_covered=[str(x) for x in features])
-            block.update(kind=None, falsified_radius=None, falsified=None)
-        elif features:
-            r_max = 1.1 * max(float(em.radius), 1e-12)
+        if not features:
+            block.update(
+                radius=nominal,
+                worst_error=[float(v) for v in np.asarray(em.worst_error)],
+                covers=[str(Feature.NOMINAL)],
+                not_covered=[],
+                kind=str(kind),
+                falsified_radius=None if (falsified or {}).get(basis) is None else falsified[basis].radius,
+            )
+            out[basis] = block
+            continue
+        sat = _saturation_free(setting, params, basis, features, log)
+        block.update(_plant_radius(em, nominal, kind, sat, features))
+        if not np.isfinite(float(em.radius)):  # nothing reaches the singular set: no scale to search
+            block.update(falsified_radius=None, falsified=None)
+        else:
             f = real_loop_falsified_radius(
                 setting,
                 params,
                 eps=eps,
-                r_max=r_max,
+                r_max=1.1 * max(float(em.radius), 1e-12),
                 basis=basis,
                 directions=_known_failures(em, (falsified or {}).get(basis)),
                 seed=seed,
@@ -480,26 +497,61 @@ def problem_certificate(
                 log(
                     f"  problem's loop ({basis}): falsified radius {f.radius} ({f.rollouts} runs, {f.variants} plant variants)"
                 )
-            block.update(
-                radius=None,
-                worst_error=None,
-                covers=[],
-                not_covered=[str(x) for x in features],
-                kind=None,
-                falsified_radius=f.radius,
-                falsified=f.summary(),
-            )
-        else:
-            block.update(
-                radius=nominal,
-                worst_error=[float(v) for v in np.asarray(em.worst_error)],
-                covers=[str(Feature.NOMINAL)],
-                not_covered=[],
-                kind=str(kind),
-                falsified_radius=None if (falsified or {}).get(basis) is None else falsified[basis].radius,
-            )
+            block.update(falsified_radius=f.radius, falsified=f.summary())
         out[basis] = block
     return out
+
+
+def _saturation_free(setting, params, basis: str, features, log):
+    """The saturation-free radius of a slice under the plant's tightest listed limits (None
+    without limits)."""
+    if Feature.INPUT_LIMIT not in features:
+        return None
+    limits = np.min(
+        np.asarray(setting.axis("plant").payload["limit"], float).reshape(-1, setting.ctrl.robot.n_input), axis=0
+    )
+    sat = saturation_free_radius(setting.ctrl, params, limits, t_final=setting.t_final, basis=basis)
+    if log is not None:
+        log(
+            f"  saturation-free radius ({basis}): proved {sat.lower_bound:.4g}, attained {sat.upper_bound:.4g} "
+            f"(limits {limits.tolist()}, {sat.boxes} time boxes)"
+        )
+    return sat
+
+
+def _plant_radius(em, nominal: float, kind, sat, features) -> dict:
+    """The problem certificate's fields for a loop with a plant: a proved radius where its only
+    feature beyond the nominal loop is input limits (the smaller of the exact map's and the
+    saturation-free radius: inside both, the saturated loop is the nominal one), none otherwise."""
+    block = {"saturation_free": None if sat is None else _saturation_summary(sat)}
+    only_limits = tuple(features) == (Feature.INPUT_LIMIT,)
+    if not only_limits or kind != Kind.PROVED:
+        block.update(radius=None, worst_error=None, covers=[], not_covered=[str(x) for x in features], kind=None)
+        return block
+    binding_sat = sat.lower_bound < nominal
+    worst = sat.worst_error if binding_sat else np.asarray(em.worst_error)
+    block.update(
+        radius=min(nominal, sat.lower_bound),
+        worst_error=None if worst is None else [float(v) for v in np.asarray(worst)],
+        covers=[str(Feature.NOMINAL), str(Feature.INPUT_LIMIT)],
+        not_covered=[],
+        kind=str(Kind.PROVED),
+        bound_by="saturation_free" if binding_sat else "exact_map",
+    )
+    return block
+
+
+def _saturation_summary(sat) -> dict:
+    return {
+        "lower_bound": sat.lower_bound,
+        "upper_bound": None if not np.isfinite(sat.upper_bound) else sat.upper_bound,
+        "worst_error": None if sat.worst_error is None else [float(v) for v in sat.worst_error],
+        "worst_time": sat.worst_time,
+        "time_boxes": sat.boxes,
+        "covers": [str(Feature.NOMINAL), str(Feature.INPUT_LIMIT)],
+        "kind": str(Kind.PROVED),
+        "upper_bound_kind": str(Kind.ATTAINED),
+    }
 
 
 def _known_failures(em, nominal_falsified) -> list:
@@ -511,6 +563,23 @@ def _known_failures(em, nominal_falsified) -> list:
     return out
 
 
+def problem_alarms(problem_block: dict) -> list:
+    """A message per slice whose proved problem radius is above the problem loop's falsified
+    radius: a proof contradicted by a run of the loop it covers (an alarm: exit status 1)."""
+    msgs = []
+    for basis in SLICES:
+        b = problem_block.get(basis)
+        if b is None or b.get("radius") is None or b.get("falsified_radius") is None:
+            continue
+        if b["radius"] > b["falsified_radius"]:
+            msgs.append(
+                f"PROBLEM CERTIFICATE CONTRADICTED ({basis}): proved radius {b['radius']:.6g} for "
+                f"{', '.join(b['covers'])}, but a run of that loop from radius {b['falsified_radius']:.6g} "
+                "comes within eps of the singular set"
+            )
+    return msgs
+
+
 def plant_warnings(problem_block: dict) -> list:
     """A message per slice whose nominal radius is above the problem loop's falsified radius: the
     nominal certificate does not hold for the loop the problem describes (a warning, not an alarm:
@@ -518,13 +587,13 @@ def plant_warnings(problem_block: dict) -> list:
     msgs = []
     for basis in SLICES:
         b = problem_block.get(basis)
-        if b is None or b.get("falsified_radius") is None or b["radius"] is not None:
+        if b is None or b.get("falsified_radius") is None:
             continue
         if b["nominal_radius"] > b["falsified_radius"]:
             p = b["falsified"]["plant"]
             msgs.append(
                 f"the nominal {basis} radius {b['nominal_radius']:.4g} does not hold for this problem's loop "
-                f"({', '.join(b['not_covered'])}): a run of it from radius {b['falsified_radius']:.4g} comes within "
+                f"({', '.join(problem_block['loop'])}): a run of it from radius {b['falsified_radius']:.4g} comes within "
                 f"eps of the singular set (plant {p})"
             )
     return msgs

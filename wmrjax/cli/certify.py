@@ -79,9 +79,16 @@ def _report(s: dict, out: Path) -> int:
             c = pc[b]
             proved = "none proved" if c["radius"] is None else f"{c['radius']:.4f} ({c['kind']})"
             falsified = "none found" if c["falsified_radius"] is None else f"{c['falsified_radius']:.4f} (estimated)"
-            print(
-                f"  {b}: certified radius {proved} (not covered: {', '.join(c['not_covered'])}); falsified {falsified}"
+            covered = (
+                f"covers {', '.join(c['covers'])}"
+                if c["radius"] is not None
+                else f"not covered: {', '.join(c['not_covered'])}"
             )
+            print(f"  {b}: certified radius {proved} ({covered}); falsified {falsified}")
+            sf = c.get("saturation_free")
+            if sf is not None:
+                up = "none found" if sf["upper_bound"] is None else f"{sf['upper_bound']:.4f} (attained)"
+                print(f"    saturation-free radius {sf['lower_bound']:.4f} (proved), {up}")
     print(f"wrote {out}/summary.json and slice_map.png in {s['wall_time_s']:.0f} s")
     for msg in s["plant_warnings"]:
         print(f"warning: {msg}", file=sys.stderr)

@@ -1,0 +1,165 @@
+"""Enclosures and the saturation-free radius (issue 54, item 2).
+
+Oracles: point evaluations of the enclosed functions (every sampled value inside the enclosure);
+for the saturation-free radius, the (2,0) law at e = 0 along a circle written here with SciPy's
+``expm`` (the nominal command is (chi1, theta') of the state whose output error is
+e^{At} s), and a SciPy DOP853 integration of the *saturated* loop from the problem
+certificate's worst errors at 0.99 times its radius (:mod:`tests.test_certify_real_loop`'s).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.linalg
+
+import wmrjax.certify as C
+from tests.test_certify_real_loop import EPS, OMEGA, T_FINAL, _problem, _reference_jet, _saturated_loop
+from wmrjax.certify import affine, interval
+from wmrjax.certify.interval import Interval
+
+LIMIT = np.array([1.3, 0.8])  # binding inside the nominal certificate (test_certify_real_loop)
+
+
+def _mixed(x, y):
+    """Every primitive family the law's programs use: arithmetic, sqrt, sin/cos, atan2, where, dot."""
+    r = jnp.sqrt(x * x + y * y + 1.0)
+    th = jnp.arctan2(y, x + 3.0)
+    s, c = jnp.sin(th), jnp.cos(th)
+    m = jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
+    v = m @ jnp.stack([x, y])
+    k = jnp.where(r > 1.2, r, 1.2)
+    return jnp.stack([v[0] / k, v[1] * jnp.exp(-0.1 * x) + y**3, jnp.abs(x - y)])
+
+
+def _samples(lo, hi, n, seed=0):
+    u = np.random.default_rng(seed).uniform(size=(n, lo.size))
+    return lo + u * (hi - lo)
+
+
+@pytest.mark.parametrize("half", [1e-6, 0.1, 0.6])
+def test_interval_enclosure_contains_every_sampled_value(half):
+    centre = np.array([0.3, -0.2])
+    box = Interval.around(jnp.asarray(centre), half)
+    out = jax.jit(lambda lo, hi: interval.enclose(lambda v: _mixed(v[0], v[1]), Interval(lo, hi)))(box.lo, box.hi)
+    pts = _samples(np.asarray(box.lo), np.asarray(box.hi), 4000)
+    vals = np.asarray(jax.vmap(lambda v: _mixed(v[0], v[1]))(pts))
+    assert np.all(vals >= np.asarray(out.lo)) and np.all(vals <= np.asarray(out.hi))
+    if half == 1e-6:  # a tiny box: the enclosure is tight to its first order
+        assert np.all(np.asarray(out.hi - out.lo) < 1e-4)
+
+
+@pytest.mark.parametrize("rho", [1e-3, 0.2, 0.5])
+def test_affine_enclosure_over_a_ball_contains_every_sampled_value(rho):
+    centre = jnp.array([0.3, -0.2])
+    x = affine.symbols(centre, rho * jnp.eye(2), 2)
+    out, ctx = affine.enclose(lambda v: _mixed(v[0], v[1]), x, n_ball=2)
+    box = affine.to_interval(out, ctx)
+    d = np.random.default_rng(1).normal(size=(4000, 2))
+    d *= (rho * np.random.default_rng(2).uniform(size=(4000, 1)) ** 0.5) / np.linalg.norm(d, axis=1, keepdims=True)
+    vals = np.asarray(jax.vmap(lambda v: _mixed(v[0], v[1]))(np.asarray(centre) + d))
+    assert np.all(vals >= np.asarray(box.lo)) and np.all(vals <= np.asarray(box.hi))
+
+
+def test_affine_keeps_dependencies_that_intervals_lose():
+    f = lambda v: v[0] * v[1] - v[1] * v[0] + jnp.sin(v[0]) - jnp.sin(v[0])  # identically 0
+    iv_box = interval.enclose(f, Interval.around(jnp.array([1.0, 2.0]), 0.1))
+    out, ctx = affine.enclose(f, affine.symbols(jnp.array([1.0, 2.0]), 0.1 * jnp.eye(2), 2), n_ball=2)
+    af_box = affine.to_interval(out, ctx)
+    assert float(iv_box.hi - iv_box.lo) > 0.5  # x*y - y*x over intervals: the product's width twice
+    # affine: the first order cancels exactly; what is left is second order (rho^2 = 0.01 per term)
+    assert float(af_box.hi - af_box.lo) < 4 * 0.1**2
+
+
+def test_an_angle_across_the_branch_cut_is_kept_whole_for_sin_and_cos_only():
+    box = Interval(jnp.array([-1.0, -0.1]), jnp.array([-0.9, 0.1]))  # x < 0, y across 0: the cut
+    used = interval.enclose(lambda v: jnp.cos(jnp.arctan2(v[1], v[0])), box)
+    raw = interval.enclose(lambda v: jnp.arctan2(v[1], v[0]), box)
+    assert float(used.hi) < -0.98  # cos near pi: one unwrapped interval, not [-1, 1]
+    assert float(raw.lo) <= -np.pi + 1e-9 and float(raw.hi) >= np.pi - 1e-9  # the value itself jumps
+
+
+def test_a_primitive_without_a_rule_is_named():
+    with pytest.raises(NotImplementedError, match="'erf'"):
+        interval.enclose(jax.scipy.special.erf, Interval.around(jnp.array(0.5), 0.1))
+
+
+def _commands(setting, params, s, ts):
+    """(T, D, 2) nominal commands (chi1, theta') of the (2,0) law at e = 0 along the circle, from
+    output errors e^{At} s, in closed form: chi1 = |P'| (branch +1), theta' = -(c, s).v / chi1."""
+    A = np.asarray(setting.ctrl.error_matrix(params.gains))
+    out = []
+    for t in ts:
+        err = np.atleast_2d(s) @ scipy.linalg.expm(A * t).T  # (D, 4)
+        ref = _reference_jet(t)
+        P, V = ref[:2] + err[:, :2], ref[2:] + err[:, 2:]
+        chi = np.linalg.norm(V, axis=1)
+        th = np.arctan2(-V[:, 0], V[:, 1])
+        v = -(OMEGA**2) * ref[:2] - 2.0 * err[:, 2:] - err[:, :2]
+        eta2 = -(np.cos(th) * v[:, 0] + np.sin(th) * v[:, 1]) / chi
+        del P
+        out.append(np.stack([chi, eta2], axis=1))
+    return np.stack(out)
+
+
+@pytest.fixture(scope="module")
+def saturation():
+    setting = _problem({"input_limit": LIMIT.tolist()}).setting("certification")
+    params = setting.params()
+    radii = {
+        b: C.saturation_free_radius(setting.ctrl, params, LIMIT, t_final=T_FINAL, basis=b, n_boxes=256, rounds=2)
+        for b in ("full", "position")
+    }
+    return setting, params, radii
+
+
+def test_the_saturation_free_radius_is_never_exceeded_inside_and_is_attained(saturation):
+    setting, params, radii = saturation
+    ts = np.linspace(0.0, T_FINAL, 3001)
+    rng = np.random.default_rng(3)
+    for basis, sat in radii.items():
+        assert 0.0 < sat.lower_bound <= sat.upper_bound < np.inf
+        P = np.asarray(C.slice_basis(setting.ctrl, basis))
+        dirs = rng.normal(size=(200, P.shape[1])) @ P.T
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        inside = _commands(setting, params, sat.lower_bound * dirs, ts)  # on the proved sphere
+        assert np.all(np.abs(inside) <= LIMIT)
+        u = _commands(setting, params, sat.worst_error, [sat.worst_time])[0, 0]  # the attained error
+        assert np.any(np.abs(u) > LIMIT)
+        assert np.linalg.norm(sat.worst_error) == pytest.approx(sat.upper_bound, rel=1e-9)
+
+
+def test_a_limits_only_plant_is_certified_and_its_worst_errors_stay_eps_away_in_scipy(saturation):
+    setting, params, radii = saturation
+    exact = {
+        b: C.exact_map_radius(setting.ctrl, params, t_final=T_FINAL, eps=EPS, basis=b, n_t=601)
+        for b in ("full", "position")
+    }
+    pc = C.problem_certificate(setting, params, exact, eps=EPS, n_directions=8)
+    assert C.real_loop.problem_alarms(pc) == []
+    for basis, b in pc.items():
+        if basis == "loop":
+            continue
+        sat = b["saturation_free"]
+        assert b["covers"] == ["nominal", "input_limit"] and b["kind"] == "proved"
+        assert b["radius"] == pytest.approx(min(exact[basis].lower_bound, sat["lower_bound"]), rel=1e-12)
+        assert b["radius"] <= b["falsified_radius"]
+        e0 = 0.99 * b["radius"] * np.asarray(b["worst_error"]) / np.linalg.norm(b["worst_error"])
+        p0 = _reference_jet(0.0) + e0
+        z0 = [p0[0], p0[1], np.arctan2(-p0[2], p0[3]), np.linalg.norm(p0[2:])]
+        sol = scipy.integrate.solve_ivp(
+            _saturated_loop(LIMIT), (0.0, T_FINAL), z0, method="DOP853", rtol=1e-10, atol=1e-12, dense_output=True
+        )
+        assert np.abs(sol.sol(np.linspace(0.0, T_FINAL, 20001))[3]).min() >= EPS
+
+
+def test_saturation_free_radius_refuses_bad_input():
+    setting = _problem({"input_limit": LIMIT.tolist()}).setting("c")
+    params = setting.params()
+    with pytest.raises(ValueError, match="input_limit must be > 0"):
+        C.saturation_free_radius(setting.ctrl, params, [1.0, 0.0], t_final=1.0)
+    with pytest.raises(ValueError, match="2 entries"):
+        C.saturation_free_radius(setting.ctrl, params, [1.0, 1.0, 1.0], t_final=1.0)

@@ -1,0 +1,377 @@
+r"""Affine enclosures of a JAX function: a first-order-tight bound over a ball of inputs.
+
+An :class:`Affine` value is :math:`x = c + \sum_i g_i \varepsilon_i + e\,\varepsilon_0` with
+symbols :math:`\varepsilon` shared by every value of one evaluation: the first ``n_ball``
+symbols lie in the Euclidean unit ball (an initial error ``s = rho * eps`` of a certificate's
+ball), the others in [-1, 1] (time in a box), and :math:`\varepsilon_0` is a fresh symbol per
+value (|eps_0| <= 1) collecting everything not kept linear. Linear operations are exact in the
+symbols; a smooth function is replaced by its tangent at the centre plus a bound of its
+Taylor remainder over the value's range (:math:`\tfrac12 \sup|f''|\,\mathrm{rad}^2`); a product
+keeps both first-order terms and bounds the second-order one by the product of the radii.
+This is affine arithmetic (Comba & Stolfi 1993; de Figueiredo & Stolfi 2004), here with a ball
+of symbols, so dependencies between the many uses of one initial error cancel to first order,
+where plain intervals (:mod:`wmrjax.certify.interval`) multiply them.
+
+Rounding: every operation adds :data:`ROUNDING` times the magnitude of its result's terms
+(and elementary functions their ulp budget, as in the interval module) to ``e``. Operations
+without an affine rule (comparisons, ``floor``, ``rem``, integer arithmetic) go through the
+interval rules on the value's range; a ``select_n`` whose predicate is decided keeps the chosen
+branch's affine form.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from wmrjax import _math
+from wmrjax.certify import interval as iv
+from wmrjax.certify.interval import Interval
+
+ROUNDING = 16 * 2.0**-52
+"""Relative rounding allowance per affine operation (a few operations of 1 ulp each, with margin)."""
+
+
+class Affine(NamedTuple):
+    """``c + g @ eps + e eps_0`` (every entry of ``c`` its own form; ``g`` has a trailing axis
+    of one column per symbol; ``e >= 0``)."""
+
+    c: Any
+    g: Any  # (*c.shape, n): one column per symbol
+    e: Any
+
+
+class _Context(NamedTuple):
+    n_ball: int  # the first n_ball symbols: Euclidean unit ball; the rest: [-1, 1]
+    n: int
+    parts: dict  # id(value) -> (value, its _parts): each value's radii emitted once per trace
+
+
+def rad(a: Affine, ctx: _Context):
+    """Largest |x - c| over the symbols' set."""
+    nb, rest = _parts(a, ctx)
+    return nb + rest
+
+
+def to_interval(a, ctx: _Context) -> Interval:
+    """The range of an :class:`Affine` value (an :class:`Interval` is its own)."""
+    if isinstance(a, Interval):
+        return a
+    r = rad(a, ctx)
+    return Interval(iv._down(a.c - r), iv._up(a.c + r))
+
+
+def _point(x, ctx: _Context) -> Affine:
+    x = jnp.asarray(x)
+    z = jnp.zeros_like(x)
+    return Affine(x, jnp.zeros(x.shape + (ctx.n,), x.dtype), z)
+
+
+def _from_interval(b: Interval, ctx: _Context) -> Affine:
+    c = b.mid
+    # an unbounded box is the whole line: its centre is 0 and its radius inf
+    c = jnp.where(jnp.isfinite(c), c, 0.0)
+    return Affine(c, jnp.zeros(c.shape + (ctx.n,), c.dtype), iv._up(jnp.maximum(b.hi - c, c - b.lo)))
+
+
+def _rounding(c, g, e):
+    mag = jnp.abs(c) + jnp.sum(jnp.abs(g), axis=-1)
+    e = e + ROUNDING * mag + iv._TINY
+    return jnp.where(jnp.isnan(e), jnp.inf, e)  # NaN (inf - inf, 0 * inf): nothing is known
+
+
+def _make(c, g, e) -> Affine:
+    return Affine(c, g, _rounding(c, g, e))
+
+
+def _add(a, b):
+    return _make(a.c + b.c, a.g + b.g, a.e + b.e)
+
+
+def _sub(a, b):
+    return _make(a.c - b.c, a.g - b.g, a.e + b.e)
+
+
+def _neg(a):
+    return Affine(-a.c, -a.g, a.e)
+
+
+def _scale(a, k, extra=0.0):
+    """``k * a`` (k an array of the value's shape) plus ``extra`` in ``e``."""
+    return _make(k * a.c, k[..., None] * a.g, jnp.abs(k) * a.e + extra)
+
+
+def _parts(a: Affine, ctx: _Context):
+    """``(ball generators' norm, box generators' sum of magnitudes + e)``."""
+    hit = ctx.parts.get(id(a))
+    if hit is not None and hit[0] is a:
+        return hit[1]
+    nb = jnp.sqrt(jnp.sum(a.g[..., : ctx.n_ball] ** 2, axis=-1)) * (1 + 2.0**-50)
+    rest = jnp.sum(jnp.abs(a.g[..., ctx.n_ball :]), axis=-1) + a.e
+    ctx.parts[id(a)] = (a, (nb, rest))  # the value is kept alive with its entry: ids stay unique
+    return nb, rest
+
+
+def _mul(a, b, ctx):
+    """Product: the ball symbols' quadratic form x^T (g_a g_b^T) x over the unit ball lies in
+    [(g_a.g_b - |g_a||g_b|) / 2, (g_a.g_b + |g_a||g_b|) / 2]: its midpoint joins the centre."""
+    na, ra = _parts(a, ctx)
+    nb, rb = _parts(b, ctx)
+    dot = jnp.sum(a.g[..., : ctx.n_ball] * b.g[..., : ctx.n_ball], axis=-1)
+    # (an inf radius times 0 gives NaN: _make turns it into e = inf, "nothing known")
+    quad = 0.5 * na * nb + na * rb + ra * (nb + rb)
+    g = a.c[..., None] * b.g + b.c[..., None] * a.g
+    e = jnp.abs(a.c) * b.e + jnp.abs(b.c) * a.e + quad
+    return _make(a.c * b.c + 0.5 * dot, g, e)
+
+
+def _smooth(a, ctx, f, df, d2):
+    """``f(a)``: tangent at the centre plus ``sup|f''|/2 rad^2``; ``d2(box)`` bounds |f''| on the range."""
+    r = rad(a, ctx)
+    box = to_interval(a, ctx)
+    c = f(a.c)
+    out = _scale(a, df(a.c), 0.5 * d2(box) * r * r)
+    e = out.e + iv._REL * jnp.abs(c)  # the elementary function's own ulps at the centre
+    bad = ~jnp.isfinite(e) | ~jnp.isfinite(c)
+    return Affine(jnp.where(bad, 0.0, c), jnp.where(bad[..., None], 0.0, out.g), jnp.where(bad, jnp.inf, e))
+
+
+def _mag(b: Interval):
+    return jnp.maximum(jnp.abs(b.lo), jnp.abs(b.hi))
+
+
+def _mig(b: Interval):
+    """Smallest |x| over the box (0 if it holds 0)."""
+    return jnp.where((b.lo <= 0) & (b.hi >= 0), 0.0, jnp.minimum(jnp.abs(b.lo), jnp.abs(b.hi)))
+
+
+def _reciprocal(a, ctx):
+    return _smooth(a, ctx, lambda x: 1.0 / x, lambda x: -1.0 / (x * x), lambda b: 2.0 / _mig(b) ** 3)
+
+
+def _sqrt(a, ctx):
+    lo = to_interval(a, ctx).lo
+    d2 = lambda b: jnp.where(b.lo > 0, 0.25 / jnp.maximum(b.lo, iv._TINY) ** 1.5, jnp.inf)
+    out = _smooth(a, ctx, jnp.sqrt, lambda x: 0.5 / jnp.sqrt(x), d2)
+    return Affine(out.c, out.g, jnp.where(lo > 0, out.e, jnp.inf))
+
+
+def _sin(a, ctx):
+    return _smooth(a, ctx, jnp.sin, jnp.cos, lambda b: _mag(iv._sin(b)))
+
+
+def _cos(a, ctx):
+    return _smooth(a, ctx, jnp.cos, lambda x: -jnp.sin(x), lambda b: _mag(iv._cos(b)))
+
+
+def _atan2(y, x, ctx, unwrapped: bool):
+    """atan2(y, x): tangent plane at the centre, remainder with ||Hessian|| = 1 / r^2 <= 1 / r_min^2."""
+    by, bx = to_interval(y, ctx), to_interval(x, ctx)
+    r2 = x.c * x.c + y.c * y.c
+    ry, rx = rad(y, ctx), rad(x, ctx)
+    rmin2 = _mig(bx) ** 2 + _mig(by) ** 2
+    rem = 0.5 * (ry * ry + rx * rx) / rmin2
+    ky, kx = x.c / r2, -y.c / r2
+    g = ky[..., None] * y.g + kx[..., None] * x.g
+    c = jnp.arctan2(y.c, x.c)
+    e = jnp.abs(ky) * y.e + jnp.abs(kx) * x.e + rem + iv._REL * jnp.abs(c)
+    crosses = (bx.lo < 0) & (by.lo <= 0) & (by.hi >= 0)
+    out = _make(c, g, e)
+    bad = (rmin2 <= 0) | ~jnp.isfinite(out.e)
+    if not unwrapped:  # across the branch cut the value jumps by 2 pi: only its range is known
+        bad = bad | crosses
+    whole = _from_interval(Interval(jnp.full_like(c, -math.pi), jnp.full_like(c, math.pi)), ctx)
+    return Affine(
+        jnp.where(bad, whole.c, out.c), jnp.where(bad[..., None], whole.g, out.g), jnp.where(bad, whole.e, out.e)
+    )
+
+
+def _d2_bound(name):
+    return {
+        "exp": lambda b: jnp.exp(b.hi),
+        "expm1": lambda b: jnp.exp(b.hi),
+        "log": lambda b: jnp.where(b.lo > 0, 1.0 / jnp.maximum(b.lo, iv._TINY) ** 2, jnp.inf),
+        "log1p": lambda b: jnp.where(b.lo > -1, 1.0 / jnp.maximum(1.0 + b.lo, iv._TINY) ** 2, jnp.inf),
+        "atan": lambda b: jnp.full_like(b.lo, 0.65),  # max |d2 atan| = 3 sqrt(3) / 8
+        "tanh": lambda b: jnp.full_like(b.lo, 0.77),  # max |d2 tanh| = 4 / (3 sqrt(3))
+    }[name]
+
+
+_SMOOTH = {
+    "exp": (jnp.exp, jnp.exp),
+    "expm1": (jnp.expm1, jnp.exp),
+    "log": (jnp.log, lambda x: 1.0 / x),
+    "log1p": (jnp.log1p, lambda x: 1.0 / (1.0 + x)),
+    "atan": (jnp.arctan, lambda x: 1.0 / (1.0 + x * x)),
+    "tanh": (jnp.tanh, lambda x: 1.0 - jnp.tanh(x) ** 2),
+}
+
+
+def _integer_pow(a, y, ctx):
+    if y == 0:
+        return _point(jnp.ones_like(a.c), ctx)
+    if y < 0:
+        return _reciprocal(_integer_pow(a, -y, ctx), ctx)
+    out = a
+    for _ in range(y - 1):
+        out = _mul(out, a, ctx)
+    return out
+
+
+def _select(pred: Interval, cases, ctx):
+    """Each entry: the case its predicate certainly picks, else the hull of the possible cases."""
+    hull = _from_interval(iv._select_n(pred, *[to_interval(c, ctx) for c in cases]), ctx)
+    lo_i, hi_i = (pred.lo.astype(jnp.int32), pred.hi.astype(jnp.int32)) if pred.lo.dtype == jnp.bool_ else pred
+    out = hull
+    for k, case in enumerate(cases):
+        sure = (lo_i == k) & (hi_i == k)
+        out = Affine(
+            jnp.where(sure, case.c, out.c), jnp.where(sure[..., None], case.g, out.g), jnp.where(sure, case.e, out.e)
+        )
+    return out
+
+
+def _reduce_sum(a, axes):
+    s = lambda x: jnp.sum(x, axis=axes)
+    n = math.prod(a.c.shape[i] for i in axes)
+    g = jnp.sum(a.g, axis=tuple(axes))
+    mag = s(jnp.abs(a.c)) + jnp.sum(jnp.abs(a.g), axis=tuple(axes) + (-1,))
+    return _make(s(a.c), g, s(a.e) + n * 2.0**-52 * mag)
+
+
+def _dot_general(a, b, ctx, params):
+    dot = lambda x, y: jax.lax.dot_general(x, y, **params)
+    (ca, _), _ = params["dimension_numbers"]
+    n = math.prod(a.c.shape[i] for i in ca)
+    ra, rb = rad(a, ctx), rad(b, ctx)
+    # one product per symbol (the symbol axis is batched: dot_general's numbering stays valid)
+    g = jax.vmap(lambda x, y: dot(a.c, y) + dot(x, b.c), in_axes=-1, out_axes=-1)(a.g, b.g)
+    e = dot(jnp.abs(a.c), b.e) + dot(a.e, jnp.abs(b.c)) + dot(ra, rb)
+    mag = dot(jnp.abs(a.c), jnp.abs(b.c)) + dot(jnp.abs(a.c), rb) + dot(ra, jnp.abs(b.c))
+    return _make(dot(a.c, b.c), g, e + (n + 4) * 2.0**-52 * mag)
+
+
+def _structural(prim, args, params, ctx):
+    bind = lambda *xs: prim.bind(*xs, **params)
+    c, e = bind(*[a.c for a in args]), bind(*[a.e for a in args])
+    # the generators' symbol axis is a batch axis of the same primitive
+    g = jax.vmap(bind, in_axes=-1, out_axes=-1)(*[a.g for a in args])
+    if prim.multiple_results:
+        return [Affine(ci, gi, ei) for ci, gi, ei in zip(c, g, e)]
+    return Affine(c, g, e)
+
+
+_AFFINE_STRUCTURAL = iv._STRUCTURAL - {"dynamic_slice", "gather", "reduce_max", "reduce_min", "cumsum"}
+
+
+class _Evaluator:
+    """One evaluation's equation rules (the symbols' context is fixed for it)."""
+
+    def __init__(self, ctx: _Context):
+        self.ctx = ctx
+
+    def as_affine(self, x):
+        if isinstance(x, Affine):
+            return x
+        return _from_interval(x, self.ctx) if iv._is_float(x.lo) else None
+
+    def __call__(self, eqn, args, angle_vars):
+        name, params, ctx = eqn.primitive.name, dict(eqn.params), self.ctx
+        sub = iv.sub_program(eqn)
+        if sub is not None:
+            return iv.run_jaxpr(sub.jaxpr, [Interval.point(c) for c in sub.consts], args, self)
+        if not any(isinstance(a, Affine) for a in args):
+            return iv._eval_eqn(eqn, args, angle_vars)
+        rule = self._rule(eqn, name, params, angle_vars)
+        if rule is not None:
+            return rule([self.as_affine(a) if iv._is_float(_lo(a)) else a for a in args])
+        # no affine rule: through the intervals of the arguments' ranges
+        boxes = [to_interval(a, ctx) if isinstance(a, Affine) else a for a in args]
+        # kept as intervals (floor, comparisons, clamps are exact there); converted where they
+        # meet an affine value
+        return iv._eval_eqn(eqn, boxes, angle_vars)
+
+    def _rule(self, eqn, name, params, angle_vars):
+        ctx = self.ctx
+        if name in ("add", "add_any"):
+            return lambda a: _add(a[0], a[1])
+        if name == "sub":
+            return lambda a: _sub(a[0], a[1])
+        if name == "neg":
+            return lambda a: _neg(a[0])
+        if name == "mul":
+            return lambda a: _mul(a[0], a[1], ctx)
+        if name == "div":
+            return lambda a: _mul(a[0], _reciprocal(a[1], ctx), ctx)
+        if name == "integer_pow":
+            return lambda a: _integer_pow(a[0], params["y"], ctx)
+        if name == "square":
+            return lambda a: _mul(a[0], a[0], ctx)
+        if name == "sqrt":
+            return lambda a: _sqrt(a[0], ctx)
+        if name == "sin":
+            return lambda a: _sin(a[0], ctx)
+        if name == "cos":
+            return lambda a: _cos(a[0], ctx)
+        if name == _math.sincos_p.name:
+            return lambda a: [_sin(a[0], ctx), _cos(a[0], ctx)]
+        if name in ("atan2", _math.atan2_p.name):
+            return lambda a: _atan2(a[0], a[1], ctx, eqn.outvars[0] in angle_vars)
+        if name in _SMOOTH:
+            f, df = _SMOOTH[name]
+            return lambda a: _smooth(a[0], ctx, f, df, _d2_bound(name))
+        if name == "select_n":
+            return lambda a: _select(a[0], a[1:], ctx)
+        if name == "reduce_sum":
+            return lambda a: _reduce_sum(a[0], params["axes"])
+        if name == "dot_general":
+            return lambda a: _dot_general(a[0], a[1], ctx, params)
+        if name == "stop_gradient":
+            return lambda a: a[0]
+        if name == "convert_element_type" and jnp.dtype(params["new_dtype"]) == jnp.float64:
+            return lambda a: a[0]
+        if name in _AFFINE_STRUCTURAL:
+            return lambda a: _structural(eqn.primitive, [self._full(x) for x in a], params, ctx)
+        return None
+
+    def _full(self, x):
+        return x if isinstance(x, Affine) else _from_interval(x, self.ctx)
+
+
+def _lo(a):
+    return a.c if isinstance(a, Affine) else a.lo
+
+
+def symbols(centre, generators, n_ball: int):
+    """An :class:`Affine` input ``centre + generators @ eps`` (``generators``: (..., n) with the
+    first ``n_ball`` columns for the ball symbols), with no error term."""
+    centre = jnp.asarray(centre, jnp.float64)
+    gen = jnp.broadcast_to(jnp.asarray(generators, jnp.float64), centre.shape + (jnp.shape(generators)[-1],))
+    return Affine(centre, gen, jnp.zeros_like(centre))
+
+
+def enclose(fn, *args, n_ball: int):
+    """Affine enclosure of ``fn(*args)`` where the :class:`Affine` leaves of ``args`` share their
+    symbols (the first ``n_ball`` in the unit ball, the rest in [-1, 1]); other leaves are points.
+
+    Returns:
+      ``fn``'s output pytree with an :class:`Affine` at every float leaf (an :class:`Interval`
+      at integer and boolean ones); :func:`to_interval` gives each leaf's range.
+    """
+    leaves = jax.tree_util.tree_leaves(args, is_leaf=lambda x: isinstance(x, Affine))
+    n = {x.g.shape[-1] for x in leaves if isinstance(x, Affine)}
+    if len(n) != 1:
+        raise ValueError(f"every Affine argument needs the same number of symbols, got {sorted(n)}")
+    ctx = _Context(n_ball, n.pop(), {})
+    if not 0 <= n_ball <= ctx.n:
+        raise ValueError(f"n_ball must be in [0, {ctx.n}], got {n_ball}")
+    ev = _Evaluator(ctx)
+
+    def to_box(x):
+        x = jnp.asarray(x)
+        return _point(x, ctx) if iv._is_float(x) else Interval.point(x)
+
+    return iv.trace(fn, args, lambda x: isinstance(x, (Affine, Interval)), to_box, ev), ctx

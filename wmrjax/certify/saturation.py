@@ -1,0 +1,258 @@
+r"""The saturation-free radius: from which initial errors the nominal closed loop never asks
+its actuators for more than their limits over [0, T] (issue 54, item 2).
+
+Inside that ball a saturating plant never saturates, so its closed loop *is* the nominal one
+and every nominal certificate holds for it exactly: the problem's radius under input limits is
+the smaller of this radius and the exact map's.
+
+On the nominal loop the output error is :math:`\tilde\zeta(t) = e^{At} P s` (the slice's
+initial error s), the state is :math:`\Psi^{-1}(\zeta_{ref}(t) + \tilde\zeta(t))` on the
+reference's branch, and the plant's command is the law's input there: a known function
+:math:`u(t, s)` (velocity level: the wheel velocities; torque level: their rates). The bound:
+
+* [0, T] is covered by time boxes :math:`[t_c - h, t_c + h]`; in a box, :math:`t = t_c + h\tau`
+  with :math:`\tau \in [-1, 1]` a symbol of an affine evaluation
+  (:mod:`wmrjax.certify.affine`) of the reference's jet, and :math:`s = \rho\,\varepsilon`
+  with :math:`\varepsilon` in the unit ball;
+* :math:`e^{At} = e^{At_c} e^{A h\tau}`, so :math:`\tilde\zeta = e^{At_c}P s` plus at most
+  :math:`\|e^{At_c}\|_{row\,i}(e^{\|A\| h} - 1)\rho` per entry (an error term);
+* the command's affine enclosure over the box and the ball must lie within the limits; the
+  largest such :math:`\rho` per box is found by bisection (the enclosure grows with
+  :math:`\rho`: a box certified at :math:`\rho` is certified below it), and the boxes with the
+  smallest radius are halved for a few rounds;
+* the radius is the minimum over the boxes: a **proved** lower bound. An **attained** upper
+  bound comes from point evaluations of :math:`u(t, s)` on rays at the worst boxes' centres.
+
+The enclosure is first-order tight in :math:`\rho` and h; it loses where the command is
+strongly nonlinear over the ball (near the singular set, where :math:`\det K` is small), which
+the ratio lower / upper reports.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wmrjax import _math
+from wmrjax.certify import affine
+from wmrjax.certify.exact_map import slice_basis
+from wmrjax.certify.lemma2 import check_dynamic
+from wmrjax.simulate import fixed_blocks
+
+BOX_BLOCK = 256
+"""Time boxes evaluated per compiled call."""
+
+
+class SaturationFreeRadius(NamedTuple):
+    """Result of :func:`saturation_free_radius` (radii in the slice's output-error units).
+
+    Attributes:
+      lower_bound: proved: from every initial error of the slice with norm below it, every
+        command of the nominal loop over [0, T] is within the limits.
+      upper_bound: attained: an initial error of this norm whose nominal command exceeds a limit
+        at ``worst_time`` (inf if none was found on the rays tried).
+      worst_error: (n,) that initial error (None if none).
+      worst_time: its time [s] (None if none).
+      boxes: the number of time boxes of the final cover.
+    """
+
+    lower_bound: float
+    upper_bound: float
+    worst_error: np.ndarray | None
+    worst_time: float | None
+    boxes: int
+
+
+def command(ctrl, params, jet, error):
+    """The nominal loop's plant command at the reference jet ``jet`` ((r + 1, m)) and output
+    error ``error`` ((r m,)): the state on the reference's branch, the law's input (49) with
+    its error equal to ``error`` (the nominal loop's), and the plant input (velocity level) or
+    its rate (torque level)."""
+    r, m, law, g = ctrl.relative_degree, ctrl.m, ctrl.law, params.geometry
+    err = error.reshape(r, m)
+    z = ctrl.inverse_psi(jet[:r] + err, params, ctrl.reference_branch(params))
+    coeffs = params.gains.coeffs_at(0.0)
+    w = jet[r]
+    for j in range(r):
+        w = w - coeffs[:, j] * err[j]
+    return law.plant_control(z, law.solve_top(z, w, g), g)
+
+
+def _padded(P):
+    """The slice basis padded with zero columns to n: one compiled program for every slice."""
+    n, k = P.shape
+    return jnp.concatenate([P, jnp.zeros((n, n - k), P.dtype)], axis=1)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _jet_boxes(ctrl, params, t_c, h):
+    """The reference jet ((r + 1, m)) over each time box, affine in the time symbol (the last of
+    n + 1 symbols: the n ball symbols of :func:`_box_fits` come first)."""
+    r, n = ctrl.relative_degree, ctrl.relative_degree * ctrl.m
+
+    def one(tc, hh):
+        t = affine.symbols(tc, jnp.zeros(n + 1).at[n].set(hh), n)
+        return tuple(affine.enclose(lambda tt: ctrl.reference_jet(tt, params)[: r + 1], t, n_ball=n)[0])
+
+    return jax.vmap(one)(t_c, h)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _box_fits(ctrl, params, P, limit, jc, jg, je, t_c, h, rho):
+    """Per time box: does the enclosure of the command over the box and the ball of radius rho fit?"""
+    A = ctrl.error_matrix(params.gains)
+    growth = jnp.expm1(_math.spectral_norm(A) * h)
+    n = P.shape[0]
+
+    def one(jet, tc, g, rh):
+        E = _math.expm_small(A * tc)
+        gen = jnp.concatenate([rh * (E @ P), jnp.zeros((n, 1))], axis=1)
+        err = affine.symbols(jnp.zeros(n), gen, n)
+        # e^{A t} = e^{A t_c} e^{A (t - t_c)}: the second factor's distance from I, as an error term
+        slack = jnp.linalg.norm(E, axis=1) * g * rh * (1 + 1e-12) + 1e-15 * rh
+        err = affine.Affine(err.c, err.g, err.e + slack)
+        out, ctx = affine.enclose(lambda j, e: command(ctrl, params, j, e), jet, err, n_ball=n)
+        box = affine.to_interval(out, ctx)
+        ok = (box.lo >= -limit) & (box.hi <= limit) & jnp.isfinite(box.lo) & jnp.isfinite(box.hi)
+        return jnp.all(ok)
+
+    return (jax.vmap(one)(affine.Affine(jc, jg, je), t_c, growth, rho),)
+
+
+def _box_radii(ctrl, params, P, limit, t_c, h, rho_hi: float, iters: int):
+    """Bisection per box on rho in [0, rho_hi]: the largest rho whose box fits (0 if none)."""
+    jets = fixed_blocks(lambda tc, hh: _jet_boxes(ctrl, params, tc, hh), (t_c, h), BOX_BLOCK)
+    program = lambda *a: _box_fits(ctrl, params, P, limit, *a)
+    fits = lambda rho: np.asarray(fixed_blocks(program, (*jets, t_c, h, rho), BOX_BLOCK)[0], bool)
+    lo, hi = np.zeros_like(t_c), np.full_like(t_c, rho_hi)
+    top = fits(hi)
+    lo = np.where(top, hi, lo)
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        ok = fits(mid)
+        lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
+    return np.where(top, rho_hi, lo)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _ray_commands(ctrl, params, P, ts, dirs, radii):
+    """Commands at (time, direction, radius): shape (T, D, R, n_input)."""
+    A = ctrl.error_matrix(params.gains)
+    r = ctrl.relative_degree
+
+    def at(t, d, rho):
+        jet = ctrl.reference_jet(t, params)[: r + 1]
+        return command(ctrl, params, jet, _math.expm_small(A * t) @ (P @ (rho * d)))
+
+    f = jax.vmap(jax.vmap(jax.vmap(at, (None, None, 0)), (None, 0, None)), (0, None, None))
+    return f(ts, dirs, radii)
+
+
+RAY_RADII = 151
+"""Radii per ray of the attained bound, from the proved radius to 4 times it."""
+RAY_TIMES = 16
+"""Times (the worst boxes' centres) at which the rays are tried."""
+
+
+def compile_programs(ctrl, params, n_directions: int) -> None:
+    """Compile the three programs of :func:`saturation_free_radius` at once, each on a thread of
+    its own (XLA compiles them in parallel; the search then finds them compiled)."""
+    n, f = ctrl.relative_degree * ctrl.m, jnp.float64
+    blk = jnp.zeros(BOX_BLOCK, f)
+    P, lim = jnp.zeros((n, n), f), jnp.zeros(ctrl.robot.n_input, f)
+    jets = jax.eval_shape(lambda tc, hh: _jet_boxes(ctrl, params, tc, hh), blk, blk)
+    jets = [jnp.zeros(x.shape, x.dtype) for x in jets]
+    jobs = [
+        lambda: _jet_boxes.lower(ctrl, params, blk, blk).compile(),
+        lambda: _box_fits.lower(ctrl, params, P, lim, *jets, blk, blk, blk).compile(),
+        lambda: _ray_commands.lower(
+            ctrl, params, P, jnp.zeros(RAY_TIMES, f), jnp.zeros((n_directions, n), f), jnp.zeros(RAY_RADII, f)
+        ).compile(),
+    ]
+    with concurrent.futures.ThreadPoolExecutor(len(jobs)) as pool:
+        for fut in [pool.submit(j) for j in jobs]:
+            fut.result()
+
+
+def _attained(ctrl, params, P, limit, ts, rho_lo: float, n_dirs: int, seed: int):
+    """Smallest radius on a grid of rays (at the given times) whose command exceeds a limit."""
+    k = P.shape[1]
+    d = np.random.default_rng(seed).normal(size=(n_dirs, k))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d = np.concatenate([d, np.zeros((n_dirs, P.shape[0] - k))], axis=1)  # on the padded basis
+    P = _padded(P)
+    radii = rho_lo * np.linspace(1.0, 4.0, RAY_RADII)
+    u = np.asarray(_ray_commands(ctrl, params, P, jnp.asarray(ts), jnp.asarray(d), jnp.asarray(radii)))
+    over = np.any(np.abs(u) > np.asarray(limit), axis=-1) | ~np.all(np.isfinite(u), axis=-1)
+    if not over.any():
+        return np.inf, None, None
+    it, id_, ir = np.unravel_index(np.argmin(np.where(over, radii[None, None, :], np.inf)), over.shape)
+    return float(radii[ir]), np.asarray(P) @ (radii[ir] * d[id_]), float(ts[it])
+
+
+def saturation_free_radius(
+    ctrl,
+    params,
+    input_limit,
+    *,
+    t_final: float,
+    basis="full",
+    n_boxes: int = 512,
+    rounds: int = 4,
+    rho_max: float = 10.0,
+    iters: int = 24,
+    n_directions: int = 64,
+    seed: int = 0,
+) -> SaturationFreeRadius:
+    """Proved lower and attained upper bounds of the saturation-free radius (module docstring).
+
+    Args:
+      ctrl: a dynamic linearizing controller with constant gains; params: its parameters.
+      input_limit: (n_input,) limits on the plant's inputs (velocity level: [m/s, rad/s] as the
+        plant's inputs; torque level: on their rates), > 0 (inf: none).
+      t_final: horizon T [s]; basis: the slice (``"full"``, ``"position"`` or an (n, k) basis).
+      n_boxes: time boxes at first; rounds: times the worst eighth of the boxes is halved.
+      rho_max: largest radius tried; iters: bisection steps per box.
+      n_directions: rays for the attained bound; seed: their seed.
+
+    Raises:
+      ValueError: a static law, a gain schedule, limits of the wrong shape or not > 0.
+    """
+    check_dynamic(ctrl)
+    if params.gains.time_varying:
+        raise ValueError("the saturation-free radius needs constant gains (the error is e^{At} s)")
+    nu = ctrl.robot.n_input
+    limit = np.asarray(input_limit, float)
+    if limit.ndim > 1 or (limit.ndim == 1 and limit.shape[0] != nu):
+        raise ValueError(f"input_limit must be a scalar or have {nu} entries (one per input), got shape {limit.shape}")
+    limit = np.broadcast_to(limit, (nu,))
+    if np.any(~(limit > 0)):
+        raise ValueError(f"input_limit must be > 0 per input (inf: none), got {limit.tolist()}")
+    if not np.all(np.isfinite(limit)) and not np.any(np.isfinite(limit)):
+        return SaturationFreeRadius(np.inf, np.inf, None, None, 0)
+    P = slice_basis(ctrl, basis)
+    Pn = _padded(P)
+    compile_programs(ctrl, params, n_directions)
+    lim = jnp.asarray(np.where(np.isfinite(limit), limit, np.finfo(float).max))
+    t_c = (np.arange(n_boxes) + 0.5) * (t_final / n_boxes)
+    h = np.full(n_boxes, 0.5 * t_final / n_boxes)
+    rho = _box_radii(ctrl, params, Pn, lim, t_c, h, rho_max, iters)
+    for _ in range(rounds):
+        worst = rho <= np.quantile(rho, 0.125)
+        tc2 = np.concatenate([t_c[worst] - 0.5 * h[worst], t_c[worst] + 0.5 * h[worst]])
+        h2 = np.tile(0.5 * h[worst], 2)
+        rho2 = _box_radii(ctrl, params, Pn, lim, tc2, h2, rho_max, iters)
+        t_c, h, rho = (
+            np.concatenate([t_c[~worst], tc2]),
+            np.concatenate([h[~worst], h2]),
+            np.concatenate([rho[~worst], rho2]),
+        )
+    lower = float(rho.min())
+    order = np.argsort(rho)[:RAY_TIMES]
+    up, err, t_up = _attained(ctrl, params, P, lim, t_c[order], max(lower, 1e-9), n_directions, seed)
+    return SaturationFreeRadius(lower, up, err, t_up, int(t_c.size))
