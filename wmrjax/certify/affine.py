@@ -270,8 +270,9 @@ _AFFINE_STRUCTURAL = iv._STRUCTURAL - {"dynamic_slice", "gather", "reduce_max", 
 class _Evaluator:
     """One evaluation's equation rules (the symbols' context is fixed for it)."""
 
-    def __init__(self, ctx: _Context):
+    def __init__(self, ctx: _Context, angles_mod_2pi: bool):
         self.ctx = ctx
+        self.angles_mod_2pi = angles_mod_2pi
 
     def as_affine(self, x):
         if isinstance(x, Affine):
@@ -319,7 +320,7 @@ class _Evaluator:
         if name == _math.sincos_p.name:
             return lambda a: [_sin(a[0], ctx), _cos(a[0], ctx)]
         if name in ("atan2", _math.atan2_p.name):
-            return lambda a: _atan2(a[0], a[1], ctx, eqn.outvars[0] in angle_vars)
+            return lambda a: _atan2(a[0], a[1], ctx, self.angles_mod_2pi or eqn.outvars[0] in angle_vars)
         if name in _SMOOTH:
             f, df = _SMOOTH[name]
             return lambda a: _smooth(a[0], ctx, f, df, _d2_bound(name))
@@ -353,9 +354,14 @@ def symbols(centre, generators, n_ball: int):
     return Affine(centre, gen, jnp.zeros_like(centre))
 
 
-def enclose(fn, *args, n_ball: int):
+def enclose(fn, *args, n_ball: int, angles_mod_2pi: bool = False):
     """Affine enclosure of ``fn(*args)`` where the :class:`Affine` leaves of ``args`` share their
     symbols (the first ``n_ball`` in the unit ball, the rest in [-1, 1]); other leaves are points.
+
+    With ``angles_mod_2pi`` every ``atan2`` is enclosed on its continuous branch through the
+    box (its values are then correct modulo 2 pi only): for a caller whose use of the result is
+    2 pi-periodic in those angles (a reference's heading fed to a law that uses it through
+    sin/cos and wrapped errors), checked by that caller.
 
     Returns:
       ``fn``'s output pytree with an :class:`Affine` at every float leaf (an :class:`Interval`
@@ -368,7 +374,7 @@ def enclose(fn, *args, n_ball: int):
     ctx = _Context(n_ball, n.pop(), {})
     if not 0 <= n_ball <= ctx.n:
         raise ValueError(f"n_ball must be in [0, {ctx.n}], got {n_ball}")
-    ev = _Evaluator(ctx)
+    ev = _Evaluator(ctx, angles_mod_2pi)
 
     def to_box(x):
         x = jnp.asarray(x)

@@ -440,7 +440,7 @@ def problem_certificate(
     Without a ``[plant]`` the problem's loop is the nominal one: its radius is the exact map's
     proved lower bound (``covers`` ["nominal"], ``kind`` "proved"). With input limits the
     saturation-free radius (:func:`wmrjax.certify.saturation_free_radius`) is computed and
-    reported (``saturation_free``); where limits are the plant's only feature, the problem's
+    reported (``saturation_free``) where limits are the plant's only feature, and the problem's
     radius is the smaller of it and the exact map's proved bound (``covers`` ["nominal",
     "input_limit"], ``kind`` "proved", ``bound_by`` which of the two). For any other feature (a
     controller period, mismatch, noise) no proof in this package covers it yet: ``radius`` and
@@ -503,9 +503,10 @@ def problem_certificate(
 
 
 def _saturation_free(setting, params, basis: str, features, log):
-    """The saturation-free radius of a slice under the plant's tightest listed limits (None
-    without limits)."""
-    if Feature.INPUT_LIMIT not in features:
+    """The saturation-free radius of a slice under the plant's tightest listed limits, where input
+    limits are the plant's only feature (None otherwise: with a hold, mismatch or noise no proof
+    uses it yet, and its programs take tens of seconds to compile)."""
+    if tuple(features) != (Feature.INPUT_LIMIT,):
         return None
     limits = np.min(
         np.asarray(setting.axis("plant").payload["limit"], float).reshape(-1, setting.ctrl.robot.n_input), axis=0

@@ -97,14 +97,56 @@ def _jet_boxes(ctrl, params, t_c, h):
 
     def one(tc, hh):
         t = affine.symbols(tc, jnp.zeros(n + 1).at[n].set(hh), n)
-        return tuple(affine.enclose(lambda tt: ctrl.reference_jet(tt, params)[: r + 1], t, n_ball=n)[0])
+        # angles modulo 2 pi (a heading across +-pi stays one interval): the command is periodic
+        # in them (checked by _check_periodic)
+        jet = lambda tt: ctrl.reference_jet(tt, params)[: r + 1]
+        return tuple(affine.enclose(jet, t, n_ball=n, angles_mod_2pi=True)[0])
 
     return jax.vmap(one)(t_c, h)
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _box_fits(ctrl, params, P, limit, jc, jg, je, t_c, h, rho):
-    """Per time box: does the enclosure of the command over the box and the ball of radius rho fit?"""
+def _rotated(ctrl, jet, error, phi):
+    """The reference jet and the output error seen from axes turned by ``phi`` (the output point's
+    coordinates of every order turned by -phi, angle outputs less phi)."""
+    c, s = jnp.cos(phi), jnp.sin(phi)
+
+    def turn(a):  # no scatter (.at[].set): the enclosures have no rule for it
+        x, y = a[..., :1], a[..., 1:2]
+        return jnp.concatenate([c * x + s * y, c * y - s * x, a[..., 2:]], axis=-1)
+
+    mask = np.zeros(jet.shape)
+    for i in ctrl.law.extension.angle_outputs:
+        mask[0, i] = 1.0
+    return turn(jet) - phi * mask, turn(error.reshape(ctrl.relative_degree, ctrl.m)).reshape(-1)
+
+
+def _heading(ctrl, params, jet_centre):
+    """The reference's heading at a box's centre [rad] (its velocity's direction plus the offset)."""
+    return jnp.arctan2(jet_centre[1, 1], jet_centre[1, 0]) + params.reference.heading_offset
+
+
+def turns_alike(ctrl, params, t_final: float, seed: int = 0) -> bool:
+    """Whether the law's command is unchanged when the reference and the error are seen from
+    turned axes (every law of the paper is: the models are invariant under planar rotations;
+    a gain that differs between x and y breaks it). Checked at random times, errors and angles."""
+    rng = np.random.default_rng(seed)
+    r, n = ctrl.relative_degree, ctrl.relative_degree * ctrl.m
+    for t, phi in zip(rng.uniform(0.0, t_final, 4), rng.uniform(-np.pi, np.pi, 4)):
+        jet = ctrl.reference_jet(t, params)[: r + 1]
+        err = jnp.asarray(0.05 * rng.normal(size=n))
+        a = np.asarray(command(ctrl, params, jet, err))
+        b = np.asarray(command(ctrl, params, *_rotated(ctrl, jet, err, phi)))
+        if not np.allclose(a, b, rtol=1e-8, atol=1e-8):
+            return False
+    return True
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _box_fits(ctrl, turn: bool, params, P, limit, jc, jg, je, t_c, h, rho):
+    """Per time box: does the enclosure of the command over the box and the ball of radius rho fit?
+    With ``turn``, seen from axes along the reference's heading at the box's centre (the heading
+    then stays away from atan2's cut at +-pi inside the box; the command is the same:
+    :func:`turns_alike`)."""
     A = ctrl.error_matrix(params.gains)
     growth = jnp.expm1(_math.spectral_norm(A) * h)
     n = P.shape[0]
@@ -116,7 +158,9 @@ def _box_fits(ctrl, params, P, limit, jc, jg, je, t_c, h, rho):
         # e^{A t} = e^{A t_c} e^{A (t - t_c)}: the second factor's distance from I, as an error term
         slack = jnp.linalg.norm(E, axis=1) * g * rh * (1 + 1e-12) + 1e-15 * rh
         err = affine.Affine(err.c, err.g, err.e + slack)
-        out, ctx = affine.enclose(lambda j, e: command(ctrl, params, j, e), jet, err, n_ball=n)
+        phi = _heading(ctrl, params, jet.c) if turn else 0.0
+        fn = lambda j, e: command(ctrl, params, *_rotated(ctrl, j, e, phi))
+        out, ctx = affine.enclose(fn, jet, err, n_ball=n)
         box = affine.to_interval(out, ctx)
         ok = (box.lo >= -limit) & (box.hi <= limit) & jnp.isfinite(box.lo) & jnp.isfinite(box.hi)
         return jnp.all(ok)
@@ -124,10 +168,10 @@ def _box_fits(ctrl, params, P, limit, jc, jg, je, t_c, h, rho):
     return (jax.vmap(one)(affine.Affine(jc, jg, je), t_c, growth, rho),)
 
 
-def _box_radii(ctrl, params, P, limit, t_c, h, rho_hi: float, iters: int):
+def _box_radii(ctrl, turn: bool, params, P, limit, t_c, h, rho_hi: float, iters: int):
     """Bisection per box on rho in [0, rho_hi]: the largest rho whose box fits (0 if none)."""
     jets = fixed_blocks(lambda tc, hh: _jet_boxes(ctrl, params, tc, hh), (t_c, h), BOX_BLOCK)
-    program = lambda *a: _box_fits(ctrl, params, P, limit, *a)
+    program = lambda *a: _box_fits(ctrl, turn, params, P, limit, *a)
     fits = lambda rho: np.asarray(fixed_blocks(program, (*jets, t_c, h, rho), BOX_BLOCK)[0], bool)
     lo, hi = np.zeros_like(t_c), np.full_like(t_c, rho_hi)
     top = fits(hi)
@@ -153,13 +197,32 @@ def _ray_commands(ctrl, params, P, ts, dirs, radii):
     return f(ts, dirs, radii)
 
 
+def _check_periodic(ctrl, params, t_final: float) -> None:
+    """The command must not change when an angle output of the reference turns by 2 pi (the
+    reference's jet is enclosed modulo 2 pi): checked at a few times, else ValueError."""
+    angles = tuple(ctrl.law.extension.angle_outputs)
+    if not angles:
+        return
+    r, n = ctrl.relative_degree, ctrl.relative_degree * ctrl.m
+    for t in np.linspace(0.0, t_final, 5):
+        jet = ctrl.reference_jet(t, params)[: r + 1]
+        turned = jet.at[0, jnp.asarray(angles)].add(2 * np.pi)
+        a, b = (np.asarray(command(ctrl, params, j, jnp.zeros(n))) for j in (jet, turned))
+        if not np.allclose(a, b, rtol=1e-9, atol=1e-9):
+            raise ValueError(
+                f"the {ctrl.robot.name} law's command changes when its reference heading turns by 2 pi "
+                f"({a.tolist()} vs {b.tolist()} at t = {t:g} s): the saturation-free radius encloses "
+                "the reference's angles modulo 2 pi and cannot bound it"
+            )
+
+
 RAY_RADII = 151
 """Radii per ray of the attained bound, from the proved radius to 4 times it."""
 RAY_TIMES = 16
 """Times (the worst boxes' centres) at which the rays are tried."""
 
 
-def compile_programs(ctrl, params, n_directions: int) -> None:
+def compile_programs(ctrl, turn: bool, params, n_directions: int) -> None:
     """Compile the three programs of :func:`saturation_free_radius` at once, each on a thread of
     its own (XLA compiles them in parallel; the search then finds them compiled)."""
     n, f = ctrl.relative_degree * ctrl.m, jnp.float64
@@ -169,7 +232,7 @@ def compile_programs(ctrl, params, n_directions: int) -> None:
     jets = [jnp.zeros(x.shape, x.dtype) for x in jets]
     jobs = [
         lambda: _jet_boxes.lower(ctrl, params, blk, blk).compile(),
-        lambda: _box_fits.lower(ctrl, params, P, lim, *jets, blk, blk, blk).compile(),
+        lambda: _box_fits.lower(ctrl, turn, params, P, lim, *jets, blk, blk, blk).compile(),
         lambda: _ray_commands.lower(
             ctrl, params, P, jnp.zeros(RAY_TIMES, f), jnp.zeros((n_directions, n), f), jnp.zeros(RAY_RADII, f)
         ).compile(),
@@ -237,16 +300,18 @@ def saturation_free_radius(
         return SaturationFreeRadius(np.inf, np.inf, None, None, 0)
     P = slice_basis(ctrl, basis)
     Pn = _padded(P)
-    compile_programs(ctrl, params, n_directions)
+    _check_periodic(ctrl, params, t_final)
+    turn = turns_alike(ctrl, params, t_final)
+    compile_programs(ctrl, turn, params, n_directions)
     lim = jnp.asarray(np.where(np.isfinite(limit), limit, np.finfo(float).max))
     t_c = (np.arange(n_boxes) + 0.5) * (t_final / n_boxes)
     h = np.full(n_boxes, 0.5 * t_final / n_boxes)
-    rho = _box_radii(ctrl, params, Pn, lim, t_c, h, rho_max, iters)
+    rho = _box_radii(ctrl, turn, params, Pn, lim, t_c, h, rho_max, iters)
     for _ in range(rounds):
         worst = rho <= np.quantile(rho, 0.125)
         tc2 = np.concatenate([t_c[worst] - 0.5 * h[worst], t_c[worst] + 0.5 * h[worst]])
         h2 = np.tile(0.5 * h[worst], 2)
-        rho2 = _box_radii(ctrl, params, Pn, lim, tc2, h2, rho_max, iters)
+        rho2 = _box_radii(ctrl, turn, params, Pn, lim, tc2, h2, rho_max, iters)
         t_c, h, rho = (
             np.concatenate([t_c[~worst], tc2]),
             np.concatenate([h[~worst], h2]),

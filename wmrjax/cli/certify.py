@@ -15,9 +15,10 @@ ball, and the empirical safe radius per direction of the position slice); and th
 gradient falsifier's smallest failing radius, full and position slice. These are the nominal
 continuous loop's (``radius_labels`` says what each covers and how it is known). A ``[plant]``
 section (limits, a digital controller, mismatch, noise) describes another loop:
-``problem_certificate`` gives, per slice, the radius a proof covers for it (none yet for any
-plant feature: ``not_covered`` lists them) and that loop's falsified radius, from its own runs;
-a nominal radius above it is printed as a warning.
+``problem_certificate`` gives, per slice, the radius a proof covers for it (input limits alone:
+the smaller of the exact map's and the saturation-free radius; any other feature: none yet,
+``not_covered`` lists them) and that loop's falsified radius, from its own runs; a nominal
+radius above it is printed as a warning, a proved one above it is an alarm (exit status 1).
 
 The problem's ``[certify]`` section sets eps, the sample counts and the map (see
 ``wmrjax/examples/section_6_1.toml``, the default); the problem options and ``--set`` change

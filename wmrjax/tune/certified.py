@@ -288,9 +288,11 @@ def radii(setting, gains, *, eps: float, falsify=False, seed: int = 0, n_starts:
 
 def problem_loop(setting) -> dict:
     """What the radii above cover against the problem's loop: its plant features
-    (:func:`wmrjax.certify.plant_features`) and whether a proof covers them (not yet for any:
-    every radius of the tuner, and its requirement, is the nominal continuous loop's)."""
+    (:func:`wmrjax.certify.plant_features`) and whether the tuner's radii cover them (never
+    yet: every radius of the tuner, and its requirement, is the nominal continuous loop's;
+    ``wmrjax certify`` proves a limits-only plant's radius, the tuner does not keep it)."""
     features = [str(f) for f in certify.plant_features(setting)]
+    only_limits = features == [str(certify.Feature.INPUT_LIMIT)]
     return {
         "features": features,
         "covered": not features,
@@ -298,6 +300,10 @@ def problem_loop(setting) -> dict:
             "every radius here and the requirement are the nominal continuous loop's; no proof covers "
             f"this problem's {', '.join(features)} (wmrjax certify gives the problem "
             "loop's falsified radius)"
+            if features and not only_limits
+            else "every radius here and the requirement are the nominal continuous loop's; wmrjax certify "
+            "proves this problem's radius under its input limits (the saturation-free radius), the tuner "
+            "does not keep it"
             if features
             else "the problem's loop is the nominal one"
         ),
