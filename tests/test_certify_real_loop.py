@@ -148,32 +148,6 @@ def _saturated_loop(limit):
     return field
 
 
-def test_binding_limits_fail_inside_the_nominal_certificate_confirmed_by_scipy(nominal):
-    _, _, exact = nominal
-    limit = np.array([1.3, 0.8])
-    setting = _problem({"input_limit": limit.tolist()}).setting("certification")
-    params = setting.params()
-    pc = C.problem_certificate(setting, params, exact, eps=EPS, n_directions=8)
-    assert pc["loop"] == ["input_limit"]
-    b = pc["position"]
-    # limits alone are covered by a proof (the saturation-free radius, tests/test_saturation.py)
-    assert b["kind"] == "proved" and b["covers"] == ["nominal", "input_limit"] and b["not_covered"] == []
-    assert b["radius"] <= b["falsified_radius"] < b["nominal_radius"]  # saturation fails inside the nominal ball
-    (msg,) = [m for m in C.real_loop.plant_warnings(pc) if "position" in m]
-    assert "does not hold for this problem's loop (input_limit)" in msg
-    # the reported failure, integrated independently (DOP853): |chi1| dips below eps (inside one
-    # of its steps, where an event would not see the sign change twice: its dense output does)
-    e0 = np.asarray(b["falsified"]["initial_error"])
-    p0 = _reference_jet(0.0) + e0
-    z0 = [p0[0], p0[1], np.arctan2(-p0[2], p0[3]), np.linalg.norm(p0[2:])]
-    sol = scipy.integrate.solve_ivp(
-        _saturated_loop(limit), (0.0, T_FINAL), z0, method="DOP853", rtol=1e-10, atol=1e-12, dense_output=True
-    )
-    chi = np.abs(sol.sol(np.linspace(0.0, T_FINAL, 60001))[3])
-    assert chi.min() < EPS
-    assert chi.min() == pytest.approx(b["falsified"]["distance"], abs=2e-4)  # the quarter-step run's, to RK4's error
-
-
 def test_real_loop_distances_refuses_bad_input_before_running():
     setting = _problem({"input_limit": [1.3, 0.8]}).setting("c")
     params = setting.params()

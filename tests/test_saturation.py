@@ -106,47 +106,48 @@ def _commands(setting, params, s, ts):
 
 
 @pytest.fixture(scope="module")
-def saturation():
+def certified():
+    """The problem certificate of the circle loop with binding limits (one saturation-free
+    computation for every test below)."""
     setting = _problem({"input_limit": LIMIT.tolist()}).setting("certification")
     params = setting.params()
-    radii = {
-        b: C.saturation_free_radius(setting.ctrl, params, LIMIT, t_final=T_FINAL, basis=b, n_boxes=256, rounds=2)
-        for b in ("full", "position")
-    }
-    return setting, params, radii
-
-
-def test_the_saturation_free_radius_is_never_exceeded_inside_and_is_attained(saturation):
-    setting, params, radii = saturation
-    ts = np.linspace(0.0, T_FINAL, 3001)
-    rng = np.random.default_rng(3)
-    for basis, sat in radii.items():
-        assert 0.0 < sat.lower_bound <= sat.upper_bound < np.inf
-        P = np.asarray(C.slice_basis(setting.ctrl, basis))
-        dirs = rng.normal(size=(200, P.shape[1])) @ P.T
-        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-        inside = _commands(setting, params, sat.lower_bound * dirs, ts)  # on the proved sphere
-        assert np.all(np.abs(inside) <= LIMIT)
-        u = _commands(setting, params, sat.worst_error, [sat.worst_time])[0, 0]  # the attained error
-        assert np.any(np.abs(u) > LIMIT)
-        assert np.linalg.norm(sat.worst_error) == pytest.approx(sat.upper_bound, rel=1e-9)
-
-
-def test_a_limits_only_plant_is_certified_and_its_worst_errors_stay_eps_away_in_scipy(saturation):
-    setting, params, radii = saturation
     exact = {
         b: C.exact_map_radius(setting.ctrl, params, t_final=T_FINAL, eps=EPS, basis=b, n_t=601)
         for b in ("full", "position")
     }
-    pc = C.problem_certificate(setting, params, exact, eps=EPS, n_directions=8)
-    assert C.real_loop.problem_alarms(pc) == []
-    for basis, b in pc.items():
-        if basis == "loop":
-            continue
-        sat = b["saturation_free"]
-        assert b["covers"] == ["nominal", "input_limit"] and b["kind"] == "proved"
-        assert b["radius"] == pytest.approx(min(exact[basis].lower_bound, sat["lower_bound"]), rel=1e-12)
-        assert b["radius"] <= b["falsified_radius"]
+    return setting, params, exact, C.problem_certificate(setting, params, exact, eps=EPS, n_directions=8)
+
+
+def test_the_saturation_free_radius_is_never_exceeded_inside_and_is_attained(certified):
+    setting, params, _, pc = certified
+    ts = np.linspace(0.0, T_FINAL, 3001)
+    rng = np.random.default_rng(3)
+    for basis in ("full", "position"):
+        sat = pc[basis]["saturation_free"]
+        assert sat["kind"] == "proved" and sat["covers"] == ["nominal", "input_limit"]
+        assert 0.0 < sat["lower_bound"] <= sat["upper_bound"] < np.inf
+        P = np.asarray(C.slice_basis(setting.ctrl, basis))
+        dirs = rng.normal(size=(200, P.shape[1])) @ P.T
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        inside = _commands(setting, params, sat["lower_bound"] * dirs, ts)  # on the proved sphere
+        assert np.all(np.abs(inside) <= LIMIT)
+        worst = np.asarray(sat["worst_error"])
+        u = _commands(setting, params, worst, [sat["worst_time"]])[0, 0]  # the attained error
+        assert np.any(np.abs(u) > LIMIT)
+        assert np.linalg.norm(worst) == pytest.approx(sat["upper_bound"], rel=1e-9)
+
+
+def test_a_limits_only_plant_is_certified_and_its_worst_errors_stay_eps_away_in_scipy(certified):
+    _, _, exact, pc = certified
+    assert pc["loop"] == ["input_limit"] and C.real_loop.problem_alarms(pc) == []
+    for basis in ("full", "position"):
+        b = pc[basis]
+        assert b["covers"] == ["nominal", "input_limit"] and b["kind"] == "proved" and b["not_covered"] == []
+        assert b["radius"] == pytest.approx(
+            min(exact[basis].lower_bound, b["saturation_free"]["lower_bound"]), rel=1e-12
+        )
+        # the proof holds where saturation fails inside the nominal ball
+        assert b["radius"] <= b["falsified_radius"] < b["nominal_radius"] or basis == "full"
         e0 = 0.99 * b["radius"] * np.asarray(b["worst_error"]) / np.linalg.norm(b["worst_error"])
         p0 = _reference_jet(0.0) + e0
         z0 = [p0[0], p0[1], np.arctan2(-p0[2], p0[3]), np.linalg.norm(p0[2:])]
@@ -154,6 +155,27 @@ def test_a_limits_only_plant_is_certified_and_its_worst_errors_stay_eps_away_in_
             _saturated_loop(LIMIT), (0.0, T_FINAL), z0, method="DOP853", rtol=1e-10, atol=1e-12, dense_output=True
         )
         assert np.abs(sol.sol(np.linspace(0.0, T_FINAL, 20001))[3]).min() >= EPS
+
+
+def test_binding_limits_fail_inside_the_nominal_certificate_confirmed_by_scipy(certified):
+    """(Moved from test_certify_real_loop: the same plant.) The nominal position radius does not
+    hold for the saturated loop; the reported failure, integrated independently (DOP853), dips
+    below eps."""
+    *_, pc = certified
+    b = pc["position"]
+    assert b["radius"] <= b["falsified_radius"] < b["nominal_radius"]
+    (msg,) = [m for m in C.real_loop.plant_warnings(pc) if "position" in m]
+    assert "does not hold for this problem's loop (input_limit)" in msg
+    # dense output: the dip lies inside one of DOP853's steps, where an event would not see it
+    e0 = np.asarray(b["falsified"]["initial_error"])
+    p0 = _reference_jet(0.0) + e0
+    z0 = [p0[0], p0[1], np.arctan2(-p0[2], p0[3]), np.linalg.norm(p0[2:])]
+    sol = scipy.integrate.solve_ivp(
+        _saturated_loop(LIMIT), (0.0, T_FINAL), z0, method="DOP853", rtol=1e-10, atol=1e-12, dense_output=True
+    )
+    chi = np.abs(sol.sol(np.linspace(0.0, T_FINAL, 60001))[3])
+    assert chi.min() < EPS
+    assert chi.min() == pytest.approx(b["falsified"]["distance"], abs=2e-4)  # the quarter-step run's, to RK4's error
 
 
 def test_the_command_is_the_same_seen_from_turned_axes():

@@ -705,7 +705,7 @@ def initial_keys(ctrl, space) -> tuple:
     return ("x", "y", "theta") + beta
 
 
-def place(ctrl, params, error, space, task, branch, t0=0.0, rest: bool = False):
+def place(ctrl, params, error, space, task, branch, t0=0.0, rest: bool = False, jet=None):
     r"""The initial state of a run whose error from the reference at ``t0`` is ``error`` (pure).
 
     Output space (dynamic laws): the output jet is the reference's plus ``(x, y)`` in its
@@ -725,6 +725,9 @@ def place(ctrl, params, error, space, task, branch, t0=0.0, rest: bool = False):
       branch: +1 or -1 (dynamic laws; the reference's branch, ``ctrl.reference_branch``).
       t0: initial time [s].
       rest: static laws at torque level: zero wheel velocities.
+      jet: dynamic laws: the reference's output jet ((>= r, m)) to place against instead of
+        the reference's at ``t0`` (the saturation-free radius places against a jet seen from
+        turned axes, or an enclosure of it).
 
     Returns:
       The controller's state, shape (ctrl.n_state,).
@@ -733,7 +736,7 @@ def place(ctrl, params, error, space, task, branch, t0=0.0, rest: bool = False):
     d = jnp.asarray(error, t0.dtype)
     if isinstance(ctrl, DynamicLinearization):
         r = ctrl.relative_degree
-        zeta = ctrl.reference_jet(t0, params)[:r]
+        zeta = (ctrl.reference_jet(t0, params) if jet is None else jet)[:r]
         if Space(space) == Space.OUTPUT:
             if d.shape[0] == r * ctrl.m:  # the whole error jet
                 return ctrl.inverse_psi(zeta + d.reshape(r, ctrl.m), params, branch)

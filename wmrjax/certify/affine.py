@@ -4,7 +4,7 @@ An :class:`Affine` value is :math:`x = c + \sum_i g_i \varepsilon_i + e\,\vareps
 symbols :math:`\varepsilon` shared by every value of one evaluation: the first ``n_ball``
 symbols lie in the Euclidean unit ball (an initial error ``s = rho * eps`` of a certificate's
 ball), the others in [-1, 1] (time in a box), and :math:`\varepsilon_0` is a fresh symbol per
-value (|eps_0| <= 1) collecting everything not kept linear. Linear operations are exact in the
+value (:math:`|\varepsilon_0| \le 1`) collecting everything not kept linear. Linear operations are exact in the
 symbols; a smooth function is replaced by its tangent at the centre plus a bound of its
 Taylor remainder over the value's range (:math:`\tfrac12 \sup|f''|\,\mathrm{rad}^2`); a product
 keeps both first-order terms and bounds the second-order one by the product of the radii.
@@ -51,7 +51,7 @@ class _Context(NamedTuple):
 
 
 def rad(a: Affine, ctx: _Context):
-    """Largest |x - c| over the symbols' set."""
+    """Largest ``|x - c|`` over the symbols' set."""
     nb, rest = _parts(a, ctx)
     return nb + rest
 

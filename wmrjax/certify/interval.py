@@ -425,7 +425,7 @@ def _angle_only_vars(jaxpr) -> set:
 
 
 def _structural(prim, args, params):
-    if prim.name in ("dynamic_slice", "gather"):
+    if prim.name in _INDEXED:
         return _indexed(prim, args, params)
     los = prim.bind(*[a.lo for a in args], **params)
     his = prim.bind(*[a.hi for a in args], **params)
@@ -434,6 +434,7 @@ def _structural(prim, args, params):
     return Interval(los, his)
 
 
+_INDEXED = frozenset({"dynamic_slice", "gather"})  # reads at an index: the index must be enclosed too
 INDEX_SPAN = 4
 """An indexed read whose one varying index spans at most this many values is the hull of those reads."""
 

@@ -42,6 +42,7 @@ from wmrjax import _math
 from wmrjax.certify import affine
 from wmrjax.certify.exact_map import slice_basis
 from wmrjax.certify.lemma2 import check_dynamic
+from wmrjax.problem import Space, Task, place
 from wmrjax.simulate import fixed_blocks
 
 BOX_BLOCK = 256
@@ -75,7 +76,7 @@ def command(ctrl, params, jet, error):
     its rate (torque level)."""
     r, m, law, g = ctrl.relative_degree, ctrl.m, ctrl.law, params.geometry
     err = error.reshape(r, m)
-    z = ctrl.inverse_psi(jet[:r] + err, params, ctrl.reference_branch(params))
+    z = place(ctrl, params, error, Space.OUTPUT, Task.POSTURE, ctrl.reference_branch(params), jet=jet)
     coeffs = params.gains.coeffs_at(0.0)
     w = jet[r]
     for j in range(r):
