@@ -297,7 +297,7 @@ def saturation_free_radius(
     limit = np.broadcast_to(limit, (nu,))
     if np.any(~(limit > 0)):
         raise ValueError(f"input_limit must be > 0 per input (inf: none), got {limit.tolist()}")
-    if not np.all(np.isfinite(limit)) and not np.any(np.isfinite(limit)):
+    if not np.any(np.isfinite(limit)):  # no limit at all: nothing can saturate
         return SaturationFreeRadius(np.inf, np.inf, None, None, 0)
     P = slice_basis(ctrl, basis)
     Pn = _padded(P)
