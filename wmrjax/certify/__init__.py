@@ -21,16 +21,20 @@ else keyword-only; each returns a NamedTuple with fixed fields:
 * :mod:`~wmrjax.certify.saturation` -- the saturation-free radius (proved by affine
   enclosures, :mod:`~wmrjax.certify.affine` over :mod:`~wmrjax.certify.interval`): inside it a
   saturating plant's loop is the nominal one;
+* :mod:`~wmrjax.certify.deviation` -- the mismatch radius (proved): the real loop's deviation
+  from the nominal one under input-scale and geometry ranges, bounded through the exact error
+  map, and the radius it leaves (continuous controller, velocity level);
 * :mod:`~wmrjax.certify.real_loop` -- what each radius covers (:class:`Feature`, :class:`Kind`)
   and the problem's own loop (limits, a digital controller, mismatch, noise): its falsified
   radius and the problem's certificate (:func:`problem_certificate`).
 
-Every radius above but the real loop's and the saturation-free one is the *nominal continuous*
+Every radius above but the real loop's, the saturation-free and the mismatch ones is the *nominal continuous*
 loop's.
 
 Only dynamic linearizing laws are certified: a static law raises ``ValueError``.
 """
 
+from wmrjax.certify.deviation import Mismatch, MismatchRadius, deviation_rate, mismatch_radius  # noqa: F401
 from wmrjax.certify.empirical import (  # noqa: F401
     CONFIRM_BLOCK,
     CONFIRM_DT_FACTOR,
@@ -75,6 +79,7 @@ from wmrjax.certify.real_loop import (  # noqa: F401
     Kind,
     RealLoopFalsified,
     plant_features,
+    plant_range,
     problem_certificate,
     radius_labels,
     real_loop_distances,

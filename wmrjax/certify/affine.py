@@ -21,6 +21,7 @@ branch's affine form.
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Any, NamedTuple
 
@@ -45,7 +46,7 @@ class Affine(NamedTuple):
 
 
 class _Context(NamedTuple):
-    n_ball: int  # the first n_ball symbols: Euclidean unit ball; the rest: [-1, 1]
+    balls: tuple  # sizes of the consecutive groups of symbols from the first, each in a unit ball; the rest: [-1, 1]
     n: int
     parts: dict  # id(value) -> (value, its _parts): each value's radii emitted once per trace
 
@@ -53,7 +54,7 @@ class _Context(NamedTuple):
 def rad(a: Affine, ctx: _Context):
     """Largest ``|x - c|`` over the symbols' set."""
     nb, rest = _parts(a, ctx)
-    return nb + rest
+    return jnp.sum(nb, axis=-1) + rest
 
 
 def to_interval(a, ctx: _Context) -> Interval:
@@ -104,25 +105,36 @@ def _scale(a, k, extra=0.0):
     return _make(k * a.c, k[..., None] * a.g, jnp.abs(k) * a.e + extra)
 
 
+def _ball_slices(ctx: _Context) -> list:
+    """The column slices of the balls' symbols."""
+    ends = [0, *itertools.accumulate(ctx.balls)]
+    return [slice(lo, hi) for lo, hi in zip(ends[:-1], ends[1:])]
+
+
 def _parts(a: Affine, ctx: _Context):
-    """``(ball generators' norm, box generators' sum of magnitudes + e)``."""
+    """``(each ball's generators' norm, stacked on a last axis; box generators' sum of magnitudes + e)``."""
     hit = ctx.parts.get(id(a))
     if hit is not None and hit[0] is a:
         return hit[1]
-    nb = jnp.sqrt(jnp.sum(a.g[..., : ctx.n_ball] ** 2, axis=-1)) * (1 + 2.0**-50)
-    rest = jnp.sum(jnp.abs(a.g[..., ctx.n_ball :]), axis=-1) + a.e
+    norms = [jnp.sqrt(jnp.sum(a.g[..., sl] ** 2, axis=-1)) for sl in _ball_slices(ctx)]
+    nb = jnp.stack(norms or [jnp.zeros(a.c.shape)], axis=-1) * (1 + 2.0**-50)
+    rest = jnp.sum(jnp.abs(a.g[..., sum(ctx.balls) :]), axis=-1) + a.e
     ctx.parts[id(a)] = (a, (nb, rest))  # the value is kept alive with its entry: ids stay unique
     return nb, rest
 
 
 def _mul(a, b, ctx):
-    """Product: the ball symbols' quadratic form x^T (g_a g_b^T) x over the unit ball lies in
-    [(g_a.g_b - |g_a||g_b|) / 2, (g_a.g_b + |g_a||g_b|) / 2]: its midpoint joins the centre."""
+    """Product: a ball's quadratic form x^T (g_a g_b^T) x over its unit ball lies in
+    [(g_a.g_b - |g_a||g_b|) / 2, (g_a.g_b + |g_a||g_b|) / 2]: its midpoint joins the centre;
+    the products across two balls, and with the box symbols, are bounded by their norms."""
     na, ra = _parts(a, ctx)
     nb, rb = _parts(b, ctx)
-    dot = jnp.sum(a.g[..., : ctx.n_ball] * b.g[..., : ctx.n_ball], axis=-1)
+    nbs = sum(ctx.balls)
+    dot = jnp.sum(a.g[..., :nbs] * b.g[..., :nbs], axis=-1)
+    sa, sb = jnp.sum(na, axis=-1), jnp.sum(nb, axis=-1)
+    same = jnp.sum(na * nb, axis=-1)
     # (an inf radius times 0 gives NaN: _make turns it into e = inf, "nothing known")
-    quad = 0.5 * na * nb + na * rb + ra * (nb + rb)
+    quad = 0.5 * same + (sa * sb - same) + sa * rb + ra * (sb + rb)
     g = a.c[..., None] * b.g + b.c[..., None] * a.g
     e = jnp.abs(a.c) * b.e + jnp.abs(b.c) * a.e + quad
     return _make(a.c * b.c + 0.5 * dot, g, e)
@@ -332,6 +344,8 @@ class _Evaluator:
             return lambda a: _dot_general(a[0], a[1], ctx, params)
         if name == "stop_gradient":
             return lambda a: a[0]
+        if name == iv.anchor_p.name:  # one point of the range: the centre
+            return lambda a: _point(a[0].c, ctx)
         if name == "convert_element_type" and jnp.dtype(params["new_dtype"]) == jnp.float64:
             return lambda a: a[0]
         if name in _AFFINE_STRUCTURAL:
@@ -346,17 +360,22 @@ def _lo(a):
     return a.c if isinstance(a, Affine) else a.lo
 
 
-def symbols(centre, generators, n_ball: int):
-    """An :class:`Affine` input ``centre + generators @ eps`` (``generators``: (..., n) with the
-    first ``n_ball`` columns for the ball symbols), with no error term."""
+def symbols(centre, generators, n_ball=None):
+    """An :class:`Affine` input ``centre + generators @ eps`` (``generators``: (..., n), one
+    column per symbol, the balls' first: see :func:`enclose`), with no error term.
+    ``n_ball`` is not used (the balls are :func:`enclose`'s)."""
+    del n_ball
     centre = jnp.asarray(centre, jnp.float64)
     gen = jnp.broadcast_to(jnp.asarray(generators, jnp.float64), centre.shape + (jnp.shape(generators)[-1],))
     return Affine(centre, gen, jnp.zeros_like(centre))
 
 
-def enclose(fn, *args, n_ball: int, angles_mod_2pi: bool = False):
+def enclose(fn, *args, n_ball, angles_mod_2pi: bool = False):
     """Affine enclosure of ``fn(*args)`` where the :class:`Affine` leaves of ``args`` share their
     symbols (the first ``n_ball`` in the unit ball, the rest in [-1, 1]); other leaves are points.
+    ``n_ball`` may be a tuple of sizes: consecutive groups of symbols from the first, each in a
+    unit ball of its own (an initial error's ball and a tube's ball: their joint set is the
+    product of the two balls, not one ball around both).
 
     With ``angles_mod_2pi`` every ``atan2`` is enclosed on its continuous branch through the
     box (its values are then correct modulo 2 pi only): for a caller whose use of the result is
@@ -371,9 +390,10 @@ def enclose(fn, *args, n_ball: int, angles_mod_2pi: bool = False):
     n = {x.g.shape[-1] for x in leaves if isinstance(x, Affine)}
     if len(n) != 1:
         raise ValueError(f"every Affine argument needs the same number of symbols, got {sorted(n)}")
-    ctx = _Context(n_ball, n.pop(), {})
-    if not 0 <= n_ball <= ctx.n:
-        raise ValueError(f"n_ball must be in [0, {ctx.n}], got {n_ball}")
+    balls = (n_ball,) if isinstance(n_ball, int) else tuple(n_ball)
+    ctx = _Context(tuple(b for b in balls if b), n.pop(), {})
+    if any(not isinstance(b, int) or b < 0 for b in balls) or sum(balls) > ctx.n:
+        raise ValueError(f"n_ball must be sizes >= 0 of at most {ctx.n} symbols in all, got {n_ball}")
     ev = _Evaluator(ctx, angles_mod_2pi)
 
     def to_box(x):

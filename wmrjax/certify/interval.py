@@ -37,7 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.extend.core import ClosedJaxpr, Literal
+from jax.extend.core import ClosedJaxpr, Literal, Primitive
+from jax.interpreters import ad, batching, mlir
 
 from wmrjax import _math
 
@@ -46,6 +47,25 @@ ELEMENTARY_ULPS = 8
 
 _REL = ELEMENTARY_ULPS * 2.0**-52
 _TINY = np.finfo(np.float64).tiny
+
+
+# --- anchor: one point of a value's range ------------------------------------------------------
+# The identity on arrays. An enclosure replaces it by one point of its argument's range (the
+# centre): a program may then use an identity that holds for *every* choice of a quantity (a
+# preconditioner M in U = M b + (I - M K) U) with the one choice that makes it tight, and stay
+# exact at points, where the anchor is the value itself.
+anchor_p = Primitive("wmrjax_anchor")
+anchor_p.def_impl(lambda x: x)
+anchor_p.def_abstract_eval(lambda x: jax.core.ShapedArray(x.shape, x.dtype))
+mlir.register_lowering(anchor_p, mlir.lower_fun(lambda x: x, multiple_results=False))
+ad.deflinear2(anchor_p, lambda ct, x: [ct])
+batching.primitive_batchers[anchor_p] = lambda args, dims: (anchor_p.bind(*args), dims[0])
+
+
+def anchor(x):
+    """``x`` itself; under :func:`enclose` (and :func:`wmrjax.certify.affine.enclose`) one point
+    of its range, the centre (see ``anchor_p`` above)."""
+    return anchor_p.bind(jnp.asarray(x))
 
 
 class Interval(NamedTuple):
@@ -470,6 +490,10 @@ def _eval_eqn(eqn, args, angle_vars):
         return run_jaxpr(sub.jaxpr, [Interval.point(c) for c in sub.consts], args, _eval_eqn)
     if name == _math.sincos_p.name:
         return [_sin(args[0]), _cos(args[0])]
+    if name == anchor_p.name:  # a point of the range: its midpoint (any point would do)
+        b = args[0]
+        mid = 0.5 * b.lo + 0.5 * b.hi
+        return Interval.point(jnp.where(jnp.isfinite(mid), mid, 0.0))
     if name in ("atan2", _math.atan2_p.name):
         # lax.atan2(y, x) and wmrjax's atan2(y, x) take their arguments in the same order
         return _atan2_box(args[0], args[1], unwrapped=eqn.outvars[0] in angle_vars)

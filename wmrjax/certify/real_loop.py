@@ -19,9 +19,12 @@ can fail (issue 54: a 20 Hz hold on the S-path fails at 0.98 of the nominal radi
   proof covers every feature of its plant, labelled with what it covers, beside the real
   loop's falsified radius.
 
-No proof here covers a plant feature yet: a problem with a ``[plant]`` gets no proved radius
-(``radius`` None, the features listed as not covered) and the real loop's falsified radius, so
-that the nominal radius is never printed as the answer for a loop it does not describe.
+Proofs cover input limits (:func:`wmrjax.certify.saturation_free_radius`) and, for a continuous
+controller at velocity level, input-scale and geometry ranges with limits
+(:func:`wmrjax.certify.mismatch_radius`). A loop with a feature no proof covers (a digital
+controller, noise, mismatch at torque level) gets no proved radius (``radius`` None, the
+features listed as not covered) and the real loop's falsified radius, so that the nominal
+radius is never printed as the answer for a loop it does not describe.
 """
 
 from __future__ import annotations
@@ -37,10 +40,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax._validate import check_int, check_positive
+from wmrjax.certify.deviation import Mismatch, mismatch_radius
 from wmrjax.certify.empirical import sample_sphere
 from wmrjax.certify.exact_map import singular_rows, slice_basis
 from wmrjax.certify.lemma2 import check_dynamic
 from wmrjax.certify.saturation import saturation_free_radius
+from wmrjax.controllers.law import Level
 from wmrjax.problem import Space, Task, law_state, place
 from wmrjax.simulate import fixed_blocks
 
@@ -442,10 +447,14 @@ def problem_certificate(
     saturation-free radius (:func:`wmrjax.certify.saturation_free_radius`) is computed and
     reported (``saturation_free``) where limits are the plant's only feature, and the problem's
     radius is the smaller of it and the exact map's proved bound (``covers`` ["nominal",
-    "input_limit"], ``kind`` "proved", ``bound_by`` which of the two). For any other feature (a
-    controller period, mismatch, noise) no proof in this package covers it yet: ``radius`` and
-    ``kind`` are None, ``not_covered`` lists the features, and the nominal radius is reported
-    beside it as the nominal loop's.
+    "input_limit"], ``kind`` "proved", ``bound_by`` which of the two). With input-scale or
+    geometry ranges (and limits) on a continuous velocity-level loop, the radius is
+    :func:`wmrjax.certify.mismatch_radius` over the plant's range (:func:`plant_range`;
+    ``bound_by`` "mismatch_tube" or "mismatch_exact_map", a ``mismatch`` block with the
+    deviation bound). For any other feature (a controller period, noise, mismatch at torque
+    level) no proof in this package covers it yet: ``radius`` and ``kind`` are None,
+    ``not_covered`` lists the features, and the nominal radius is reported beside it as the
+    nominal loop's.
 
     Args:
       setting: the problem's :class:`wmrjax.problem.Setting`; params: the law's parameters.
@@ -480,6 +489,8 @@ def problem_certificate(
             continue
         sat = _saturation_free(setting, params, basis, features, log)
         block.update(_plant_radius(em, nominal, kind, sat, features))
+        if block["radius"] is None and kind == Kind.PROVED and _mismatch_covered(setting, params, features):
+            block.update(_mismatch_block(setting, params, basis, features, em, eps, log))
         if not np.isfinite(float(em.radius)):  # nothing reaches the singular set: no scale to search
             block.update(falsified_radius=None, falsified=None)
         else:
@@ -540,6 +551,85 @@ def _plant_radius(em, nominal: float, kind, sat, features) -> dict:
         bound_by="saturation_free" if binding_sat else "exact_map",
     )
     return block
+
+
+# what the continuous loop's mismatch bound (wmrjax.certify.mismatch_radius) covers
+MISMATCH_FEATURES = frozenset({Feature.INPUT_LIMIT, Feature.INPUT_SCALE, Feature.GEOMETRY_SCALE})
+
+
+def _mismatch_covered(setting, params, features) -> bool:
+    """Whether the mismatch bound covers the loop: a continuous controller at velocity level with
+    a linear singular set and constant gains, whose plant features are limits and scales only."""
+    return (
+        set(features) <= MISMATCH_FEATURES
+        and bool(set(features) - {Feature.INPUT_LIMIT})
+        and setting.ctrl.level == Level.VELOCITY
+        and singular_rows(setting.ctrl) is not None
+        and not params.gains.time_varying
+    )
+
+
+def plant_range(setting) -> Mismatch:
+    """The plant axis's values as one range: the tightest listed limits, and each scale between
+    its listed values' smallest and largest (a proof over the range covers every listed plant)."""
+    pv = setting.axis("plant").payload
+    nu = setting.ctrl.robot.n_input
+    limit = np.min(np.asarray(pv["limit"], float).reshape(-1, nu), axis=0)
+    scale = np.asarray(pv["input_scale"], float).reshape(-1, nu)
+    geo = np.asarray(pv["geometry_scale"], float).reshape(-1)
+    return Mismatch(limit, (scale.min(axis=0), scale.max(axis=0)), (float(geo.min()), float(geo.max())))
+
+
+def _mismatch_block(setting, params, basis: str, features, em, eps: float, log) -> dict:
+    """The problem certificate's fields from :func:`wmrjax.certify.mismatch_radius` over the
+    plant's range (:func:`plant_range`)."""
+    rng = plant_range(setting)
+    if log is not None:
+        log(f"  mismatch radius ({basis}): enclosing the plant's deviation over its range (the first slice compiles)")
+    mr = mismatch_radius(
+        setting.ctrl, params, rng, t_final=setting.t_final, eps=eps, basis=basis, n_t=len(np.asarray(em.ts))
+    )
+    if log is not None:
+        log(
+            f"  mismatch radius ({basis}): proved {mr.lower_bound:.4g} (deviation <= {mr.deviation_bound:.3g}, "
+            f"margin eps + {mr.singular_margin:.3g}, bound by {mr.bound_by})"
+        )
+    worst = mr.worst_error if mr.bound_by == "exact_map" else None
+    return {
+        "radius": mr.lower_bound,
+        "worst_error": None if worst is None else [float(v) for v in np.asarray(worst)],
+        "covers": [str(Feature.NOMINAL), *(str(f) for f in features)],
+        "not_covered": [],
+        "kind": str(Kind.PROVED),
+        "bound_by": "mismatch_" + mr.bound_by,
+        "mismatch": _mismatch_summary(mr, rng),
+    }
+
+
+def _finite(v):
+    """A float, or None where it is not finite (plain JSON has no inf)."""
+    return float(v) if np.isfinite(v) else None
+
+
+def _mismatch_summary(mr, rng: Mismatch) -> dict:
+    return {
+        "lower_bound": mr.lower_bound,
+        "rate_bound": _finite(mr.rate_bound),
+        "deviation_bound": _finite(mr.deviation_bound),
+        "singular_margin": _finite(mr.singular_margin),
+        "tube": _finite(mr.tube),
+        "gain_integrals": [float(v) for v in mr.gains],
+        "tube_radius": mr.tube_radius,
+        "exact_map_lower_bound_at_margin": mr.exact_lower_bound,
+        "bound_by": mr.bound_by,
+        "time_boxes": mr.boxes,
+        "range": {
+            "input_limit": [_finite(v) for v in rng.input_limit],
+            "input_scale": [[float(v) for v in end] for end in rng.input_scale],
+            "geometry_scale": [float(v) for v in rng.geometry_scale],
+        },
+        "kind": str(Kind.PROVED),
+    }
 
 
 def _saturation_summary(sat) -> dict:

@@ -39,9 +39,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import _math
-from wmrjax.certify import affine
+from wmrjax.certify import affine, interval
 from wmrjax.certify.exact_map import slice_basis
 from wmrjax.certify.lemma2 import check_dynamic
+from wmrjax.controllers.law import DET_FLOOR
 from wmrjax.problem import Space, Task, place
 from wmrjax.simulate import fixed_blocks
 
@@ -81,7 +82,37 @@ def command(ctrl, params, jet, error):
     w = jet[r]
     for j in range(r):
         w = w - coeffs[:, j] * err[j]
-    return law.plant_control(z, law.solve_top(z, w, g), g)
+    _, a, K = law.jet(z, g)
+    return law.plant_control(z, preconditioned_solve(K, w - a), g)
+
+
+PRECONDITIONED_STEPS = 6
+"""Steps of :func:`preconditioned_solve`'s refinement."""
+
+
+def preconditioned_solve(K, b):
+    r""":math:`U = K^{-1}b` as the law computes it (adjugate over :math:`\det K`, clamped at
+    :data:`wmrjax.controllers.law.DET_FLOOR`), refined for enclosures.
+
+    :math:`U = Mb + (I - MK)U` holds for *every* matrix M. With M the inverse of K's anchor
+    (:func:`wmrjax.certify.interval.anchor`: K itself at a point, where the refinement changes
+    nothing but rounding; the centre of K's enclosure over a box), :math:`I - MK` is small over
+    the box and each step replaces the wide enclosure of the adjugate quotient (its
+    determinant's enclosure loses the correlation of K's entries) by a tight first-order one.
+
+    Args:
+      K: (m, m) the decoupling matrix, m <= 3; b: (m,) the right-hand side.
+    """
+    num, det = _math.adjugate_solve(K, b)
+    U = num / _math.safe_divisor(det, DET_FLOOR)
+    Kc = interval.anchor(K)
+    eye = jnp.eye(K.shape[0], dtype=K.dtype)
+    cols = [_math.adjugate_solve(Kc, e) for e in eye]
+    M = jnp.stack([n / d for n, d in cols], axis=1)
+    residual = eye - M @ K
+    for _ in range(PRECONDITIONED_STEPS):
+        U = M @ b + residual @ U
+    return U
 
 
 def _padded(P):

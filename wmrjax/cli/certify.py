@@ -16,8 +16,9 @@ gradient falsifier's smallest failing radius, full and position slice. These are
 continuous loop's (``radius_labels`` says what each covers and how it is known). A ``[plant]``
 section (limits, a digital controller, mismatch, noise) describes another loop:
 ``problem_certificate`` gives, per slice, the radius a proof covers for it (input limits alone:
-the smaller of the exact map's and the saturation-free radius; any other feature: none yet,
-``not_covered`` lists them) and that loop's falsified radius, from its own runs; a nominal
+the smaller of the exact map's and the saturation-free radius; input-scale and geometry
+ranges with a continuous velocity-level controller: the mismatch radius; a digital controller,
+noise or mismatch at torque level: none yet, ``not_covered`` lists them) and that loop's falsified radius, from its own runs; a nominal
 radius above it is printed as a warning, a proved one above it is an alarm (exit status 1).
 
 The problem's ``[certify]`` section sets eps, the sample counts and the map (see
@@ -90,6 +91,13 @@ def _report(s: dict, out: Path) -> int:
             if sf is not None:
                 up = "none found" if sf["upper_bound"] is None else f"{sf['upper_bound']:.4f} (attained)"
                 print(f"    saturation-free radius {sf['lower_bound']:.4f} (proved), {up}")
+            mm = c.get("mismatch")
+            if mm is not None:
+                dev = "unbounded" if mm["deviation_bound"] is None else f"{mm['deviation_bound']:.4g}"
+                print(
+                    f"    mismatch radius {mm['lower_bound']:.4f} (proved over the plant's range; deviation from "
+                    f"the nominal loop <= {dev}, bound by {mm['bound_by']})"
+                )
     print(f"wrote {out}/summary.json and slice_map.png in {s['wall_time_s']:.0f} s")
     for msg in s["plant_warnings"]:
         print(f"warning: {msg}", file=sys.stderr)

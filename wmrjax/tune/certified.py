@@ -290,9 +290,10 @@ def problem_loop(setting) -> dict:
     """What the radii above cover against the problem's loop: its plant features
     (:func:`wmrjax.certify.plant_features`) and whether the tuner's radii cover them (never
     yet: every radius of the tuner, and its requirement, is the nominal continuous loop's;
-    ``wmrjax certify`` proves a limits-only plant's radius, the tuner does not keep it)."""
+    ``wmrjax certify`` proves the radius of a plant with input limits, and of input-scale and
+    geometry ranges under a continuous velocity-level controller; the tuner does not keep it)."""
     features = [str(f) for f in certify.plant_features(setting)]
-    only_limits = features == [str(certify.Feature.INPUT_LIMIT)]
+    provable = {str(certify.Feature.INPUT_LIMIT), str(certify.Feature.INPUT_SCALE), str(certify.Feature.GEOMETRY_SCALE)}
     return {
         "features": features,
         "covered": not features,
@@ -300,9 +301,10 @@ def problem_loop(setting) -> dict:
             "every radius here and the requirement are the nominal continuous loop's; no proof covers "
             f"this problem's {', '.join(features)} (wmrjax certify gives the problem "
             "loop's falsified radius)"
-            if features and not only_limits
+            if features and not set(features) <= provable
             else "every radius here and the requirement are the nominal continuous loop's; wmrjax certify "
-            "proves this problem's radius under its input limits (the saturation-free radius), the tuner "
+            "proves a radius of this problem's loop where it can (its problem_certificate: input limits; "
+            "input-scale and geometry ranges under a continuous velocity-level controller), the tuner "
             "does not keep it"
             if features
             else "the problem's loop is the nominal one"
