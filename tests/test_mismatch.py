@@ -18,6 +18,7 @@ import scipy.linalg
 import wmrjax.certify as C
 from tests.test_certify_real_loop import EPS, OMEGA, T_FINAL, _problem, _reference_jet
 from wmrjax.certify import affine
+from wmrjax.problem import Problem
 
 LIMIT = np.array([1.3, 0.8])
 SCALES = (0.98, 1.02)  # every actuator within +-2 % of the law's
@@ -143,8 +144,7 @@ def test_a_schedule_a_torque_level_law_or_a_bad_range_is_refused():
 
 
 def _problem_at_torque():
-    from wmrjax.problem import Problem  # the shared helper builds velocity-level problems only
-
+    """The circle problem at torque level (the shared helper builds velocity-level ones)."""
     return Problem.from_dict(
         {
             "controller": {"law": "dynamic", "robot": "(2,0)", "level": "torque"},

@@ -187,10 +187,10 @@ def test_the_command_is_the_same_seen_from_turned_axes():
     jet = setting.ctrl.reference_jet(1.0, params)[:3]
     err = jnp.array([0.1, -0.2, 0.05, 0.3])
     a = saturation.command(setting.ctrl, params, jet, err)
-    b = saturation.command(setting.ctrl, params, *saturation._rotated(setting.ctrl, jet, err, 2.5))
+    b = saturation.command(setting.ctrl, params, *saturation.rotated(setting.ctrl, jet, err, 2.5))
     assert np.allclose(a, b, atol=1e-12)
     # the circle's heading crosses +-pi inside the horizon (pi/2 + 0.5 t): boxes there are certified too
-    assert float(saturation._heading(setting.ctrl, params, setting.ctrl.reference_jet(4.0, params))) < 0
+    assert float(saturation.reference_heading(setting.ctrl, params, setting.ctrl.reference_jet(4.0, params))) < 0
 
 
 def test_saturation_free_radius_refuses_bad_input():

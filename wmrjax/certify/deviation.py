@@ -58,9 +58,9 @@ import numpy as np
 
 from wmrjax import _math, robots
 from wmrjax.certify import affine
-from wmrjax.certify.exact_map import _exact_map, exact_map_radius, singular_rows, slice_basis, square_basis
-from wmrjax.certify.lemma2 import check_dynamic
-from wmrjax.certify.saturation import BOX_BLOCK, _heading, _jet_boxes, _rotated, command
+from wmrjax.certify.exact_map import exact_map_radius, singular_rows, slice_basis, square_basis
+from wmrjax.certify.lemma2 import check_dynamic, m1_closed_form
+from wmrjax.certify.saturation import BOX_BLOCK, command, jet_boxes, reference_heading, rotated
 from wmrjax.controllers.law import Level
 from wmrjax.problem import Space, Task, place
 from wmrjax.robots import Geometry
@@ -196,8 +196,8 @@ def _box_rates(ctrl, turn: bool, params, P, limit, scales, jc, jg, je, t_c, h, r
         err = affine.symbols(jnp.zeros(n), gen)
         slack = jnp.linalg.norm(E, axis=1) * g * rh * (1 + 1e-12) + 1e-15 * rh
         err = affine.Affine(err.c, err.g, err.e + slack)
-        phi = _heading(ctrl, params, jet.c) if turn else 0.0
-        fn = lambda j, e, s, sg, sb: deviation_rate(ctrl, params, *_rotated(ctrl, j, e, phi), s, sg, sb)
+        phi = reference_heading(ctrl, params, jet.c) if turn else 0.0
+        fn = lambda j, e, s, sg, sb: deviation_rate(ctrl, params, *rotated(ctrl, j, e, phi), s, sg, sb)
         (delta, applied), ctx = affine.enclose(fn, jet, err, s_in, sigma, between, n_ball=(n, n))
         d, a = affine.to_interval(delta, ctx), affine.to_interval(applied, ctx)
         mag = jnp.maximum(jnp.abs(d.lo), jnp.abs(d.hi))
@@ -217,7 +217,7 @@ class _Tube:
     def __init__(self, ctrl, turn, params, P, mismatch: Mismatch, t_final: float, n_boxes: int):
         self.t_c = (np.arange(n_boxes) + 0.5) * (t_final / n_boxes)
         self.h = np.full(n_boxes, 0.5 * t_final / n_boxes)
-        self.jets = fixed_blocks(lambda tc, hh: _jet_boxes(ctrl, params, tc, hh), (self.t_c, self.h), BOX_BLOCK)
+        self.jets = fixed_blocks(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), (self.t_c, self.h), BOX_BLOCK)
         lim = np.asarray(mismatch.input_limit, float)
         lim = jnp.asarray(np.where(np.isfinite(lim), lim, np.finfo(float).max))
         ends = [np.append(np.asarray(mismatch.input_scale[k], float), mismatch.geometry_scale[k]) for k in (0, 1)]
@@ -296,7 +296,7 @@ def _check_alike(ctrl, params, t_final: float, seed: int = 0) -> bool:
             rng.uniform(0.9, 1.1),
         )
         d, a = (np.asarray(x) for x in deviation_rate(ctrl, params, jet, err, s, sg))
-        d2, a2 = (np.asarray(x) for x in deviation_rate(ctrl, params, *_rotated(ctrl, jet, err, phi), s, sg))
+        d2, a2 = (np.asarray(x) for x in deviation_rate(ctrl, params, *rotated(ctrl, jet, err, phi), s, sg))
         alike &= bool(
             np.allclose(a, a2, rtol=1e-8, atol=1e-8)
             and np.isclose(np.linalg.norm(d), np.linalg.norm(d2), rtol=1e-8, atol=1e-10)
@@ -340,14 +340,18 @@ def mismatch_radius(
     g_t, g_c = gain_integrals(ctrl.error_matrix(params.gains), C, t_final)
     nominal = exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=basis, n_t=n_t)
     tube = _Tube(ctrl, turn, params, square_basis(P), mismatch, t_final, n_boxes)
-    ts = jnp.linspace(0.0, t_final, n_t)
+    m1 = float(np.min(np.asarray(m1_closed_form(ctrl, params, jnp.linspace(0.0, t_final, n_t)))))
 
-    def attained(eps_x):  # the exact map's attained radius at margin eps_x (no proved bound: cheap)
-        return float(_exact_map(ctrl, params, square_basis(P), C, jnp.asarray(eps_x), ts, None, 40, None)[1])
+    def exact_at(eps_x, prove: bool):
+        """The exact map at margin eps_x (None where the reference itself comes within it)."""
+        if eps_x >= m1:
+            return None
+        return exact_map_radius(ctrl, params, t_final=t_final, eps=eps_x, basis=basis, n_t=n_t, lower_bound=prove)
 
     def passes(rho):
         w = tube.width(rho, g_t)
-        return w is not None and rho <= attained(eps + g_c * w[1]), w
+        em = None if w is None else exact_at(eps + g_c * w[1], prove=False)  # attained only: cheap
+        return em is not None and rho <= float(em.radius), w
 
     lo, hi = 0.0, float(nominal.lower_bound)
     ok, w = passes(hi)
@@ -362,7 +366,9 @@ def mismatch_radius(
     if hi <= 0.0 or w is None:
         return MismatchRadius(0.0, np.inf, np.inf, np.inf, np.nan, (g_t, g_c), 0.0, 0.0, None, "tube", n_boxes)
     R, delta = w
-    proved = exact_map_radius(ctrl, params, t_final=t_final, eps=eps + g_c * delta, basis=basis, n_t=n_t)
+    proved = exact_at(eps + g_c * delta, prove=True)
+    if proved is None:  # (the bisection's attained radius said otherwise: rounding at the edge)
+        return MismatchRadius(0.0, delta, g_t * delta, g_c * delta, R, (g_t, g_c), hi, 0.0, None, "exact_map", n_boxes)
     lower = min(hi, float(proved.lower_bound))
     return MismatchRadius(
         lower,

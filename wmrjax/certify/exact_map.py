@@ -171,6 +171,7 @@ def exact_map_radius(
     basis="full",
     n_t: int = 2001,
     refine: int = 40,
+    lower_bound: bool = True,
 ) -> ExactMapRadius:
     r"""Exact safe radius from the linear error map (semi-infinite over t; grid then golden section).
 
@@ -188,6 +189,8 @@ def exact_map_radius(
       t_final: horizon T [s]; eps: Lemma 2's margin.
       basis: slice, see :func:`slice_basis`.
       n_t: grid size; refine: golden-section iterations around the grid minimum.
+      lower_bound: compute the proved lower bound (constant gains, a linear singular set); False
+        returns the attained radius only (``lower_bound`` None), at a fraction of the cost.
 
     Raises:
       ValueError: bad eps/horizon or a reference within eps of the singular set.
@@ -214,7 +217,7 @@ def exact_map_radius(
     Phis = linearize.transition_matrices(params.gains, np.asarray(ts), max_step=TRANSITION_STEP) if scheduled else None
     eps_a = jnp.asarray(eps, ts.dtype)
     rho, rad, t_star, worst = _exact_map(ctrl, params, P, C, eps_a, ts, Phis, refine, n_phi)
-    if scheduled:  # Phi(t, 0) of a schedule is RK4's: no bound between its times (attained radius only)
+    if scheduled or not lower_bound:  # Phi(t, 0) of a schedule is RK4's: no bound between its times
         return ExactMapRadius(ts, rho, rad, t_star, worst)
     lower = linear_lower_bound(ctrl, params, P, C, eps_a, float(rad), t_final, min(n_t, LOWER_BOUND_BOXES))
     return ExactMapRadius(ts, rho, rad, t_star, worst, lower, (float(rad) - lower) / float(rad) if rad > 0 else 0.0)

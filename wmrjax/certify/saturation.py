@@ -122,7 +122,7 @@ def _padded(P):
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def _jet_boxes(ctrl, params, t_c, h):
+def jet_boxes(ctrl, params, t_c, h):
     """The reference jet ((r + 1, m)) over each time box, affine in the time symbol (the last of
     n + 1 symbols: the n ball symbols of :func:`_box_fits` come first)."""
     r, n = ctrl.relative_degree, ctrl.relative_degree * ctrl.m
@@ -137,7 +137,7 @@ def _jet_boxes(ctrl, params, t_c, h):
     return jax.vmap(one)(t_c, h)
 
 
-def _rotated(ctrl, jet, error, phi):
+def rotated(ctrl, jet, error, phi):
     """The reference jet and the output error seen from axes turned by ``phi`` (the output point's
     coordinates of every order turned by -phi, angle outputs less phi)."""
     c, s = jnp.cos(phi), jnp.sin(phi)
@@ -152,7 +152,7 @@ def _rotated(ctrl, jet, error, phi):
     return turn(jet) - phi * mask, turn(error.reshape(ctrl.relative_degree, ctrl.m)).reshape(-1)
 
 
-def _heading(ctrl, params, jet_centre):
+def reference_heading(ctrl, params, jet_centre):
     """The reference's heading at a box's centre [rad] (its velocity's direction plus the offset)."""
     return jnp.arctan2(jet_centre[1, 1], jet_centre[1, 0]) + params.reference.heading_offset
 
@@ -167,7 +167,7 @@ def turns_alike(ctrl, params, t_final: float, seed: int = 0) -> bool:
         jet = ctrl.reference_jet(t, params)[: r + 1]
         err = jnp.asarray(0.05 * rng.normal(size=n))
         a = np.asarray(command(ctrl, params, jet, err))
-        b = np.asarray(command(ctrl, params, *_rotated(ctrl, jet, err, phi)))
+        b = np.asarray(command(ctrl, params, *rotated(ctrl, jet, err, phi)))
         if not np.allclose(a, b, rtol=1e-8, atol=1e-8):
             return False
     return True
@@ -190,8 +190,8 @@ def _box_fits(ctrl, turn: bool, params, P, limit, jc, jg, je, t_c, h, rho):
         # e^{A t} = e^{A t_c} e^{A (t - t_c)}: the second factor's distance from I, as an error term
         slack = jnp.linalg.norm(E, axis=1) * g * rh * (1 + 1e-12) + 1e-15 * rh
         err = affine.Affine(err.c, err.g, err.e + slack)
-        phi = _heading(ctrl, params, jet.c) if turn else 0.0
-        fn = lambda j, e: command(ctrl, params, *_rotated(ctrl, j, e, phi))
+        phi = reference_heading(ctrl, params, jet.c) if turn else 0.0
+        fn = lambda j, e: command(ctrl, params, *rotated(ctrl, j, e, phi))
         out, ctx = affine.enclose(fn, jet, err, n_ball=n)
         box = affine.to_interval(out, ctx)
         ok = (box.lo >= -limit) & (box.hi <= limit) & jnp.isfinite(box.lo) & jnp.isfinite(box.hi)
@@ -202,7 +202,7 @@ def _box_fits(ctrl, turn: bool, params, P, limit, jc, jg, je, t_c, h, rho):
 
 def _box_radii(ctrl, turn: bool, params, P, limit, t_c, h, rho_hi: float, iters: int):
     """Bisection per box on rho in [0, rho_hi]: the largest rho whose box fits (0 if none)."""
-    jets = fixed_blocks(lambda tc, hh: _jet_boxes(ctrl, params, tc, hh), (t_c, h), BOX_BLOCK)
+    jets = fixed_blocks(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), (t_c, h), BOX_BLOCK)
     program = lambda *a: _box_fits(ctrl, turn, params, P, limit, *a)
     fits = lambda rho: np.asarray(fixed_blocks(program, (*jets, t_c, h, rho), BOX_BLOCK)[0], bool)
     lo, hi = np.zeros_like(t_c), np.full_like(t_c, rho_hi)
@@ -260,10 +260,10 @@ def compile_programs(ctrl, turn: bool, params, n_directions: int) -> None:
     n, f = ctrl.relative_degree * ctrl.m, jnp.float64
     blk = jnp.zeros(BOX_BLOCK, f)
     P, lim = jnp.zeros((n, n), f), jnp.zeros(ctrl.robot.n_input, f)
-    jets = jax.eval_shape(lambda tc, hh: _jet_boxes(ctrl, params, tc, hh), blk, blk)
+    jets = jax.eval_shape(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), blk, blk)
     jets = [jnp.zeros(x.shape, x.dtype) for x in jets]
     jobs = [
-        lambda: _jet_boxes.lower(ctrl, params, blk, blk).compile(),
+        lambda: jet_boxes.lower(ctrl, params, blk, blk).compile(),
         lambda: _box_fits.lower(ctrl, turn, params, P, lim, *jets, blk, blk, blk).compile(),
         lambda: _ray_commands.lower(
             ctrl, params, P, jnp.zeros(RAY_TIMES, f), jnp.zeros((n_directions, n), f), jnp.zeros(RAY_RADII, f)

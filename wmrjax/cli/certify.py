@@ -18,8 +18,9 @@ section (limits, a digital controller, mismatch, noise) describes another loop:
 ``problem_certificate`` gives, per slice, the radius a proof covers for it (input limits alone:
 the smaller of the exact map's and the saturation-free radius; input-scale and geometry
 ranges with a continuous velocity-level controller: the mismatch radius; a digital controller,
-noise or mismatch at torque level: none yet, ``not_covered`` lists them) and that loop's falsified radius, from its own runs; a nominal
-radius above it is printed as a warning, a proved one above it is an alarm (exit status 1).
+noise or mismatch at torque level: none yet, ``not_covered`` lists them) and that loop's
+falsified radius, from its own runs; a nominal radius above it is printed as a warning, a
+proved one above it is an alarm (exit status 1).
 
 The problem's ``[certify]`` section sets eps, the sample counts and the map (see
 ``wmrjax/examples/section_6_1.toml``, the default); the problem options and ``--set`` change
