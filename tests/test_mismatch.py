@@ -124,8 +124,9 @@ def test_the_deviation_bound_holds_on_simulated_runs_and_the_radius_keeps_eps(ce
             assert np.all(applied <= LIMIT[:, None])  # never saturates
         assert worst_dev <= mm["deviation_bound"]
         assert least >= EPS
-        # what the bound costs: the simulated deviation against the proved one
-        assert worst_dev >= 0.05 * mm["deviation_bound"]
+        # what the bound costs: the largest simulated deviation against the proved one (0.59 of
+        # it on 12 runs from the sphere at the corners of the range, 2026-11-28)
+        assert worst_dev >= 0.25 * mm["deviation_bound"]
 
 
 def test_a_schedule_a_torque_level_law_or_a_bad_range_is_refused():
