@@ -7,6 +7,7 @@ import re
 import subprocess
 import sys
 import textwrap
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -388,3 +389,17 @@ def test_the_protocol_declares_every_hook_the_run_reads():
 
     with pytest.raises(ValueError, match="system must be a wmrjax.ClosedLoop"):
         w.simulate(Duck(), jnp.ones(1), None, dt=0.1, n_steps=2)
+
+
+def test_a_long_float32_run_warns_and_a_float64_one_does_not(paper61):
+    """x64 off is JAX's default: a long run's rounding then accumulates silently (the probe:
+    six digits of tracking accuracy lost over a long horizon), so the run says so."""
+    ctrl, params, z0 = paper61
+    with jax.enable_x64(False):
+        p32 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), params)
+        with pytest.warns(RuntimeWarning, match="float32 .jax_enable_x64 is off. over 1000 steps"):
+            tr = w.simulate(ctrl, jnp.asarray(z0, jnp.float32), p32, dt=0.01, n_steps=1000, save_every=1000)
+        assert tr.state.dtype == jnp.float32
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        w.simulate(ctrl, z0, params, dt=0.01, n_steps=1000, save_every=1000)

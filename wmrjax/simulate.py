@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from typing import Any, NamedTuple
 
 import jax
@@ -970,6 +971,7 @@ def simulate(
     # the reference check runs (and takes memory) only with concrete times
     horizon = n_steps * float(dtv) if dtv is not None and t0v is not None else 0.0
     _check_memory(system, n_steps, save_every, size, jnp.result_type(float), horizon)
+    _warn_float32(n_steps)
     system.check_run(params, t0=t0, dt=dt, n_steps=n_steps)
     if save_fn is not None and not callable(save_fn):
         raise ValueError(f"save_fn must be a function (t, z, aux) -> pytree, got {type(save_fn).__name__}")
@@ -979,6 +981,26 @@ def simulate(
     leaves = jax.tree_util.tree_leaves((z0, params, dt, t0, margin_floor, error_tol))
     run = _simulate if all(is_concrete(x) for x in leaves) else _simulate.__wrapped__
     return run(system, z0, params, dt, t0, n_steps, save_every, margin_floor, error_tol, save_fn, rewrites)
+
+
+FLOAT32_WARN_STEPS = 1000
+"""A float32 run of at least this many steps is warned about (:func:`_warn_float32`)."""
+
+
+def _warn_float32(n_steps: int) -> None:
+    """A RuntimeWarning for a long run in float32 (JAX's default, x64 off): its rounding
+    accumulates step by step. Measured on the (2,0) circle loop, poles -1, dt = 0.01 s
+    (2026-11-28): the final state is off float64's by 2e-6 m after 1 000 steps and 5e-5 m after
+    10 000, where float64's tracking error is 1e-10 m."""
+    if n_steps >= FLOAT32_WARN_STEPS and jnp.result_type(float) == jnp.float32:
+        warnings.warn(
+            f"this run is float32 (jax_enable_x64 is off) over {n_steps} steps: rounding accumulates "
+            "(on the circle loop 5e-5 m after 10 000 steps, where float64 tracks to 1e-10 m); for "
+            "certificates and tight tracking numbers call jax.config.update('jax_enable_x64', True) "
+            "before any computation",
+            RuntimeWarning,
+            stacklevel=3,
+        )
 
 
 def _check_steps(system, n_steps, save_every):
