@@ -318,6 +318,42 @@ def _api_cases():
         "linear singular set",
     )
     add("batch_map-sizes", lambda c, p, z: w.batch_map(lambda a, b: a + b, jnp.ones(3), jnp.ones(4)), "leading batch")
+    # text and booleans where numbers are meant (issue 57): a raw TypeError, or True taken as 1
+    add(
+        "simulate-dt-text",
+        lambda c, p, z: w.simulate(c, z, p, dt="0.01", n_steps=10),
+        "dt must be a finite real scalar > 0 .s., got str",
+    )
+    add(
+        "simulate-dt-bool",
+        lambda c, p, z: w.simulate(c, z, p, dt=True, n_steps=10),
+        "dt must be a finite real scalar > 0 .s., got bool",
+    )
+    add(
+        "simulate-floor-text",
+        lambda c, p, z: w.simulate(c, z, p, dt=0.01, n_steps=10, margin_floor="x"),
+        "margin_floor must be a finite real scalar >= 0, got str",
+    )
+    add(
+        "simulate-z0-text",
+        lambda c, p, z: w.simulate(c, "abc", p, dt=0.01, n_steps=10),
+        "z0 must be a state array of numbers",
+    )
+    add(
+        "params-poles-text",
+        lambda c, p, z: c.params(p.reference, poles="1.0"),
+        "poles must be real pole magnitudes > 0, got str",
+    )
+    add(
+        "params-poles-bool",
+        lambda c, p, z: c.params(p.reference, poles=True),
+        "poles must be real pole magnitudes > 0, got bool",
+    )
+    add(
+        "geometry-text",
+        lambda c, p, z: c.params(p.reference, poles=1.0, geometry=w.Geometry(e="0")),
+        "geometry.e must be a real scalar",
+    )
     return cases
 
 

@@ -52,6 +52,28 @@ def check_int(name: str, x, minimum: int = 1) -> int:
     return int(x)
 
 
+def check_number(name: str, x, what: str = "real numbers") -> None:
+    """ValueError for text, a boolean or a non-real value where numbers are meant, before any
+    arithmetic turns it into a raw TypeError (``"0.01"``) or silently into 1.0 (``True`` for a
+    step or a pole is a typo, not a number); traced values pass."""
+    if isinstance(x, core.Tracer):
+        return
+    if isinstance(x, (str, bytes, bool, np.bool_)):
+        raise ValueError(f"{name} must be {what}, got {type(x).__name__} {_short(x)}")
+    try:
+        kind = np.asarray(x).dtype.kind
+    except (TypeError, ValueError):
+        kind = "O"
+    if kind not in "iuf":
+        raise ValueError(f"{name} must be {what}, got {type(x).__name__} {_short(x)}")
+
+
+def _short(x, limit: int = 60) -> str:
+    """``repr(x)``, cut to ``limit`` characters (a message never quotes a value at length)."""
+    r = repr(x)
+    return r if len(r) <= limit else r[: limit - 3] + "..."
+
+
 def check_real(name: str, x) -> None:
     """ValueError for a complex (or non-numeric) array: its imaginary part would be dropped silently."""
     if hasattr(x, "dtype"):

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax._validate import check_finite, check_positive, concrete
+from wmrjax._validate import check_finite, check_number, check_positive, concrete
 
 
 def monic_coefficients(poles):
@@ -104,6 +104,7 @@ class Gains(NamedTuple):
         Raises:
           ValueError: a non-positive or non-finite pole, or a shape that does not broadcast.
         """
+        check_number("poles", poles, "real pole magnitudes > 0")
         p = jnp.asarray(poles, dtype=jnp.result_type(float))
         if m is not None and r is not None:
             if p.ndim > 2 or (p.ndim >= 1 and p.shape[-1] not in (1, r)) or (p.ndim == 2 and p.shape[0] not in (1, m)):

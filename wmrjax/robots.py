@@ -22,7 +22,7 @@ from typing import Callable, NamedTuple
 import jax.numpy as jnp
 
 from wmrjax import _math
-from wmrjax._validate import check_finite, check_shape, concrete
+from wmrjax._validate import check_finite, check_number, check_shape, concrete
 
 
 class Geometry(NamedTuple):
@@ -146,6 +146,7 @@ def check_geometry(geometry: Geometry) -> None:
     if not isinstance(geometry, Geometry):
         raise ValueError(f"geometry must be a wmrjax.Geometry, got {type(geometry).__name__}")
     for name, val in geometry._asdict().items():
+        check_number(f"geometry.{name}", val, "a real scalar [m or rad]")
         if concrete(val) is not None and jnp.ndim(val) != 0:
             raise ValueError(f"geometry.{name} must be a scalar, got shape {jnp.shape(val)}")
         check_finite(f"geometry.{name}", val)

@@ -63,7 +63,7 @@ from jax.ad_checkpoint import checkpoint_name
 from jax.extend import core as jex_core
 
 from wmrjax import _hoist, _rk4, _scalarize, _simplify, resources
-from wmrjax._validate import check_finite, check_int, concrete, is_concrete
+from wmrjax._validate import check_finite, check_int, check_number, concrete, is_concrete
 from wmrjax.references import DOMAIN_RTOL, Reference
 from wmrjax.system import ClosedLoop
 
@@ -1026,6 +1026,14 @@ def _check_steps(system, n_steps, save_every):
 def _check_scalars(dt, t0, margin_floor, error_tol):
     """ValueError for a concrete ``dt``, ``t0``, ``margin_floor`` or ``error_tol`` out of range;
     returns the concrete ``(dt, t0)`` (None where traced)."""
+    for name, v, what in (
+        ("dt", dt, "a finite real scalar > 0 [s]"),
+        ("t0", t0, "a finite real scalar [s]"),
+        ("margin_floor", margin_floor, "a finite real scalar >= 0"),
+        ("error_tol", error_tol, "a real scalar > 0 (or None: no error estimate)"),
+    ):
+        if v is not None:
+            check_number(name, v, what)
     dtv = concrete(dt)
     if dtv is not None and not (np.ndim(dtv) == 0 and np.isrealobj(dtv) and np.isfinite(dtv) and dtv > 0):
         raise ValueError(f"dt must be a finite real scalar > 0 [s], got {dt!r}")
@@ -1048,6 +1056,9 @@ def _prepared_state(system, z0):
     leaves = jax.tree_util.tree_leaves(z0)
     if not leaves:
         raise ValueError("z0 must be a state array (or a pytree of arrays), got an empty pytree")
+    text = [x for x in leaves if isinstance(x, (str, bytes))]
+    if text:
+        raise ValueError(f"z0 must be a state array of numbers, got text {text[0]!r:.60}")
     if isinstance(z0, (list, tuple)) and not hasattr(z0, "_fields"):
         z0 = jnp.asarray(z0)  # a plain sequence of numbers is a state vector
     floating = jnp.result_type(float)

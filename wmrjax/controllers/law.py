@@ -356,7 +356,8 @@ def make_gains(gains, poles, m: int, r: int):
                 f"got {type(gains).__name__}"
             )
         return gains.check(m, r)
-    if jnp.iscomplexobj(jnp.asarray(poles)):
+    # (text is refused by Gains.from_poles with the others; jnp.asarray would raise a raw TypeError)
+    if not isinstance(poles, (str, bytes)) and jnp.iscomplexobj(jnp.asarray(poles)):
         raise ValueError(
             "poles must be real pole magnitudes (poles at -poles); for complex pole pairs pass "
             "gains=wmrjax.Gains.from_damping(omega, zeta, m=...)"
