@@ -418,6 +418,14 @@ def test_cli_writes_summary_and_gains(tmp_path):
     for f in ("loss.png", "trajectories.png", "schedule.png", "radii.png"):
         assert (out / f).read_bytes()[:4] == b"\x89PNG"
     assert s["heldout_loss"] == on_disk["heldout_loss"]
+    # the lowest held-out loss of every method and seed, and its gains on disk
+    best = on_disk["best_heldout"]
+    seeds = [p["best_heldout_loss"] for b in on_disk["baselines"].values() for p in b["per_seed"]]
+    assert best["heldout_loss"] == min([ho["tuned"], *seeds])
+    assert (best["method"] == "gradient") == (best["heldout_loss"] == ho["tuned"])
+    kept = json.loads((out / best["file"]).read_text())
+    if best["method"] == "gradient":
+        assert kept == json.loads((out / "gains.json").read_text())
     # the summary carries the whole problem: it runs again from there alone
     again = Problem.from_dict(on_disk["problem"])
     assert again.resolved() == problem.resolved() and on_disk["tune"]["steps"] == 6
