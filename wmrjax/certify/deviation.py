@@ -312,6 +312,22 @@ def _check_alike(ctrl, params, t_final: float, seed: int = 0) -> bool:
     return alike
 
 
+def _largest_passing(passes, rho_max: float):
+    """Bisection on [0, rho_max] for the largest radius ``passes`` accepts: ``(rho, its tube)``
+    (``passes(rho)`` is ``(ok, (R, delta_bar) or None)``; 0 and None where none passes)."""
+    ok, w = passes(rho_max)
+    if ok:
+        return rho_max, w
+    lo, hi, w = 0.0, rho_max, None
+    for _ in range(BISECTION_STEPS):
+        mid = 0.5 * (lo + hi)
+        ok_mid, w_mid = passes(mid)
+        lo, hi = (mid, hi) if ok_mid else (lo, mid)
+        if ok_mid:
+            w = w_mid
+    return lo, w
+
+
 BISECTION_STEPS = 14
 """Bisection steps of the tube's radius (its relative resolution: 2**-14 of the nominal radius)."""
 
@@ -353,16 +369,7 @@ def mismatch_radius(
         em = None if w is None else exact_at(eps + g_c * w[1], prove=False)  # attained only: cheap
         return em is not None and rho <= float(em.radius), w
 
-    lo, hi = 0.0, float(nominal.lower_bound)
-    ok, w = passes(hi)
-    if not ok:
-        for _ in range(BISECTION_STEPS):
-            mid = 0.5 * (lo + hi)
-            ok_mid, w_mid = passes(mid)
-            lo, hi = (mid, hi) if ok_mid else (lo, mid)
-            if ok_mid:
-                w = w_mid
-        hi = lo
+    hi, w = _largest_passing(passes, float(nominal.lower_bound))
     if hi <= 0.0 or w is None:
         return MismatchRadius(0.0, np.inf, np.inf, np.inf, np.nan, (g_t, g_c), 0.0, 0.0, None, "tube", n_boxes)
     R, delta = w
