@@ -20,6 +20,8 @@ import wmrjax.certify as C
 from tests.test_certify_real_loop import EPS, OMEGA, T_FINAL, _problem, _reference_jet, _saturated_loop
 from wmrjax.certify import affine, interval
 from wmrjax.certify.interval import Interval
+from wmrjax.cli import tune as tune_cli
+from wmrjax.tune import certified as tune_certified
 
 LIMIT = np.array([1.3, 0.8])  # binding inside the nominal certificate (test_certify_real_loop)
 
@@ -200,3 +202,18 @@ def test_saturation_free_radius_refuses_bad_input():
         C.saturation_free_radius(setting.ctrl, params, [1.0, 0.0], t_final=1.0)
     with pytest.raises(ValueError, match="2 entries"):
         C.saturation_free_radius(setting.ctrl, params, [1.0, 1.0, 1.0], t_final=1.0)
+
+
+def test_the_tuners_problem_radii_are_the_problem_certificates(certified):
+    """The tuner reports the problem loop's proved radius of its gains (issue 54 item 5: reported,
+    not yet kept): the same proof as the certification's, here bound by the saturation-free radius."""
+    setting, _, _, pc = certified
+    got = tune_certified.problem_radii(setting, setting.gains(), eps=EPS)
+    assert got["loop"] == ["input_limit"]
+    for basis in ("full", "position"):
+        assert got[basis]["bound_by"] == pc[basis]["bound_by"] == "saturation_free"
+        assert got[basis]["radius"] == pc[basis]["radius"]
+        assert got[basis]["kind"] == "proved" and got[basis]["covers"] == ["nominal", "input_limit"]
+    radii = {"initial": {}, "tuned": {}, "problem_certificate": {"initial": got, "tuned": got}}
+    lines = tune_cli.radius_change_lines(radii)
+    assert any("position slice, the problem's loop: nominal, input_limit, proved" in x and "+0 %" in x for x in lines)

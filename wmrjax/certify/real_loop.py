@@ -437,7 +437,16 @@ SLICES = {"full": "radius_exact_map", "position": "radius_exact_map_position_sli
 
 
 def problem_certificate(
-    setting, params, exact: dict, *, eps: float, falsified: dict | None = None, seed: int = 0, log=None, **search
+    setting,
+    params,
+    exact: dict,
+    *,
+    eps: float,
+    falsified: dict | None = None,
+    seed: int = 0,
+    log=None,
+    falsify: bool = True,
+    **search,
 ) -> dict:
     """The problem's certificate per slice (``full``, ``position``): the radius a proof gives for
     the loop the problem describes, what it covers, and the real loop's falsified radius.
@@ -463,6 +472,7 @@ def problem_certificate(
       falsified: slice -> the nominal falsifier's :class:`wmrjax.certify.FalsifiedRadius` (or
         None): the problem loop's falsified radius where it is the nominal loop; with a plant,
         its failure's ray is searched first with the exact map's worst error's.
+      falsify: run the real loop's falsifier (False: ``falsified_radius`` and ``falsified`` None).
       search: :func:`real_loop_falsified_radius`'s sizes.
 
     Returns:
@@ -491,7 +501,7 @@ def problem_certificate(
         block.update(_plant_radius(em, nominal, kind, sat, features))
         if block["radius"] is None and kind == Kind.PROVED and _mismatch_covered(setting, params, features):
             block.update(_mismatch_block(setting, params, basis, features, em, eps, log))
-        if not np.isfinite(float(em.radius)):  # nothing reaches the singular set: no scale to search
+        if not falsify or not np.isfinite(float(em.radius)):  # not asked, or no scale to search
             block.update(falsified_radius=None, falsified=None)
         else:
             f = real_loop_falsified_radius(

@@ -100,6 +100,16 @@ def radius_change_lines(radii: dict) -> list:
             f"certified radius ({key.removeprefix('exact_map_')} slice, exact map, nominal loop, proved): "
             f"initial {r0:.4g} -> tuned {r1:.4g} ({change})"
         )
+    pc = radii.get("problem_certificate")
+    for basis in ("full", "position") if pc is not None else ():
+        b0, b1 = pc["initial"][basis], pc["tuned"][basis]
+        if b0["radius"] is None or b1["radius"] is None:
+            continue
+        change = f"{100.0 * (b1['radius'] - b0['radius']) / b0['radius']:+.0f} %" if b0["radius"] > 0 else "n/a"
+        lines.append(
+            f"certified radius ({basis} slice, the problem's loop: {', '.join(b1['covers'])}, {b1['kind']}): "
+            f"initial {b0['radius']:.4g} -> tuned {b1['radius']:.4g} ({change}); not kept by the tuner"
+        )
     loop = radii.get("problem_loop")
     if loop is not None and not loop["covered"]:
         lines.append(f"note: {loop['note']}")

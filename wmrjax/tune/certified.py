@@ -286,6 +286,24 @@ def radii(setting, gains, *, eps: float, falsify=False, seed: int = 0, n_starts:
     return out
 
 
+def problem_radii(setting, gains, *, eps: float) -> dict:
+    """The problem loop's proved radius of ``gains`` per slice, where a proof covers its plant
+    (:func:`wmrjax.certify.problem_certificate` without its falsifier): ``loop`` (the plant's
+    features) and per slice ``radius`` (None where no proof covers them), ``kind``, ``covers``,
+    ``not_covered``, ``bound_by``.
+
+    Args:
+      setting: the problem's :class:`wmrjax.problem.Setting` (with a ``[plant]``); gains: the gains.
+      eps: the margin.
+    """
+    ctrl, T = setting.ctrl, setting.t_final
+    params = setting.params(gains=gains)
+    exact = {b: certify.exact_map_radius(ctrl, params, t_final=T, eps=eps, basis=b) for b in SLICES}
+    pc = certify.problem_certificate(setting, params, exact, eps=eps, falsify=False)
+    keys = ("radius", "kind", "covers", "not_covered", "bound_by")
+    return {"loop": pc["loop"], **{b: {k: pc[b].get(k) for k in keys} for b in SLICES}}
+
+
 def problem_loop(setting) -> dict:
     """What the radii above cover against the problem's loop: its plant features
     (:func:`wmrjax.certify.plant_features`) and whether the tuner's radii cover them (never

@@ -306,6 +306,11 @@ def _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify: bool):
         "tuned": certified.radii(setting, family.gains(tuned_raw), **kw),
         "problem_loop": certified.problem_loop(setting),
     }
+    if setting.plant:  # the problem loop's proved radius of both gains, where a proof covers the plant
+        out["problem_certificate"] = {
+            k: certified.problem_radii(setting, family.gains(raw), eps=eps)
+            for k, raw in (("initial", paper_raw), ("tuned", tuned_raw))
+        }
     if kept is not None:
         path = [h["radius"] for h in res.history if "radius" in h]
         tuned = out["tuned"][f"exact_map_{req.slice}"]
