@@ -57,7 +57,7 @@ def test_interval_enclosure_contains_every_sampled_value(half):
 @pytest.mark.parametrize("rho", [1e-3, 0.2, 0.5])
 def test_affine_enclosure_over_a_ball_contains_every_sampled_value(rho):
     centre = jnp.array([0.3, -0.2])
-    x = affine.symbols(centre, rho * jnp.eye(2), 2)
+    x = affine.symbols(centre, rho * jnp.eye(2))
     out, ctx = affine.enclose(lambda v: _mixed(v[0], v[1]), x, n_ball=2)
     box = affine.to_interval(out, ctx)
     d = np.random.default_rng(1).normal(size=(4000, 2))
@@ -69,7 +69,7 @@ def test_affine_enclosure_over_a_ball_contains_every_sampled_value(rho):
 def test_affine_keeps_dependencies_that_intervals_lose():
     f = lambda v: v[0] * v[1] - v[1] * v[0] + jnp.sin(v[0]) - jnp.sin(v[0])  # identically 0
     iv_box = interval.enclose(f, Interval.around(jnp.array([1.0, 2.0]), 0.1))
-    out, ctx = affine.enclose(f, affine.symbols(jnp.array([1.0, 2.0]), 0.1 * jnp.eye(2), 2), n_ball=2)
+    out, ctx = affine.enclose(f, affine.symbols(jnp.array([1.0, 2.0]), 0.1 * jnp.eye(2)), n_ball=2)
     af_box = affine.to_interval(out, ctx)
     assert float(iv_box.hi - iv_box.lo) > 0.5  # x*y - y*x over intervals: the product's width twice
     # affine: the first order cancels exactly; what is left is second order (rho^2 = 0.01 per term)

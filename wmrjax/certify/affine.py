@@ -360,11 +360,9 @@ def _lo(a):
     return a.c if isinstance(a, Affine) else a.lo
 
 
-def symbols(centre, generators, n_ball=None):
+def symbols(centre, generators):
     """An :class:`Affine` input ``centre + generators @ eps`` (``generators``: (..., n), one
-    column per symbol, the balls' first: see :func:`enclose`), with no error term.
-    ``n_ball`` is not used (the balls are :func:`enclose`'s)."""
-    del n_ball
+    column per symbol, the balls' first: see :func:`enclose`), with no error term."""
     centre = jnp.asarray(centre, jnp.float64)
     gen = jnp.broadcast_to(jnp.asarray(generators, jnp.float64), centre.shape + (jnp.shape(generators)[-1],))
     return Affine(centre, gen, jnp.zeros_like(centre))

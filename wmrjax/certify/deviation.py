@@ -60,9 +60,8 @@ from wmrjax import _math, robots
 from wmrjax.certify import affine
 from wmrjax.certify.exact_map import exact_map_radius, singular_rows, slice_basis, square_basis
 from wmrjax.certify.lemma2 import check_dynamic, m1_closed_form
-from wmrjax.certify.saturation import BOX_BLOCK, command, jet_boxes, reference_heading, rotated
+from wmrjax.certify.saturation import BOX_BLOCK, jet_boxes, placed_command, reference_heading, rotated
 from wmrjax.controllers.law import Level
-from wmrjax.problem import Space, Task, place
 from wmrjax.robots import Geometry
 from wmrjax.simulate import fixed_blocks
 
@@ -139,8 +138,7 @@ def deviation_rate(ctrl, params, jet, error, input_scale, geometry_scale, geomet
       f(X, u, g)]` and (n_input,) :math:`s \odot u`.
     """
     g, nx, robot = params.geometry, ctrl.robot.n_state, ctrl.robot
-    z = place(ctrl, params, error, Space.OUTPUT, Task.POSTURE, ctrl.reference_branch(params), jet=jet)
-    u = command(ctrl, params, jet, error)
+    z, u = placed_command(ctrl, params, jet, error)
     X, applied = z[:nx], input_scale * u
     f = lambda uu, sg: robots.kinematic(robot, X, uu, Geometry(L=sg * g.L, e=sg * g.e, delta=g.delta))
     if geometry_between is None:
@@ -223,11 +221,9 @@ class _Tube:
         ends = [np.append(np.asarray(mismatch.input_scale[k], float), mismatch.geometry_scale[k]) for k in (0, 1)]
         scales = jnp.asarray(np.stack(ends))
         self.program = lambda rho, tube: lambda *a: _box_rates(ctrl, turn, params, P, lim, scales, *a, rho, tube)
-        self.calls = 0
 
     def rate(self, rho: float, tube: float) -> tuple[float, bool]:
         """``(delta_bar, fits)`` over every box at radius ``rho`` and tube width ``tube``."""
-        self.calls += 1
         program = self.program(jnp.asarray(rho), jnp.asarray(tube))
         rates, fits = fixed_blocks(program, (*self.jets, self.t_c, self.h), BOX_BLOCK)
         return float(np.max(rates)), bool(np.all(fits))
@@ -333,7 +329,16 @@ BISECTION_STEPS = 14
 
 
 def mismatch_radius(
-    ctrl, params, mismatch: Mismatch, *, t_final: float, eps: float, basis="full", n_t: int = 2001, n_boxes: int = 512
+    ctrl,
+    params,
+    mismatch: Mismatch,
+    *,
+    t_final: float,
+    eps: float,
+    basis="full",
+    n_t: int = 2001,
+    n_boxes: int = 512,
+    nominal=None,
 ) -> MismatchRadius:
     """The proved radius of the continuous loop with every plant of ``mismatch`` (module docstring).
 
@@ -344,6 +349,8 @@ def mismatch_radius(
       t_final: horizon T [s]; eps: the margin to the singular set [zeta units].
       basis: the slice (``"full"``, ``"position"`` or an (n, k) basis).
       n_t: the exact map's time grid; n_boxes: the tube's time boxes.
+      nominal: the slice's :class:`wmrjax.certify.ExactMapRadius` at ``eps`` on ``n_t`` times
+        when the caller has it (the certification does), else computed here.
 
     Raises:
       ValueError: a law or a range this bound does not cover, or bad values.
@@ -354,7 +361,8 @@ def mismatch_radius(
     n = ctrl.relative_degree * ctrl.m
     C = jnp.eye(n)[jnp.asarray(singular_rows(ctrl))]
     g_t, g_c = gain_integrals(ctrl.error_matrix(params.gains), C, t_final)
-    nominal = exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=basis, n_t=n_t)
+    if nominal is None or nominal.lower_bound is None:
+        nominal = exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=basis, n_t=n_t)
     tube = _Tube(ctrl, turn, params, square_basis(P), mismatch, t_final, n_boxes)
     m1 = float(np.min(np.asarray(m1_closed_form(ctrl, params, jnp.linspace(0.0, t_final, n_t)))))
 

@@ -603,7 +603,7 @@ def _mismatch_block(setting, params, basis: str, features, em, eps: float, log) 
     if log is not None:
         log(f"  mismatch radius ({basis}): enclosing the plant's deviation over its range (the first slice compiles)")
     mr = mismatch_radius(
-        setting.ctrl, params, rng, t_final=setting.t_final, eps=eps, basis=basis, n_t=len(np.asarray(em.ts))
+        setting.ctrl, params, rng, t_final=setting.t_final, eps=eps, basis=basis, n_t=len(np.asarray(em.ts)), nominal=em
     )
     if log is not None:
         log(

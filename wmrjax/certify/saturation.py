@@ -75,6 +75,12 @@ def command(ctrl, params, jet, error):
     error ``error`` ((r m,)): the state on the reference's branch, the law's input (49) with
     its error equal to ``error`` (the nominal loop's), and the plant input (velocity level) or
     its rate (torque level)."""
+    return placed_command(ctrl, params, jet, error)[1]
+
+
+def placed_command(ctrl, params, jet, error):
+    """``(z, u)``: :func:`command` and the law's state it is computed at (one placement for a
+    caller that needs both)."""
     r, m, law, g = ctrl.relative_degree, ctrl.m, ctrl.law, params.geometry
     err = error.reshape(r, m)
     z = place(ctrl, params, error, Space.OUTPUT, Task.POSTURE, ctrl.reference_branch(params), jet=jet)
@@ -83,7 +89,7 @@ def command(ctrl, params, jet, error):
     for j in range(r):
         w = w - coeffs[:, j] * err[j]
     _, a, K = law.jet(z, g)
-    return law.plant_control(z, preconditioned_solve(K, w - a), g)
+    return z, law.plant_control(z, preconditioned_solve(K, w - a), g)
 
 
 PRECONDITIONED_STEPS = 6
@@ -128,7 +134,7 @@ def jet_boxes(ctrl, params, t_c, h):
     r, n = ctrl.relative_degree, ctrl.relative_degree * ctrl.m
 
     def one(tc, hh):
-        t = affine.symbols(tc, jnp.zeros(n + 1).at[n].set(hh), n)
+        t = affine.symbols(tc, jnp.zeros(n + 1).at[n].set(hh))
         # angles modulo 2 pi (a heading across +-pi stays one interval): the command is periodic
         # in them (checked by _check_periodic)
         jet = lambda tt: ctrl.reference_jet(tt, params)[: r + 1]
@@ -186,7 +192,7 @@ def _box_fits(ctrl, turn: bool, params, P, limit, jc, jg, je, t_c, h, rho):
     def one(jet, tc, g, rh):
         E = _math.expm_small(A * tc)
         gen = jnp.concatenate([rh * (E @ P), jnp.zeros((n, 1))], axis=1)
-        err = affine.symbols(jnp.zeros(n), gen, n)
+        err = affine.symbols(jnp.zeros(n), gen)
         # e^{A t} = e^{A t_c} e^{A (t - t_c)}: the second factor's distance from I, as an error term
         slack = jnp.linalg.norm(E, axis=1) * g * rh * (1 + 1e-12) + 1e-15 * rh
         err = affine.Affine(err.c, err.g, err.e + slack)
