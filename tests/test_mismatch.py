@@ -129,7 +129,7 @@ def test_the_deviation_bound_holds_on_simulated_runs_and_the_radius_keeps_eps(ce
         assert worst_dev >= 0.25 * mm["deviation_bound"]
 
 
-def test_a_schedule_a_torque_level_law_or_a_bad_range_is_refused():
+def test_a_torque_level_law_or_a_bad_range_is_refused():
     setting = _problem().setting("c")
     ctrl, params = setting.ctrl, setting.params()
     ok = C.Mismatch(LIMIT, (np.ones(2), np.ones(2)), (1.0, 1.0))
