@@ -176,3 +176,104 @@ def test_a_product_over_two_balls_encloses_every_sampled_value():
     assert np.all(np.asarray(box.hi - box.lo) <= np.asarray(wide.hi - wide.lo) + 1e-12)
     with pytest.raises(ValueError, match="n_ball must be sizes >= 0 of at most 4 symbols"):
         affine.enclose(f, v, n_ball=(3, 2))
+
+
+# --- the zero-order hold (a digital controller) ------------------------------------------------
+
+PERIOD = 0.05  # [s]: a 20 Hz controller
+
+
+def _law_at(t, z):
+    """The circle law written here at state z = (x, y, theta, chi) and time t: the plant command
+    (chi, theta') and the compensator's rate chi' (poles -1, -1: v = ref'' - 2 e' - e)."""
+    x, y, th, chi = z
+    s, c = np.sin(th), np.cos(th)
+    ref = _reference_jet(t)
+    v = -(OMEGA**2) * ref[:2] - 2.0 * (chi * np.array([-s, c]) - ref[2:]) - (np.array([x, y]) - ref[:2])
+    return np.array([chi, -(c * v[0] + s * v[1]) / chi]), -s * v[0] + c * v[1]
+
+
+def _held_rate(t, z, u_k, a_k):
+    """d/dt of the output error of the held loop at state z (compensator interpolated): the plant
+    integrates the held (chi_k, omega_k), the compensator advances at the held rate a_k."""
+    x, y, th, chi = z
+    s, c = np.sin(th), np.cos(th)
+    zeta_dot = np.array([-u_k[0] * s, u_k[0] * c, -a_k * s - chi * c * u_k[1], a_k * c - chi * s * u_k[1]])
+    ref_dot = np.concatenate([_reference_jet(t)[2:], -(OMEGA**2) * _reference_jet(t)[:2]])
+    return zeta_dot - ref_dot
+
+
+def test_the_hold_rate_is_the_held_loops_error_rate_less_a_zeta():
+    """Delta_hold (mean value form, Gauss-Legendre over lambda) equals zeta_err' - A zeta_err of the
+    held loop written here, between a sample and a later time of the period."""
+    setting = _problem().setting("c")
+    ctrl, params = setting.ctrl, setting.params()
+    nodes, weights = np.polynomial.legendre.leggauss(24)
+    lam, w = 0.5 * (nodes + 1), 0.5 * weights
+    jet_at = lambda t: np.asarray(ctrl.reference_jet(t, params)[:3])
+    rng = np.random.default_rng(7)
+    for _ in range(4):
+        t_k = rng.uniform(0.0, T_FINAL - PERIOD)
+        t = t_k + rng.uniform(0.0, PERIOD)
+        err_k, err_t = 0.2 * rng.normal(size=4), 0.2 * rng.normal(size=4)
+        u_k, a_k = _law_at(t_k, _state_at(t_k, err_k))
+        want = _held_rate(t, _state_at(t, err_t), u_k, a_k) - A @ err_t
+        jet_t, d_jet, d_err = jet_at(t), jet_at(t) - jet_at(t_k), err_t - err_k
+        rate = lambda lm: C.hold_rate(
+            ctrl, params, jet_t, jnp.asarray(err_t), jnp.ones(2), 1.0, (d_jet, d_err), (jet_t - lm * d_jet, -lm * d_err)
+        )
+        got = sum(wi * np.asarray(rate(li)) for li, wi in zip(lam, w))
+        assert got == pytest.approx(want, abs=1e-9)
+        u, a = (np.asarray(x) for x in C.sampled_inputs(ctrl, params, jet_at(t_k), jnp.asarray(_state_at(t_k, err_k))))
+        assert np.allclose(u, u_k, atol=1e-12) and np.allclose(a, a_k, atol=1e-12)
+
+
+def test_a_held_box_encloses_the_held_loops_deviation_rate():
+    """One period's enclosure of ||Delta|| (the sample's command, the hold, the error's change over
+    the period) holds every value of the held loop written here, run by DOP853 over the first
+    period from initial errors on the sphere of radius 0.05, and is within a stated factor of it."""
+    setting = _problem().setting("c")
+    ctrl, params = setting.ctrl, setting.params()
+    rho, rng = 0.05, np.random.default_rng(3)
+    dirs = rng.normal(size=(24, 4))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    ts = np.linspace(0.0, PERIOD, 26)
+    worst, dev = 0.0, 0.0
+    for d in dirs:
+        e0 = rho * d
+        u_k, a_k = _law_at(0.0, _state(e0))
+        held = lambda t, z: [-u_k[0] * np.sin(z[2]), u_k[0] * np.cos(z[2]), u_k[1], a_k]
+        sol = scipy.integrate.solve_ivp(
+            held, (0.0, PERIOD), _state(e0), method="DOP853", rtol=1e-11, atol=1e-12, t_eval=ts
+        )
+        for t, z in zip(ts, sol.y.T):
+            err = _zeta(z) - _reference_jet(t)
+            worst = max(worst, np.linalg.norm(_held_rate(t, z, u_k, a_k) - A @ err))
+            dev = max(dev, np.linalg.norm(err - scipy.linalg.expm(A * t) @ e0))
+    m = C.Mismatch(np.full(2, np.inf), (np.ones(2), np.ones(2)), (1.0, 1.0), period=PERIOD)
+    m = C.deviation.check_mismatch(ctrl, params, m)
+    with jax.disable_jit():  # one box: its eager evaluation is far cheaper than compiling the program
+        tube = C.deviation._Tube(ctrl, False, params, np.eye(4), m, PERIOD, 1)
+        bound, fits = tube.rate(rho, 1.5 * dev, 1.5 * worst)
+    assert fits
+    assert np.isfinite(bound) and worst <= bound
+    # what the enclosure costs on this box: the sampled largest ||Delta|| is 0.15 of the bound
+    # (0.0104 vs 0.0688, 2026-11-29); it grows fast with the radius (0.24 at 0.1, inf at 0.2)
+    assert worst >= 0.1 * bound, (worst, bound)
+
+
+def test_a_bad_period_or_noise_is_refused():
+    setting = _problem().setting("c")
+    ctrl, params = setting.ctrl, setting.params()
+    ok = C.Mismatch(LIMIT, (np.ones(2), np.ones(2)), (1.0, 1.0))
+    check = lambda m: C.deviation.check_mismatch(ctrl, params, m)
+    with pytest.raises(ValueError, match=r"period must be finite and >= 0 \[s\]"):
+        check(ok._replace(period=-0.05))
+    with pytest.raises(ValueError, match="period must be a number of seconds"):
+        check(ok._replace(period="0.05"))
+    with pytest.raises(ValueError, match="noise needs a controller period"):
+        check(ok._replace(noise=(0.01, 0.01, 0.0)))
+    with pytest.raises(ValueError, match=r"noise must be at most 3 finite bounds >= 0"):
+        check(ok._replace(period=0.05, noise=(0.01, -0.01)))
+    m = check(ok._replace(period=0.05, noise=(0.03, 0.03)))
+    assert m.period == 0.05 and m.noise.tolist() == [0.03, 0.03, 0.0]

@@ -22,8 +22,9 @@ else keyword-only; each returns a NamedTuple with fixed fields:
   enclosures, :mod:`~wmrjax.certify.affine` over :mod:`~wmrjax.certify.interval`): inside it a
   saturating plant's loop is the nominal one;
 * :mod:`~wmrjax.certify.deviation` -- the mismatch radius (proved): the real loop's deviation
-  from the nominal one under input-scale and geometry ranges, bounded through the exact error
-  map, and the radius it leaves (continuous controller, velocity level);
+  from the nominal one under input-scale and geometry ranges, a digital controller's zero-order
+  hold and bounded measurement noise, bounded through the exact error map, and the radius it
+  leaves (velocity level);
 * :mod:`~wmrjax.certify.real_loop` -- what each radius covers (:class:`Feature`, :class:`Kind`)
   and the problem's own loop (limits, a digital controller, mismatch, noise): its falsified
   radius and the problem's certificate (:func:`problem_certificate`).
@@ -34,7 +35,14 @@ loop's.
 Only dynamic linearizing laws are certified: a static law raises ``ValueError``.
 """
 
-from wmrjax.certify.deviation import Mismatch, MismatchRadius, deviation_rate, mismatch_radius  # noqa: F401
+from wmrjax.certify.deviation import (  # noqa: F401
+    Mismatch,
+    MismatchRadius,
+    deviation_rate,
+    hold_rate,
+    mismatch_radius,
+    sampled_inputs,
+)
 from wmrjax.certify.empirical import (  # noqa: F401
     CONFIRM_BLOCK,
     CONFIRM_DT_FACTOR,

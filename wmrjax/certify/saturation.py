@@ -143,19 +143,22 @@ def jet_boxes(ctrl, params, t_c, h):
     return jax.vmap(one)(t_c, h)
 
 
+def turned(a, phi):
+    """Rows of (x, y, ...) outputs seen from axes turned by ``phi``: x and y turned by -phi, the
+    rest unchanged (the change of a reference jet, whose angles' offset cancels)."""
+    c, s = jnp.cos(phi), jnp.sin(phi)
+    x, y = a[..., :1], a[..., 1:2]  # no scatter (.at[].set): the enclosures have no rule for it
+    return jnp.concatenate([c * x + s * y, c * y - s * x, a[..., 2:]], axis=-1)
+
+
 def rotated(ctrl, jet, error, phi):
     """The reference jet and the output error seen from axes turned by ``phi`` (the output point's
     coordinates of every order turned by -phi, angle outputs less phi)."""
-    c, s = jnp.cos(phi), jnp.sin(phi)
-
-    def turn(a):  # no scatter (.at[].set): the enclosures have no rule for it
-        x, y = a[..., :1], a[..., 1:2]
-        return jnp.concatenate([c * x + s * y, c * y - s * x, a[..., 2:]], axis=-1)
-
     mask = np.zeros(jet.shape)
     for i in ctrl.law.extension.angle_outputs:
         mask[0, i] = 1.0
-    return turn(jet) - phi * mask, turn(error.reshape(ctrl.relative_degree, ctrl.m)).reshape(-1)
+    err = turned(error.reshape(ctrl.relative_degree, ctrl.m), phi).reshape(-1)
+    return turned(jet, phi) - phi * mask, err
 
 
 def reference_heading(ctrl, params, jet_centre):
