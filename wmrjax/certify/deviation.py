@@ -229,11 +229,11 @@ def hold_rate(ctrl, params, jet, error, input_scale, geometry_scale, tangents, b
     s\odot(u_k - u), \sigma g); a_k - a]`, and by the mean value theorem :math:`(u_k, a_k) - (u,
     a) = -\int_0^1 J(p_\lambda)\,d\,d\lambda` with :math:`d = (\zeta_{ref}(t) - \zeta_{ref}(t_k),
     \tilde\zeta(t) - \tilde\zeta_k^m)` and :math:`p_\lambda = (\zeta_{ref}(t), \tilde\zeta(t)) -
-    \lambda d`, whose jet is the reference's at a time between :math:`t_k` and t. ``tangents`` is
-    d; ``between`` is :math:`(\zeta_{ref}(t - \lambda(t - t_k)), -\lambda\,d_{error})`: an
-    enclosure passes the jet as the period's with a time symbol of its own and the error's shift
-    as a box (the set of its values over them is convex and holds every :math:`\lambda`, hence
-    the integral).
+    \lambda d` (the chord from the sample). ``tangents`` is d; ``between`` is
+    :math:`(\zeta_{ref}(t) - \lambda d_{jet}, -\lambda d_{error})`: an enclosure passes the jet
+    as the period's enclosure with a time symbol of its own (the chord's points are in it: it is
+    convex and holds both ends) and the error's shift as a box (the set of its values over them
+    is convex and holds every :math:`\lambda`, hence the integral).
 
     Args:
       tangents: ``(d_jet, d_error)``, (r + 1, m) and (r m,); between: the same shapes.
