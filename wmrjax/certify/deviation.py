@@ -381,7 +381,7 @@ def _held_box_rates(ctrl, turn: bool, params, P, limit, scales, noise, jc, jg, j
         out, ctx = affine.enclose(fn, jet, err, s_in, nz, nz, n_ball=(n, n))
         applied, det, d_noise = (affine.to_interval(v, ctx) for v in out)
         b = _error_change(A, P, tc, hh, rh, tb, assumed, turn, ctrl.m)
-        # the change's own symbols (the last n): the law's derivative in it stays linear, where a
+        # the change's own n symbols (before the last): the law's derivative in it stays linear, where a
         # box would lose the place-then-Psi identity that cancels in it
         noise_rad = 0.5 * (d_noise.hi - d_noise.lo) * (1 + 1e-12) + 1e-300
         rest = affine.Affine(-d_noise.mid, b[:, None] * jnp.eye(ns)[ns - n - 1 : ns - 1], noise_rad)
