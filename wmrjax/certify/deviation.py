@@ -200,6 +200,11 @@ def sampled_inputs(ctrl, params, jet, z):
     Returns:
       ``(u, c_rate)``: (n_input,) and (n_state - n_X,).
     """
+    return _sampled(ctrl, params, jet, z)[:2]
+
+
+def _sampled(ctrl, params, jet, z):
+    """:func:`sampled_inputs` and the decoupling matrix K it solved with (one output jet for both)."""
     r, law, g = ctrl.relative_degree, ctrl.law, params.geometry
     zeta, a, K = law.jet(z, g)
     coeffs = params.gains.coeffs_at(0.0)
@@ -208,7 +213,7 @@ def sampled_inputs(ctrl, params, jet, z):
     for j in range(r):
         w = w - coeffs[:, j] * err[j]
     U = preconditioned_solve(K, w - a)
-    return law.plant_control(z, U, g), law.field(z, U, g)[ctrl.robot.n_state :]
+    return law.plant_control(z, U, g), law.field(z, U, g)[ctrl.robot.n_state :], K
 
 
 def held_inputs(ctrl, params, jet, error):
@@ -346,8 +351,8 @@ def _sample_ranges(ctrl, params, jet, error, input_scale, noise, noise_between):
     nx, g = ctrl.robot.n_state, params.geometry
     z = place(ctrl, params, error, Space.OUTPUT, Task.POSTURE, ctrl.reference_branch(params), jet=jet)
     pad = lambda v: jnp.concatenate([v, jnp.zeros(z.shape[0] - nx, z.dtype)])
-    u, _ = sampled_inputs(ctrl, params, jet, z + pad(noise))
-    det = _math.adjugate_solve(ctrl.law.jet(z + pad(noise), g)[2], jnp.zeros(ctrl.m))[1]
+    u, _, K = _sampled(ctrl, params, jet, z + pad(noise))
+    det = _math.adjugate_solve(K, jnp.zeros(ctrl.m))[1]
     psi = lambda x: ctrl.law.jet(x, g)[0].reshape(-1)
     return input_scale * u, det, jax.jvp(psi, (z + pad(noise_between),), (pad(noise),))[1]
 
