@@ -475,6 +475,7 @@ CROSS_CASES = [  # (cli, argv, what the message must say)
     ),  # was std::bad_alloc after 90 s
     ("certify", ["--set", "certify.eps=0"], "[certify] eps"),
     ("certify", ["--set", "certify.map_grid=1"], "[certify] map_grid"),
+    ("certify", ["--set", "certify.budget=-5"], "[certify] budget: expected a number >= 0"),
     ("certify", ["--reference", "spiral"], "or a CSV file of samples, got 'spiral'"),
     ("certify", ["--level", "jerk"], "argument --level: invalid choice"),
     ("certify", ["--robot", "(1,2)", "--geometry", "0", "0.3", "0"], "geometry.L must be != 0"),

@@ -466,9 +466,10 @@ def _compiled(records) -> list:
 
 
 def test_programs_compiled_ahead_are_the_ones_the_stages_run(paper61, caplog):
-    """compile_window_distances and compile_search (analyse's thread) compile exactly the
-    programs the empirical stages, the gradient stage and the confirmations then call: none of
-    those calls compiles its program again. An error on analyse's thread reaches its caller."""
+    """The estimate's timed block (step_cost) and compile_search (analyse's thread) compile
+    exactly the programs the empirical stages, the gradient stage and the confirmations then
+    call: none of those calls compiles its program again. An error on analyse's thread reaches
+    its caller."""
     F = importlib.import_module("wmrjax.certify.falsify")
     P = importlib.import_module("wmrjax.certify.pipeline")
     ctrl, params, _ = paper61
@@ -478,7 +479,9 @@ def test_programs_compiled_ahead_are_the_ones_the_stages_run(paper61, caplog):
     fine = C.CONFIRM_DT_FACTOR * 0.02
     jax.clear_caches()
     with caplog.at_level(logging.WARNING), jax.log_compiles(True):
-        P._compile_ahead(ctrl, params, t_final=0.4, dt=0.02, falsifier_dt=0.02, n_starts=8)
+        # analyse's estimate first runs a block at dt (compiling the stages' rollout), then the thread
+        C.step_cost(ctrl, params, dt=0.02, n_steps=20)
+        P._compile_ahead(ctrl, params, t_final=0.4, dt=0.02, falsifier_dt=0.02, n_starts=8, steps=30)
         ahead = _compiled(caplog.records)
         caplog.clear()
         C.min_distance(ctrl, params, t_final=0.4, initial_errors=errs, dt=0.02)  # the empirical radius's runs

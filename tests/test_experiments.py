@@ -76,5 +76,20 @@ def test_certify_cli(tmp_path):
     assert len(timing) >= 5 and all(t["seconds"] >= 0 and t["stage"] for t in timing)
     assert any("Lemma 2" in t["stage"] for t in timing) and timing[-1]["stage"].startswith("after the last")
     assert sum(t["seconds"] for t in timing) == pytest.approx(on_disk["wall_time_s"], abs=0.5)
+    assert timing[1]["stage"].strip().startswith("estimate: about")  # said before the stages ran
+    est = on_disk["estimate"]  # every stage estimated, beside its measured time
+    assert est["counts"] == {
+        "n_empirical": 16,
+        "n_directions": 4,
+        "n_starts": 0,
+        "n_samples": 512,
+        "steps": 30,
+        "later": 25,
+    }
+    assert est["scale"] == 1.0 and est["budget_s"] == 0.0 and est["sizes_used"]["map_grid"] == 5
+    ran = {k: v for k, v in est["stages"].items() if not k.startswith("falsifier")}  # n_starts = 0: none
+    assert all(v["estimated_s"] >= 0 and v["measured_s"] >= 0 for v in ran.values())
+    assert all(v["estimated_s"] == 0 and v["measured_s"] is None for k, v in est["stages"].items() if k not in ran)
+    assert est["measured_peak_rss_bytes"] > 0 and est["memory_bytes"] > 0
     with pytest.raises(SystemExit):
         certify.main(["--robot", "(9,9)", "--out", str(tmp_path)])

@@ -18,6 +18,8 @@ else keyword-only; each returns a NamedTuple with fixed fields:
 * :mod:`~wmrjax.certify.falsify` -- falsification (an upper bound): instantaneous, sampling
   and gradient stages, failures confirmed on a finer simulation;
 * :mod:`~wmrjax.certify.pipeline` -- :func:`analyse`, all of the above in one report;
+* :mod:`~wmrjax.certify.budget` -- what :func:`analyse` will cost (measured step cost, rollouts
+  per stage, memory), said before it runs, and its counts sized to a time budget;
 * :mod:`~wmrjax.certify.saturation` -- the saturation-free radius (proved by affine
   enclosures, :mod:`~wmrjax.certify.affine` over :mod:`~wmrjax.certify.interval`): inside it a
   saturating plant's loop is the nominal one;
@@ -35,6 +37,7 @@ loop's.
 Only dynamic linearizing laws are certified: a static law raises ``ValueError``.
 """
 
+from wmrjax.certify.budget import Counts, WorkEstimate, plan, scaled, step_cost  # noqa: F401
 from wmrjax.certify.deviation import (  # noqa: F401
     Mismatch,
     MismatchRadius,
@@ -86,6 +89,7 @@ from wmrjax.certify.real_loop import (  # noqa: F401
     Feature,
     Kind,
     RealLoopFalsified,
+    planned_runs,
     plant_features,
     plant_range,
     problem_certificate,

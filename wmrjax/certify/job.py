@@ -13,10 +13,22 @@ import numpy as np
 
 from wmrjax import _files as files
 from wmrjax import certify as C
-from wmrjax.problem import Law, ProblemError, check_keys, integer, positive
+from wmrjax.problem import Law, ProblemError, check_keys, integer, nonnegative, positive
 
-CERTIFY_KEYS = {"eps": 1e-2, "n_empirical": 4096, "n_directions": 128, "n_starts": 16, "map_grid": 81, "seed": 0}
-"""The ``[certify]`` keys and their defaults (eps [output-error units: m, m/s]), written once."""
+CERTIFY_KEYS = {
+    "eps": 1e-2,
+    "n_empirical": 4096,
+    "n_directions": 128,
+    "n_starts": 16,
+    "map_grid": 81,
+    "seed": 0,
+    "budget": 0.0,
+}
+"""The ``[certify]`` keys and their defaults (eps [output-error units: m, m/s]; budget [s], 0:
+none), written once."""
+# the fewest random directions a budget scales the problem loop's falsifier to, and the fewest
+# points per side of the slice map
+PLANT_DIRECTIONS_FLOOR, MAP_GRID_FLOOR = 4, 11
 
 
 def settings(problem) -> dict:
@@ -33,6 +45,8 @@ def read_section(data: dict) -> dict:
     for k, v in c.items():
         if k == "eps":
             out[k] = positive("certify", k, v)
+        elif k == "budget":
+            out[k] = nonnegative("certify", k, v)
         else:
             out[k] = integer("certify", k, v, {"n_empirical": 0, "n_starts": 0, "seed": 0, "map_grid": 2}.get(k, 1))
     return out
@@ -120,6 +134,7 @@ def run(out, problem, case=None, progress=None) -> dict:
     t_final, dt = setting.t_final, setting.dt
     say(f"certify {ctrl.robot.name} ({ctrl.level}) along {setting.reference.name}, T = {t_final} s, eps = {cfg['eps']}")
 
+    later = cfg["map_grid"] ** 2 + (2 * C.planned_runs(setting) if setting.plant else 0)
     report = C.analyse(
         ctrl,
         params,
@@ -130,14 +145,27 @@ def run(out, problem, case=None, progress=None) -> dict:
         n_directions=cfg["n_directions"],
         n_starts=cfg["n_starts"],
         seed=cfg["seed"],
+        budget_s=max(cfg["budget"] - (time.time() - t0), 1e-3) if cfg["budget"] else 0.0,
+        later_runs=later,
         log=say,
     )
+    scale = report.estimate.scale
+    map_grid = cfg["map_grid"] if scale >= 1 else max(MAP_GRID_FLOOR, round(cfg["map_grid"] * scale**0.5))
+    plant_directions = max(PLANT_DIRECTIONS_FLOOR, round(C.real_loop.N_DIRECTIONS * scale))
     exact = {"full": report.exact_full, "position": report.exact_position}
     falsified = {"full": report.falsified_full, "position": report.falsified_position}
+    t_later = time.perf_counter()
     problem_block = C.problem_certificate(
-        setting, params, exact, eps=cfg["eps"], falsified=falsified, seed=cfg["seed"], log=say
+        setting,
+        params,
+        exact,
+        eps=cfg["eps"],
+        falsified=falsified,
+        seed=cfg["seed"],
+        log=say,
+        n_directions=plant_directions,
     )
-    say(f"slice map ({cfg['map_grid']} x {cfg['map_grid']} runs)")
+    say(f"slice map ({map_grid} x {map_grid} runs)")
     block = report.summary()
     out.mkdir(parents=True, exist_ok=True)
     summary = _summary(problem, case, cfg, setting, params, block, problem_block)
@@ -149,9 +177,14 @@ def run(out, problem, case=None, progress=None) -> dict:
         t_final=t_final,
         dt=dt,
         eps=cfg["eps"],
-        n_grid=cfg["map_grid"],
+        n_grid=map_grid,
         title=f"{ctrl.robot.name} along {setting.reference.name}: initial position errors",
     )
+    measured = dict(report.stage_s) | {"later runs": time.perf_counter() - t_later}
+    summary["estimate"] = report.estimate.summary(measured) | {
+        "sizes_used": {"map_grid": map_grid, "plant_directions": plant_directions},
+        "measured_peak_rss_bytes": C.budget.peak_resident_bytes(),  # beside the estimate's memory
+    }
     summary["wall_time_s"] = time.time() - t0
     summary["timing"] = _timing(stages, started, time.perf_counter())
     files.write_json(out / "summary.json", summary)

@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax._validate import check_int
+from wmrjax._validate import check_int, check_number
+from wmrjax.certify.budget import Counts, WorkEstimate, peak_resident_bytes, plan, step_cost
 from wmrjax.certify.empirical import (
     CONFIRM_BLOCK,
     CONFIRM_DT_FACTOR,
@@ -60,6 +61,9 @@ class CertificationReport(NamedTuple):
       empirical_position: empirical safe radius per ray of the position slice.
       falsified_full, falsified_position: the falsifier's results (None when skipped).
       certified_below_falsified: every certified radius lies below the falsified ones.
+      estimate: :class:`~wmrjax.certify.budget.WorkEstimate` made before the stages ran (its
+        counts are the ones used: a budget may have scaled them).
+      stage_s: stage name (the estimate's) -> measured seconds.
       alarms: what contradicts the theory, one message each (empty when all agree): Lemma 2
         violated inside a certified ball, a certified radius above a falsified one, an exact-map
         radius not matching its falsifier (see :func:`consistency`). The command line exits
@@ -81,6 +85,8 @@ class CertificationReport(NamedTuple):
     certified_below_falsified: bool
     alarms: tuple
     wall_time_s: float
+    estimate: WorkEstimate | None = None
+    stage_s: dict | None = None
 
     def certified_radius(self) -> float:
         """The largest Lemma 2 radius (over the K2 bounds)."""
@@ -177,9 +183,13 @@ def analyse(
     n_empirical: int = 4096,
     n_directions: int = 128,
     n_starts: int = 16,
+    n_samples: int = 512,
+    falsifier_steps: int = 30,
     falsifier_dt: float | None = None,
     seed: int = 0,
     zeta0_norm: float | None = None,
+    budget_s: float = 0.0,
+    later_runs: int = 0,
     log: Callable[[str], None] = lambda msg: None,
 ) -> CertificationReport:
     """Every certificate of one closed loop, checked by simulation and falsification.
@@ -192,11 +202,19 @@ def analyse(
         direction, uniform radius up to twice the largest certified radius); 0 skips the check.
       n_directions: rays of the position-slice empirical radius.
       n_starts: falsifier gradient starts per radius (0 skips the falsifier).
+      n_samples: the falsifier's random directions per radius (its global stage).
+      falsifier_steps: the falsifier's Adam iterations per gradient start.
       falsifier_dt: RK4 step of the falsifier's search [s] (default: ``dt``; failures are
         confirmed ten times finer). It starts from the largest Lemma 2 radius, never from
         the exact map's.
       seed: PRNG seed of the samples and starts.
       zeta0_norm: ||initial error|| of a run of interest (condition 52 is reported for it).
+      budget_s: seconds it may take, ``later_runs`` included (0: none). First of all the
+        estimate of every stage is logged (:mod:`wmrjax.certify.budget`); with a budget, the
+        counts above and ``later_runs`` are scaled down by one factor until it fits (the
+        report's ``estimate`` has the counts used).
+      later_runs: rollouts at ``dt`` the caller runs after this (the slice map, the problem
+        loop's falsifier): counted in the estimate, scaled with the rest.
       log: progress messages (e.g. ``print``).
 
     Returns:
@@ -206,43 +224,114 @@ def analyse(
     t0 = time.time()
     elapsed = lambda: f"({time.time() - t0:.0f} s)"
     falsifier_dt = dt if falsifier_dt is None else falsifier_dt
-    n_steps = _check_analyse_args(t_final, dt, falsifier_dt, n_empirical, n_directions, n_starts, seed, log)
+    asked = Counts(n_empirical, n_directions, n_starts, n_samples, falsifier_steps, later_runs)
+    n_steps = _check_analyse_args(t_final, dt, falsifier_dt, asked, seed, budget_s, log)
+    estimate = _estimate_first(ctrl, params, asked, dt, n_steps, budget_s, t0, log, elapsed)
+    return _stages(ctrl, params, estimate, t0, n_steps, dt, falsifier_dt, seed, zeta0_norm, log, elapsed, t_final, eps)
+
+
+def _stages(ctrl, params, estimate, t0, n_steps, dt, falsifier_dt, seed, zeta0_norm, log, elapsed, t_final, eps):
+    """:func:`analyse` after its estimate: the certificates, the empirical stages and the
+    falsifiers, sized by the estimate's counts."""
+    n_empirical, n_directions, n_starts, n_samples, steps, _ = estimate.counts
+    clock = _StageClock(t0)  # the estimate's timed block is charged to the compiling it mostly is
     horizon = dict(t_final=t_final, eps=eps)
-    # the batch rollouts' programs, compiled on a thread while the certificates compute (much of
-    # which is compiling, on one core): the empirical stages and the falsifier then find them
+    search = dict(dt=falsifier_dt, n_starts=n_starts, n_samples=n_samples, steps=steps)  # the falsifier's
+    # the falsifier's programs, compiled on a thread while the certificates compute (much of
+    # which is compiling, on one core): the falsifier then finds them
     with _Ahead(
-        _compile_ahead, ctrl, params, t_final=t_final, dt=dt, falsifier_dt=falsifier_dt, n_starts=n_starts
+        _compile_ahead, ctrl, params, t_final=t_final, dt=dt, falsifier_dt=falsifier_dt, n_starts=n_starts, steps=steps
     ) as ahead:
         cert = _lemma2_on_grid(ctrl, params, t_final=t_final, eps=eps, dt=dt, n_steps=n_steps)
         radii = {n: float(c.radius) for n, c in cert.certificates().items()}
-        certified = max(radii.values())
         log("  Lemma 2 radii " + ", ".join(f"{n} {r:.4f}" for n, r in radii.items()) + f"  {elapsed()}")
         exact = _exact_maps(ctrl, params, n_t=4 * n_steps + 1, log=log, elapsed=elapsed, **horizon)
-        r_top = max([certified] + [float(e.radius) for e in exact.values()])
-
+        r_top = max(list(radii.values()) + [float(e.radius) for e in exact.values()])
+        clock.stage("compiling and certificates")
         kd, kr, kf1, kf2 = jax.random.split(jax.random.PRNGKey(seed), 4)
         emp, sampling, alarms, er = _empirical_stages(
-            ctrl, params, cert, exact, (kd, kr), n_empirical, n_directions, 2.0 * r_top, dt, log, elapsed, **horizon
+            ctrl,
+            params,
+            cert,
+            exact,
+            (kd, kr),
+            n_empirical,
+            n_directions,
+            2.0 * r_top,
+            dt,
+            log,
+            elapsed,
+            clock,
+            **horizon,
         )
-
-        # -- gradient falsifier, full and position slice
-        keys = (kf1, kf2) if n_starts else ()
         ahead.join()
-        fs = _falsifiers(
-            ctrl, params, keys, dt=falsifier_dt, n_starts=n_starts, r_lo=certified, log=log, elapsed=elapsed, **horizon
+        keys = (kf1, kf2) if n_starts else ()
+        fs, below, disagree = _falsifier_stages(
+            ctrl, params, keys, exact, radii, search, log, elapsed, clock, **horizon
         )
-        fs = {
-            b: _confirm_exact_worst(ctrl, params, f, exact[b], dt=falsifier_dt, log=log, **horizon)
-            for b, f in fs.items()
-        }
-        below, disagree = consistency(radii, exact, fs)
-        _raise_alarms(disagree, log)
-        alarms += disagree
         stages = (exact["full"], exact["position"], emp, sampling, er, fs.get("full"), fs.get("position"))
-        return CertificationReport(eps, t_final, cert, zeta0_norm, *stages, below, tuple(alarms), time.time() - t0)
+        return CertificationReport(
+            eps,
+            t_final,
+            cert,
+            zeta0_norm,
+            *stages,
+            below,
+            tuple(alarms + disagree),
+            time.time() - t0,
+            estimate,
+            clock.seconds,
+        )
 
 
-def _empirical_stages(ctrl, params, cert, exact, keys, n_empirical, n_directions, r_max, dt, log, elapsed, **horizon):
+def _estimate_first(ctrl, params, asked: Counts, dt, n_steps, budget_s, t0, log, elapsed) -> WorkEstimate:
+    """The estimate of :func:`analyse`'s stages, logged before they run: one block of the rollout
+    timed here (compiling its program, which the empirical stages then use), the counts
+    ``asked`` fitted to the budget."""
+    estimate = plan(
+        asked,
+        cost=step_cost(ctrl, params, dt=dt, n_steps=n_steps),
+        n_steps=n_steps,
+        n_state=ctrl.n_state,
+        budget_s=budget_s,
+        spent_s=time.time() - t0,
+        resident_bytes=peak_resident_bytes(),
+    )
+    log("  " + estimate.line() + f"  {elapsed()}")
+    return estimate
+
+
+def _falsifier_stages(ctrl, params, keys, exact, radii, search, log, elapsed, clock, **horizon):
+    """The falsifiers (:func:`_falsifiers`, from the largest Lemma 2 radius), each checked at the
+    exact map's worst error, and their consistency with the certificates:
+    ``(falsified per slice, certified_below_falsified, alarms)``."""
+    fs = _falsifiers(
+        ctrl, params, keys, r_lo=max(radii.values()), log=log, elapsed=elapsed, clock=clock, **search, **horizon
+    )
+    fs = {
+        b: _confirm_exact_worst(ctrl, params, f, exact[b], dt=search["dt"], log=log, **horizon) for b, f in fs.items()
+    }
+    below, disagree = consistency(radii, exact, fs)
+    _raise_alarms(disagree, log)
+    return fs, below, disagree
+
+
+class _StageClock:
+    """Seconds per stage: :meth:`stage` charges the time since the last call (at first, since
+    ``start``, a ``time.time()``) to its name."""
+
+    def __init__(self, start: float):
+        self.seconds, self._last = {}, start
+
+    def stage(self, name: str) -> None:
+        now = time.time()
+        self.seconds[name] = self.seconds.get(name, 0.0) + now - self._last
+        self._last = now
+
+
+def _empirical_stages(
+    ctrl, params, cert, exact, keys, n_empirical, n_directions, r_max, dt, log, elapsed, clock, **horizon
+):
     """(53) and regularity inside every ball on ``n_empirical`` sampled runs (uniform direction,
     uniform radius up to ``r_max``), then the empirical safe radius on ``n_directions`` rays of
     the position slice: ``(checks, sampling, alarms, EmpiricalRadius)``."""
@@ -252,21 +341,23 @@ def _empirical_stages(ctrl, params, cert, exact, keys, n_empirical, n_directions
     if n_empirical:
         errs = _sampled_errors(ctrl, params, *keys, n_empirical, r_max)
         emp, alarms = _empirical_checks(ctrl, params, cert, radii, errs, t_final=horizon["t_final"], dt=dt, log=log)
+    clock.stage("empirical check")
     directions = _position_directions(ctrl, n_directions, exact["position"].worst_error)
     er = empirical_radius(ctrl, params, **horizon, directions=directions, r_max=r_max, dt=dt)
     log(f"  empirical safe radius (position slice, {len(directions)} rays): {er.radius:.4f}  {elapsed()}")
+    clock.stage("empirical radius")
     return emp, sampling, alarms, er
 
 
-def _compile_ahead(ctrl, params, *, t_final: float, dt: float, falsifier_dt: float, n_starts: int) -> None:
-    """Compile, without running them, the programs :func:`analyse` needs after its certificates:
-    the batch rollouts' (empirical checks and radius, the falsifier's sampling) and, with
-    ``n_starts``, the falsifier's gradient stage and fine confirmations."""
-    for step in {dt, falsifier_dt} if n_starts else {dt}:  # the falsifier samples at its own step
+def _compile_ahead(ctrl, params, *, t_final: float, dt: float, falsifier_dt: float, n_starts: int, steps: int) -> None:
+    """Compile, without running them, the programs :func:`analyse` needs after its certificates
+    that the estimate's timing did not compile (the batch rollout at ``dt``): with ``n_starts``,
+    the falsifier's sampling at its own step, its gradient stage and its fine confirmations."""
+    for step in {falsifier_dt} - {dt} if n_starts else ():  # the falsifier samples at its own step
         n_steps = n_steps_for(t_final, step)
         compile_window_distances(ctrl, params, dt=step, n_steps=n_steps, block=ROLLOUT_BLOCK, shared=True)
     if n_starts:
-        compile_search(ctrl, params, t_final=t_final, dt=falsifier_dt, n_starts=n_starts)
+        compile_search(ctrl, params, t_final=t_final, dt=falsifier_dt, n_starts=n_starts, steps=steps)
 
 
 class _Ahead(threading.Thread):
@@ -302,18 +393,24 @@ class _Ahead(threading.Thread):
         self.join()
 
 
-def _check_analyse_args(t_final, dt, falsifier_dt, n_empirical, n_directions, n_starts, seed, log) -> int:
+def _check_analyse_args(t_final, dt, falsifier_dt, counts: Counts, seed, budget_s, log) -> int:
     """ValueError for a bad argument of :func:`analyse` (``falsifier_dt`` with its default filled
     in); returns the number of RK4 steps of the empirical checks."""
     n_steps = n_steps_for(t_final, dt)
     n_steps_for(t_final, falsifier_dt, "falsifier_dt")
     for name, v, lo in (
-        ("n_empirical", n_empirical, 0),
-        ("n_directions", n_directions, 1),
-        ("n_starts", n_starts, 0),
+        ("n_empirical", counts.n_empirical, 0),
+        ("n_directions", counts.n_directions, 1),
+        ("n_starts", counts.n_starts, 0),
+        ("n_samples", counts.n_samples, 1),
+        ("falsifier_steps", counts.steps, 1),
+        ("later_runs", counts.later, 0),
         ("seed", seed, 0),
     ):
         check_int(name, v, lo)
+    check_number("budget_s", budget_s)
+    if not (np.isfinite(budget_s) and budget_s >= 0):
+        raise ValueError(f"budget_s must be finite and >= 0 [s] (0: no budget), got {budget_s!r}")
     if not callable(log):
         raise ValueError(f"log must be a function of one message, got {type(log).__name__}")
     return n_steps
@@ -350,16 +447,27 @@ def _position_directions(ctrl, n: int, worst_error) -> np.ndarray:
     return ring @ np.asarray(P).T
 
 
-def _falsifiers(ctrl, params, keys, *, t_final, eps, dt, n_starts, r_lo, log, elapsed) -> dict:
+def _falsifiers(ctrl, params, keys, *, t_final, eps, dt, n_starts, n_samples, steps, r_lo, log, elapsed, clock) -> dict:
     """:func:`falsified_radius` on the full error and the position slice (keys ``"full"`` and
     ``"position"``), from the PRNG ``keys`` (one each; none: the falsifier is skipped) and the
     largest Lemma 2 radius ``r_lo``, logged with the time ``elapsed()`` since the start."""
     fs = {}
     for b, kf in zip(("full", "position"), keys):
         fs[b] = falsified_radius(
-            ctrl, params, t_final=t_final, eps=eps, key=kf, dt=dt, basis=b, n_starts=n_starts, r_lo=r_lo
+            ctrl,
+            params,
+            t_final=t_final,
+            eps=eps,
+            key=kf,
+            dt=dt,
+            basis=b,
+            n_starts=n_starts,
+            n_samples=n_samples,
+            steps=steps,
+            r_lo=r_lo,
         )
         log(f"  falsifier ({b}): smallest failing radius {fs[b].radius} after {fs[b].rollouts} rollouts  {elapsed()}")
+        clock.stage(f"falsifier ({b})")
     return fs
 
 

@@ -152,6 +152,10 @@ class RealLoopFalsified(NamedTuple):
         }
 
 
+N_DIRECTIONS = 24
+"""The real loop's falsifier's random directions per slice, by default."""
+
+
 def real_loop_falsified_radius(
     setting,
     params,
@@ -160,7 +164,7 @@ def real_loop_falsified_radius(
     r_max: float,
     basis="full",
     directions=(),
-    n_directions: int = 24,
+    n_directions: int = N_DIRECTIONS,
     n_grid: int = 8,
     n_noise: int = 2,
     n_bisect: int = 8,
@@ -232,6 +236,23 @@ def real_loop_falsified_radius(
         fail = search.distances(dirs[which_d], mid, which_v) < eps
         lo, hi = np.where(fail, lo, mid), np.where(fail, mid, hi)
     return _confirmed(search, dirs, cands, hi, variants, r_max, noise)
+
+
+def planned_runs(
+    setting,
+    *,
+    n_known: int = 2,
+    n_directions: int = N_DIRECTIONS,
+    n_grid: int = 8,
+    n_noise: int = 2,
+    n_bisect: int = 8,
+    n_refine: int = 4,
+) -> int:
+    """The runs :func:`real_loop_falsified_radius` makes on one slice with these sizes (the
+    confirmation taken as one run; :func:`problem_certificate` searches two slices), from
+    ``n_known`` given failures' rays and the setting's plant variants: for a size estimate."""
+    n_var = len(_variants(setting, n_noise)[0])
+    return (n_known + n_directions) * n_var * n_grid + n_known * n_var * len(FINE_AROUND) + n_refine * n_bisect + 1
 
 
 def _first_failures(bad, d_i, v_i, r_i) -> list:
