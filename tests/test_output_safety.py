@@ -185,6 +185,68 @@ def test_one_directory_holds_one_jobs_results(tmp_path):
         files.claim_output(link, "wmrjax certify")
 
 
+def test_fresh_removes_only_the_files_the_other_job_recorded(tmp_path, monkeypatch):
+    """Before: --fresh did not exist for another job's output (the refusal said to choose another
+    directory). Now it removes the files that job recorded writing, and nothing else: not the
+    user's own files beside them, nothing through a link, nothing outside --out, whatever the
+    manifest says."""
+    monkeypatch.setattr(files, "_RECORDING", [])
+    out, outside = tmp_path / "out", tmp_path / "outside.json"
+    outside.write_text("keep")
+    files.claim_output(out, "wmrjax sweep")
+    files.record_writes(out)
+    files.write_json(out / "summary.json", {"a": 1})
+    files.write_bytes(out / "maps" / "x.png", b"png")
+    files.write_json(out / "summary.json", {"a": 2})  # written twice, recorded twice
+    files.write_bytes(tmp_path / "elsewhere.bin", b"not under out: not recorded")
+    (out / "mine.txt").write_text("the user's")
+    (out / "maps" / "mine.csv").write_text("the user's")
+    (out / "link.json").symlink_to(outside)
+    manifest = out / f"{files.MANIFEST_PREFIX}{os.getpid()}"
+    lines = manifest.read_text().splitlines()
+    assert lines == ["summary.json", "maps/x.png", "summary.json"]
+    with open(manifest, "a") as fh:  # an edited manifest: a link, a way out, an absolute path
+        fh.write(f"link.json\n../outside.json\n{outside}\nmaps/../../outside.json\n")
+    with pytest.raises(files.OutputLocked, match="rerun with --fresh to remove them"):
+        files.claim_output(out, "wmrjax certify")
+    removed = files.claim_output(out, "wmrjax certify", fresh=True)
+    assert removed == ["summary.json", "maps/x.png"]
+    assert outside.read_text() == "keep" and (out / "link.json").is_symlink()
+    assert (out / "mine.txt").exists() and (out / "maps" / "mine.csv").exists()
+    assert (tmp_path / "elsewhere.bin").exists() and not manifest.exists()
+    assert json.loads((out / files.JOB_NAME).read_text()) == {"job": "wmrjax certify"}
+    files.claim_output(out, "wmrjax certify")  # now this job's directory
+    # a directory the removed files leave empty goes too
+    files.write_bytes(out / "deep" / "er" / "y.png", b"png")
+    assert files.claim_output(out, "wmrjax export", fresh=True) == ["deep/er/y.png"]
+    assert not (out / "deep").exists()
+
+
+def test_fresh_on_the_command_line_replaces_another_jobs_results(tmp_path):
+    """The command line: a certification into a directory holding an export's results is refused
+    and names --fresh; with --fresh it runs, the export's recorded files gone, the user's kept."""
+    out = tmp_path / "out"
+    files.claim_output(out, "wmrjax export")
+    (out / "wmr.c").write_text("old code")
+    (out / f"{files.MANIFEST_PREFIX}1").write_text("wmr.c\n")
+    (out / "notes.md").write_text("mine")
+    problem = tmp_path / "p.toml"
+    problem.write_text(
+        PROBLEM.split("[[case]]")[0].replace("{{", "{").replace("}}", "}")
+        + "[certify]\nn_empirical = 8\nn_directions = 2\nn_starts = 0\nmap_grid = 3\n"
+    )
+    cmd = [sys.executable, "-m", "wmrjax", "certify", str(problem), "--out", str(out)]
+    refused = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert refused.returncode == 2 and "rerun with --fresh" in refused.stderr, refused.stderr[-2000:]
+    done = subprocess.run(cmd + ["--fresh"], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "--fresh removed 1 files of another job's results" in done.stderr
+    assert not (out / "wmr.c").exists() and (out / "notes.md").read_text() == "mine"
+    assert json.loads((out / "summary.json").read_text())["experiment"] == "certify"
+    recorded = {line for m in out.glob(files.MANIFEST_PREFIX + "*") for line in m.read_text().splitlines()}
+    assert {"summary.json", "slice_map.png"} <= recorded
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
 def test_a_killed_launchers_workers_die_with_it():
     """Before: killing the launcher of `sweep --processes 2` orphaned its workers, which kept

@@ -57,6 +57,7 @@ def atomic_write(path, write: Callable) -> Path:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+    _record(path)
     return path
 
 
@@ -400,23 +401,86 @@ def acquire_output(out, command: str) -> str | None:
 JOB_NAME = ".wmrjax-job.json"
 
 
-def claim_output(out, job: str) -> None:
+def claim_output(out, job: str, fresh: bool = False) -> list[str]:
     """Record that ``out`` holds ``job``'s results, or refuse a directory that holds another
     job's: a certification into a finished sweep's directory replaced its summary.json and left
-    the sweep's table beside it. Call while holding the lock (:func:`acquire_output`).
+    the sweep's table beside it. With ``fresh`` the other job's results are removed instead
+    (:func:`discard_results`: only the files it recorded writing). Call while holding the lock
+    (:func:`acquire_output`). Returns the relative paths removed.
 
     Raises:
-      OutputLocked: ``out`` holds the results of another job (named).
+      OutputLocked: ``out`` holds the results of another job (named), and not ``fresh``.
     """
     path = Path(out) / JOB_NAME
     owner = _read_owner(path) if path.is_file() and not path.is_symlink() else {}
+    removed = []
     if owner.get("job") not in (None, job):
-        raise OutputLocked(
-            f"{out} holds the results of {owner['job']!r}, not of {job!r}: one directory holds one job's "
-            f"results; choose another output directory (or remove that one's files yourself)"
-        )
-    if owner.get("job") != job:
+        if not fresh:
+            raise OutputLocked(
+                f"{out} holds the results of {owner['job']!r}, not of {job!r}: one directory holds one job's "
+                f"results; rerun with --fresh to remove them (only the files {owner['job']!r} recorded "
+                "writing), or choose another output directory"
+            )
+        removed = discard_results(out)
+    if owner.get("job") != job or removed:
         write_json(path, {"job": job})
+    return removed
+
+
+# a job's record of what it wrote in its output directory: one relative path per line, in a file
+# per process (a sweep's workers append to their own, so lines never interleave)
+MANIFEST_PREFIX = ".wmrjax-files."
+_RECORDING: list[Path] = []  # the output directories this process writes under
+
+
+def record_writes(out) -> None:
+    """Record every later atomic write (:func:`atomic_write`) of this process under directory
+    ``out`` in its manifest there, for :func:`discard_results`."""
+    root = Path(out).resolve()
+    if root not in _RECORDING:
+        _RECORDING.append(root)
+
+
+def _record(path: Path) -> None:
+    """Append ``path`` to the manifest of each recorded output directory holding it."""
+    if not _RECORDING:
+        return
+    real = Path(path).resolve()
+    for root in _RECORDING:
+        if real != root and real.is_relative_to(root) and real.name != JOB_NAME:
+            with open(root / f"{MANIFEST_PREFIX}{os.getpid()}", "a", encoding="utf-8") as fh:
+                fh.write(f"{real.relative_to(root)}\n")
+
+
+def discard_results(out) -> list[str]:
+    """Remove from ``out`` what the jobs that wrote there recorded writing (their manifests'
+    files), the manifests and the job record; returns the relative paths removed.
+
+    Only regular files inside ``out`` are removed, never through a link (a path whose real
+    location is outside ``out``, or a link itself, stays); directories the removed files leave
+    empty are removed. A user's own files were never recorded and stay, and so do files written
+    before manifests were kept (2026-11-29)."""
+    out = Path(out)
+    root = out.resolve()
+    removed = []
+    for manifest in sorted(out.glob(MANIFEST_PREFIX + "*")):
+        if manifest.is_symlink() or not manifest.is_file():
+            continue
+        for line in manifest.read_text(encoding="utf-8", errors="replace").splitlines():
+            rel = Path(line)
+            p = out / rel
+            if not line or rel.is_absolute() or ".." in rel.parts or p.is_symlink() or not p.is_file():
+                continue
+            if p.resolve().is_relative_to(root) and line not in removed:
+                p.unlink()
+                removed.append(line)
+        manifest.unlink()
+    (out / JOB_NAME).unlink(missing_ok=True)
+    for d in sorted({(out / r).parent for r in removed}, key=lambda d: len(d.parts), reverse=True):
+        while d != out and d.is_dir() and not d.is_symlink() and not any(d.iterdir()):
+            d.rmdir()
+            d = d.parent
+    return removed
 
 
 def release_output(out, token: str | None) -> None:

@@ -109,13 +109,20 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "wmrjax" / "xla"
 
 
+FRESH_HELP = (
+    "start over in --out: another job's results there are removed (only the files it recorded writing), "
+    "and a resumable job's own earlier progress (a sweep's blocks, the tuner's checkpoint) is discarded"
+)
+
+
 def parser(description: str, default_out: str | None, compile_cache: bool = True) -> argparse.ArgumentParser:
-    """An ``ArgumentParser`` whose help shows defaults, with ``--out`` when ``default_out`` is given,
-    the persistent compilation cache options (see :func:`use_compilation_cache`) and ``--verbose``
-    (see :func:`work`)."""
+    """An ``ArgumentParser`` whose help shows defaults, with ``--out`` and ``--fresh`` when
+    ``default_out`` is given, the persistent compilation cache options (see
+    :func:`use_compilation_cache`) and ``--verbose`` (see :func:`work`)."""
     p = argparse.ArgumentParser(description=description, formatter_class=_Formatter)
     if default_out is not None:
         p.add_argument("--out", type=Path, default=Path(default_out), help="output directory (created if missing)")
+        p.add_argument("--fresh", action="store_true", help=FRESH_HELP)
     p.add_argument(
         "--compile-cache",
         type=Path,

@@ -34,12 +34,14 @@ def fail_work(p: argparse.ArgumentParser, message: str, verbose: bool = False):
     p.exit(1, f"{p.prog}: error: {message}\n")
 
 
-def prepare_output(p, out: Path, lock: bool = True) -> Path:
+def prepare_output(p, out: Path, lock: bool = True, fresh: bool = False) -> Path:
     """Create ``out``, prove it writable (write and delete a probe file) and, with ``lock``, make
     this process its one writer until it exits (:func:`wmrjax._files.acquire_output`: a second run
     into the same directory is refused, naming the first; temporary files of a killed write are
-    removed); exits with a usage error if any of this fails. The lock's token is
-    ``os.environ[wmrjax._files.LOCK_ENV]`` afterwards, for worker processes."""
+    removed) and claim it for this job (:func:`wmrjax._files.claim_output`: another job's results
+    there are refused, or with ``fresh`` removed); exits with a usage error if any of this fails.
+    The lock's token is ``os.environ[wmrjax._files.LOCK_ENV]`` afterwards, for worker processes.
+    Every file this process writes there is recorded (:func:`wmrjax._files.record_writes`)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         fail(p, f"--out {out} exists and is not a directory")
@@ -59,9 +61,12 @@ def prepare_output(p, out: Path, lock: bool = True) -> Path:
             os.environ[files.LOCK_ENV] = token
             atexit.register(files.release_output, out, token)
             try:
-                files.claim_output(out, job_name(p))
+                removed = files.claim_output(out, job_name(p), fresh=fresh)
             except files.OutputLocked as exc:
                 fail(p, str(exc))
+            if removed:
+                print(f"{out}: --fresh removed {len(removed)} files of another job's results", file=sys.stderr)
+    files.record_writes(out)
     return out
 
 
@@ -85,7 +90,7 @@ def work(p, args, fn, hint=lambda message: message):
     program through :func:`fail_work` (status 1, ``PROG: error: MESSAGE`` without the usage
     text; its traceback with ``--verbose``); ``hint`` may add advice to the message. Other
     exceptions propagate with their traceback. Check the options (:func:`fail`) before this."""
-    prepare_output(p, args.out)
+    prepare_output(p, args.out, fresh=args.fresh)
     use_compilation_cache(args)
     try:
         with reliable_interrupt(), heartbeat() as hb:

@@ -26,7 +26,7 @@ def parser():
     p = options.parser(DOC, default_out=None)
     problem_args.add_problem_options(p, needs="to sweep (see docs/problem_files.md)")
     p.add_argument("--out", type=Path, default=None, help="output directory (default: results/sweeps/<spec name>)")
-    p.add_argument("--fresh", action="store_true", help="discard finished blocks of an earlier run in --out")
+    p.add_argument("--fresh", action="store_true", help=options.FRESH_HELP)
     p.add_argument(
         "--compare-gains",
         type=Path,
@@ -86,7 +86,7 @@ def main(argv=None) -> int:
     machine.configure_xla(devices)  # before JAX starts its backend
     # one writer per --out: the launching process (its workers inherit the lock's token), or
     # process 0 of a run over several hosts
-    running.prepare_output(p, a.out, lock=not distributed or a.process_id == 0)
+    running.prepare_output(p, a.out, lock=not distributed or a.process_id == 0, fresh=a.fresh)
     try:
         with running.reliable_interrupt():
             if a.processes > 1:

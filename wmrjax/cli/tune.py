@@ -38,7 +38,6 @@ def parser():
         action="store_true",
         help="also falsify the initial and tuned gains' exact-map radii by rollouts (slower)",
     )
-    p.add_argument("--fresh", action="store_true", help="ignore (delete) an existing checkpoint in --out")
     return p
 
 
