@@ -56,10 +56,10 @@ def parser() -> argparse.ArgumentParser:
 
 def all_cases() -> list:
     """Every case, in the order they run."""
-    from tests.probe import cases_data, cases_files, cases_resources, cases_unclear, cases_wrong
+    from tests.probe import cases_data, cases_files, cases_outputs, cases_resources, cases_unclear, cases_wrong
 
     cases = []
-    for module in (cases_data, cases_wrong, cases_resources, cases_unclear, cases_files):
+    for module in (cases_data, cases_wrong, cases_resources, cases_unclear, cases_files, cases_outputs):
         cases += module.cases()
     ids = [c.id for c in cases]
     dup = sorted({i for i in ids if ids.count(i) > 1})

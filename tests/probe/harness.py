@@ -24,7 +24,7 @@ from typing import Callable
 HOOK = Path(__file__).resolve().parent / "hook"
 GOOD, POOR, BAD = "GOOD", "POOR", "BAD"
 OUTCOMES = (GOOD, POOR, BAD)
-CATEGORIES = ("data_loss", "wrong_answer", "resources", "late_or_unclear", "files")
+CATEGORIES = ("data_loss", "wrong_answer", "resources", "late_or_unclear", "files", "outputs")
 # environment variables of the calling shell that would change what a case does
 DROP = ("PYTHONPATH", "PYTHONSTARTUP", "XLA_FLAGS", "XDG_CACHE_HOME", "WMRJAX_OUTPUT_LOCK", "WMRJAX_JAXPR_REWRITES")
 KEEP_CHARS = 20_000
