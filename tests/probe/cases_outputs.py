@@ -197,7 +197,8 @@ dt = 0.02
 """
 
 
-# one reference (the small sweep's two radii made one), 10 steps: what an export takes
+# one reference (the small sweep's two radii made one), 10 steps: what an export and a
+# certification take
 EXPORTABLE = specs.sweep(
     changes=[
         ("options = { radius = [2.0, 3.0], omega = 0.5 }", "options = { radius = 2.0, omega = 0.5 }"),
@@ -259,7 +260,7 @@ def cases() -> list[Case]:
             "certify into a finished sweep's --out, then with --fresh (before: both exit 0, summaries mixed)",
             answer(_one_job(["runs.parquet"], ["summary.json", "slice_map.png"])),
             code=_other_job(SWEEP, CERTIFY, "out"),
-            files={"s.toml": specs.sweep()},
+            files={"s.toml": EXPORTABLE},
             prelude="none",
             timeout=400,
         ),
@@ -269,7 +270,7 @@ def cases() -> list[Case]:
             "certify into a link to a finished sweep's --out, then with --fresh",
             answer(_one_job(["runs.parquet"], ["summary.json", "slice_map.png"])),
             code=_other_job(SWEEP, CERTIFY, "link"),
-            files={"s.toml": specs.sweep()},
+            files={"s.toml": EXPORTABLE},
             prelude="none",
             timeout=400,
         ),
@@ -279,7 +280,7 @@ def cases() -> list[Case]:
             "a sweep into a finished certification's --out, then with --fresh",
             answer(_one_job(["slice_map.png"], ["summary.json", "runs.parquet"])),
             code=_other_job(CERTIFY, SWEEP, "out"),
-            files={"s.toml": specs.sweep()},
+            files={"s.toml": EXPORTABLE},
             prelude="none",
             timeout=400,
         ),
