@@ -217,7 +217,7 @@ def test_a_traced_horizon_outside_the_samples_fails_the_run():
     assert not bool(jax.jit(lambda dt: run(0.0, dt, pe))(0.02).diagnostics.failed)
 
 
-def test_a_horizon_outside_the_samples_is_refused_unless_extrapolated(tmp_path):
+def test_a_horizon_outside_the_samples_is_refused_unless_extrapolated(tmp_path, monkeypatch):
     """Circle samples on [0, 4] s: a run to 8 s, a run from t0 = -1 s, the reference check and a
     Lemma 2 certificate over 8 s are refused by name; with extrapolate=True the run goes on (the
     path then tends to the tangent line at the last sample's velocity, off the circle at 8 s); samples on [5, 25] s refuse a horizon starting at 0. The problem file's key too."""
@@ -256,6 +256,13 @@ def test_a_horizon_outside_the_samples_is_refused_unless_extrapolated(tmp_path):
     }
     with pytest.raises(ProblemError, match="past its last sample"):
         Problem.from_dict(data)
+    # refused on the sample times, before the spline is solved (the probe's samples-problem-past-end
+    # was POOR: the banded solve's scan was traced first, a late refusal)
+    with monkeypatch.context() as m:
+        unbuilt = dataclasses.replace(R.FAMILIES["samples"], make=lambda *a, **k: pytest.fail("the spline was built"))
+        m.setitem(R.FAMILIES, "samples", unbuilt)
+        with pytest.raises(ProblemError, match=r"\[reference\] \('t', 'x', 'y'\): reference 'samples' is defined"):
+            Problem.from_dict(data)
     data["reference"]["extrapolate"] = True
     assert Problem.from_dict(data).settings()[0].reference.domain() is None
     data["reference"]["extrapolate"] = "yes"

@@ -878,7 +878,7 @@ def _setting(ctrl, data, base, case, law, task, space, t_final, dt, n_steps) -> 
     kind, level = ctrl.robot.name, ctrl.level
     geometry = _geometry_axis(data.get("geometry", {}), ctrl)
     plant, period, noise_std, noise_seed = _plant_axis(data.get("plant"), ctrl, dt, t_final)
-    reference, refs = reference_axis(data["reference"], base, law, kind, ctrl.path_order)
+    reference, refs = reference_axis(data["reference"], base, law, kind, ctrl.path_order, horizon=t_final)
     gains = gains_axis(data.get("gains", {}), ctrl, base)
     initial = initial_axis(data["initial"], ctrl, space)
     geo = geometry.payload
@@ -1010,17 +1010,21 @@ def _plant_axis(ps, ctrl, dt, t_final):
     return Axis("plant", columns, cols), period, tuple(float(v) for v in noise), seed
 
 
-def reference_axis(rs, base: Path, law, kind, path_order: int):
+def reference_axis(rs, base: Path, law, kind, path_order: int, horizon: float | None = None):
     """``(axis, references)`` of a ``[reference]`` section: the references (their heading offsets
     applied; offsets fastest) and their columns. A sampled path's spline keeps the law's
-    ``path_order`` (its ``ctrl.path_order``) continuous."""
+    ``path_order`` (its ``ctrl.path_order``) continuous; a horizon [s] past its samples (without
+    ``extrapolate``) is refused before the spline is built."""
     if not isinstance(rs, dict) or "family" not in rs:
         raise ProblemError(f"[reference]: needs family = one of {list(R.FAMILIES)}")
     fam = R.FAMILIES[choice("reference", "family", rs["family"], tuple(R.FAMILIES))]
     build = (
         _named_references if fam.kind == "named" else _random_references if fam.kind == "random" else _data_reference
     )
-    refs, cols = build(fam, rs, base, law, path_order)
+    if build is _data_reference:
+        refs, cols = _data_reference(fam, rs, base, law, path_order, horizon)
+    else:
+        refs, cols = build(fam, rs, base, law, path_order)
     params = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *[r.params for r in refs])
     heading = axis_values("reference", "heading_offset", rs.get("heading_offset", _default_offset(law, kind)))
     ii, jj = np.indices((len(refs), len(heading))).reshape(2, -1)
@@ -1106,9 +1110,10 @@ def _draw_references(make, opts: tuple, seed: int, count: int):
     return jax.vmap(lambda k: make(k, **dict(opts)))(keys)
 
 
-def _data_reference(fam, rs, base, law, path_order):
+def _data_reference(fam, rs, base, law, path_order, horizon=None):
     """A reference through the user's samples (t, x, y) or waypoints (x, y), from a file or arrays:
-    the spline of the lowest degree that keeps the law's ``path_order`` continuous."""
+    the spline of the lowest degree that keeps the law's ``path_order`` continuous. Samples whose
+    times end before ``horizon`` are refused first (:func:`wmrjax.references.check_span`)."""
     cols = fam.columns
     waypoints = "t" not in cols
     extra = ("speed", "t0") if waypoints else ()
@@ -1147,6 +1152,16 @@ def _data_reference(fam, rs, base, law, path_order):
             f"[reference] extrapolate: expected true or false (extend the path past its first and "
             f"last point), got {extrapolate!r}"
         )
+    if not waypoints and not extrapolate and horizon is not None:
+        t = np.asarray(data["t"], float)
+        # only well-formed times here (strictly increasing, finite): from_samples names the others
+        if t.size >= 2 and np.all(np.isfinite(t)) and np.all(np.diff(t) > 0):
+            try:
+                R.check_span(name, float(t[0]), float(t[-1]), 0.0, horizon)
+            except ValueError as err:
+                raise ProblemError(
+                    f"[reference] {'file ' + repr(rs['file']) if 'file' in rs else cols}: {err}"
+                ) from None
     xy = np.stack([data["x"], data["y"]], axis=1)
     degree = spline_degree_for(path_order)
     try:

@@ -132,12 +132,18 @@ def check_domain(ref: "Reference", t0: float, t_final: float) -> None:
     lo, hi = (concrete(x) for x in dom)
     if lo is None or hi is None:
         return
-    lo, hi = float(np.max(lo)), float(np.min(hi))
+    check_span(ref.name, float(np.max(lo)), float(np.min(hi)), t0, t_final)
+
+
+def check_span(name: str, lo: float, hi: float, t0: float, t_final: float) -> None:
+    """ValueError if the horizon [t0, t_final] [s] leaves a sampled path's span [lo, hi] [s]
+    (beyond :data:`DOMAIN_RTOL`): what :func:`check_domain` checks, on the sample times alone
+    (before any spline is built)."""
     tol = DOMAIN_RTOL * (1.0 + max(abs(lo), abs(hi)))
     if t0 < lo - tol or t_final > hi + tol:
         where = "before its first" if t0 < lo - tol else "past its last"
         raise ValueError(
-            f"reference {ref.name!r} is defined by its samples on [{lo:g}, {hi:g}] s, and the horizon "
+            f"reference {name!r} is defined by its samples on [{lo:g}, {hi:g}] s, and the horizon "
             f"[{t0:g}, {t_final:g}] s goes {where} sample: fit the horizon inside the samples, add "
             "samples, or extend the path explicitly at its end's velocity (from_samples(..., extrapolate=True); "
             "extrapolate = true in a problem file's [reference])"
