@@ -1,0 +1,100 @@
+"""A sampled path's load time and memory against its number of samples (issue 57 item 3: the
+spline's collocation system is banded and solved block by block, in time and memory linear in
+the samples).
+
+    .venv/bin/python benchmarks/sampled_path.py --out results/benchmarks/sampled_path
+
+Per row, in a fresh process (so that its peak resident memory is the load's own and its time
+includes compiling): samples of a circle of radius 2 m at 0.5 rad/s every 0.01 s,
+``wmrjax.references.from_samples`` of degree 5 (the velocity-level laws' spline) and 7 (the
+torque-level (1,1) law's), then one position evaluated mid-path (the pieces are ready). Reports
+the wall seconds of the load, the process's peak resident memory and the position's distance
+to the circle.
+Writes ``sampled_path.json`` into ``--out`` and prints the table (docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+SIZES = (1_000, 10_000, 100_000, 1_000_000)
+
+
+def load_one(n: int, degree: int) -> dict:
+    """One load in this process (called in a fresh one): seconds, peak RSS, the path's error."""
+    import jax  # here: the parent process never starts JAX
+
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    from wmrjax import references as R
+
+    t = np.arange(n) * 0.01
+    xy = np.stack([2.0 * np.cos(0.5 * t), 2.0 * np.sin(0.5 * t)], 1)
+    t0 = time.perf_counter()
+    ref = R.from_samples(t, xy, degree=degree)
+    mid = 0.5 * t[-1]
+    p = np.asarray(ref.position(mid))
+    seconds = time.perf_counter() - t0
+    return {
+        "samples": n,
+        "degree": degree,
+        "load_s": seconds,
+        "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        "position_error_m": float(abs(np.hypot(*p) - 2.0)),
+    }
+
+
+def table(rows) -> str:
+    lines = ["| samples | degree | load [s] | peak RSS [MB] | off the circle [m] |", "|---|---|---|---|---|"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['samples']:,} | {r['degree']} | refused: {r['error'][:80]} | | |")
+        else:
+            lines.append(
+                f"| {r['samples']:,} | {r['degree']} | {r['load_s']:.2f} | {r['peak_rss_bytes'] / 1e6:.0f} | "
+                f"{r['position_error_m']:.1e} |"
+            )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "sampled_path")
+    p.add_argument("--one", nargs=2, type=int, help=argparse.SUPPRESS)  # the fresh process: samples, degree
+    a = p.parse_args(argv)
+    if a.one:
+        print(json.dumps(load_one(*a.one)))
+        return 0
+    rows = []
+    for n in SIZES:
+        for degree in (5, 7):
+            env = dict(os.environ, PYTHONPATH=str(ROOT))
+            r = subprocess.run(
+                [sys.executable, __file__, "--one", str(n), str(degree)], capture_output=True, text=True, env=env
+            )
+            if r.returncode:
+                rows.append({"samples": n, "degree": degree, "error": (r.stderr.strip().splitlines() or ["?"])[-1]})
+            else:
+                rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
+            print(table(rows[-1:]).splitlines()[-1], flush=True)
+    print(table(rows))
+    a.out.mkdir(parents=True, exist_ok=True)
+    result = {"rows": rows, "machine": platform.processor() or platform.machine(), "cores": os.cpu_count()}
+    tmp = a.out / ".sampled_path.json.tmp"
+    tmp.write_text(json.dumps(result, indent=1))
+    tmp.replace(a.out / "sampled_path.json")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
