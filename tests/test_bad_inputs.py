@@ -318,6 +318,12 @@ def _api_cases():
         "linear singular set",
     )
     add("batch_map-sizes", lambda c, p, z: w.batch_map(lambda a, b: a + b, jnp.ones(3), jnp.ones(4)), "leading batch")
+    for bad in ("8", 2.5, True, 0):  # before: int(chunk) read "8" and 2.5, True as 1, 0 as 1
+        add(
+            f"batch_map-chunk-{bad!r}",
+            lambda c, p, z, k=bad: w.batch_map(jnp.sin, jnp.ones(3), chunk=k),
+            "chunk must be an integer >= 1",
+        )
     # text and booleans where numbers are meant (issue 57): a raw TypeError, or True taken as 1
     add(
         "simulate-dt-text",

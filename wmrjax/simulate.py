@@ -869,6 +869,8 @@ def batch_map(fn, *args, chunk: int | None = None, mesh=None):
     Returns:
       ``fn``'s output pytree with a leading axis of size B.
     """
+    if chunk is not None:
+        check_int("chunk", chunk, 1)  # a text, a float or a bool was read as int(chunk) before
     mesh = batch_mesh() if mesh is None else mesh
     n_dev = mesh.devices.size
     leaves = jax.tree_util.tree_leaves(args)
