@@ -422,7 +422,7 @@ def claim_output(out, job: str, fresh: bool = False) -> list[str]:
                 "writing), or choose another output directory"
             )
         removed = discard_results(out)
-    if owner.get("job") != job or removed:
+    if owner.get("job") != job:
         write_json(path, {"job": job})
     return removed
 
@@ -462,7 +462,7 @@ def discard_results(out) -> list[str]:
     before manifests were kept (2026-11-29)."""
     out = Path(out)
     root = out.resolve()
-    removed = []
+    removed, seen = [], set()  # a file written again is listed again (a sweep's state, a summary)
     for manifest in sorted(out.glob(MANIFEST_PREFIX + "*")):
         if manifest.is_symlink() or not manifest.is_file():
             continue
@@ -471,9 +471,10 @@ def discard_results(out) -> list[str]:
             p = out / rel
             if not line or rel.is_absolute() or ".." in rel.parts or p.is_symlink() or not p.is_file():
                 continue
-            if p.resolve().is_relative_to(root) and line not in removed:
+            if p.resolve().is_relative_to(root) and line not in seen:
                 p.unlink()
                 removed.append(line)
+                seen.add(line)
         manifest.unlink()
     (out / JOB_NAME).unlink(missing_ok=True)
     for d in sorted({(out / r).parent for r in removed}, key=lambda d: len(d.parts), reverse=True):

@@ -1152,6 +1152,7 @@ def _data_reference(fam, rs, base, law, path_order, horizon=None):
             f"[reference] extrapolate: expected true or false (extend the path past its first and "
             f"last point), got {extrapolate!r}"
         )
+    where = f"[reference] {'file ' + repr(rs['file']) if 'file' in rs else cols}"
     if not waypoints and not extrapolate and horizon is not None:
         t = np.asarray(data["t"], float)
         # only well-formed times here (strictly increasing, finite): from_samples names the others
@@ -1159,9 +1160,7 @@ def _data_reference(fam, rs, base, law, path_order, horizon=None):
             try:
                 R.check_span(name, float(t[0]), float(t[-1]), 0.0, horizon)
             except ValueError as err:
-                raise ProblemError(
-                    f"[reference] {'file ' + repr(rs['file']) if 'file' in rs else cols}: {err}"
-                ) from None
+                raise ProblemError(f"{where}: {err}") from None
     xy = np.stack([data["x"], data["y"]], axis=1)
     degree = spline_degree_for(path_order)
     try:
@@ -1178,7 +1177,7 @@ def _data_reference(fam, rs, base, law, path_order, horizon=None):
         else:
             ref = fam.make(data["t"], xy, min_speed=min_speed, name=name, extrapolate=extrapolate, degree=degree)
     except ValueError as err:
-        raise ProblemError(f"[reference] {'file ' + repr(rs['file']) if 'file' in rs else cols}: {err}") from None
+        raise ProblemError(f"{where}: {err}") from None
     return [ref], {"reference_index": np.zeros(1)}
 
 

@@ -167,7 +167,7 @@ from probe_driver import run
 r = run("-m", "wmrjax", "export", "p.toml", "--out", "out")
 summary = json.load(open("out/summary.json")) if r["rc"] == 0 else {}
 headers = [open(os.path.join("out", n)).read() for n in os.listdir("out") if n.endswith(".h")]
-emit(rc=r["rc"], span=summary.get("reference_span_s") or summary.get("span"), keys=sorted(summary)[:40],
+emit(rc=r["rc"], keys=sorted(summary)[:40],
      header_says=any("span" in h.lower() or "valid" in h.lower() for h in headers), last=r["last"])
 """
 
@@ -211,97 +211,85 @@ def _case_file(name: str) -> str:
     return specs.sweep(changes=[("t_final = 2.0", "t_final = 0.2")]) + f'[[case]]\nname = "{name}"\n'
 
 
+def _driver(cid: str, description: str, check, code: str, files: dict, timeout: float = 400) -> Case:
+    """A case that starts the tree's processes itself (``code``, no prelude) and whose facts
+    ``check(results) -> (ok, evidence)`` judges: GOOD when it holds, BAD when not."""
+    return Case(cid, CAT, description, answer(check), code=code, files=files, prelude="none", timeout=timeout)
+
+
 def cases() -> list[Case]:
     """This module's cases."""
     return [
-        Case(
+        _driver(
             "case-name-escapes-out",
-            CAT,
             'a sweep whose [[case]] name is "../../../X/Y" (before: a PNG written outside --out, exit 0)',
-            answer(_nothing_outside),
-            code=ESCAPING_CASE,
-            files={"s.toml": _case_file("../../../X/Y")},
-            prelude="none",
+            _nothing_outside,
+            ESCAPING_CASE,
+            {"s.toml": _case_file("../../../X/Y")},
             timeout=240,
         ),
-        Case(
+        _driver(
             "export-through-links",
-            CAT,
             "export into an --out whose output files are links to the user's files (before: written through)",
-            answer(_links_kept),
-            code=EXPORT_LINKS,
-            files={"s.toml": EXPORTABLE},
-            prelude="none",
+            _links_kept,
+            EXPORT_LINKS,
+            {"s.toml": EXPORTABLE},
             timeout=400,
         ),
-        Case(
+        _driver(
             "user-tmp-files-kept",
-            CAT,
             "a sweep into --out mydata holding the user's .x.tmp and deep/.report.tmp (before: deleted)",
-            answer(_user_files_kept),
-            code=USER_TMP,
-            files={"s.toml": specs.sweep()},
-            prelude="none",
+            _user_files_kept,
+            USER_TMP,
+            {"s.toml": specs.sweep()},
             timeout=240,
         ),
-        Case(
+        _driver(
             "export-runs-no-user-module",
-            CAT,
             "export into an --out holding json.py, numpy.py, os.py (before: json.py imported and run)",
-            answer(_nothing_ran),
-            code=PLANTED,
-            files={"s.toml": EXPORTABLE},
-            prelude="none",
+            _nothing_ran,
+            PLANTED,
+            {"s.toml": EXPORTABLE},
             timeout=400,
         ),
-        Case(
+        _driver(
             "certify-into-a-sweeps-out",
-            CAT,
             "certify into a finished sweep's --out, then with --fresh (before: both exit 0, summaries mixed)",
-            answer(_one_job(["runs.parquet"], ["summary.json", "slice_map.png"])),
-            code=_other_job(SWEEP, CERTIFY, "out"),
-            files={"s.toml": EXPORTABLE},
-            prelude="none",
+            _one_job(["runs.parquet"], ["summary.json", "slice_map.png"]),
+            _other_job(SWEEP, CERTIFY, "out"),
+            {"s.toml": EXPORTABLE},
             timeout=400,
         ),
-        Case(
+        _driver(
             "certify-into-a-sweeps-out-by-link",
-            CAT,
             "certify into a link to a finished sweep's --out, then with --fresh",
-            answer(_one_job(["runs.parquet"], ["summary.json", "slice_map.png"])),
-            code=_other_job(SWEEP, CERTIFY, "link"),
-            files={"s.toml": EXPORTABLE},
-            prelude="none",
+            _one_job(["runs.parquet"], ["summary.json", "slice_map.png"]),
+            _other_job(SWEEP, CERTIFY, "link"),
+            {"s.toml": EXPORTABLE},
             timeout=400,
         ),
-        Case(
+        _driver(
             "sweep-into-a-certifications-out",
-            CAT,
             "a sweep into a finished certification's --out, then with --fresh",
-            answer(_one_job(["slice_map.png"], ["summary.json", "runs.parquet"])),
-            code=_other_job(CERTIFY, SWEEP, "out"),
-            files={"s.toml": EXPORTABLE},
-            prelude="none",
+            _one_job(["slice_map.png"], ["summary.json", "runs.parquet"]),
+            _other_job(CERTIFY, SWEEP, "out"),
+            {"s.toml": EXPORTABLE},
             timeout=400,
         ),
-        Case(
+        _driver(
             "killed-launcher-workers",
-            CAT,
             "kill -9 of the launcher of sweep --processes 2 (before: its workers ran on and overwrote the next run)",
-            answer(_no_orphans),
-            code=ORPHANS,
-            files={"slow.toml": specs.SLOW_SWEEP},
-            prelude="none",
+            _no_orphans,
+            ORPHANS,
+            {"slow.toml": specs.SLOW_SWEEP},
             timeout=300,
         ),
-        Case(
+        _driver(
             "export-states-its-span",
-            CAT,
             "export of a sampled path: the valid time span in the C header and summary.json (before: in neither)",
-            answer(_span_stated),
-            code=PAST_SPAN,
-            files={"p.toml": SAMPLED, "path.csv": specs.circle_csv(0.0, 4.0, 81)},
-            prelude="none",
+            _span_stated,
+            PAST_SPAN,
+            {"p.toml": SAMPLED, "path.csv": specs.circle_csv(0.0, 4.0, 81)},
             timeout=400,
         ),
         Case(

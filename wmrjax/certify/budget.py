@@ -13,8 +13,9 @@ The falsifiers' rollouts depend on what they find (radii tried, failures to conf
 estimate takes :data:`TYPICAL_ATTEMPTS` radii, and the gradient and confirmation costs are
 factors measured against a batch run-step (on the issue 58 car, 2 host devices, 2026-11-29:
 a gradient start-iteration 10.9 batch run-steps, a confirmation block's run-step 2.1). It is
-an estimate (within a factor of about two on the shipped examples); the report keeps it beside
-the measured time of each stage.
+an estimate: on that car's certification the total was within 5 % of the measured time, single
+stages up to three times off (other programs' compilation overlaps them); the report keeps it
+beside the measured time of each stage.
 
 A budget (seconds) scales every count the stages are sized by (samples, rays, gradient starts
 and iterations, the caller's runs) by one factor, never below the floors of :data:`FLOORS`; the falsifiers'
@@ -31,32 +32,40 @@ from typing import NamedTuple
 import numpy as np
 
 from wmrjax._validate import check_int
-from wmrjax.certify.empirical import ROLLOUT_BLOCK, error_width, window_distances
-from wmrjax.certify.falsify import gradient_starts
+from wmrjax.certify.empirical import (
+    CONFIRM_DT_FACTOR,
+    RADIUS_BISECT,
+    RADIUS_DIPS,
+    RADIUS_GOLDEN,
+    RADIUS_GRID,
+    ROLLOUT_BLOCK,
+    error_width,
+    window_distances,
+)
+from wmrjax.certify.falsify import SEARCH_WINDOWS, gradient_starts
 from wmrjax.resources import PROCESS_BYTES, samples_bytes
 
-# the falsifier's radii tried per slice, typical: 10 and 13 on the issue 58 car, 11 and 9 on the
-# S-path (at most 5 doublings and 16 bisections)
+# the falsifier's radii tried per slice, typical: 10 and 13 on the issue 58 car (at most 5
+# doublings and 16 bisections)
 TYPICAL_ATTEMPTS = 12
 # of those, the share that runs the gradient stage (the cheap stages found no failure): 6 of 10
 GRADIENT_SHARE = 0.6
 # fine confirmations per attempt (blocks of 16 at dt / 10), typical: 280 in 10 attempts
 CONFIRMATIONS_PER_ATTEMPT = 28
 # a gradient start-iteration's cost in batch run-steps, and a confirmation's per fine run-step
-# (measured on the issue 58 car, 2 host devices: 10.9 and 2.1; the S-path gives 3-6 and 1.0)
+# (measured on the issue 58 car, 2 host devices: 10.9 and 2.1; the S-path on one host device:
+# 3.3 and 6.0 for the full and position slices, and 1.0)
 GRADIENT_COST = 10.9
 CONFIRM_COST = 2.1
-CONFIRM_STEPS = 10  # a confirmation's steps per step of the search (dt / 10)
-# the empirical radius's calls (its defaults): a 48-radius grid on every ray, 16 golden rounds and
-# a check on 3 dips per ray, 14 bisections of the live candidates (about one per ray); each call
-# runs whole blocks of ROLLOUT_BLOCK (the last one padded)
-RADIUS_GRID, RADIUS_DIPS, RADIUS_GOLDEN, RADIUS_BISECT = 48, 3, 16, 14
-# the compilation of every other program (Lemma 2, the exact maps, the falsifier's, the problem
-# loop's), relative to the rollout program's: cold on the car 47 s against 7.4 s
+CONFIRM_STEPS = round(1.0 / CONFIRM_DT_FACTOR)  # a confirmation's steps per step of the search
+# the compilation of every other program, relative to the rollout program's (cold on the car:
+# Lemma 2 3.4 s, the exact maps 8.8, the falsifier's search 12.3 and confirmations 7.5, the
+# problem loop's about 16, against 7.4 s)
 COMPILE_RATIO = 5.0
 # the whole run's peak resident memory over the peak once the rollout program is compiled and
-# run (measured on the issue 58 car, cold: 2.04 GB over 1.23 GB, 1.66; the other programs'
-# compilation and the falsifier's thread): an upper estimate, as resources' are
+# run (the issue 58 car, cold, two processes: 2.04 GB at the end of one, 1.23 GB after the first
+# program in the other, 1.66; the other programs' compilation and the falsifier's thread): an
+# upper estimate, as resources' are
 MEMORY_GROWTH = 2.0
 # the smallest counts a budget scales to
 FLOORS = {"n_empirical": 64, "n_directions": 8, "n_starts": 4, "n_samples": 64, "steps": 8, "later": 0.1}
@@ -93,7 +102,7 @@ class WorkEstimate(NamedTuple):
       compile_s: measured seconds to compile (or load) the rollout program [s].
       n_steps: RK4 steps of a run.
       stages: stage name -> (rollouts, estimated seconds).
-      memory_bytes: the process and the largest program's arrays [bytes].
+      memory_bytes: the estimated peak resident memory of the whole run [bytes] (see :func:`plan`).
       budget_s: the budget it was fitted to (0: none).
     """
 
@@ -221,7 +230,7 @@ def _estimate(counts: Counts, scale: float, cost, n_steps: int, memory: float, b
     falsifier = 0.0
     runs_per_attempt = 0
     if counts.n_starts:
-        gs = gradient_starts(counts.n_starts, 4)
+        gs = gradient_starts(counts.n_starts, SEARCH_WINDOWS)
         gradient = GRADIENT_SHARE * gs * (counts.steps + 1) * run * GRADIENT_COST
         confirm = CONFIRMATIONS_PER_ATTEMPT * CONFIRM_STEPS * run * CONFIRM_COST
         falsifier = TYPICAL_ATTEMPTS * (counts.n_samples * run + gradient + confirm)

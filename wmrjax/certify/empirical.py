@@ -389,6 +389,11 @@ def _bound_checks(ctrl, params, tr, bound, tol):
     return viol, ratio
 
 
+# the empirical radius's search (its defaults): radii on the first grid, dips refined per ray,
+# golden-section rounds per dip, bisection steps (wmrjax.certify.budget counts its runs with them)
+RADIUS_GRID, RADIUS_DIPS, RADIUS_GOLDEN, RADIUS_BISECT = 48, 3, 16, 14
+
+
 class EmpiricalRadius(NamedTuple):
     """Result of :func:`empirical_radius`."""
 
@@ -407,10 +412,10 @@ def empirical_radius(
     directions,
     r_max: float,
     dt: float,
-    n_grid: int = 48,
-    n_dips: int = 3,
-    n_golden: int = 16,
-    n_bisect: int = 14,
+    n_grid: int = RADIUS_GRID,
+    n_dips: int = RADIUS_DIPS,
+    n_golden: int = RADIUS_GOLDEN,
+    n_bisect: int = RADIUS_BISECT,
 ) -> EmpiricalRadius:
     r"""Empirical safe radius per direction by simulation: the smallest :math:`\rho \le` ``r_max``
     at which the run from :math:`\rho d` comes within ``eps`` of the singular set (or is flagged).

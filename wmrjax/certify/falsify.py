@@ -44,6 +44,8 @@ from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 from wmrjax.simulate import batch_map
 
+SEARCH_WINDOWS = 4  # time windows of falsified_radius's samples and gradient starts, by default
+
 
 class Falsification(NamedTuple):
     """Result of :func:`falsify` at one radius."""
@@ -209,7 +211,7 @@ def falsified_radius(
     n_bisect: int = 16,
     rtol: float = 2e-3,
     learning_rate: float = 0.1,
-    n_windows: int = 4,
+    n_windows: int = SEARCH_WINDOWS,
 ) -> FalsifiedRadius:
     """The smallest radius at which the falsifier finds a confirmed failure (dist < eps or singular).
 
@@ -476,7 +478,7 @@ def compile_search(
     n_starts: int = 16,
     steps: int = 30,
     learning_rate: float = 0.1,
-    n_windows: int = 4,
+    n_windows: int = SEARCH_WINDOWS,
 ) -> None:
     """Compile the two programs of :func:`falsified_radius` (same arguments) that its first
     stages do not: the gradient stage's and the fine confirmations' (blocks of

@@ -150,7 +150,8 @@ def run(out, problem, case=None, progress=None) -> dict:
         log=say,
     )
     scale = report.estimate.scale
-    map_grid = cfg["map_grid"] if scale >= 1 else max(MAP_GRID_FLOOR, round(cfg["map_grid"] * scale**0.5))
+    # the map's runs scale with its side squared; a side asked below the floor stays as asked
+    map_grid = min(cfg["map_grid"], max(MAP_GRID_FLOOR, round(cfg["map_grid"] * scale**0.5)))
     plant_directions = max(PLANT_DIRECTIONS_FLOOR, round(C.real_loop.N_DIRECTIONS * scale))
     exact = {"full": report.exact_full, "position": report.exact_position}
     falsified = {"full": report.falsified_full, "position": report.falsified_position}
