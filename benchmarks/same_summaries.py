@@ -6,7 +6,8 @@ aside (issue 55: the package moved, the answers must not).
     python -m benchmarks.same_summaries --old /tmp/old --old-rev REV --out results/same_summaries
 
 The old checkout is imported first on ``PYTHONPATH`` (this checkout's virtual environment runs
-both). Prints one table (job, values compared, identical, differing, the differing keys) and
+both); an old checkout with the ``wmrjax`` command already (no ``experiments/`` folder) runs the
+new command lines too. Prints one table (job, values compared, identical, differing, the differing keys) and
 writes it with every difference to ``OUT/summary.json``.
 """
 
@@ -46,7 +47,7 @@ JOBS = {
 }
 
 # a key that measures time or the machine, not the answer
-TIMING = re.compile(r"wall|time|_s$|seconds|elapsed|throughput|first_calls|stages|timing|compile|heartbeat|memory")
+TIMING = re.compile(r"wall|time|_s$|seconds|elapsed|throughput|first_calls|stages|timing|compile|heartbeat|memory|rss")
 
 
 def car_log(path: Path) -> Path:
@@ -133,6 +134,8 @@ def main(argv=None) -> int:
     log = str(car_log(a.out.resolve() / "car_log.csv"))
     for job in a.jobs:
         old_argv, new_argv = ([log if x == "LOG" else x for x in argv] for argv in JOBS[job])
+        if not (a.old / "experiments").is_dir():  # the old checkout has the one command already
+            old_argv = new_argv
         outs = {"old": (a.out / job / "old").resolve(), "new": (a.out / job / "new").resolve()}
         walls = {"old": _run(a.old.resolve(), old_argv, outs["old"]), "new": _run(ROOT, new_argv, outs["new"])}
         trees = {str(a.old.resolve()): str(ROOT), str(outs["old"]): str(outs["new"])}

@@ -102,7 +102,7 @@ def test_through_the_tuners_sampled_data_loop():
     spec = ts.gain_family(setting)
     train = loop.prepare(setting, spec, ts.scenarios, ts.loss, 0).sets.train
     # saturate the first scenario's wheels so the clip is active on part of the run
-    train = train._replace(inputs={**train.inputs, "limit": train.inputs["limit"].at[0].set(1.2)})
+    train = train._replace(inputs=train.inputs._replace(limit=train.inputs.limit.at[0].set(1.2)))
 
     def loss(raw):
         ms = jax.vmap(lambda sc: rollout(setting, spec.gains(raw), sc))(train)

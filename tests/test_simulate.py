@@ -368,7 +368,7 @@ def test_the_protocol_declares_every_hook_the_run_reads():
     memory model read (no getattr probe for an undeclared hook); an object that is not one is
     refused before anything compiles, naming the base to subclass."""
     read = set()
-    for mod in ("simulate.py", "problem.py", "resources.py"):
+    for mod in ("simulate.py", "problem/setting.py", "resources.py"):
         text = (pathlib.Path(w.__file__).parent / mod).read_text()
         read |= set(re.findall(r"\bsystem\.([a-z_]+)\(?", text))
     assert {

@@ -163,7 +163,7 @@ def test_batch_reads_shared_inputs_once_and_equals_each_scenario_alone(tiny):
         for a, b in zip(jax.tree_util.tree_leaves(alone), jax.tree_util.tree_leaves(m)):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], rtol=1e-12, atol=1e-14)
     _, axes = shared_axes(setting, ctx.sets.train)
-    assert {k for k, v in axes.inputs.items() if v == 0} == set(DRAWN) and axes.key == 0
+    assert {k for k, v in axes.inputs._asdict().items() if v == 0} == set(DRAWN) and axes.key == 0
 
 
 def test_set_whose_shared_inputs_differ_is_refused(tiny):
@@ -173,11 +173,11 @@ def test_set_whose_shared_inputs_differ_is_refused(tiny):
     and not checked."""
     setting, spec, ctx = tiny
     train = ctx.sets.train
-    bad = train._replace(inputs={**train.inputs, "limit": train.inputs["limit"].at[2].set(1.2)})
+    bad = train._replace(inputs=train.inputs._replace(limit=train.inputs.limit.at[2].set(1.2)))
     for fn in (mean_loss, mean_loss_and_grad):
         with pytest.raises(ValueError, match=r"inputs\['limit'\] differ between scenarios \(scenarios \[2\]"):
             fn(spec.init(1.0), bad, setting, spec, ctx.weights)
-    nan_everywhere = train._replace(inputs={**train.inputs, "delta": jnp.full_like(train.inputs["delta"], jnp.nan)})
+    nan_everywhere = train._replace(inputs=train.inputs._replace(delta=jnp.full_like(train.inputs.delta, jnp.nan)))
     wmrjax.tune.scenarios.check_shared(setting, nan_everywhere)  # the same value (NaN) in every scenario: shared
 
 
@@ -185,7 +185,7 @@ def test_nan_scenario_is_reported_and_excluded(tiny):
     setting, spec, ctx = tiny
     raw = spec.init(1.0)
     train = ctx.sets.train
-    bad = train._replace(inputs={**train.inputs, "input_scale": train.inputs["input_scale"].at[0].set(jnp.nan)})
+    bad = train._replace(inputs=train.inputs._replace(input_scale=train.inputs.input_scale.at[0].set(jnp.nan)))
     loss, grad, ok, _ = mean_loss_and_grad(raw, bad, setting, spec, ctx.weights)
     assert not bool(ok[0]) and bool(jnp.all(ok[1:])) and np.isfinite(float(loss)) and bool(jnp.all(jnp.isfinite(grad)))
     _, ok_all, m = mean_loss(raw, train, setting, spec, ctx.weights)  # the clean batch, scenario by scenario
@@ -497,8 +497,8 @@ def test_listed_plant_scales_are_tuned_over_as_scenarios():
         setting = Problem.from_dict(data).setting("tuning")
         loop.check(setting, TS.gain_family(setting), TS.scenarios, TS.loss)
         sc = draw_set(setting, mismatch, keys)
-        g = np.asarray(sc.inputs["geometry_scale"])
-        u = np.asarray(sc.inputs["input_scale"])
+        g = np.asarray(sc.inputs.geometry_scale)
+        u = np.asarray(sc.inputs.input_scale)
         assert g.shape == (64, 2) and u.shape == (64, 2)
         if isinstance(scales, list):
             assert set(np.unique(g).tolist()) == set(np.unique(u).tolist()) == {0.9, 1.1}

@@ -5,12 +5,14 @@
 * :mod:`~wmrjax.controllers.static` -- Prop 3 and Table 3 (static linearization);
 * :mod:`~wmrjax.controllers.hybrid` -- §6.2 (tracking, then a time-varying stabilizer);
 * :mod:`~wmrjax.controllers.plant` -- a law closed around a saturating, mismatched plant;
-* :mod:`~wmrjax.controllers.sampled` -- the same, run by a digital controller (sample, hold, noise).
+* :mod:`~wmrjax.controllers.sampled` -- the same, run by a digital controller (sample, hold, noise);
+* :mod:`~wmrjax.controllers.placement` -- the one placement of an initial state near a reference.
 """
 
 from wmrjax.controllers.dynamic import TABLE4, DynamicLinearization, DynamicParams, Table4Row, dynamic_linearization  # noqa: F401
 from wmrjax.controllers.hybrid import Hybrid, HybridParams, HybridState, TimeVarying, hybrid_parking, stabilizer  # noqa: F401
 from wmrjax.controllers.law import DET_FLOOR, Aux, Extension, Level, LinearizingController, LinearizingLaw, Task  # noqa: F401
+from wmrjax.controllers.placement import Space, initial_keys, place  # noqa: F401
 from wmrjax.controllers.plant import PlantLoop, PlantParams, with_plant  # noqa: F401
 from wmrjax.controllers.sampled import SampledLoop, SampledParams, SampledState, measurement_noise, sampled  # noqa: F401
 from wmrjax.controllers.static import (  # noqa: F401

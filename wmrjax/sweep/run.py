@@ -56,8 +56,10 @@ def rollout_fn(plan: S.Plan, group: S.Group):
 
     def one(varying):
         it = iter(varying)
-        p = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(v) if c else next(it) for c, v in zip(constant, values)])
-        key = jax.random.fold_in(jax.random.PRNGKey(group.noise_seed), p["run"].astype(int)) if "run" in p else None
+        p, run = jax.tree_util.tree_unflatten(
+            treedef, [jnp.asarray(v) if c else next(it) for c, v in zip(constant, values)]
+        )
+        key = None if run is None else jax.random.fold_in(jax.random.PRNGKey(group.noise_seed), run.astype(int))
         tr, params = group.run(p, save_every=plan.save_every, error_tol=plan.error_tol, noise_key=key)
         ref, g = params.reference, params.geometry
         zf = law_state(system, tr.final_state)
@@ -92,11 +94,11 @@ def _noisy(group: S.Group) -> bool:
     return group.control_period is not None and any(group.noise_std)
 
 
-def _sources(group: S.Group) -> dict:
-    """Every rollout input at the level of its axis (:meth:`wmrjax.problem.Setting.inputs`), and
-    the run's index in its group where it draws measurement noise."""
-    src = group.inputs()
-    return src | ({"run": np.arange(group.size, dtype=float)} if _noisy(group) else {})
+def _sources(group: S.Group) -> tuple:
+    """``(inputs, run)``: every rollout input at the level of its axis
+    (:meth:`wmrjax.problem.Setting.inputs`), and the run's index in its group where it draws
+    measurement noise (else None)."""
+    return group.inputs(), (np.arange(group.size, dtype=float) if _noisy(group) else None)
 
 
 def split(group: S.Group):
@@ -104,16 +106,12 @@ def split(group: S.Group):
     for every run of the group, and their values. Constant leaves are compiled in (XLA folds
     them: the §6.1 loop runs twice as fast with its fixed geometry, gains and reference folded
     than with them as per-run arrays); the others are batched."""
-    src = _sources(group)
-    leaves, treedef = jax.tree_util.tree_flatten(src)
+    inputs, run = _sources(group)
+    leaves, treedef = jax.tree_util.tree_flatten((inputs, run))
+    same = lambda x: bool(np.all(np.asarray(x) == np.asarray(x)[:1]))
     # the initial conditions (and run indices) are always batched: they carry the batch axis
-    flags = {
-        k: jax.tree_util.tree_map(
-            lambda x, k=k: k not in ("initial", "run") and bool(np.all(np.asarray(x) == np.asarray(x)[:1])), v
-        )
-        for k, v in src.items()
-    }
-    constant = jax.tree_util.tree_leaves(flags)
+    flags = jax.tree_util.tree_map(same, inputs)._replace(initial=False)
+    constant = jax.tree_util.tree_leaves((flags, None if run is None else False))
     return treedef, constant, [np.asarray(x)[0] for x in leaves]
 
 
@@ -124,8 +122,8 @@ def payload(group: S.Group, start: int, n: int, pad_to: int, constant: list) -> 
     if pad_to > n:
         runs = np.concatenate([runs, np.full(pad_to - n, runs[-1])])
     idx = list(np.unravel_index(runs, group.shape))
-    per_key = group.inputs(idx) | ({"run": runs.astype(float)} if _noisy(group) else {})
-    return [x for x, c in zip(jax.tree_util.tree_leaves(per_key), constant) if not c]
+    per_run = (group.inputs(idx), runs.astype(float) if _noisy(group) else None)
+    return [x for x, c in zip(jax.tree_util.tree_leaves(per_run), constant) if not c]
 
 
 # --- execution ---------------------------------------------------------------------------------
@@ -155,6 +153,7 @@ class Progress:
         self.prefix = prefix
 
     def update(self, runs: int, blocks: int) -> None:
+        """Count ``runs`` and ``blocks`` done and print the progress line when due."""
         self.done_runs += runs
         self.done_blocks += blocks
         now = time.perf_counter()
@@ -196,6 +195,7 @@ def check_memory(plan: S.Plan, devices: int, processes: int = 1) -> None:
 
 
 def block_path(out: Path, b: int) -> Path:
+    """The file of block ``b`` under ``out``."""
     return out / "blocks" / f"block_{b:06d}.npz"
 
 
@@ -252,6 +252,7 @@ def _check_is_a_file(path: Path) -> None:
 
 
 def read_state(out: Path):
+    """The sweep's state file under ``out`` (None if absent)."""
     p = out / STATE_FILE
     if not p.exists():
         return None

@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 
 from wmrjax.problem import (  # noqa: F401  (the file form's helpers, as the sweep's modules use them)
-    GEOMETRY_KEYS,
     Law,
     Problem,
     ProblemError,
@@ -67,6 +66,7 @@ class Plan:
 
     @property
     def n_runs(self) -> int:
+        """The number of runs of every group."""
         return sum(g.size for g in self.groups)
 
     def blocks(self):

@@ -538,9 +538,7 @@ def _figures(out, title, setting, family, hist, runs, paper_raw, tuned_raw, prog
     sc, t = programs["scenario"], programs["t"]
     fig, axs = plt.subplots(1, 2, figsize=(11, 4.4))
 
-    ref = R.Reference(
-        sc.inputs["reference"], sc.inputs["heading_offset"], setting.reference.path, setting.reference.name
-    )
+    ref = R.Reference(sc.inputs.reference, sc.inputs.heading_offset, setting.reference.path, setting.reference.name)
     pos_ref = np.asarray(jax.jit(jax.vmap(ref.position))(t))
     axs[0].plot(pos_ref[:, 0], pos_ref[:, 1], "k--", lw=1.2, label="reference")
     for raw, lab, c in ((paper_raw, "initial gains", "C3"), (tuned_raw, "tuned", "C0")):

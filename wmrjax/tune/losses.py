@@ -36,6 +36,7 @@ class LossWeights(NamedTuple):
     certificate: float = 0.0
 
     def check(self) -> "LossWeights":
+        """The weights if they are finite and >= 0, else ValueError."""
         v = np.asarray(self, dtype=float)
         if not np.all(np.isfinite(v)) or np.any(v < 0):
             raise ValueError(f"loss weights must be finite and >= 0, got {self._asdict()}")
@@ -67,12 +68,13 @@ class SampleTerms:
     sampled: bool
 
     def __call__(self, t, z, aux):
+        """What one saved sample keeps: the state, or (squared error, command, margin) of a digital controller."""
         if not self.sampled:
             return z
         return (jnp.sum(z.error[: self.m] ** 2), z.command, jnp.asarray(aux.margin))
 
 
-def metrics(setting, tr, params, inputs: dict, margin_safe: float = MARGIN_SAFE) -> Metrics:
+def metrics(setting, tr, params, inputs, margin_safe: float = MARGIN_SAFE) -> Metrics:
     """The loss terms of one run: time averages over its samples (every saved time but the
     final one; a digital controller's samples when it has one), failed samples counting zero.
 
@@ -93,7 +95,7 @@ def metrics(setting, tr, params, inputs: dict, margin_safe: float = MARGIN_SAFE)
         zs = law_state(setting.system(), saved)
         err = jax.vmap(lambda t, z: jnp.sum(ctrl.error(t, z, params)[0] ** 2))(tr.t[:n], zs)
         cmd, margin = tr.control[:n], tr.margin[:n]
-    excess = jax.nn.relu(jnp.abs(inputs["input_scale"] * cmd) - inputs["limit"])
+    excess = jax.nn.relu(jnp.abs(inputs.input_scale * cmd) - inputs.limit)
     terms = (
         err,
         jnp.sum(cmd**2, axis=-1),

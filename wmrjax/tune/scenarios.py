@@ -20,7 +20,7 @@ import numpy as np
 
 import wmrjax as w
 from wmrjax import references as R
-from wmrjax.problem import Setting, initial_box, initial_keys, place, random_options
+from wmrjax.problem import RunInputs, Setting, initial_box, initial_keys, place, random_options
 from wmrjax.tune.losses import MARGIN_FLOOR, MARGIN_SAFE, Metrics, SampleTerms, metrics
 
 
@@ -34,13 +34,14 @@ class Scenario(NamedTuple):
     :func:`check_shared`).
 
     Attributes:
-      inputs: the run's inputs (:meth:`wmrjax.problem.Setting.inputs` keys but ``gains``):
-        nominal geometry, plant limits and scales (``geometry_scale``: the plant's L and e over
-        the law's, (2,)), reference parameters and heading offset, branch, initial error.
+      inputs: the run's inputs (:class:`wmrjax.problem.RunInputs`, ``gains`` None): nominal
+        geometry, plant limits and scales (``geometry_scale``: the plant's L and e over the
+        law's, (2,)), reference parameters and heading offset, branch, initial error, and the
+        law's initial state ``z0`` placed from it.
       key: the PRNG key of the run's measurement noise.
     """
 
-    inputs: dict
+    inputs: RunInputs
     key: jnp.ndarray
 
 
@@ -60,28 +61,31 @@ def draw(setting: Setting, mismatch: float, key) -> Scenario:
     """One scenario from ``key`` (pure: vmap over keys)."""
     kr, ki, kv, km, kn = jax.random.split(key, 5)
     nu = setting.ctrl.robot.n_input
-    base = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)[0]), setting.inputs())
-    base.pop("gains")
+    base = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)[0]), setting.inputs())._replace(gains=None)
     family = R.FAMILIES[setting.data["reference"]["family"]]
     if family.kind == "random":  # a fresh reference per scenario
-        base["reference"] = family.make(kr, **random_options(setting.data["reference"])).params
+        base = base._replace(reference=family.make(kr, **random_options(setting.data["reference"])).params)
     lo, hi = (jnp.asarray(v) for v in tuning_box(setting))
     k = lo.shape[0]
     u = jnp.concatenate(
         [jax.random.uniform(ki, (2,), minval=-1, maxval=1), jax.random.uniform(kv, (k - 2,), minval=-1, maxval=1)]
     )
-    base["initial"] = 0.5 * (lo + hi) + 0.5 * (hi - lo) * u
+    initial = 0.5 * (lo + hi) + 0.5 * (hi - lo) * u
     # placed once here (the nominal law's state), not in every rollout of the scenario
     params = setting.ctrl.params_unchecked(
-        R.Reference(base["reference"], base["heading_offset"], setting.reference.path, setting.reference.name),
+        R.Reference(base.reference, base.heading_offset, setting.reference.path, setting.reference.name),
         1.0,
-        w.Geometry(base["L"], base["e"], base["delta"]),
+        w.Geometry(base.L, base.e, base.delta),
     )
-    base["z0"] = place(setting.ctrl, params, base["initial"], setting.space, setting.task, base["branch"])
+    z0 = place(setting.ctrl, params, initial, setting.space, setting.task, base.branch)
     rho = jax.random.uniform(km, (nu + 2,), minval=-mismatch, maxval=mismatch)
     input_scale, geometry_scale = _plant_scales(setting, jax.random.fold_in(km, 1))
-    base["input_scale"] = input_scale * (1.0 + rho[:nu])
-    base["geometry_scale"] = geometry_scale * (1.0 + rho[nu:])
+    base = base._replace(
+        initial=initial,
+        z0=z0,
+        input_scale=input_scale * (1.0 + rho[:nu]),
+        geometry_scale=geometry_scale * (1.0 + rho[nu:]),
+    )
     return Scenario(base, kn)
 
 
@@ -116,8 +120,11 @@ def shared_axes(setting: Setting, sc: Scenario) -> tuple:
     first scenario's), and the ``in_axes`` of ``jax.vmap`` for it: the shared inputs unbatched, so
     that what depends on them alone is computed once, not once per scenario."""
     drawn = _drawn(setting)
-    inputs = {k: (v if k in drawn else jax.tree_util.tree_map(lambda x: x[0], v)) for k, v in sc.inputs.items()}
-    axes = {k: (0 if k in drawn else None) for k in sc.inputs}
+    fields = sc.inputs._asdict()
+    inputs = RunInputs(
+        **{k: (v if k in drawn else jax.tree_util.tree_map(lambda x: x[0], v)) for k, v in fields.items()}
+    )
+    axes = RunInputs(**{k: (0 if k in drawn else None) for k in fields})
     return Scenario(inputs, sc.key), Scenario(axes, 0)
 
 
@@ -126,7 +133,7 @@ def check_shared(setting: Setting, sc: Scenario) -> None:
     :func:`shared_axes` takes from the first scenario): a set edited or built by hand. Traced
     batches (inside a transformation) are not checked."""
     drawn = _drawn(setting)
-    for k, v in sc.inputs.items():
+    for k, v in sc.inputs._asdict().items():
         if k in drawn:
             continue
         for leaf in jax.tree_util.tree_leaves(v):
@@ -150,7 +157,7 @@ def rollout(setting: Setting, gains, sc: Scenario, trajectory: bool = False):
     every = setting.steps_per_sample or 1
     save = None if trajectory else SampleTerms(setting.ctrl.m, setting.control_period is not None)
     tr, params = setting.run(
-        {**sc.inputs, "gains": gains},
+        sc.inputs._replace(gains=gains),
         save_every=every,
         error_tol=None,
         margin_floor=MARGIN_FLOOR,
