@@ -122,6 +122,7 @@ def write_checkpoint(path, *, fingerprint: str, config: dict, step: int, trees: 
     """Write a JSON checkpoint atomically.
 
     Args:
+      path: the checkpoint file (JSON).
       fingerprint: identifies the configuration; :func:`read_checkpoint` refuses another.
       config: the configuration itself (for the refusal message).
       step: steps completed.
@@ -138,6 +139,9 @@ def read_checkpoint(path, *, fingerprint: str, config: dict, templates: dict) ->
     """Read a checkpoint written by :func:`write_checkpoint`, restoring each tree's structure.
 
     Args:
+      path: the checkpoint file (JSON).
+      fingerprint: the configuration's; a checkpoint with another is refused.
+      config: the configuration itself (the refusal names the keys that differ).
       templates: name -> a pytree with the expected structure, shapes and dtypes.
 
     Raises:

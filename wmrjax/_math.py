@@ -242,7 +242,8 @@ def golden_section(f, lo, hi, iters: int):
 
     Args:
       f: scalar function of a scalar (traceable).
-      lo, hi: bracket.
+      lo: the bracket's lower end.
+      hi: its upper end.
       iters: iterations (static); the bracket shrinks by 0.618 per iteration.
 
     Returns:

@@ -62,7 +62,8 @@ def damping_coefficients(omega, zeta, lam=None):
     r"""Coefficients of :math:`\prod_k (s^2 + 2\zeta_k\omega_k s + \omega_k^2)\,(s + \lambda)`.
 
     Args:
-      omega, zeta: (..., q) natural frequencies [rad/s] and dampings, all > 0.
+      omega: (..., q) natural frequencies [rad/s], > 0.
+      zeta: (..., q) dampings, > 0.
       lam: optional (...,) real pole magnitude for odd r.
 
     Returns:
@@ -80,10 +81,10 @@ def damping_coefficients(omega, zeta, lam=None):
 
 
 class Gains(NamedTuple):
-    """Hurwitz coefficients of every output's error polynomial (a pytree: vmap/grad it).
+    r"""Hurwitz coefficients of every output's error polynomial (a pytree: vmap/grad it).
 
     Attributes:
-      coeffs: (m, r); ``coeffs[i, j]`` multiplies :math:`d^j\\tilde Y_i/dt^j` (eq 49 errata).
+      coeffs: (m, r); ``coeffs[i, j]`` multiplies :math:`d^j\tilde Y_i/dt^j` (eq 49 errata).
     """
 
     coeffs: jnp.ndarray
@@ -99,7 +100,8 @@ class Gains(NamedTuple):
 
         Args:
           poles: (m, r), (r,) or scalar pole magnitudes, > 0 (broadcast to (m, r)).
-          m, r: target shape when ``poles`` is a scalar or (r,).
+          m: outputs (with ``r``: the target shape (m, r) a scalar or (r,) ``poles`` broadcasts to).
+          r: the relative degree (with ``m``).
 
         Raises:
           ValueError: a non-positive or non-finite pole, or a shape that does not broadcast.
@@ -123,7 +125,9 @@ class Gains(NamedTuple):
         """Second-order factors (omega, zeta) per output, times (s + lam) for odd r.
 
         Args:
-          omega, zeta: (q,) or (m, q), > 0; the paper's double pole at -1 is omega = zeta = 1.
+          omega: (q,) or (m, q) natural frequencies [rad/s], > 0.
+          zeta: the dampings, the same shape, > 0 (the paper's double pole at -1 is
+            omega = zeta = 1).
           lam: None, scalar or (m,) real pole magnitude (odd r).
           m: number of outputs when omega is (q,).
         """

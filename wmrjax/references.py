@@ -740,8 +740,12 @@ def from_waypoints(
       points: (N, 2) waypoints [m], N >= 6, consecutive points distinct.
       speed: chord speed [m/s], > 0.
       t0: time of the first waypoint [s].
-      min_speed, heading_offset, name, extrapolate, degree: as in :func:`from_samples` (the
-        path is defined from the first waypoint's time to the last's).
+      min_speed: as in :func:`from_samples`.
+      heading_offset: as in :func:`from_samples`.
+      name: as in :func:`from_samples`.
+      extrapolate: as in :func:`from_samples` (the path is defined from the first waypoint's
+        time to the last's).
+      degree: as in :func:`from_samples`.
     """
     check_real("from_waypoints: points", points)
     pv = np.asarray(points, float)

@@ -84,6 +84,7 @@ class RobotType:
 
     @property
     def name(self) -> str:
+        """The type's name, ``"(delta_m,delta_s)"``."""
         return f"({self.delta_m},{self.delta_s})"
 
     @property
@@ -98,6 +99,7 @@ class RobotType:
 
     @property
     def omnidirectional(self) -> bool:
+        """True for type (3,0)."""
         return self.delta_m == 3
 
     def __str__(self) -> str:
@@ -143,6 +145,7 @@ def robot_type(kind) -> RobotType:
 
 
 def check_geometry(geometry: Geometry) -> None:
+    """ValueError unless ``geometry`` is a :class:`Geometry` of finite real scalars with L >= 0 [m]."""
     if not isinstance(geometry, Geometry):
         raise ValueError(f"geometry must be a wmrjax.Geometry, got {type(geometry).__name__}")
     for name, val in geometry._asdict().items():

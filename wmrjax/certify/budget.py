@@ -179,7 +179,8 @@ def plan(
     Args:
       counts: the counts as asked (:class:`Counts`).
       cost: :func:`step_cost`'s ``(seconds per run-step, compile seconds)``.
-      n_steps: RK4 steps of a run; n_state: the closed loop's state dimension.
+      n_steps: RK4 steps of a run.
+      n_state: the closed loop's state dimension.
       budget_s: seconds the whole certification may take (0: no budget, the counts as asked).
       spent_s: seconds already spent (the measurement itself).
       resident_bytes: the process's peak resident memory so far (after :func:`step_cost`); the

@@ -127,15 +127,15 @@ class Mismatch(NamedTuple):
 
 
 class MismatchRadius(NamedTuple):
-    """Result of :func:`mismatch_radius` (radii in the slice's output-error units).
+    r"""Result of :func:`mismatch_radius` (radii in the slice's output-error units).
 
     Attributes:
       lower_bound: proved: from every initial error of the slice with norm below it, every run
         of the loop with every plant of the range keeps distance >= eps from the singular set
         over [0, T] and never reaches a limit.
-      rate_bound: :math:`\\bar\\delta`, the bound of :math:`\\|\\Delta\\|` over the tube.
-      deviation_bound: :math:`G_T\\bar\\delta`: ``||zeta_err(t) - e^{At} zeta_err(0)||`` never exceeds it.
-      singular_margin: :math:`G_C\\bar\\delta`, added to eps for the exact map.
+      rate_bound: :math:`\bar\delta`, the bound of :math:`\|\Delta\|` over the tube.
+      deviation_bound: :math:`G_T\bar\delta`: ``||zeta_err(t) - e^{At} zeta_err(0)||`` never exceeds it.
+      singular_margin: :math:`G_C\bar\delta`, added to eps for the exact map.
       tube: the tube's radius R (a ball around the nominal error).
       gains: ``(G_T, G_C)``.
       tube_radius: the largest radius whose tube passed (i)-(iii) of the module docstring.
@@ -241,7 +241,14 @@ def hold_rate(ctrl, params, jet, error, input_scale, geometry_scale, tangents, b
     is convex and holds every :math:`\lambda`, hence the integral).
 
     Args:
-      tangents: ``(d_jet, d_error)``, (r + 1, m) and (r m,); between: the same shapes.
+      ctrl: a dynamic linearizing law at velocity level.
+      params: its parameters (the law's geometry and gains).
+      jet: (r + 1, m) the reference's output jet at t (or an enclosure of it).
+      error: (r m,) the output error at t (or an enclosure).
+      input_scale: (n_input,) the plant's input scales s.
+      geometry_scale: () the plant's geometry scale sigma.
+      tangents: ``(d_jet, d_error)``, (r + 1, m) and (r m,).
+      between: the chord's points, the same shapes as ``tangents``.
 
     Returns:
       (r m,) :math:`\Delta_{hold}`.
@@ -443,7 +450,7 @@ def _turned_noise(noise, turn: bool):
 
 
 class _Tube:
-    """The time boxes' enclosures at a radius and a tube width: :math:`\\bar\\delta` and the limits' check."""
+    r"""The time boxes' enclosures at a radius and a tube width: :math:`\bar\delta` and the limits' check."""
 
     def __init__(self, ctrl, turn, params, P, mismatch: Mismatch, t_final: float, n_boxes: int):
         period = float(mismatch.period)
@@ -473,19 +480,19 @@ class _Tube:
         self.boxes = n_boxes
 
     def rate(self, rho: float, tube: float, assumed: float) -> tuple[float, bool]:
-        """``(delta_bar, fits)`` over every box at radius ``rho``, tube width ``tube`` and, for a
-        digital controller, :math:`\\|\\Delta\\| \\le` ``assumed`` on each period."""
+        r"""``(delta_bar, fits)`` over every box at radius ``rho``, tube width ``tube`` and, for a
+        digital controller, :math:`\|\Delta\| \le` ``assumed`` on each period."""
         program = self.program(*(jnp.asarray(v) for v in (rho, tube, assumed)))
         rates, fits = fixed_blocks(program, (*self.jets, self.t_c, self.h), BOX_BLOCK)
         return float(np.max(rates)), bool(np.all(fits))
 
     def width(self, rho: float, g_t: float) -> tuple[float, float] | None:
-        """A tube width R and :math:`\\bar\\delta` with (i)-(iii) at ``rho``, or None.
+        r"""A tube width R and :math:`\bar\delta` with (i)-(iii) at ``rho``, or None.
 
-        With an assumed :math:`a = 1.25\\bar\\delta_{prev}` and :math:`R = G_T a`, an enclosure
-        :math:`\\bar\\delta < a` closes the first-exit argument: while a run is in the tube with
-        :math:`\\|\\Delta\\| \\le a` (which a digital controller's bound of the error's change over
-        a period uses), :math:`\\|\\Delta\\| \\le \\bar\\delta < a` and :math:`\\|d\\| \\le G_T\\bar\\delta < R`."""
+        With an assumed :math:`a = 1.25\bar\delta_{prev}` and :math:`R = G_T a`, an enclosure
+        :math:`\bar\delta < a` closes the first-exit argument: while a run is in the tube with
+        :math:`\|\Delta\| \le a` (which a digital controller's bound of the error's change over
+        a period uses), :math:`\|\Delta\| \le \bar\delta < a` and :math:`\|d\| \le G_T\bar\delta < R`."""
         delta, fits = self.rate(rho, 0.0, 0.0)
         for _ in range(TUBE_TRIES):
             if not (fits and np.isfinite(delta)):
@@ -552,7 +559,7 @@ def _checked_hold(ctrl, mismatch: Mismatch):
 
 
 def _check_alike(ctrl, params, t_final: float, seed: int = 0) -> bool:
-    """Whether :math:`\\|\\Delta\\|` and the applied input are unchanged when the reference and the
+    r"""Whether :math:`\|\Delta\|` and the applied input are unchanged when the reference and the
     error are seen from turned axes (then each box is enclosed along its heading), checked at
     random points; and ValueError unless both are unchanged when an angle output of the reference
     turns by 2 pi (the boxes' reference jets are enclosed modulo 2 pi)."""
@@ -632,13 +639,16 @@ def mismatch_radius(
 
     Args:
       ctrl: a dynamic linearizing law at velocity level with constant gains and a linear singular
-        set ((2,0), (2,1), (1,1)); params: its parameters.
+        set ((2,0), (2,1), (1,1)).
+      params: its parameters.
       mismatch: the plant's range (:class:`Mismatch`); with a ``period``, the digital
         controller's loop (one time box per period: ``n_boxes`` is not used; its program takes
         minutes to compile).
-      t_final: horizon T [s]; eps: the margin to the singular set [zeta units].
+      t_final: horizon T [s].
+      eps: the margin to the singular set [zeta units].
       basis: the slice (``"full"``, ``"position"`` or an (n, k) basis).
-      n_t: the exact map's time grid; n_boxes: the tube's time boxes.
+      n_t: the exact map's time grid.
+      n_boxes: the tube's time boxes.
       nominal: the slice's :class:`wmrjax.certify.ExactMapRadius` at ``eps`` on ``n_t`` times
         when the caller has it (the certification does), else computed here.
 
@@ -677,21 +687,9 @@ def mismatch_radius(
         return MismatchRadius(0.0, np.inf, np.inf, np.inf, np.nan, (g_t, g_c), 0.0, 0.0, None, "tube", tube.boxes)
     R, delta = w
     proved = exact_at(eps + g_c * delta, prove=True)
-    if proved is None:  # (the bisection's attained radius said otherwise: rounding at the edge)
-        return MismatchRadius(
-            0.0, delta, g_t * delta, g_c * delta, R, (g_t, g_c), hi, 0.0, None, "exact_map", tube.boxes
-        )
-    lower = min(hi, float(proved.lower_bound))
-    return MismatchRadius(
-        lower,
-        delta,
-        g_t * delta,
-        g_c * delta,
-        R,
-        (g_t, g_c),
-        hi,
-        float(proved.lower_bound),
-        np.asarray(proved.worst_error),
-        "tube" if hi < float(proved.lower_bound) else "exact_map",
-        tube.boxes,
-    )
+    # (proved None: the bisection's attained radius said otherwise, rounding at the edge)
+    pl = 0.0 if proved is None else float(proved.lower_bound)
+    worst = None if proved is None else np.asarray(proved.worst_error)
+    by = "tube" if hi < pl else "exact_map"
+    bounds = (delta, g_t * delta, g_c * delta, R, (g_t, g_c))
+    return MismatchRadius(0.0 if proved is None else min(hi, pl), *bounds, hi, pl, worst, by, tube.boxes)

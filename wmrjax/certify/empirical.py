@@ -81,7 +81,7 @@ def n_steps_for(t_final: float, dt: float, dt_name: str = "dt") -> int:
 
 
 def sample_sphere(key, n, dim):
-    """n points uniformly on the unit sphere in R^dim."""
+    """Points (n of them) uniformly on the unit sphere in R^dim."""
     x = jax.random.normal(key, (n, dim))
     return x / jnp.linalg.norm(x, axis=1, keepdims=True)
 
@@ -110,10 +110,13 @@ def verify(
     r"""Simulate from :math:`\zeta(0) = \zeta_{ref}(0) + \tilde\zeta_0` and check (53) and regularity.
 
     Args:
+      ctrl: a dynamic linearizing law.
+      params: its parameters.
       t_final: horizon [s].
       initial_errors: (N, r*m) initial errors (Table 4 ordering, see ``ctrl.error``).
       k2: ``ts -> K2(ts)``, the bound to check.
-      dt, save_every: integration step [s] and saving stride.
+      dt: integration step [s].
+      save_every: saving stride [steps].
       tol: absolute slack for (53), covering integration error.
 
     Returns:
@@ -147,7 +150,14 @@ def verify_all(
     """:func:`verify` for several K2 bounds on the same runs (simulated once).
 
     Args:
+      ctrl: a dynamic linearizing law.
+      params: its parameters.
+      t_final: horizon [s].
+      initial_errors: (N, r*m) initial errors (Table 4 ordering, see ``ctrl.error``).
       k2s: name -> ``ts -> K2(ts)``.
+      dt: integration step [s].
+      save_every: saving stride [steps].
+      tol: absolute slack for (53), covering integration error.
 
     Returns:
       name -> :class:`Verification`.
@@ -238,9 +248,15 @@ def min_distance(
     through :func:`window_distances`: fixed-size blocks, one compiled program whatever N is.
 
     Args:
-      t_final: horizon [s]; initial_errors: (N, r m); dt: RK4 step [s]; save_every: stride.
-      block, shared: :func:`window_distances`'s (a few fine runs: :data:`CONFIRM_BLOCK` and
-        ``shared=False``, the falsifier's confirmations' program).
+      ctrl: a dynamic linearizing law.
+      params: its parameters.
+      t_final: horizon [s].
+      initial_errors: (N, r m) initial errors.
+      dt: RK4 step [s].
+      save_every: stride of the distance's samples [steps].
+      block: runs per compiled call (:func:`window_distances`'s; a few fine runs:
+        :data:`CONFIRM_BLOCK`, the falsifier's confirmations' program).
+      shared: :func:`window_distances`'s (False for those confirmations).
 
     Returns:
       :class:`Distances`.
@@ -428,10 +444,17 @@ def empirical_radius(
     report ``inf``.
 
     Args:
-      t_final: horizon [s]; eps: the margin.
+      ctrl: a dynamic linearizing law.
+      params: its parameters.
+      t_final: horizon [s].
+      eps: the margin.
       directions: (D, r m) unit vectors.
       r_max: largest radius searched.
       dt: RK4 step [s].
+      n_grid: radii sampled per ray.
+      n_dips: local minima of m per ray refined.
+      n_golden: golden-section iterations per dip.
+      n_bisect: bisection steps for the first crossing of eps.
 
     Returns:
       :class:`EmpiricalRadius`.

@@ -47,6 +47,7 @@ def slice_basis(ctrl: DynamicLinearization, kind="full"):
     """Orthonormal basis (n, k) of a slice of initial errors.
 
     Args:
+      ctrl: a dynamic linearizing law (its r and m).
       kind: ``"full"`` (every component, k = r m), ``"position"`` (the paper's setting: the
         output point's position error only, every other component equal to the reference's,
         k = 2), or an explicit (n, k) array with orthonormal columns.
@@ -185,10 +186,13 @@ def exact_map_radius(
     For (1,2)'s curved singular set see :func:`curved_exact_map_radius` (called from here).
 
     Args:
-      ctrl, params: the closed loop.
-      t_final: horizon T [s]; eps: Lemma 2's margin.
+      ctrl: the closed loop (a dynamic linearizing law).
+      params: its parameters.
+      t_final: horizon T [s].
+      eps: Lemma 2's margin.
       basis: slice, see :func:`slice_basis`.
-      n_t: grid size; refine: golden-section iterations around the grid minimum.
+      n_t: grid size.
+      refine: golden-section iterations around the grid minimum.
       lower_bound: compute the proved lower bound (constant gains, a linear singular set); False
         returns the attained radius only (``lower_bound`` None), at a fraction of the cost.
 
@@ -355,10 +359,13 @@ def differentiable_exact_map_radius(
     ``jit``, ``grad`` and ``vmap`` (the eager checks of :func:`exact_map_radius` are left to it).
 
     Args:
-      ctrl, params: a dynamic closed loop of type (2,0), (2,1) or (1,1) (a linear singular set);
-        the gains in ``params`` are what it is differentiated in.
-      t_final: horizon T [s]; eps: the margin.
-      basis: slice (:func:`slice_basis`); n_t: time grid; refine: golden-section iterations.
+      ctrl: a dynamic closed loop of type (2,0), (2,1) or (1,1) (a linear singular set).
+      params: its parameters; the gains in them are what it is differentiated in.
+      t_final: horizon T [s].
+      eps: the margin.
+      basis: slice (:func:`slice_basis`).
+      n_t: time grid.
+      refine: golden-section iterations.
 
     Returns:
       A scalar [m, in output-error units]: 0 when the reference itself is within eps, inf when
@@ -473,11 +480,17 @@ def curved_exact_map_radius(
     assumption the bound rests on; it enters only through the :math:`h_t^2` term).
 
     Args:
-      ctrl, params: a (1,2) closed loop (any level).
-      t_final: horizon [s]; eps: the margin; basis: slice (:func:`slice_basis`).
-      n_t: initial time boxes; phi_width: initial heading box width [rad].
-      rtol: relative gap at which the search stops; max_rounds, max_boxes: work limits
-        (reaching them leaves a wider, still valid, gap).
+      ctrl: a (1,2) closed loop (any level).
+      params: its parameters.
+      t_final: horizon [s].
+      eps: the margin.
+      basis: slice (:func:`slice_basis`).
+      n_t: initial time boxes.
+      phi_width: initial heading box width [rad].
+      rtol: relative gap at which the search stops.
+      max_rounds: rounds of splitting at most (a work limit: reaching it leaves a wider, still
+        valid, gap).
+      max_boxes: boxes at most (the same).
 
     Returns:
       :class:`ExactMapRadius` with ``lower_bound``, ``gap`` and ``boxes``.

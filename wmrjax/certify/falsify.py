@@ -83,11 +83,15 @@ def falsify(
     100-fold over the run, so iterates settle inside eps-thin sets.
 
     Args:
-      t_final: horizon [s]; dt: RK4 step of the search [s].
+      ctrl: a dynamic linearizing law.
+      params: its parameters.
+      t_final: horizon [s].
+      dt: RK4 step of the search [s].
       radius: sphere radius rho.
       starts: (S, k) initial directions in slice coordinates (need not be normalised).
       basis: slice, see :func:`slice_basis`.
-      steps, learning_rate: Adam iterations and initial step size (on the unit sphere).
+      steps: Adam iterations.
+      learning_rate: Adam's initial step size (on the unit sphere).
       n_windows: number of time windows the starts are spread over.
       windows: (S, 2) explicit time window [s] of each start instead (overrides ``n_windows``).
     """
@@ -223,13 +227,21 @@ def falsified_radius(
     bound on the true safe radius: every certified radius must lie below it.
 
     Args:
-      t_final: horizon [s]; eps: the margin; key: PRNG key of the random starts and samples.
+      ctrl: a dynamic linearizing law.
+      params: its parameters.
+      t_final: horizon [s].
+      eps: the margin.
+      key: PRNG key of the random starts and samples.
       dt: RK4 step of the search [s] (failures are confirmed at dt / 10).
       basis: slice, see :func:`slice_basis`.
-      r_lo, r_hi: lower end of the search (a radius known safe) and the first radius tried.
-      n_starts: gradient starts per attempt; steps, learning_rate: their Adam iterations.
+      r_lo: lower end of the search (a radius known safe).
+      r_hi: the first radius tried.
+      n_starts: gradient starts per attempt.
+      steps: their Adam iterations.
+      learning_rate: Adam's initial step size.
       n_samples: random directions simulated per attempt (global stage).
-      n_bisect: largest number of bisection steps; rtol: relative width that stops them.
+      n_bisect: largest number of bisection steps.
+      rtol: relative width that stops them.
       n_windows: time windows the samples are ranked in and the gradient starts spread over.
 
     Returns:

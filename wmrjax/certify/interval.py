@@ -79,6 +79,7 @@ class Interval(NamedTuple):
 
     @classmethod
     def point(cls, x) -> "Interval":
+        """The degenerate interval [x, x]."""
         x = jnp.asarray(x)
         return cls(x, x)
 
@@ -90,13 +91,16 @@ class Interval(NamedTuple):
 
     @property
     def mid(self):
+        """The midpoint (lo + hi) / 2, rounded to nearest."""
         return 0.5 * (self.lo + self.hi)
 
     @property
     def rad(self):
+        """The radius (hi - lo) / 2, rounded up: [mid - rad, mid + rad] holds the interval."""
         return _up(0.5 * (self.hi - self.lo))
 
     def contains(self, x):
+        """True where ``x`` lies in [lo, hi] (elementwise)."""
         return (self.lo <= x) & (x <= self.hi)
 
 
@@ -203,7 +207,7 @@ def _sqrt(a, **_):
 
 
 def _cos(a):
-    """cos over [lo, hi]: the end points' values, and +-1 where the box holds a maximum/minimum."""
+    """The cosine over [lo, hi]: the end points' values, and +-1 where the box holds a maximum/minimum."""
     two_pi = 2.0 * math.pi
     # k pi inside the box, with the box widened by a relative ulp budget so rounding of lo/2pi
     # cannot hide an extremum at an end point

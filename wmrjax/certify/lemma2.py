@@ -74,7 +74,8 @@ def m1_closed_form(ctrl: DynamicLinearization, params: DynamicParams, ts):
     one-dimensional minimisation over theta (its singular set is curved).
 
     Args:
-      ctrl, params: the closed loop.
+      ctrl: the closed loop (a dynamic linearizing law).
+      params: its parameters.
       ts: (T,) times [s].
 
     Returns:
@@ -162,7 +163,7 @@ def k2_paper(ts):
 
 
 class LyapunovBound(NamedTuple):
-    """:math:`\\|e^{At}\\| \\le K_1 e^{-r_1 t}` from :math:`A^TP + PA = -I`."""
+    r""":math:`\|e^{At}\| \le K_1 e^{-r_1 t}` from :math:`A^TP + PA = -I`."""
 
     K1: jnp.ndarray
     r1: jnp.ndarray
@@ -231,7 +232,8 @@ def k2_transition(gains, ts):
     equals :func:`k2_exact` to that accuracy. Differentiable in the gains.
 
     Args:
-      gains: :class:`wmrjax.Gains` or :class:`wmrjax.GainSchedule`; ts: (T,) concrete times >= 0 [s].
+      gains: :class:`wmrjax.Gains` or :class:`wmrjax.GainSchedule`.
+      ts: (T,) concrete times >= 0 [s].
     """
     Phi = linearize.transition_matrices(gains, np.asarray(ts), max_step=TRANSITION_STEP)
     return jax.vmap(_math.spectral_norm)(Phi)
@@ -297,7 +299,7 @@ class Lemma2Report(NamedTuple):
     m1_method: str
 
     def certificates(self) -> dict:
-        """name -> :class:`Certificate`, the paper's first when it applies."""
+        """Every certificate by name (name -> :class:`Certificate`), the paper's first when it applies."""
         out = {"paper": self.paper, "lyapunov": self.lyapunov, "exact_norm": self.exact_norm}
         return {k: v for k, v in out.items() if v is not None}
 
@@ -319,8 +321,10 @@ def lemma2(
     """All Lemma 2 certificates of this module for one closed loop over [0, t_final].
 
     Args:
-      ctrl, params: the closed loop (a dynamic linearizing law).
-      t_final: horizon [s]; eps: Lemma 2's margin.
+      ctrl: the closed loop (a dynamic linearizing law).
+      params: its parameters.
+      t_final: horizon [s].
+      eps: Lemma 2's margin.
       n_t: size of the uniform time grid of F (>= 3). min F is taken over the grid, its
         midpoints and 256 points around the grid minimum (so the radius is not the
         over-estimate a grid minimum alone gives); a grid on which this refinement lowers min F
@@ -400,7 +404,7 @@ def _grid_program(ctrl, params, ts, m1: str, paper_k2: bool):
 
 
 def grid_k2s(ctrl, params) -> dict:
-    """name -> ``ts -> K2(ts)`` ((T,) concrete times [s] -> (T,) NumPy array) of the constant-gain
+    """The K2 bounds by name: name -> ``ts -> K2(ts)`` ((T,) concrete times [s] -> (T,) NumPy array) of the constant-gain
     certificates :func:`lemma2` computes (``"paper"`` where (64) applies, ``"lyapunov"``,
     ``"exact_norm"``), evaluated by the program that computed them: checking the certificates on
     other runs compiles nothing more."""

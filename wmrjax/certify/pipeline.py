@@ -195,8 +195,10 @@ def analyse(
     """Every certificate of one closed loop, checked by simulation and falsification.
 
     Args:
-      ctrl, params: the closed loop (a dynamic linearizing law).
-      t_final: horizon [s]; eps: Lemma 2's margin.
+      ctrl: the closed loop (a dynamic linearizing law).
+      params: its parameters.
+      t_final: horizon [s].
+      eps: Lemma 2's margin.
       dt: RK4 step of the empirical checks [s].
       n_empirical: sampled initial errors, every K2 checked on the same runs (uniform
         direction, uniform radius up to twice the largest certified radius); 0 skips the check.

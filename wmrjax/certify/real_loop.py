@@ -193,10 +193,16 @@ def real_loop_falsified_radius(
     Args:
       setting: the problem's :class:`wmrjax.problem.Setting` (one value per axis but the plant's).
       params: the law's parameters (``setting.params(gains=...)``).
-      eps: the margin [zeta units]; r_max: the largest radius searched.
+      eps: the margin [zeta units].
+      r_max: the largest radius searched.
       basis: the slice (:func:`wmrjax.certify.slice_basis`).
       directions: (n, r m) initial errors whose directions are searched first (projected on the slice).
-      n_directions, n_grid, n_noise, n_bisect, n_refine: the search's sizes; seed: its PRNG seed.
+      n_directions: random directions of the slice searched after ``directions``.
+      n_grid: radii of the first grid, up to ``r_max``.
+      n_noise: Gaussian noise realisations per plant value (with noise).
+      n_bisect: bisection steps of each refined pair.
+      n_refine: (direction, variant) pairs failing at the smallest radius that are bisected.
+      seed: the search's PRNG seed.
 
     Returns:
       :class:`RealLoopFalsified`.
@@ -205,14 +211,7 @@ def real_loop_falsified_radius(
     check_dynamic(ctrl, params)
     check_positive("eps", eps)
     check_positive("r_max", r_max)
-    for name, v, lo in (
-        ("n_directions", n_directions, 0),
-        ("n_grid", n_grid, 1),
-        ("n_noise", n_noise, 1),
-        ("n_bisect", n_bisect, 0),
-        ("n_refine", n_refine, 1),  # the failures refined: at least the first
-    ):
-        check_int(name, v, lo)
+    _check_sizes(n_directions=n_directions, n_grid=n_grid, n_noise=n_noise, n_bisect=n_bisect, n_refine=n_refine)
     P = np.asarray(slice_basis(ctrl, basis))
     dirs, own = _directions(P, directions, n_directions, seed)
     variants, noise = _variants(setting, n_noise)
@@ -253,6 +252,16 @@ def planned_runs(
     ``n_known`` given failures' rays and the setting's plant variants: for a size estimate."""
     n_var = len(_variants(setting, n_noise)[0])
     return (n_known + n_directions) * n_var * n_grid + n_known * n_var * len(FINE_AROUND) + n_refine * n_bisect + 1
+
+
+# the search's sizes and their least values (n_refine: the failures refined, at least the first)
+SIZE_FLOORS = {"n_directions": 0, "n_grid": 1, "n_noise": 1, "n_bisect": 0, "n_refine": 1}
+
+
+def _check_sizes(**sizes) -> None:
+    """ValueError naming the first of the search's sizes that is not an integer >= its floor."""
+    for name, v in sizes.items():
+        check_int(name, v, SIZE_FLOORS[name])
 
 
 def _first_failures(bad, d_i, v_i, r_i) -> list:
@@ -308,7 +317,8 @@ def real_loop_distances(setting, params, initial_errors, *, plant: int = 0, nois
     """min_t distance to the singular set (0: the run failed) of runs of the problem's own loop.
 
     Args:
-      setting: the problem's :class:`wmrjax.problem.Setting`; params: the law's parameters.
+      setting: the problem's :class:`wmrjax.problem.Setting`.
+      params: the law's parameters.
       initial_errors: (N, r m) output errors (full coordinates) at t = 0.
       plant: the row of the setting's plant axis (its listed values' product).
       noise_realisation: which Gaussian realisation of the noise (ignored without noise).
@@ -415,7 +425,7 @@ def _runs(setting, dist_fn, base, params, branch, key, errs, lim, sc, nk):
 
     def one(e0, limit, scales, k):
         z0 = place(ctrl, params, e0, Space.OUTPUT, Task.POSTURE, branch)
-        p = dict(base, z0=z0, limit=limit, input_scale=scales[:-1], geometry_scale=scales[-1])
+        p = base._replace(z0=z0, limit=limit, input_scale=scales[:-1], geometry_scale=scales[-1])
         tr, _ = setting.run(
             p,
             save_every=setting.steps_per_sample or 1,
@@ -487,9 +497,12 @@ def problem_certificate(
     nominal loop's.
 
     Args:
-      setting: the problem's :class:`wmrjax.problem.Setting`; params: the law's parameters.
+      setting: the problem's :class:`wmrjax.problem.Setting`.
+      params: the law's parameters.
       exact: slice -> :class:`wmrjax.certify.ExactMapRadius` of the nominal loop.
-      eps: the margin; seed: the falsifier's seed; log: progress messages (or None).
+      eps: the margin.
+      seed: the falsifier's seed.
+      log: progress messages (or None).
       falsified: slice -> the nominal falsifier's :class:`wmrjax.certify.FalsifiedRadius` (or
         None): the problem loop's falsified radius where it is the nominal loop; with a plant,
         its failure's ray is searched first with the exact map's worst error's.

@@ -107,7 +107,8 @@ def preconditioned_solve(K, b):
     determinant's enclosure loses the correlation of K's entries) by a tight first-order one.
 
     Args:
-      K: (m, m) the decoupling matrix, m <= 3; b: (m,) the right-hand side.
+      K: (m, m) the decoupling matrix, m <= 3.
+      b: (m,) the right-hand side.
     """
     num, det = _math.adjugate_solve(K, b)
     U = num / _math.safe_divisor(det, DET_FLOOR)
@@ -316,13 +317,18 @@ def saturation_free_radius(
     """Proved lower and attained upper bounds of the saturation-free radius (module docstring).
 
     Args:
-      ctrl: a dynamic linearizing controller with constant gains; params: its parameters.
+      ctrl: a dynamic linearizing controller with constant gains.
+      params: its parameters.
       input_limit: (n_input,) limits on the plant's inputs (velocity level: [m/s, rad/s] as the
         plant's inputs; torque level: on their rates), > 0 (inf: none).
-      t_final: horizon T [s]; basis: the slice (``"full"``, ``"position"`` or an (n, k) basis).
-      n_boxes: time boxes at first; rounds: times the worst eighth of the boxes is halved.
-      rho_max: largest radius tried; iters: bisection steps per box.
-      n_directions: rays for the attained bound; seed: their seed.
+      t_final: horizon T [s].
+      basis: the slice (``"full"``, ``"position"`` or an (n, k) basis).
+      n_boxes: time boxes at first.
+      rounds: times the worst eighth of the boxes is halved.
+      rho_max: largest radius tried.
+      iters: bisection steps per box.
+      n_directions: rays for the attained bound.
+      seed: their seed.
 
     Raises:
       ValueError: a static law, a gain schedule, limits of the wrong shape or not > 0.

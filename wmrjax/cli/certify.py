@@ -108,7 +108,7 @@ def _report(s: dict, out: Path) -> int:
 
 
 def main(argv=None) -> int:
-
+    """Run ``wmrjax certify`` with ``argv`` (default: the process's arguments); return the exit status."""
     p = _parser()
     a = p.parse_args(argv)
     machine.configure_xla(a.devices)  # before JAX starts its backend

@@ -49,7 +49,7 @@ def _parser():
 
 
 def main(argv=None) -> int:
-
+    """Run ``wmrjax export`` with ``argv`` (default: the process's arguments); return the exit status."""
     p = _parser()
     a = p.parse_args(argv)
     machine.configure_xla()  # before JAX starts its backend

@@ -1,7 +1,7 @@
-"""Tracking against the certified region: a Pareto front from tuned, certified points
+r"""Tracking against the certified region: a Pareto front from tuned, certified points
 (``wmrjax pareto``; the front itself: :mod:`wmrjax.tune.pareto`).
 
-    wmrjax pareto wmrjax/examples/s_path.toml --out results/s_path/pareto \\
+    wmrjax pareto wmrjax/examples/s_path.toml --out results/s_path/pareto \
         --slice position --fractions 0 0.25 0.5 0.75 1 1.25
 """
 
@@ -15,6 +15,7 @@ from wmrjax.tune.pareto import run
 
 
 def parser():
+    """The argument parser of ``wmrjax pareto``."""
     p = options.parser(__doc__.splitlines()[0], "results/pareto")
     problem_args.add_problem_options(p, needs="with a [tune] section")
     p.add_argument(
@@ -38,7 +39,7 @@ def parser():
 
 
 def main(argv=None) -> int:
-
+    """Run ``wmrjax pareto`` with ``argv`` (default: the process's arguments); return the exit status."""
     p = parser()
     a = p.parse_args(argv)
     machine.configure_xla()  # before JAX starts its backend

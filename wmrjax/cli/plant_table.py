@@ -92,7 +92,7 @@ def table(summary: dict) -> str:
 
 
 def main(argv=None) -> int:
-
+    """Run ``wmrjax plant-table`` with ``argv`` (default: the process's arguments); return the exit status."""
     p = options.parser(__doc__.splitlines()[0], "results/plant_table")
     problem_args.add_problem_options(p, needs="with a [plant] section")
     p.add_argument("--slice", default="position", choices=["position", "full"], help="the slice of initial errors")

@@ -192,6 +192,6 @@ class Heartbeat:
 
 @contextmanager
 def heartbeat(every: float = 10.0):
-    """``with heartbeat() as hb: hb.stage("..."); ...``: see :class:`Heartbeat`."""
+    """A :class:`Heartbeat` as a context manager: its ``stage`` names what runs now."""
     with Heartbeat(every) as hb:
         yield hb

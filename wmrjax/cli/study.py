@@ -17,6 +17,7 @@ from wmrjax.tune.study import DEFAULT_PROBLEMS, METHODS, problem_path, study
 
 
 def parser():
+    """The argument parser of ``wmrjax study``."""
     p = options.parser(__doc__.splitlines()[0], "results/tuning_study")
     p.add_argument(
         "--problems",
@@ -97,7 +98,7 @@ def _radius(text: str):
 
 
 def main(argv=None) -> int:
-
+    """Run ``wmrjax study`` with ``argv`` (default: the process's arguments); return the exit status."""
     p = parser()
     a = p.parse_args(argv)
     machine.configure_xla()  # before JAX starts its backend

@@ -23,6 +23,7 @@ A killed sweep resumes from its finished blocks when rerun with the same file an
 
 
 def parser():
+    """The argument parser of ``wmrjax sweep``."""
     p = options.parser(DOC, default_out=None)
     problem_args.add_problem_options(p, needs="to sweep (see docs/problem_files.md)")
     p.add_argument("--out", type=Path, default=None, help="output directory (default: results/sweeps/<spec name>)")
@@ -56,6 +57,7 @@ def parser():
 
 
 def main(argv=None) -> int:
+    """Run ``wmrjax sweep`` with ``argv`` (default: the process's arguments); return the exit status."""
     p = parser()
     a = p.parse_args(argv)
     a.argv = list(sys.argv[1:] if argv is None else argv)  # a launcher's workers get the same problem

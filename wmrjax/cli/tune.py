@@ -42,7 +42,7 @@ def parser():
 
 
 def main(argv=None) -> int:
-
+    """Run ``wmrjax tune`` with ``argv`` (default: the process's arguments); return the exit status."""
     p = parser()
     a = p.parse_args(argv)
     machine.configure_xla()  # before JAX starts its backend

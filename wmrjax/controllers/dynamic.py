@@ -118,7 +118,7 @@ def _comp_11(X, c, U, g):
 
 
 def _psi_inv_11(zeta, branch, g):
-    """h = P' on the fixed axle: chi1 = +-|h'|, theta from h', then beta and eta1 from
+    """The posture from the output jet, with h = P' on the fixed axle: chi1 = +-|h'|, theta from h', then beta and eta1 from
     theta' = eta1 cos(beta) and chi1 - e theta' = eta1 L sin(beta), with eta1 > 0."""
     hd, hdd = zeta[1], zeta[2]
     th = jnp.arctan2(-branch * hd[0], branch * hd[1])
@@ -319,6 +319,7 @@ class Table4Row:
 
     @property
     def robot(self) -> RobotType:
+        """The robot type of the law's row."""
         return self.extension.robot
 
 
@@ -455,11 +456,13 @@ class DynamicLinearization(LinearizingController):
 
     @property
     def state_names(self) -> tuple:
+        """The names of the state's components: the posture, the compensator's, and at torque level the wheel inputs."""
         names = physical_state_names(self.robot) + self.row.extension.comp_names
         return names + tuple(f"U{i + 1}" for i in range(self.m)) if self.level == Level.TORQUE else names
 
     @property
     def velocity_level(self) -> "DynamicLinearization":
+        """The same law at velocity level."""
         return DynamicLinearization(self.row, Level.VELOCITY)
 
     def reference_jet(self, t, params: DynamicParams):

@@ -99,16 +99,19 @@ class TimeVarying(ClosedLoop):
     state_names: tuple = ("x", "y", "theta")
 
     def vector_field(self, t, z, params: StabilizerParams):
+        """The stabilizer's closed loop on the (2,0) kinematics: ``(zdot, Aux)`` at time ``t`` [s]."""
         u = stabilizer(z, t - params.t_switch, params.lam, self.psi)
         zdot = robots.kinematic(robots.TYPES["(2,0)"], z, u, Geometry(e=0.0))
         return zdot, Aux(u, jnp.ones_like(z[0]))
 
     def params(self, lam=PAPER_LAMBDA, t_switch=0.0) -> StabilizerParams:
+        """The stabilizer's parameters: gain ``lam`` (> 0) and the switching time ``t_switch`` [s]."""
         check_stabilizer_args(lam)
         return StabilizerParams(jnp.asarray(lam, float), jnp.asarray(t_switch, float))
 
 
 def check_stabilizer_args(lam, r_switch=None) -> None:
+    """ValueError unless ``lam`` (and ``r_switch``, where given) are finite and > 0."""
     lv = concrete(lam)
     if lv is not None and not (np.all(np.isfinite(lv)) and np.all(np.asarray(lv) > 0)):
         raise ValueError(f"lambda (the stabilizer gain) must be > 0, got {lam!r}")
@@ -144,6 +147,7 @@ class HybridState(NamedTuple):
 
     @property
     def switched(self):
+        """True once the loop has switched to parking (the stabilizer)."""
         return self.mode == PARKING
 
 
@@ -164,6 +168,7 @@ class Hybrid(ClosedLoop):
     state_names = ("x", "y", "theta", "chi1", "mode", "t_switch", "x_switch", "y_switch", "theta_switch", "chi1_switch")
 
     def vector_field(self, t, z: HybridState, params: HybridParams):
+        """The hybrid loop's field: tracking, or parking after the switch; ``(zdot, Aux)``."""
         parking = z.mode == PARKING
         zt = z.tracking
         # the linearizing branch sees a regular state after the switch: no inf/NaN in values or grads

@@ -112,6 +112,7 @@ class Requirement:
     why: str
 
     def violated(self, g: Geometry) -> bool:
+        """True where the geometry breaks this requirement (False for a traced value)."""
         v = concrete(getattr(g, self.field))
         if v is None:
             return False
@@ -172,6 +173,7 @@ class Extension:
 
     @property
     def n_outputs(self) -> int:
+        """The number of outputs m (square: one per input)."""
         return self.robot.n_input  # square: m outputs, m new inputs
 
 
@@ -184,26 +186,32 @@ class LinearizingLaw:
 
     @property
     def robot(self) -> RobotType:
+        """The robot type."""
         return self.extension.robot
 
     @property
     def m(self) -> int:
+        """The number of linearized outputs."""
         return self.extension.n_outputs
 
     @property
     def relative_degree(self) -> int:
+        """The relative degree r of each output (one more at torque level)."""
         return self.extension.relative_degree + (1 if self.level == Level.TORQUE else 0)
 
     @property
     def n_velocity_state(self) -> int:
+        """The velocity-level state's size: the posture and the compensator."""
         return self.robot.n_state + self.extension.n_comp
 
     @property
     def n_state(self) -> int:
+        """The law's state size (with the wheel inputs at torque level)."""
         return self.n_velocity_state + (self.m if self.level == Level.TORQUE else 0)
 
     @property
     def velocity_level(self) -> "LinearizingLaw":
+        """The same law at velocity level."""
         return LinearizingLaw(self.extension, Level.VELOCITY)
 
     def _velocity_field(self, zv, U, g):
@@ -240,7 +248,9 @@ class LinearizingLaw:
         With :math:`u_{meas} = \pi(X, c, U)` (nominal conditions) the state is unchanged.
 
         Args:
-          z: torque-level state ``(X, c, U)``; u_measured: (n_input,) wheel velocities; g: geometry.
+          z: torque-level state ``(X, c, U)``.
+          u_measured: (n_input,) wheel velocities.
+          g: geometry.
         """
         if self.level != Level.TORQUE:
             raise ValueError("lift_measured is for torque-level laws (their state carries the velocities)")
@@ -256,6 +266,7 @@ class LinearizingLaw:
         return jnp.concatenate([X, w + dw])
 
     def outputs(self, z, g):
+        """The outputs (the tracked point's position) of state ``z`` with geometry ``g``."""
         return self.extension.outputs(z[: self.robot.n_state], g)
 
     def jet(self, z, g):
@@ -289,7 +300,9 @@ class LinearizingLaw:
 
         Args:
           yref: (r + 1, m) reference outputs and their derivatives up to order r.
-          z: state. coeffs: (m, r) Hurwitz coefficients. g: geometry.
+          z: state.
+          coeffs: (m, r) Hurwitz coefficients.
+          g: geometry.
 
         Returns:
           ``(U, margin)``; the division by ``det K`` is clamped at :data:`DET_FLOOR`.
@@ -646,18 +659,22 @@ class LinearizingController(ClosedLoop):
 
     @property
     def robot(self) -> RobotType:
+        """The robot type."""
         return self.row.robot
 
     @property
     def m(self) -> int:
+        """The number of linearized outputs."""
         return self.law.m
 
     @property
     def relative_degree(self) -> int:
+        """The relative degree of each output."""
         return self.law.relative_degree
 
     @property
     def n_state(self) -> int:
+        """The closed loop's state size."""
         return self.law.n_state
 
     def reference_jet_floats(self) -> int:

@@ -67,10 +67,12 @@ class PlantLoop(ClosedLoop):
 
     @property
     def robot(self):
+        """The robot type of the law."""
         return self.ctrl.robot
 
     @property
     def level(self) -> str:
+        """The law's level."""
         return self.ctrl.level
 
     @property
@@ -80,10 +82,12 @@ class PlantLoop(ClosedLoop):
 
     @property
     def n_state(self) -> int:
+        """The loop's state size: the law's, and the plant's own wheel velocities where it has them."""
         return self.ctrl.n_state + (self.robot.n_input if self._plant_velocity_state else 0)
 
     @property
     def state_names(self) -> tuple:
+        """The names of the state's components."""
         names = tuple(self.ctrl.state_names)
         if self._plant_velocity_state:
             names += tuple(f"u_plant{i + 1}" for i in range(self.robot.n_input))
@@ -130,8 +134,8 @@ class PlantLoop(ClosedLoop):
         return PlantParams(law_params, g, out[1], out[0])
 
     def initial_state(self, z_law, params: PlantParams):
-        """The loop's state from the controller's: at torque level (dynamic laws) the plant's
-        wheel velocities start at the law's, :math:`u = \\pi(X, c, U)`."""
+        r"""The loop's state from the controller's: at torque level (dynamic laws) the plant's
+        wheel velocities start at the law's, :math:`u = \pi(X, c, U)`."""
         if not self._plant_velocity_state:
             return z_law
         law = self.ctrl.law
@@ -169,6 +173,7 @@ class PlantLoop(ClosedLoop):
         return jnp.concatenate([xdot, zdot_law[n:], v]), Aux(v, jnp.abs(reg), reg)
 
     def final_report(self, t, z, params: PlantParams):
+        """The law's final report, on the law's part of the state."""
         report = self.ctrl.final_report
         return None if report is None else report(t, self.law_state(z), params.law)
 

@@ -95,10 +95,12 @@ class SampledLoop(ClosedLoop):
 
     @property
     def robot(self):
+        """The robot type of the law."""
         return self.ctrl.robot
 
     @property
     def level(self):
+        """The law's level."""
         return self.ctrl.level
 
     @property
@@ -112,14 +114,17 @@ class SampledLoop(ClosedLoop):
 
     @property
     def n_controller(self) -> int:
+        """The size of the law's own (controller) state."""
         return self.ctrl.n_state - self.robot.n_state
 
     @property
     def n_plant(self) -> int:
+        """The plant's state size: the posture, and the wheel velocities at torque level."""
         return self.robot.n_state + (self.robot.n_input if self._torque else 0)
 
     @property
     def n_state(self) -> int:
+        """The loop's state size: :class:`SampledState`'s leaves (plant, controller and its rate, sample time, command, regularity, error jet)."""
         return self.n_plant + 2 * self.n_controller + self.robot.n_input + 2 + self.ctrl.m * self.ctrl.relative_degree
 
     def law_state(self, z: SampledState):
@@ -133,7 +138,9 @@ class SampledLoop(ClosedLoop):
 
         Args:
           law_params: the controller's params (from its ``.params()``).
-          input_limit, input_scale, geometry: the plant (:meth:`wmrjax.PlantLoop.params`).
+          input_limit: the plant's input limits (:meth:`wmrjax.PlantLoop.params`).
+          input_scale: the plant's input scales (the same).
+          geometry: the plant's geometry (the same).
           noise: (n_samples, n_X) measurement noise per sample (see :func:`measurement_noise`);
             None: exact measurements.
 
@@ -159,8 +166,8 @@ class SampledLoop(ClosedLoop):
         return SampledParams(plant, jnp.asarray(noise, jnp.result_type(float)))
 
     def initial_state(self, z_law, params: SampledParams) -> SampledState:
-        """The loop's state from the controller's ``z_law`` (X and its own state); at torque level
-        the plant's wheel velocities start at the law's, :math:`u = \\pi(X, c, U)`. The held values
+        r"""The loop's state from the controller's ``z_law`` (X and its own state); at torque level
+        the plant's wheel velocities start at the law's, :math:`u = \pi(X, c, U)`. The held values
         are zero until :func:`wmrjax.simulate` takes the first sample, at ``t0``. Pure: jit/vmap it."""
         nX = self.robot.n_state
         z_law = jnp.asarray(z_law, jnp.result_type(float))
@@ -221,6 +228,7 @@ class SampledLoop(ClosedLoop):
         )
 
     def final_report(self, t, z, params: SampledParams):
+        """The law's final report, on the law's part of the state."""
         report = self.ctrl.final_report
         return None if report is None else report(t, self.law_state(z), params.plant.law)
 

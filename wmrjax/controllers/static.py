@@ -80,6 +80,7 @@ class Steering:
     fn: Callable = dataclasses.field(default=_const, metadata=dict(static=True))
 
     def __call__(self, t):
+        """The steering reference at time ``t`` [s]."""
         return self.fn(t, self.params)
 
 
@@ -141,12 +142,12 @@ _L = Requirement("L", "nonzero", "Table 3: det K is proportional to L")
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Table3Row:
-    """One row of Table 3 (or Prop 3 for (3,0)) and the per-type facts of its static law.
+    r"""One row of Table 3 (or Prop 3 for (3,0)) and the per-type facts of its static law.
 
     Attributes:
-      extension: the outputs :math:`z_1 = h(\\xi, \\beta)` (no compensator, U = u).
+      extension: the outputs :math:`z_1 = h(\xi, \beta)` (no compensator, U = u).
       tracks: :class:`Task`: the posture ((3,0), Prop 3) or a point (Table 3).
-      z3: state indices of the nonlinear coordinates :math:`z_3 = k(\\xi, \\beta)`.
+      z3: state indices of the nonlinear coordinates :math:`z_3 = k(\xi, \beta)`.
       regularity: Table 3's last column (errata determinant).
       requires: geometry :class:`Requirement` s of that condition.
       steering_index: which output is a free steering channel (None: none).
@@ -169,6 +170,7 @@ class Table3Row:
 
     @property
     def robot(self) -> RobotType:
+        """The robot type of the law's row."""
         return self.extension.robot
 
 
@@ -286,10 +288,12 @@ class StaticLinearization(LinearizingController):
 
     @property
     def task(self) -> Task:
+        """What the law tracks (a point or a posture)."""
         return self.row.tracks
 
     @property
     def state_names(self) -> tuple:
+        """The names of the state's components."""
         X = physical_state_names(self.robot)
         if self.level == Level.VELOCITY:
             return X
@@ -298,7 +302,7 @@ class StaticLinearization(LinearizingController):
         return X + eta + zeta
 
     def z3(self, z):
-        """Table 3's nonlinear coordinates :math:`z_3 = k(\\xi, \\beta)` (theta; theta, beta(1))."""
+        r"""Table 3's nonlinear coordinates :math:`z_3 = k(\xi, \beta)` (theta; theta, beta(1))."""
         return z[jnp.asarray(self.row.z3, dtype=int)] if self.row.z3 else z[:0]
 
     def reference_outputs(self, t, params: StaticParams):
@@ -312,6 +316,7 @@ class StaticLinearization(LinearizingController):
         return jnp.concatenate([p, jnp.atleast_1d(params.steering(t))])
 
     def reference_jet(self, t, params: StaticParams):
+        """The reference's output jet at ``t`` [s]: (r + 1, m)."""
         return taylor(lambda s: self.reference_outputs(s, params), t, self.relative_degree)
 
     def sigma_tilde(self, t, z, params: StaticParams):
@@ -381,6 +386,7 @@ class StaticLinearization(LinearizingController):
         return params
 
     def params_unchecked(self, reference: Reference, poles, geometry: Geometry, steering=None) -> StaticParams:
+        """The parameters without the checks of :meth:`params` (inside a transformation)."""
         if self.row.steering_index is not None and steering is None:
             steering = default_steering(self.robot, geometry)
         return StaticParams(self._unchecked_gains(poles), reference, geometry, steering)

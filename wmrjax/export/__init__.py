@@ -272,10 +272,12 @@ def reference_run(step: ControlStep, ctrl, params, z0, *, period: float, n_sampl
 
     Args:
       step: the exported step (for its sizes).
-      ctrl, params: the law and its parameters (those of ``step``).
+      ctrl: the law (that of ``step``).
+      params: its parameters (those of ``step``).
       z0: (ctrl.n_state,) the law's initial state (X, compensator...).
-      period: controller period [s]; n_samples: samples of the run; steps_per_sample: RK4 steps
-        of the plant per period.
+      period: controller period [s].
+      n_samples: samples of the run.
+      steps_per_sample: RK4 steps of the plant per period.
 
     Returns:
       :class:`Run`.

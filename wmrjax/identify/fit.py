@@ -82,6 +82,7 @@ class PlantModel:
 
     @property
     def system(self) -> LoggedInputs:
+        """The logged-inputs system the fit integrates."""
         return LoggedInputs(self.robot, self.level, self.substeps)
 
     @property
@@ -128,6 +129,7 @@ class Estimate(NamedTuple):
     note: str = ""
 
     def summary(self) -> dict:
+        """The fit as plain JSON."""
         return {
             "estimate": self.estimate,
             "std_error": self.std_error,
@@ -281,7 +283,7 @@ def _damped(M, lam):
 
 
 def _step(ne: _Normal, lam: float, fit_plant: bool):
-    """The Levenberg-Marquardt step ``(d_theta, d_z0)`` of :math:`(J^TJ + \\lambda D)\\delta = -J^Tr`,
+    r"""The Levenberg-Marquardt step ``(d_theta, d_z0)`` of :math:`(J^TJ + \lambda D)\delta = -J^Tr`,
     the initial states eliminated (each segment's block solved on its own)."""
     C = _damped(ne.C, lam)
     Cinv_c = np.linalg.solve(C, ne.c[..., None])[..., 0]

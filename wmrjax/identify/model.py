@@ -73,14 +73,17 @@ class LoggedInputs(ClosedLoop):
 
     @property
     def n_plant(self) -> int:
+        """The plant's state size: the posture, and the wheel velocities at torque level."""
         return self.robot.n_state + (self.robot.n_input if self.level == Level.TORQUE else 0)
 
     @property
     def n_state(self) -> int:
+        """The system's state size (the plant and the held input)."""
         return self.n_plant + self.robot.n_input
 
     @property
     def state_names(self) -> tuple:
+        """The names of the state's components."""
         names = ("x", "y", "theta") + tuple(f"beta{i + 1}" for i in range(self.robot.delta_s))
         if self.level == Level.TORQUE:
             names += tuple(f"u{i + 1}" for i in range(self.robot.n_input))

@@ -49,11 +49,13 @@ UNITS = {
 
 
 def label(col: str) -> str:
+    """The column name with its unit, for a figure's axis."""
     unit = UNITS.get(col)
     return f"{col} [{unit}]" if unit else col
 
 
 def read_table(path: Path, columns=None) -> dict:
+    """The columns ``columns`` (all: None) of a Parquet table as NumPy arrays."""
     import pyarrow.parquet as pq  # optional dependency (the cli extra): only the Parquet table needs it
 
     t = pq.read_table(path, columns=columns)
@@ -80,13 +82,14 @@ def columns_needed(plan: S.Plan) -> list:
 
 
 def quantiles(a) -> dict:
+    """Quantiles of the finite values of ``a``, and their minimum."""
     a = np.asarray(a, float)
     a = a[np.isfinite(a)]
     return _math.quantiles(a) | ({"min": float(a.min())} if a.size else {})
 
 
 def summarize(plan: S.Plan, table: dict, certified: dict) -> dict:
-
+    """The sweep's ``summary.json`` from its table and the certified radii."""
     n = len(table["run"])
     counts = {o: int(np.sum(table["outcome"] == o)) for o in OUTCOMES}
     ok = ~table["failed"]
@@ -181,6 +184,7 @@ def _edges(v):
 
 
 def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
+    """The sweep's figures (PNG) written under ``out``; returns their paths."""
     plt = _files.headless_pyplot()
     written = []
     for old in out.glob("map_*.png"):  # an earlier run's maps (other quantities) must not linger

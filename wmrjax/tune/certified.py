@@ -250,8 +250,11 @@ def radii(setting, gains, *, eps: float, falsify=False, seed: int = 0, n_starts:
     map's own worst initial error simulated at 0.99 and 1.01 times its size.
 
     Args:
-      setting: the problem's :class:`wmrjax.problem.Setting`; gains: the gains to certify.
-      eps: the margin; seed: the falsifier's PRNG seed; n_starts: its gradient starts.
+      setting: the problem's :class:`wmrjax.problem.Setting`.
+      gains: the gains to certify.
+      eps: the margin.
+      seed: the falsifier's PRNG seed.
+      n_starts: its gradient starts.
       falsify: True (both slices), a slice name (that one only) or False.
     """
     ctrl, T = setting.ctrl, setting.t_final
@@ -293,7 +296,8 @@ def problem_radii(setting, gains, *, eps: float) -> dict:
     ``not_covered``, ``bound_by``.
 
     Args:
-      setting: the problem's :class:`wmrjax.problem.Setting` (with a ``[plant]``); gains: the gains.
+      setting: the problem's :class:`wmrjax.problem.Setting` (with a ``[plant]``).
+      gains: the gains.
       eps: the margin.
     """
     ctrl, T = setting.ctrl, setting.t_final

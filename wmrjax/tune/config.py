@@ -119,6 +119,7 @@ class Baselines(NamedTuple):
     search_high: float = 5.0
 
     def population(self, n_parameters: int) -> int:
+        """CMA-ES's population for ``n_parameters`` (Hansen's default unless set)."""
         return self.cma_population or 4 + int(np.floor(3 * np.log(n_parameters)))
 
 

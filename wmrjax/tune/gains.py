@@ -34,7 +34,7 @@ from wmrjax.gains import Gains, GainSchedule, damping_coefficients, monic_coeffi
 
 
 def softplus_inverse(y):
-    """raw with softplus(raw) = y (y > 0), numerically stable."""
+    """The inverse of softplus: raw with softplus(raw) = y (y > 0), numerically stable."""
     y = jnp.asarray(y)
     return y + jnp.log(-jnp.expm1(-y))
 
@@ -74,10 +74,12 @@ class GainFamily:
 
     @property
     def per_time_shape(self):
+        """The shape of the parameters at one time."""
         return (self.r,) if self.shared else (self.m, self.r)
 
     @property
     def shape(self):
+        """The parameters' shape (knots first for a schedule)."""
         return ((len(self.knots),) if self.knots else ()) + self.per_time_shape
 
     @property
@@ -145,7 +147,7 @@ class GainFamily:
         return [one(ck) for ck in c] if self.knots else one(c)
 
     def init(self, poles):
-        """raw giving every output the real poles -poles (scalar: a repeated pole).
+        """The raw parameters giving every output the real poles -poles (scalar: a repeated pole).
 
         Raises:
           ValueError: non-positive or non-finite poles, a bad shape or frozen index.

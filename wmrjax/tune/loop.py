@@ -460,11 +460,13 @@ def tune(
         ``[gains]`` (:func:`initial_raw`).
       optimizer: any ``optax.GradientTransformation`` (e.g. :meth:`wmrjax.tune.Optimizer.build`).
       steps: optimizer steps.
-      scenarios, loss, stopping: :class:`wmrjax.tune.Scenarios`, :class:`wmrjax.tune.LossWeights`,
-        :class:`wmrjax.tune.Stopping`.
+      scenarios: the scenario sets' sizes (:class:`wmrjax.tune.Scenarios`).
+      loss: the loss's weights (:class:`wmrjax.tune.LossWeights`).
+      stopping: when to stop (:class:`wmrjax.tune.Stopping`).
       seed: PRNG seed of the scenario sets and the resampled batches.
-      out_dir: where ``checkpoint.json`` lives (None: no checkpointing); ``run_id`` is mixed
-        into its fingerprint (the optimizer is not inspected: say what it is there).
+      out_dir: where ``checkpoint.json`` lives (None: no checkpointing).
+      run_id: mixed into the checkpoint's fingerprint (the optimizer is not inspected: say what
+        it is there).
       log: progress messages.
       stop_after: stop after this many steps of *this* call (to test resumption).
       on_built: called with the :class:`Context` once the scenarios are drawn and a checkpoint
