@@ -420,6 +420,7 @@ TABLE4: dict[str, Table4Row] = {
         ),
     )
 }
+"""Table 4: robot type name -> its dynamic linearization's :class:`Table4Row`."""
 
 
 # --- parameters and the controller --------------------------------------------------------

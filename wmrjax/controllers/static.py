@@ -236,6 +236,7 @@ TABLE3: dict[str, Table3Row] = {
         ),
     )
 }
+"""Table 3 (and Prop 3 for (3,0)): robot type name -> its static linearization's :class:`Table3Row`."""
 
 
 def default_steering(robot, geometry: Geometry) -> Steering | None:
