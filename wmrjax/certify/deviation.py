@@ -32,7 +32,7 @@ distance to the singular set is at least the nominal one less :math:`G_C\bar\del
 exact map's proved radius at the margin :math:`\epsilon + G_C\bar\delta`, capped at
 :math:`\rho`, is a proved radius of the real loop. (The tube never meets the singular set:
 there the command's enclosure is unbounded and (i) fails; so the run keeps the reference's
-branch, on which :func:`wmrjax.problem.place` inverts :math:`\Psi`.)
+branch, on which :func:`wmrjax.controllers.placement.place` inverts :math:`\Psi`.)
 
 **Computed.** (i) and (ii) by the affine enclosure (:mod:`wmrjax.certify.affine`) of the
 command and of :math:`\Delta` per time box, as :func:`wmrjax.certify.saturation_free_radius`
@@ -87,8 +87,8 @@ from wmrjax.certify.saturation import (
     rotated,
     turned,
 )
+from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.law import Level
-from wmrjax.problem import Space, Task, place
 from wmrjax.robots import Geometry
 from wmrjax.simulate import fixed_blocks
 

@@ -15,8 +15,8 @@ import numpy as np
 from wmrjax._validate import check_int, check_positive, concrete
 from wmrjax.certify.exact_map import singular_rows
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
+from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
-from wmrjax.problem import Space, Task, place
 from wmrjax.simulate import batch_map, fixed_blocks, simulate
 
 # Runs per compiled block, whatever the batch: a block shrunk to fit small batches was a second

@@ -45,8 +45,9 @@ from wmrjax.certify.empirical import sample_sphere
 from wmrjax.certify.exact_map import singular_rows, slice_basis
 from wmrjax.certify.lemma2 import check_dynamic
 from wmrjax.certify.saturation import saturation_free_radius
+from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.law import Level
-from wmrjax.problem import Space, Task, law_state, place
+from wmrjax.problem import law_state
 from wmrjax.simulate import fixed_blocks
 
 

@@ -42,8 +42,8 @@ from wmrjax import _math
 from wmrjax.certify import affine, interval
 from wmrjax.certify.exact_map import slice_basis
 from wmrjax.certify.lemma2 import check_dynamic
+from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.law import DET_FLOOR
-from wmrjax.problem import Space, Task, place
 from wmrjax.simulate import fixed_blocks
 
 BOX_BLOCK = 256

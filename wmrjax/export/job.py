@@ -14,8 +14,8 @@ import numpy as np
 
 from wmrjax import _files as files
 from wmrjax import export as X
+from wmrjax.controllers import place
 from wmrjax.export.check import C_FLAGS, verify, write_export
-from wmrjax.problem import place
 
 
 def initial_state(setting, params, index: int | None = None):
