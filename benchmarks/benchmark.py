@@ -778,69 +778,32 @@ def compile_table(cases, batch: int, devices: int, progress=print) -> dict:
     return out
 
 
-# The tuner's gradient program, timed in a fresh process with no persistent cache: its trace and
-# compile, and its step (best of 3 rounds of 5 calls). Written against both tuner APIs (problem
-# files since #31, the TuneConfig presets before) so a checkout of another commit runs it too.
-TUNER_WORKER = r"""
-import json, sys, time
-import jax
-jax.config.update("jax_enable_x64", True)
-name = sys.argv[1]
-t_start = time.perf_counter()
-from wmrjax.tune import loop as L
-if hasattr(L, "prepare"):
-    from wmrjax.tune import config
-    from wmrjax.examples import problem_file
-    from wmrjax.problem import Problem
-    problem = Problem.load(problem_file(name))
-    s = problem.setting("tuning"); ts = config.read(problem.section("tune")); fam = ts.gain_family(s)
-    ctx = L.prepare(s, fam, ts.scenarios, ts.loss, ts.seed)
-    raw = L.initial_raw(s, fam)
-    args, static = (raw, ctx.sets.train, s, fam, ctx.weights), (2, 3)
-else:
-    import jax.numpy as jnp
-    from wmrjax.tune import problems
-    cfg = problems.preset(name)
-    ctrl, spec, g, rcfg, train, _, _ = L.build(cfg)
-    raw = spec.init(cfg.poles_init)
-    args, static = (raw, train, ctrl, spec, g, rcfg, jnp.asarray(cfg.weights, float)), (2, 3, 5)
-t_ready = time.perf_counter()
-lowered = L._gradient_step.lower(*args)
-t_traced = time.perf_counter()
-compiled = lowered.compile()
-t_compiled = time.perf_counter()
-dyn = [a for i, a in enumerate(args) if i not in static]
-jax.block_until_ready(compiled(*dyn))
-best = float("inf")
-for _ in range(3):
-    t = time.perf_counter()
-    for _ in range(5):
-        out = compiled(*dyn)
-    jax.block_until_ready(out)
-    best = min(best, (time.perf_counter() - t) / 5)
-print(json.dumps({"problem": name, "setup_s": t_ready - t_start, "trace_s": t_traced - t_ready,
-                  "compile_s": t_compiled - t_traced, "step_s": best, "loss": float(out[0])}))
-"""
+WORKERS = Path(__file__).resolve().parent / "workers.py"  # fresh-process measurements, run by path
+
+
+def run_worker(tree: Path, *args, env: dict | None = None) -> dict:
+    """``benchmarks/workers.py ARGS`` in a fresh process with ``tree``'s wmrjax first on the path
+    (the worker file is this checkout's): its JSON line."""
+    env = dict(os.environ if env is None else env, PYTHONPATH=str(tree))
+    r = subprocess.run(
+        [sys.executable, str(WORKERS), *map(str, args)], capture_output=True, text=True, env=env, cwd=tree, timeout=1200
+    )
+    if r.returncode:
+        raise RuntimeError(f"worker {args} in {tree} failed:\n{r.stderr[-3000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
 
 
 def tuner_times(problems, baseline: Path | None, rounds: int = 3, progress=print) -> dict:
     """The tuner's gradient program (trace, compile, step) per problem, in fresh processes with no
-    persistent cache, this checkout and ``baseline`` (another checkout, e.g. the commit before
-    #31) alternately, ``rounds`` times; the best of each is kept."""
-    import json
-
+    persistent cache (:func:`workers.tuner`), this checkout and ``baseline`` (another checkout
+    with problem files' tuning, #31 or later) alternately, ``rounds`` times; the best of each is kept."""
     trees = {"this": Path(__file__).resolve().parent.parent} | ({"baseline": baseline.resolve()} if baseline else {})
     best = {}
     for r in range(rounds):
         for name in problems:
             for label, tree in trees.items():
-                env = dict(os.environ, PYTHONPATH=str(tree), JAX_ENABLE_COMPILATION_CACHE="false")
-                run = subprocess.run(
-                    [sys.executable, "-c", TUNER_WORKER, name], capture_output=True, text=True, env=env, cwd=tree
-                )
-                if run.returncode:
-                    raise RuntimeError(f"tuner timing of {name} in {tree} failed: {run.stderr[-2000:]}")
-                res = json.loads(run.stdout.strip().splitlines()[-1])
+                env = dict(os.environ, JAX_ENABLE_COMPILATION_CACHE="false")
+                res = run_worker(tree, "tuner", name, env=env)
                 key = (name, label)
                 best[key] = (
                     res
@@ -853,7 +816,7 @@ def tuner_times(problems, baseline: Path | None, rounds: int = 3, progress=print
                     flush=True,
                 )
     out = {
-        "what": "the tuning loop's gradient program (wmrjax.tune.loop._gradient_step) on the problem's training set, "
+        "what": "the tuning loop's gradient program (wmrjax.tune.loop._gradient_step; benchmarks/workers.py tuner) on the problem's training set, "
         "in a fresh process with no persistent cache: trace, XLA compile, and the step (best of 3 x 5 "
         f"calls); best of {rounds} rounds, the checkouts alternating",
         "baseline": str(baseline) if baseline else None,
@@ -873,95 +836,20 @@ def tuner_times(problems, baseline: Path | None, rounds: int = 3, progress=print
 # the tuning step): measurements at scale (10^5 to 10^6 steps, 2048 scenarios), the benchmark's;
 # the test suite checks the refusals the model drives (tests/test_resources.py).
 
-# the peak resident memory of this process image (VmHWM): ru_maxrss would carry the parent's peak
-# over fork and exec (a pytest worker's 2 GB hid the child's growth)
-PEAK = (
-    "def peak():\n"
-    "    for line in open('/proc/self/status'):\n"
-    "        if line.startswith('VmHWM:'):\n"
-    "            return int(line.split()[1]) * 1024\n"
-)
-
-SIMULATE = (
-    PEAK
-    + """
-import sys, json, jax
-jax.config.update("jax_enable_x64", True)
-import numpy as np
-import wmrjax as w
-from wmrjax import references as R, resources
-from wmrjax.simulate import _check_memory
-n, dt = int(sys.argv[1]), float(sys.argv[2])
-ctrl = w.dynamic_linearization("(2,0)", "velocity")
-p = ctrl.params(R.circle(radius=3.0, omega=0.5), poles=1.0)
-z0 = ctrl.initial_state(ctrl.reference_jet(0.0, p)[:2] + 0.05, p)
-w.simulate(ctrl, z0, p, dt=0.01, n_steps=10)
-base = peak()
-jax.block_until_ready(w.simulate(ctrl, z0, p, dt=dt, n_steps=n))
-est = resources.run_estimate(ctrl, n_steps=n, save_every=1, n_state=4, itemsize=8, horizon=n * dt)
-print(json.dumps({"measured": peak() - base, "predicted": est.total}))
-"""
-)
-
-TUNE = (
-    PEAK
-    + """
-import sys, json, jax
-jax.config.update("jax_enable_x64", True)
-from wmrjax import resources
-from wmrjax.problem import Problem
-from wmrjax.tune import config, loop
-prob = Problem.load("wmrjax/examples/section_6_1_plant.toml")
-setting = prob.setting("tuning")
-ts = config.read(prob.section("tune"))
-fam = ts.gain_family(setting)
-out = []
-for n in (64, 2048):
-    sc = ts.scenarios._replace(train=n, validation=4, heldout=4)
-    loop.tune(setting, fam, ts.optimizer.build(1), steps=1, scenarios=sc, loss=ts.loss, stopping=ts.stopping,
-              log=lambda *_: None)
-    out.append(peak())
-n_state = setting.system().n_state
-pred = resources.gradient_bytes(2048, setting.n_steps, n_state) - resources.gradient_bytes(64, setting.n_steps, n_state)
-print(json.dumps({"measured": out[1] - out[0], "predicted": pred}))
-"""
-)
-
-
-SWEEP = (
-    PEAK
-    + """
-import sys
-from wmrjax.cli import sweep as cli
-rc = cli.main([sys.argv[1], "--out", sys.argv[2], "--devices", "1", "--no-compile-cache"])
-import json, jax
-from wmrjax.sweep import spec as S, run
-est = run.estimate(S.load(sys.argv[1]), 1)
-print(json.dumps({"measured": peak(), "predicted": est.total, "rc": rc}))
-"""
-)
-# (name, script, arguments): the reference check dominates the first simulate, the saved samples the second
+# (name, worker, arguments) of benchmarks/workers.py: the reference check dominates the first
+# simulate, the saved samples the second
 CASES = (
-    ("simulate_500000_steps_dt_0.02", "SIMULATE", (500_000, 0.02)),
-    ("simulate_2000000_steps_dt_1e-4", "SIMULATE", (2_000_000, 1e-4)),
-    ("tuning_step_64_to_2048_scenarios", "TUNE", ()),
-    ("sweep_block_256_runs_10000_steps", "SWEEP", ()),
+    ("simulate_500000_steps_dt_0.02", "simulate", (500_000, 0.02)),
+    ("simulate_2000000_steps_dt_1e-4", "simulate", (2_000_000, 1e-4)),
+    ("tuning_step_64_to_2048_scenarios", "tune", ()),
+    ("sweep_block_256_runs_10000_steps", "sweep", ()),
 )
 SWEEP_FILE = Path(__file__).resolve().parent / "bench" / "memory_sweep.toml"
 
 
-def measure(script: str, *args) -> dict:
-    """Run a measuring script in a fresh process: its ``{"measured", "predicted", ...}``."""
-    r = subprocess.run(
-        [sys.executable, "-c", script, *map(str, args)],
-        cwd=Path(__file__).resolve().parents[1],
-        capture_output=True,
-        text=True,
-        timeout=1200,
-    )
-    if r.returncode:
-        raise RuntimeError(f"memory measurement failed:\n{r.stderr[-3000:]}")
-    return json.loads(r.stdout.strip().splitlines()[-1])
+def measure(worker: str, *args) -> dict:
+    """A memory worker of :mod:`workers` in a fresh process: its ``{"measured", "predicted", ...}``."""
+    return run_worker(Path(__file__).resolve().parents[1], worker, *args)
 
 
 def memory_estimates(progress=print) -> dict:
@@ -969,15 +857,14 @@ def memory_estimates(progress=print) -> dict:
     prediction bounds the peak within its factor."""
     from wmrjax import resources
 
-    scripts = {"SIMULATE": SIMULATE, "TUNE": TUNE, "SWEEP": SWEEP}
     rows = {}
     for name, key, args in CASES:
-        if key == "SWEEP":
+        if key == "sweep":
             with tempfile.TemporaryDirectory() as d:
-                m = measure(SWEEP, SWEEP_FILE, Path(d) / "out")
+                m = measure(key, SWEEP_FILE, Path(d) / "out")
         else:
-            m = measure(scripts[key], *args)
-        factor = resources.GRADIENT_ESTIMATE_FACTOR if key == "TUNE" else resources.ESTIMATE_FACTOR
+            m = measure(key, *args)
+        factor = resources.GRADIENT_ESTIMATE_FACTOR if key == "tune" else resources.ESTIMATE_FACTOR
         m["ratio"] = m["predicted"] / m["measured"]
         m["factor"] = factor
         m["within"] = bool(m["measured"] <= m["predicted"] <= factor * m["measured"])

@@ -23,6 +23,8 @@ from pathlib import Path
 from wmrjax import _files as files
 from wmrjax.cli import machine, options
 
+WORKERS = Path(__file__).resolve().parent / "workers.py"  # fresh-process measurements, run by path
+
 SPEC = """title = "scale benchmark: the section 6.1 loop over {n} x {n} initial position errors"
 [controller]
 law = "dynamic"
@@ -45,21 +47,17 @@ block = {block}
 """
 
 
-# a fresh parent per sweep, so that getrusage(RUSAGE_CHILDREN) is this sweep's process tree alone
-_WRAP = (
-    "import resource, subprocess, sys; r = subprocess.run(sys.argv[2:]); "
-    "open(sys.argv[1], 'w').write(str(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)); "
-    "sys.exit(r.returncode)"
-)
-
-
 def _sweep(spec: Path, out: Path, extra=(), kill_at: float | None = None, n_blocks: int = 0) -> dict:
     """Run one sweep process tree; returns wall time, peak RSS [bytes] and whether it was killed."""
     rss = out.parent / f".{out.name}.maxrss"
     cmd = [sys.executable, "-m", "wmrjax", "sweep", str(spec), "--out", str(out), *extra]
     t0 = time.perf_counter()
     proc = subprocess.Popen(
-        [sys.executable, "-c", _WRAP, str(rss), *cmd], stderr=subprocess.PIPE, text=True, start_new_session=True
+        # a fresh parent per sweep (benchmarks/workers.py children), so the peak is this sweep's tree alone
+        [sys.executable, str(WORKERS), "children", str(rss), *cmd],
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
     )
     killed = False
     if kill_at is not None:

@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_the_measuring_script_runs_and_predicts_more_than_nothing():
     """At 20000 steps the growth is too small to hold the factor (the benchmark measures at 5e5
     and 2e6 steps); here the script runs and its prediction is the model's."""
-    m = M.measure(M.SIMULATE, 20_000, 0.02)
+    m = M.measure("simulate", 20_000, 0.02)
     assert m["predicted"] > 0 and m["measured"] >= 0
 
 
