@@ -319,8 +319,12 @@ def test_bad_exact_map_arguments(paper61):
     ctrl, params, _ = paper61
     with pytest.raises(ValueError, match="orthonormal"):
         C.slice_basis(ctrl, jnp.ones((4, 2)))
-    with pytest.raises(ValueError, match="unknown slice"):
+    with pytest.raises(ValueError, match=r"unknown slice 'velocity-ish'; expected one of \['full', 'position'\]"):
         C.slice_basis(ctrl, "velocity-ish")
+    # the enumeration and its names give the same bases
+    for s in C.Slice:
+        np.testing.assert_array_equal(C.slice_basis(ctrl, s), C.slice_basis(ctrl, str(s)))
+    assert C.slice_basis(ctrl, C.Slice.POSITION).shape == (4, 2) and C.slice_basis(ctrl).shape == (4, 4)
     with pytest.raises(ValueError, match="eps must be > 0"):
         C.exact_map_radius(ctrl, params, t_final=10.0, eps=-1.0)
     with pytest.raises(ValueError, match="linear singular set"):

@@ -60,6 +60,7 @@ from wmrjax.certify.empirical import (  # noqa: F401
 )
 from wmrjax.certify.exact_map import (  # noqa: F401
     ExactMapRadius,
+    Slice,
     curved_exact_map_radius,
     differentiable_exact_map_radius,
     exact_map_radius,

@@ -75,7 +75,7 @@ import numpy as np
 
 from wmrjax import _math, robots
 from wmrjax.certify import affine
-from wmrjax.certify.exact_map import exact_map_radius, singular_rows, slice_basis, square_basis
+from wmrjax.certify.exact_map import Slice, exact_map_radius, singular_rows, slice_basis, square_basis
 from wmrjax.certify.interval import Interval
 from wmrjax.certify.lemma2 import check_dynamic, m1_closed_form
 from wmrjax.certify.saturation import (
@@ -630,7 +630,7 @@ def mismatch_radius(
     *,
     t_final: float,
     eps: float,
-    basis="full",
+    basis=Slice.FULL,
     n_t: int = 2001,
     n_boxes: int = 512,
     nominal=None,

@@ -15,6 +15,7 @@ comes within eps) and a proved lower bound, with their gap."""
 
 from __future__ import annotations
 
+import enum
 import functools
 from typing import NamedTuple
 
@@ -43,23 +44,28 @@ def singular_rows(ctrl: DynamicLinearization):
     return (ctrl.m, ctrl.m + 1) if ctrl.row.singular_set_is_linear else None
 
 
-def slice_basis(ctrl: DynamicLinearization, kind="full"):
+class Slice(enum.StrEnum):
+    """A slice of initial errors: every output-error component, or the output point's position
+    error only (the paper's setting; every other component equal to the reference's)."""
+
+    FULL = "full"
+    POSITION = "position"
+
+
+def slice_basis(ctrl: DynamicLinearization, basis=Slice.FULL):
     """Orthonormal basis (n, k) of a slice of initial errors.
 
     Args:
       ctrl: a dynamic linearizing law (its r and m).
-      kind: ``"full"`` (every component, k = r m), ``"position"`` (the paper's setting: the
-        output point's position error only, every other component equal to the reference's,
-        k = 2), or an explicit (n, k) array with orthonormal columns.
+      basis: a :class:`Slice` (or its name): ``"full"`` (every component, k = r m) or
+        ``"position"`` (k = 2); or an explicit (n, k) array with orthonormal columns.
     """
     n = ctrl.relative_degree * ctrl.m
-    if isinstance(kind, str):
-        if kind == "full":
-            return jnp.eye(n)
-        if kind == "position":
-            return jnp.eye(n)[:, :2]
-        raise ValueError(f"unknown slice {kind!r}; expected 'full', 'position' or an (n, k) array")
-    P = jnp.asarray(kind)
+    if isinstance(basis, str):
+        if basis not in tuple(Slice):
+            raise ValueError(f"unknown slice {basis!r}; expected one of {[str(s) for s in Slice]} or an (n, k) array")
+        return jnp.eye(n) if Slice(basis) == Slice.FULL else jnp.eye(n)[:, :2]
+    P = jnp.asarray(basis)
     if (
         P.ndim != 2
         or P.shape[0] != n
@@ -169,7 +175,7 @@ def exact_map_radius(
     *,
     t_final: float,
     eps: float,
-    basis="full",
+    basis=Slice.FULL,
     n_t: int = 2001,
     refine: int = 40,
     lower_bound: bool = True,
@@ -340,7 +346,7 @@ def differentiable_exact_map_radius(
     *,
     t_final: float,
     eps: float,
-    basis="full",
+    basis=Slice.FULL,
     n_t: int = 2001,
     refine: int = 40,
 ):
@@ -448,7 +454,7 @@ def curved_exact_map_radius(
     *,
     t_final: float,
     eps: float,
-    basis="full",
+    basis=Slice.FULL,
     n_t: int = 400,
     phi_width: float = 0.05,
     rtol: float = 2e-3,

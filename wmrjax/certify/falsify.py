@@ -39,7 +39,7 @@ from wmrjax.certify.empirical import (
     run_from_error,
     window_distances,
 )
-from wmrjax.certify.exact_map import slice_basis, square_basis
+from wmrjax.certify.exact_map import Slice, slice_basis, square_basis
 from wmrjax.certify.lemma2 import check_dynamic, check_lemma2_args
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
 from wmrjax.simulate import batch_map
@@ -63,7 +63,7 @@ def falsify(
     radius,
     starts,
     dt: float,
-    basis="full",
+    basis=Slice.FULL,
     steps: int = 60,
     learning_rate: float = 0.1,
     n_windows: int = 8,
@@ -206,7 +206,7 @@ def falsified_radius(
     eps: float,
     key,
     dt: float,
-    basis="full",
+    basis=Slice.FULL,
     r_lo: float = 0.0,
     r_hi: float | None = None,
     n_starts: int = 16,

@@ -33,7 +33,7 @@ from wmrjax.certify.empirical import (
     verify_all,
     window_distances,
 )
-from wmrjax.certify.exact_map import ExactMapRadius, exact_map_radius, slice_basis
+from wmrjax.certify.exact_map import ExactMapRadius, Slice, exact_map_radius, slice_basis
 from wmrjax.certify.falsify import FalsifiedRadius, compile_search, falsified_radius
 from wmrjax.certify.lemma2 import Lemma2Report, check_dynamic, grid_k2s, k2_transition, lemma2
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
@@ -271,7 +271,15 @@ def _stages(ctrl, params, estimate, t0, n_steps, dt, falsifier_dt, seed, zeta0_n
         fs, below, disagree = _falsifier_stages(
             ctrl, params, keys, exact, radii, search, log, elapsed, clock, **horizon
         )
-        stages = (exact["full"], exact["position"], emp, sampling, er, fs.get("full"), fs.get("position"))
+        stages = (
+            exact[Slice.FULL],
+            exact[Slice.POSITION],
+            emp,
+            sampling,
+            er,
+            fs.get(Slice.FULL),
+            fs.get(Slice.POSITION),
+        )
         return CertificationReport(
             eps,
             t_final,
@@ -344,7 +352,7 @@ def _empirical_stages(
         errs = _sampled_errors(ctrl, params, *keys, n_empirical, r_max)
         emp, alarms = _empirical_checks(ctrl, params, cert, radii, errs, t_final=horizon["t_final"], dt=dt, log=log)
     clock.stage("empirical check")
-    directions = _position_directions(ctrl, n_directions, exact["position"].worst_error)
+    directions = _position_directions(ctrl, n_directions, exact[Slice.POSITION].worst_error)
     er = empirical_radius(ctrl, params, **horizon, directions=directions, r_max=r_max, dt=dt)
     log(f"  empirical safe radius (position slice, {len(directions)} rays): {er.radius:.4f}  {elapsed()}")
     clock.stage("empirical radius")
@@ -421,12 +429,10 @@ def _check_analyse_args(t_final, dt, falsifier_dt, counts: Counts, seed, budget_
 def _exact_maps(ctrl, params, *, t_final: float, eps: float, n_t: int, log, elapsed) -> dict:
     """The exact-map radius of the full error and of the position slice (keys ``"full"`` and
     ``"position"``) on ``n_t`` times, logged with the time ``elapsed()`` since the start."""
-    exact = {
-        b: exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=b, n_t=n_t) for b in ("full", "position")
-    }
+    exact = {b: exact_map_radius(ctrl, params, t_final=t_final, eps=eps, basis=b, n_t=n_t) for b in Slice}
     gaps = "".join(
         f" (proved lower bound {exact[b].lower_bound:.4f})" if exact[b].lower_bound is not None else ""
-        for b in ("full",)
+        for b in (Slice.FULL,)
     )
     log(
         f"  exact-map radius full {float(exact['full'].radius):.4f}{gaps}, position slice "
@@ -454,7 +460,7 @@ def _falsifiers(ctrl, params, keys, *, t_final, eps, dt, n_starts, n_samples, st
     ``"position"``), from the PRNG ``keys`` (one each; none: the falsifier is skipped) and the
     largest Lemma 2 radius ``r_lo``, logged with the time ``elapsed()`` since the start."""
     fs = {}
-    for b, kf in zip(("full", "position"), keys):
+    for b, kf in zip(Slice, keys):
         fs[b] = falsified_radius(
             ctrl,
             params,

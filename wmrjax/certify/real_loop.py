@@ -42,7 +42,7 @@ import numpy as np
 from wmrjax._validate import check_int, check_positive
 from wmrjax.certify.deviation import Mismatch, mismatch_radius
 from wmrjax.certify.empirical import sample_sphere
-from wmrjax.certify.exact_map import singular_rows, slice_basis
+from wmrjax.certify.exact_map import Slice, singular_rows, slice_basis
 from wmrjax.certify.lemma2 import check_dynamic
 from wmrjax.certify.saturation import saturation_free_radius
 from wmrjax.controllers import Space, Task, place
@@ -163,7 +163,7 @@ def real_loop_falsified_radius(
     *,
     eps: float,
     r_max: float,
-    basis="full",
+    basis=Slice.FULL,
     directions=(),
     n_directions: int = N_DIRECTIONS,
     n_grid: int = 8,
@@ -465,7 +465,7 @@ def radius_labels(block: dict) -> dict:
     return out
 
 
-SLICES = {"full": "radius_exact_map", "position": "radius_exact_map_position_slice"}
+SLICES = {Slice.FULL: "radius_exact_map", Slice.POSITION: "radius_exact_map_position_slice"}
 
 
 def problem_certificate(

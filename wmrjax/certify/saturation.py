@@ -40,7 +40,7 @@ import numpy as np
 
 from wmrjax import _math
 from wmrjax.certify import affine, interval
-from wmrjax.certify.exact_map import slice_basis
+from wmrjax.certify.exact_map import Slice, slice_basis
 from wmrjax.certify.lemma2 import check_dynamic
 from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.law import DET_FLOOR
@@ -306,7 +306,7 @@ def saturation_free_radius(
     input_limit,
     *,
     t_final: float,
-    basis="full",
+    basis=Slice.FULL,
     n_boxes: int = 512,
     rounds: int = 4,
     rho_max: float = 10.0,

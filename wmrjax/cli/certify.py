@@ -44,6 +44,7 @@ import os
 import sys
 from pathlib import Path
 
+from wmrjax.certify import Slice
 from wmrjax.certify.job import run, settings, setup
 from wmrjax.cli import machine, options, problem_args, running
 
@@ -78,7 +79,7 @@ def _report(s: dict, out: Path) -> int:
     pc = s["problem_certificate"]
     if pc["loop"] != ["nominal"]:
         print(f"problem's loop ({', '.join(pc['loop'])}):")
-        for b in ("full", "position"):
+        for b in Slice:
             c = pc[b]
             proved = "none proved" if c["radius"] is None else f"{c['radius']:.4f} ({c['kind']})"
             falsified = "none found" if c["falsified_radius"] is None else f"{c['falsified_radius']:.4f} (estimated)"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import jax
 
+from wmrjax.certify import Slice
 from wmrjax.cli import machine, options, problem_args, running
 from wmrjax.tune import certified, config
 from wmrjax.tune.pareto import run
@@ -21,7 +22,7 @@ def parser():
     p.add_argument(
         "--slice",
         default="full",
-        choices=["full", "position"],
+        choices=[str(s) for s in Slice],
         help="the slice of initial errors whose exact-map radius is required (default: full)",
     )
     g = p.add_mutually_exclusive_group()

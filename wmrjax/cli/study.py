@@ -11,6 +11,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from wmrjax.certify import Slice
 from wmrjax.cli import machine, options, problem_args, running
 from wmrjax.problem import Problem
 from wmrjax.tune.study import DEFAULT_PROBLEMS, METHODS, problem_path, study
@@ -50,7 +51,7 @@ def parser():
         help="a certified-region requirement for every problem that can keep one (a radius, 'initial' "
         "or 'box'; see wmrjax tune --help); the others run without and say so",
     )
-    p.add_argument("--require-slice", default="full", choices=["full", "position"], help="the requirement's slice")
+    p.add_argument("--require-slice", default="full", choices=[str(s) for s in Slice], help="the requirement's slice")
     return p
 
 

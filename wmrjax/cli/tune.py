@@ -24,6 +24,7 @@ import sys
 
 import jax
 
+from wmrjax.certify import Slice
 from wmrjax.cli import machine, options, problem_args, running
 from wmrjax.tune import certified, config, loop
 from wmrjax.tune.job import baseline_budget, run
@@ -100,7 +101,7 @@ def radius_change_lines(radii: dict) -> list:
             f"initial {r0:.4g} -> tuned {r1:.4g} ({change})"
         )
     pc = radii.get("problem_certificate")
-    for basis in ("full", "position") if pc is not None else ():
+    for basis in Slice if pc is not None else ():
         b0, b1 = pc["initial"][basis], pc["tuned"][basis]
         if b0["radius"] is None or b1["radius"] is None:
             continue

@@ -161,7 +161,9 @@ def certified_radii(plan: S.Plan) -> dict:
                 radii[f"lemma2_{name}"] = float(c.radius)
         try:
             radii["exact_map_position_slice"] = float(
-                certify.exact_map_radius(ctrl, params, t_final=plan.t_final, eps=eps, basis="position").radius
+                certify.exact_map_radius(
+                    ctrl, params, t_final=plan.t_final, eps=eps, basis=certify.Slice.POSITION
+                ).radius
             )
         except ValueError as err:  # (1,2): curved singular set
             radii["exact_map_note"] = str(err)

@@ -35,12 +35,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import certify
+from wmrjax.certify import Slice
 from wmrjax.certify.job import CERTIFY_KEYS
 from wmrjax.controllers.dynamic import DynamicLinearization
 from wmrjax.problem import ProblemError, Space, check_keys, positive
 from wmrjax.references import FAMILIES
 
-SLICES = ("full", "position")
+SLICES = tuple(Slice)
 DEFAULT_EPS = CERTIFY_KEYS["eps"]  # the certification's default margin [output-error units]
 BAND = 0.02  # project the gradient when the radius is within 2 % of the requirement
 MAX_HALVINGS = 30  # a rejected step is halved at most this often (2^-30 of it), then not taken
@@ -83,9 +84,9 @@ def read(table: dict | None, certify_section: dict) -> Requirement | None:
         raise ProblemError(f'[tune.requirement] radius: expected a radius >= 0, "initial" or "box", got {r!r}')
     sl = table.get("slice", "full")
     if sl not in SLICES:
-        raise ProblemError(f"[tune.requirement] slice: expected one of {SLICES}, got {sl!r}")
+        raise ProblemError(f"[tune.requirement] slice: expected one of {[str(s) for s in SLICES]}, got {sl!r}")
     eps = positive("tune.requirement", "eps", table.get("eps", certify_section.get("eps", DEFAULT_EPS)))
-    return Requirement(float(r) if not isinstance(r, str) else r, sl, float(eps))
+    return Requirement(float(r) if not isinstance(r, str) else r, Slice(sl), float(eps))
 
 
 def check(setting, family) -> None:
@@ -140,7 +141,7 @@ def required_radius(setting, req: Requirement, radius: Radius, raw0) -> float:
                 '[tune.requirement] radius = "box" needs output-space initial errors ([initial] space '
                 '= "output"): the radius is a ball of output errors'
             )
-        keys = ("x", "y") if req.slice == "position" else ("x", "y", "vx", "vy")
+        keys = ("x", "y") if Slice(req.slice) == Slice.POSITION else ("x", "y", "vx", "vy")
         return float(math.sqrt(sum(_half_width(setting.data["initial"].get(k, 0.0)) ** 2 for k in keys)))
     return float(req.radius)
 

@@ -564,7 +564,7 @@ def _radii_figure(out, title, radii: dict) -> None:
     falsified ones and the requirement marked."""
     plt = files.headless_pyplot()
     rows = [(f"lemma2_{k}", v["label"]) for k, v in radii["initial"]["lemma2"].items()]
-    rows += [(f"exact_map_{b}", f"exact map ({b})") for b in ("full", "position")]
+    rows += [(f"exact_map_{b}", f"exact map ({b})") for b in certified.SLICES]
 
     def value(which, key, field="radius"):
         d = radii[which]
