@@ -229,13 +229,28 @@ def analyse(
     asked = Counts(n_empirical, n_directions, n_starts, n_samples, falsifier_steps, later_runs)
     n_steps = _check_analyse_args(t_final, dt, falsifier_dt, asked, seed, budget_s, log)
     estimate = _estimate_first(ctrl, params, asked, dt, n_steps, budget_s, t0, log, elapsed)
-    return _stages(ctrl, params, estimate, t0, n_steps, dt, falsifier_dt, seed, zeta0_norm, log, elapsed, t_final, eps)
+    run = _Run(t_final, eps, dt, falsifier_dt, n_steps, seed, zeta0_norm)
+    return _stages(ctrl, params, estimate, run, t0, log, elapsed)
 
 
-def _stages(ctrl, params, estimate, t0, n_steps, dt, falsifier_dt, seed, zeta0_norm, log, elapsed, t_final, eps):
+class _Run(NamedTuple):
+    """:func:`analyse`'s settings its stages read (its arguments, ``falsifier_dt`` filled in, and
+    the empirical checks' step count)."""
+
+    t_final: float
+    eps: float
+    dt: float
+    falsifier_dt: float
+    n_steps: int
+    seed: int
+    zeta0_norm: float | None
+
+
+def _stages(ctrl, params, estimate: WorkEstimate, run: _Run, t0: float, log, elapsed) -> CertificationReport:
     """:func:`analyse` after its estimate: the certificates, the empirical stages and the
-    falsifiers, sized by the estimate's counts."""
+    falsifiers, sized by the estimate's counts; ``t0`` the start, ``elapsed()`` the time since."""
     n_empirical, n_directions, n_starts, n_samples, steps, _ = estimate.counts
+    t_final, eps, dt, falsifier_dt, n_steps, seed, zeta0_norm = run
     clock = _StageClock(t0)  # the estimate's timed block is charged to the compiling it mostly is
     horizon = dict(t_final=t_final, eps=eps)
     search = dict(dt=falsifier_dt, n_starts=n_starts, n_samples=n_samples, steps=steps)  # the falsifier's
