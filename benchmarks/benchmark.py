@@ -465,7 +465,7 @@ def _example_setup(case: str):
 
     import wmrjax as w
     from wmrjax import references
-    from wmrjax.problem import place
+    from wmrjax.controllers import place
 
     family, kind, level = case.split("/")
     ctrl = (w.dynamic_linearization if family == "dynamic" else w.static_linearization)(kind, level)
@@ -778,15 +778,21 @@ def compile_table(cases, batch: int, devices: int, progress=print) -> dict:
     return out
 
 
-WORKERS = Path(__file__).resolve().parent / "workers.py"  # fresh-process measurements, run by path
+WORKERS_FILE = Path(__file__).resolve().parent / "workers.py"  # fresh-process measurements, run by path
 
 
 def run_worker(tree: Path, *args, env: dict | None = None) -> dict:
     """``benchmarks/workers.py ARGS`` in a fresh process with ``tree``'s wmrjax first on the path
     (the worker file is this checkout's): its JSON line."""
-    env = dict(os.environ if env is None else env, PYTHONPATH=str(tree))
+    env = dict(os.environ if env is None else env)
+    env["PYTHONPATH"] = os.pathsep.join([str(tree)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     r = subprocess.run(
-        [sys.executable, str(WORKERS), *map(str, args)], capture_output=True, text=True, env=env, cwd=tree, timeout=1200
+        [sys.executable, str(WORKERS_FILE), *map(str, args)],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tree,
+        timeout=1200,
     )
     if r.returncode:
         raise RuntimeError(f"worker {args} in {tree} failed:\n{r.stderr[-3000:]}")

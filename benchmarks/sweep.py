@@ -23,7 +23,7 @@ from pathlib import Path
 from wmrjax import _files as files
 from wmrjax.cli import machine, options
 
-WORKERS = Path(__file__).resolve().parent / "workers.py"  # fresh-process measurements, run by path
+PEAK_OF = Path(__file__).resolve().parent / "peak_of.py"  # a process tree's peak memory, run by path
 
 SPEC = """title = "scale benchmark: the section 6.1 loop over {n} x {n} initial position errors"
 [controller]
@@ -53,8 +53,8 @@ def _sweep(spec: Path, out: Path, extra=(), kill_at: float | None = None, n_bloc
     cmd = [sys.executable, "-m", "wmrjax", "sweep", str(spec), "--out", str(out), *extra]
     t0 = time.perf_counter()
     proc = subprocess.Popen(
-        # a fresh parent per sweep (benchmarks/workers.py children), so the peak is this sweep's tree alone
-        [sys.executable, str(WORKERS), "children", str(rss), *cmd],
+        # a fresh parent per sweep (benchmarks/peak_of.py), so the peak is this sweep's tree alone
+        [sys.executable, str(PEAK_OF), str(rss), *cmd],
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,

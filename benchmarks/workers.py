@@ -9,16 +9,11 @@ Workers:
   ``simulate N DT``, ``tune``, ``sweep SPEC OUT``: the peak resident memory's growth (VmHWM) of
   one run of N steps, of a tuning step from 64 to 2048 scenarios, and of a sweep, with the
   memory model's prediction (``measured``, ``predicted``).
-  ``children RSS_FILE COMMAND...``: runs COMMAND, writes the peak resident memory of its process
-  tree (``ru_maxrss`` of the children, KiB) to RSS_FILE and exits with its status (a fresh
-  parent per command, so that the figure is that command's alone).
 """
 
 from __future__ import annotations
 
 import json
-import resource
-import subprocess
 import sys
 import time
 
@@ -42,12 +37,12 @@ def peak() -> int:
 
 def tuner(name: str) -> dict:
     """Trace, compile and step times of the tuner's gradient program on the shipped problem ``name``."""
+    t_start = time.perf_counter()  # setup_s: the imports, the problem, the scenarios
     from wmrjax.examples import problem_file
     from wmrjax.problem import Problem
     from wmrjax.tune import config
     from wmrjax.tune import loop as L
 
-    t_start = time.perf_counter()
     problem = Problem.load(problem_file(name))
     s = problem.setting("tuning")
     ts = config.read(problem.section("tune"))
@@ -141,20 +136,10 @@ WORKERS = {
 }
 
 
-def children(rss_file: str, *command: str) -> int:
-    """Run ``command``; write its process tree's peak resident memory [KiB] to ``rss_file``; its status."""
-    r = subprocess.run(command)
-    with open(rss_file, "w") as f:
-        f.write(str(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss))
-    return r.returncode
-
-
 def main(argv: list) -> int:
     """Run the worker ``argv[0]`` with the arguments after it; print its JSON line."""
-    if argv and argv[0] == "children":
-        return children(*argv[1:])
     if not argv or argv[0] not in WORKERS:
-        raise SystemExit(f"usage: workers.py {{{','.join(WORKERS)},children}} ARGS... (got {argv})")
+        raise SystemExit(f"usage: workers.py {{{','.join(WORKERS)}}} ARGS... (got {argv})")
     fn, types = WORKERS[argv[0]]
     if len(argv) - 1 != len(types):
         raise SystemExit(f"{argv[0]} takes {len(types)} argument(s), got {argv[1:]}")

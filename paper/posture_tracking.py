@@ -38,7 +38,7 @@ def _named_references(ctrl, g, free_heading: bool, t_final: float, dt: float, n_
 
     import wmrjax as w
     from wmrjax import references as R
-    from wmrjax.problem import Space, Task, place
+    from wmrjax.controllers import Space, Task, place
 
     named = {
         r.name: r
@@ -75,7 +75,7 @@ def _random_runs(ctrl, g, free_heading: bool, n_random: int, t_final: float, dt:
 
     import wmrjax as w
     from wmrjax import references as R
-    from wmrjax.problem import Space, Task, place
+    from wmrjax.controllers import Space, Task, place
 
     k_ref, k_ic, k_off = jax.random.split(jax.random.PRNGKey(seed), 3)
     n_post = ctrl.robot.n_state

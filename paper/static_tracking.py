@@ -29,7 +29,7 @@ def _start(ctrl, posture: bool, params, key):
     import jax
     import jax.numpy as jnp
 
-    from wmrjax.problem import Space, Task, place
+    from wmrjax.controllers import Space, Task, place
 
     k1, k2, k3 = jax.random.split(key, 3)
     th = jax.random.uniform(k2, (), minval=-math.pi, maxval=math.pi)

@@ -506,7 +506,7 @@ def compile_search(
     compile_window_distances(
         ctrl, params, dt=fine, n_steps=n_steps_for(t_final, fine), block=CONFIRM_BLOCK, shared=False
     )
-    Q = square_basis(slice_basis(ctrl, "full"))
+    Q = square_basis(slice_basis(ctrl, Slice.FULL))
     S = gradient_starts(n_starts, n_windows)
     args = _search_args(ctrl, params, 1.0, jnp.ones((S, Q.shape[1])), jnp.zeros((S, 2)), Q)
     _falsify.lower(*args, dt, n_steps, steps, learning_rate).compile()

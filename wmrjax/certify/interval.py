@@ -96,7 +96,7 @@ class Interval(NamedTuple):
 
     @property
     def rad(self):
-        """The radius (hi - lo) / 2, rounded up: [mid - rad, mid + rad] holds the interval."""
+        """The radius (hi - lo) / 2, rounded up (``mid`` is rounded to nearest: a caller adds its rounding)."""
         return _up(0.5 * (self.hi - self.lo))
 
     def contains(self, x):

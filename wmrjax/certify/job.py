@@ -70,7 +70,7 @@ def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title="
     R = 1.25 * max(v for k, v in block.items() if k.startswith("radius_") and v is not None)
     xs = np.linspace(-R, R, n_grid)
     X, Y = np.meshgrid(xs, xs)
-    P = np.asarray(C.slice_basis(ctrl, "position"))
+    P = np.asarray(C.slice_basis(ctrl, C.Slice.POSITION))
     errs = np.stack([X.ravel(), Y.ravel()], 1) @ P.T
     d, s = C.min_distance(ctrl, params, t_final=t_final, initial_errors=jnp.asarray(errs), dt=dt)
     d = np.where(np.asarray(s), 0.0, np.asarray(d)).reshape(X.shape)
@@ -153,8 +153,8 @@ def run(out, problem, case=None, progress=None) -> dict:
     # the map's runs scale with its side squared; a side asked below the floor stays as asked
     map_grid = min(cfg["map_grid"], max(MAP_GRID_FLOOR, round(cfg["map_grid"] * scale**0.5)))
     plant_directions = max(PLANT_DIRECTIONS_FLOOR, round(C.real_loop.N_DIRECTIONS * scale))
-    exact = {"full": report.exact_full, "position": report.exact_position}
-    falsified = {"full": report.falsified_full, "position": report.falsified_position}
+    exact = {C.Slice.FULL: report.exact_full, C.Slice.POSITION: report.exact_position}
+    falsified = {C.Slice.FULL: report.falsified_full, C.Slice.POSITION: report.falsified_position}
     t_later = time.perf_counter()
     problem_block = C.problem_certificate(
         setting,

@@ -465,7 +465,7 @@ def _sampled_errors(ctrl, params, key_direction, key_radius, n: int, r_max: floa
 def _position_directions(ctrl, n: int, worst_error) -> np.ndarray:
     """(n + 1, r m) directions of initial errors in the position slice: :func:`_rays` through the
     exact map's worst error of that slice ``worst_error`` (full coordinates)."""
-    P = slice_basis(ctrl, "position")
+    P = slice_basis(ctrl, Slice.POSITION)
     ring = _rays(n, np.asarray(P.T @ worst_error))
     return ring @ np.asarray(P).T
 
@@ -614,7 +614,7 @@ def consistency(radii: dict, exact: dict, falsified: dict) -> tuple[bool, list]:
     wrong), or an exact-map radius of a linear singular set that is not within
     :data:`EXACT_FALSIFIED_RTOL` of the falsified one (the map is tight by construction: its
     worst initial error scaled up fails, so a falsified radius far above it means the map is wrong)."""
-    bounds = [(r, "full", f"Lemma 2 ({n})") for n, r in radii.items()]
+    bounds = [(r, Slice.FULL, f"Lemma 2 ({n})") for n, r in radii.items()]
     # the exact map's proved radius: its lower bound (the attained radius for a gain schedule)
     bounds += [
         (float(e.radius) if e.lower_bound is None else e.lower_bound, b, f"exact map ({b})") for b, e in exact.items()

@@ -21,7 +21,7 @@ def parser():
     problem_args.add_problem_options(p, needs="with a [tune] section")
     p.add_argument(
         "--slice",
-        default="full",
+        default=str(Slice.FULL),
         choices=[str(s) for s in Slice],
         help="the slice of initial errors whose exact-map radius is required (default: full)",
     )

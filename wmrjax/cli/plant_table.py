@@ -42,7 +42,7 @@ def loops(plant: dict) -> list:
     return out
 
 
-def run(out: Path, problem, basis: str = "position", progress=print) -> dict:
+def run(out: Path, problem, basis: str = C.Slice.POSITION, progress=print) -> dict:
     """The table of ``problem`` (a :class:`wmrjax.problem.Problem` with a ``[plant]``)."""
     machine.enable_x64()
     plant = problem.data.get("plant")
@@ -95,7 +95,9 @@ def main(argv=None) -> int:
     """Run ``wmrjax plant-table`` with ``argv`` (default: the process's arguments); return the exit status."""
     p = options.parser(__doc__.splitlines()[0], "results/plant_table")
     problem_args.add_problem_options(p, needs="with a [plant] section")
-    p.add_argument("--slice", default="position", choices=["position", "full"], help="the slice of initial errors")
+    p.add_argument(
+        "--slice", default=str(C.Slice.POSITION), choices=[str(s) for s in C.Slice], help="the slice of initial errors"
+    )
     a = p.parse_args(argv)
     machine.configure_xla()  # before JAX starts its backend (the runs are vmapped on one device)
     try:

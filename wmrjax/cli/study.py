@@ -51,7 +51,9 @@ def parser():
         help="a certified-region requirement for every problem that can keep one (a radius, 'initial' "
         "or 'box'; see wmrjax tune --help); the others run without and say so",
     )
-    p.add_argument("--require-slice", default="full", choices=[str(s) for s in Slice], help="the requirement's slice")
+    p.add_argument(
+        "--require-slice", default=str(Slice.FULL), choices=[str(s) for s in Slice], help="the requirement's slice"
+    )
     return p
 
 

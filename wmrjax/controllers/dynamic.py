@@ -118,7 +118,7 @@ def _comp_11(X, c, U, g):
 
 
 def _psi_inv_11(zeta, branch, g):
-    """The posture from the output jet, with h = P' on the fixed axle: chi1 = +-|h'|, theta from h', then beta and eta1 from
+    """The law's state (posture and compensator) from the output jet, with h = P' on the fixed axle: chi1 = +-|h'|, theta from h', then beta and eta1 from
     theta' = eta1 cos(beta) and chi1 - e theta' = eta1 L sin(beta), with eta1 > 0."""
     hd, hdd = zeta[1], zeta[2]
     th = jnp.arctan2(-branch * hd[0], branch * hd[1])

@@ -266,7 +266,7 @@ class LinearizingLaw:
         return jnp.concatenate([X, w + dw])
 
     def outputs(self, z, g):
-        """The outputs (the tracked point's position) of state ``z`` with geometry ``g``."""
+        """The linearizing outputs Y, (m,), of state ``z`` with geometry ``g``."""
         return self.extension.outputs(z[: self.robot.n_state], g)
 
     def jet(self, z, g):

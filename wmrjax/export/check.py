@@ -45,7 +45,8 @@ class CStep:
         self._d = ctypes.POINTER(ctypes.c_double)
 
     def __call__(self, t, measured, state):
-        """One control step of the compiled C at time ``t`` [s] from ``measured``; returns the command and the new state."""
+        """One control step of the compiled C at time ``t`` [s] from ``measured``: ``(command, new state,
+        regularity)``."""
         m = np.ascontiguousarray(measured, np.float64)
         s = np.array(state, np.float64)  # updated in place: a copy
         c = np.zeros(self.n_command)

@@ -54,7 +54,7 @@ class RunInputs(NamedTuple):
       L, e, delta: the law's geometry (:class:`wmrjax.Geometry`) [m, m, rad].
       limit: (n_input,) input limits of the plant (inf: none) [the inputs' units].
       input_scale: (n_input,) the plant's input = scale * command.
-      geometry_scale: () the plant's L and e = scale * the law's.
+      geometry_scale: () or (2,): the plant's L and e = scale * the law's (one factor, or one each).
       reference: the reference's parameters (a pytree of :class:`wmrjax.references.Reference`).
       heading_offset: () the reference's heading offset [rad].
       branch: () +1.0 or -1.0, the reference's branch of Psi^-1 (dynamic laws).

@@ -186,7 +186,7 @@ def _edges(v):
 
 
 def figures(plan: S.Plan, table: dict, certified: dict, out: Path) -> list:
-    """The sweep's figures (PNG) written under ``out``; returns their paths."""
+    """The sweep's figures (PNG) written under ``out``; returns their file names."""
     plt = _files.headless_pyplot()
     written = []
     for old in out.glob("map_*.png"):  # an earlier run's maps (other quantities) must not linger

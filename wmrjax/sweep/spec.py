@@ -66,7 +66,7 @@ class Plan:
 
     @property
     def n_runs(self) -> int:
-        """The number of runs of every group."""
+        """The number of runs of all groups together."""
         return sum(g.size for g in self.groups)
 
     def blocks(self):

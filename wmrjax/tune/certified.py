@@ -37,8 +37,9 @@ import numpy as np
 from wmrjax import certify
 from wmrjax.certify import Slice
 from wmrjax.certify.job import CERTIFY_KEYS
+from wmrjax.controllers import Space
 from wmrjax.controllers.dynamic import DynamicLinearization
-from wmrjax.problem import ProblemError, Space, check_keys, positive
+from wmrjax.problem import ProblemError, check_keys, positive
 from wmrjax.references import FAMILIES
 
 SLICES = tuple(Slice)
@@ -65,7 +66,7 @@ class Requirement(NamedTuple):
     """
 
     radius: float | str
-    slice: str = "full"
+    slice: str = str(Slice.FULL)
     eps: float = DEFAULT_EPS
 
 
@@ -82,11 +83,12 @@ def read(table: dict | None, certify_section: dict) -> Requirement | None:
         or (isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and r >= 0)
     ):
         raise ProblemError(f'[tune.requirement] radius: expected a radius >= 0, "initial" or "box", got {r!r}')
-    sl = table.get("slice", "full")
+    sl = table.get("slice", str(Slice.FULL))
     if sl not in SLICES:
         raise ProblemError(f"[tune.requirement] slice: expected one of {[str(s) for s in SLICES]}, got {sl!r}")
     eps = positive("tune.requirement", "eps", table.get("eps", certify_section.get("eps", DEFAULT_EPS)))
-    return Requirement(float(r) if not isinstance(r, str) else r, Slice(sl), float(eps))
+    # the slice's name, a plain string: a requirement's repr is part of a checkpoint's fingerprint
+    return Requirement(float(r) if not isinstance(r, str) else r, str(Slice(sl)), float(eps))
 
 
 def check(setting, family) -> None:

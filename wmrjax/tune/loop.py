@@ -340,7 +340,7 @@ def _is_count(v) -> bool:
     return type(v) is int and v >= 0
 
 
-def _is_number(v) -> bool:
+def _is_real(v) -> bool:
     return type(v) in (int, float)  # not bool; a loss may be inf
 
 
@@ -354,22 +354,18 @@ def _check_state(path: Path, step: int, state: dict, n_params: int) -> None:
             lambda: (
                 isinstance(hist, list)
                 and len(hist) == step
-                and all(isinstance(h, dict) and _is_number(h.get("train_loss")) for h in hist)
+                and all(isinstance(h, dict) and _is_real(h.get("train_loss")) for h in hist)
             ),
             f"a list of {step} step records (one per step done)",
         ),
-        ("best", lambda: state["best"] is None or _is_number(state["best"]), "null or a number"),
+        ("best", lambda: state["best"] is None or _is_real(state["best"]), "null or a number"),
         (
             "best_raw",
             lambda: (
                 (best_raw is None) == (state["best"] is None)
                 and (
                     best_raw is None
-                    or (
-                        isinstance(best_raw, list)
-                        and len(best_raw) == n_params
-                        and all(_is_number(v) for v in best_raw)
-                    )
+                    or (isinstance(best_raw, list) and len(best_raw) == n_params and all(_is_real(v) for v in best_raw))
                 )
             ),
             f"{n_params} numbers (null only with 'best' null)",
@@ -383,9 +379,7 @@ def _check_state(path: Path, step: int, state: dict, n_params: int) -> None:
         ),
         (
             "wall_time_s",
-            lambda: (
-                _is_number(state["wall_time_s"]) and np.isfinite(state["wall_time_s"]) and state["wall_time_s"] >= 0
-            ),
+            lambda: _is_real(state["wall_time_s"]) and np.isfinite(state["wall_time_s"]) and state["wall_time_s"] >= 0,
             "seconds >= 0",
         ),
         ("stopped_early", lambda: type(state["stopped_early"]) is bool, "true or false"),

@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from wmrjax import _files as files
+from wmrjax.certify import Slice
 from wmrjax.tune import certified, config, loop
 
 AGREEMENT = 0.01  # a point is certified when falsified / exact - 1 <= this
@@ -69,7 +70,7 @@ def tune_point(problem, required: float, slice_: str, eps: float, log=print) -> 
     setting = problem.setting("tuning")
     settings = config.read(problem.section("tune"), problem.section("certify"))
     family = settings.gain_family(setting)
-    req = certified.Requirement(float(required), slice_, float(eps))
+    req = certified.Requirement(float(required), str(Slice(slice_)), float(eps))
     res = loop.tune(
         setting,
         family,
@@ -111,7 +112,7 @@ def tune_point(problem, required: float, slice_: str, eps: float, log=print) -> 
     }
 
 
-def run(problem, out: Path, slice_: str = "full", fractions=None, radii=None, eps=None, log=print) -> dict:
+def run(problem, out: Path, slice_: str = Slice.FULL, fractions=None, radii=None, eps=None, log=print) -> dict:
     """Every point (resuming finished ones), then the table, the figure and ``summary.json``."""
     jax.config.update("jax_enable_x64", True)
 
@@ -121,7 +122,7 @@ def run(problem, out: Path, slice_: str = "full", fractions=None, radii=None, ep
     family = settings.gain_family(setting)
     eps = float(eps if eps is not None else problem.section("certify").get("eps", certified.DEFAULT_EPS))
     raw0 = loop.initial_raw(setting, family)
-    initial = certified.radius_function(setting, family, certified.Requirement(0.0, slice_, eps)).value(
+    initial = certified.radius_function(setting, family, certified.Requirement(0.0, str(Slice(slice_)), eps)).value(
         jnp.asarray(raw0)
     )
     if radii is None:
@@ -198,7 +199,7 @@ def _figure(out, title, slice_, eps, base, points) -> None:
     ax.plot(req, loss, "C0|", ms=10, label="required radius")
     ax.plot([base["radius"]], [base["heldout_loss"]], "C3*", ms=12, label="initial gains")
     ax.set_yscale("log")
-    ax.set_xlabel(f"certified exact-map radius, {slice_} slice [m{', m/s' if slice_ == 'full' else ''}]")
+    ax.set_xlabel(f"certified exact-map radius, {slice_} slice [m{', m/s' if slice_ == Slice.FULL else ''}]")
     ax.set_ylabel("held-out loss (objective)")
     ax.set_title(f"{title}: tracking vs certified region (eps = {eps:g})", fontsize=10)
     ax.grid(alpha=0.3, which="both")

@@ -20,7 +20,8 @@ import numpy as np
 
 import wmrjax as w
 from wmrjax import references as R
-from wmrjax.problem import RunInputs, Setting, initial_box, initial_keys, place, random_options
+from wmrjax.controllers import initial_keys, place
+from wmrjax.problem import RunInputs, Setting, initial_box, random_options
 from wmrjax.tune.losses import MARGIN_FLOOR, MARGIN_SAFE, Metrics, SampleTerms, metrics
 
 
