@@ -19,6 +19,8 @@ import time
 
 import jax
 
+from wmrjax.cli import machine
+
 jax.config.update("jax_enable_x64", True)
 
 # each worker imports the wmrjax modules it measures inside it: the file runs against another
@@ -143,6 +145,7 @@ def main(argv: list) -> int:
     fn, types = WORKERS[argv[0]]
     if len(argv) - 1 != len(types):
         raise SystemExit(f"{argv[0]} takes {len(types)} argument(s), got {argv[1:]}")
+    machine.configure_xla()  # the command lines' XLA:CPU settings, before JAX's backend starts
     print(json.dumps(fn(*(t(a) for t, a in zip(types, argv[1:])))))
     return 0
 
