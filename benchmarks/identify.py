@@ -36,6 +36,7 @@ import jax
 import numpy as np
 
 import wmrjax as w
+from wmrjax import _files as files
 from wmrjax import identify
 from wmrjax.cli import machine
 from wmrjax.controllers.law import Level
@@ -221,9 +222,7 @@ def main(argv=None) -> int:
         "machine": platform.processor() or platform.machine(),
         "cores": os.cpu_count(),
     }
-    tmp = a.out / ".identify.json.tmp"
-    tmp.write_text(json.dumps(result, indent=1))
-    tmp.replace(a.out / "identify.json")
+    files.write_json(a.out / "identify.json", result)
     return 0
 
 

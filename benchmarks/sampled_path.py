@@ -25,19 +25,20 @@ import sys
 import time
 from pathlib import Path
 
+import jax
+import numpy as np
+
+from wmrjax import _files as files
+from wmrjax import references as R
+from wmrjax.cli import machine
+
+jax.config.update("jax_enable_x64", True)
 ROOT = Path(__file__).resolve().parent.parent
 SIZES = (1_000, 10_000, 100_000, 1_000_000)
 
 
 def load_one(n: int, degree: int) -> dict:
     """One load in this process (called in a fresh one): seconds, peak RSS, the path's error."""
-    import jax  # here: the parent process never starts JAX
-
-    jax.config.update("jax_enable_x64", True)
-    import numpy as np
-
-    from wmrjax import references as R
-
     t = np.arange(n) * 0.01
     xy = np.stack([2.0 * np.cos(0.5 * t), 2.0 * np.sin(0.5 * t)], 1)
     t0 = time.perf_counter()
@@ -72,6 +73,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "sampled_path")
     p.add_argument("--one", nargs=2, type=int, help=argparse.SUPPRESS)  # the fresh process: samples, degree
     a = p.parse_args(argv)
+    machine.configure_xla()  # the command lines' XLA:CPU settings (the children inherit them), before JAX starts
     if a.one:
         print(json.dumps(load_one(*a.one)))
         return 0
@@ -90,9 +92,7 @@ def main(argv=None) -> int:
     print(table(rows))
     a.out.mkdir(parents=True, exist_ok=True)
     result = {"rows": rows, "machine": platform.processor() or platform.machine(), "cores": os.cpu_count()}
-    tmp = a.out / ".sampled_path.json.tmp"
-    tmp.write_text(json.dumps(result, indent=1))
-    tmp.replace(a.out / "sampled_path.json")
+    files.write_json(a.out / "sampled_path.json", result)
     return 0
 
 
