@@ -49,6 +49,8 @@ nb_merge_streams = True
 autodoc_default_options = {"members": True, "undoc-members": False, "show-inheritance": False}
 autodoc_member_order = "bysource"
 autodoc_typehints = "description"
+# a class's fields are in its docstring: no second, undocumented "Parameters" list of them
+autodoc_typehints_description_target = "documented"
 autodoc_inherit_docstrings = False
 napoleon_google_docstring = True
 napoleon_numpy_docstring = False
@@ -67,7 +69,10 @@ html_show_sourcelink = False
 
 def _skip_namedtuple_aliases(app, what, name, obj, skip, options):
     """A NamedTuple's fields are documented in its class docstring; skip the generated
-    "Alias for field number N" entries."""
+    "Alias for field number N" entries, and a dataclass's annotated fields (its docstring's
+    ``Attributes``: listed again, they would be a second target of every field name)."""
+    if repr(obj) in ("INSTANCE_ATTR", "UNINITIALIZED_ATTR"):  # autodoc's sentinels (private in Sphinx 9)
+        return True
     doc = getattr(obj, "__doc__", None) or ""
     if isinstance(obj, property) or type(obj).__name__ == "_tuplegetter":
         if doc.startswith("Alias for field number"):

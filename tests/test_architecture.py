@@ -43,7 +43,12 @@ def _imports(path):
 
 LAYERS = ("wmrjax", "paper", "benchmarks")  # the package, and the repository's scripts above it
 JOBS = ("wmrjax.tune", "wmrjax.sweep")  # the jobs that are whole subpackages
-JOB_MODULES = ("wmrjax.certify.job", "wmrjax.export.job", "wmrjax.identify.job")  # a job beside its library
+JOB_MODULES = (
+    "wmrjax.certify.job",
+    "wmrjax.certify.plant_table",
+    "wmrjax.export.job",
+    "wmrjax.identify.job",
+)  # a job beside its library
 CLI = "wmrjax.cli"  # with wmrjax.__main__, its entry point
 PRIVATE_MODULES = ("_cgen", "_files", "_hoist", "_math", "_rk4", "_scalarize", "_simplify", "_validate")
 

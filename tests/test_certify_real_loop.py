@@ -10,6 +10,8 @@ velocity row is chi1 (-sin theta, cos theta), so the distance to the singular se
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import scipy.integrate
@@ -170,8 +172,8 @@ def test_the_tuner_says_its_radii_are_the_nominal_loops():
     assert "no proof covers this problem's input_limit, control_period" in loop["note"]
 
 
-def test_the_plant_table_runs_each_feature_alone_then_together():
-    from wmrjax.cli.plant_table import loops
+def test_the_plant_table_runs_each_feature_alone_then_together(tmp_path):
+    from wmrjax.certify.plant_table import FACTORS, PlantTableReport, loops, run
 
     plant = {"input_limit": [2.0, 1.5], "control_period": 0.05, "noise_std": [0.01]}
     assert [label for label, _ in loops(plant)] == [
@@ -182,3 +184,20 @@ def test_the_plant_table_runs_each_feature_alone_then_together():
         "whole [plant]",
     ]
     assert loops({"input_limit": [2.0, 1.5]}) == [("nominal", None), ("input_limit", {"input_limit": [2.0, 1.5]})]
+
+    # the table of a problem: the nominal row inside the proved ball never comes within eps (the
+    # certificate), and every row is the real loop's own distances from the scaled worst error
+    problem = _problem({"input_limit": [1.2, 1.2], "control_period": 0.1}).with_values({"certify.eps": EPS})
+    r = run(tmp_path, problem, "position", progress=lambda m: None)
+    assert isinstance(r, PlantTableReport) and [row["loop"] for row in r.rows] == [
+        "nominal",
+        "input_limit",
+        "control_period",
+        "input_limit + control_period",
+    ]
+    assert min(r.rows[0]["min_distance"]) >= EPS and r.summary()["nominal_radius_kind"] == "proved"
+    assert json.loads(json.dumps(r.summary())) == json.loads((tmp_path / "summary.json").read_text())
+    s = problem.with_values({"plant": {"control_period": 0.1}}).setting("certification")
+    errs = np.array([f * np.asarray(r.worst_error) for f in FACTORS])
+    np.testing.assert_array_equal(r.rows[2]["min_distance"], C.real_loop_distances(s, s.params(), errs, plant=0))
+    assert r.markdown().count("\n") == 1 + len(r.rows)

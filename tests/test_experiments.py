@@ -67,9 +67,11 @@ def test_certify_cli(tmp_path):
     assert on_disk["radius_exact_map"] <= on_disk["radius_exact_map_position_slice"]
     for k in ("lyapunov", "exact_norm"):
         assert on_disk["empirical"][k]["violations_53_inside"] == 0 and on_disk["empirical"][k]["singular_inside"] == 0
-    assert (tmp_path / "slice_map.png").read_bytes()[:4] == b"\x89PNG" and s["slice_map"]["n_grid"] == 5
-    json.dumps(s)  # the summary is plain JSON as returned (it held arrays: TypeError)
-    assert on_disk["alarms"] == []
+    assert (tmp_path / "slice_map.png").read_bytes()[:4] == b"\x89PNG" and s.slice_map["n_grid"] == 5
+    # the typed report: its summary is plain JSON (it held arrays: TypeError) and is the file
+    assert json.loads(json.dumps(s.summary())) == on_disk
+    assert s.nominal.exact_position.radius == on_disk["radius_exact_map_position_slice"]
+    assert on_disk["alarms"] == [] and s.alarms == []
     assert Problem.from_dict(on_disk["problem"]).resolved() == problem.resolved()
     assert on_disk["geometry"] == {"L": 1.0, "e": 0.0, "delta": 0.0} and on_disk["heading_offset"] == 0.3
     timing = on_disk["timing"]  # where the time went, stage by stage, adding up to the whole run

@@ -114,3 +114,21 @@ def test_bad_input_is_refused_before_any_work(tmp_path):
     )  # fmt: skip
     assert r.returncode == 2 and "--initial 99999: the problem has 6561 initial conditions" in r.stderr
     assert not (tmp_path / "o2").exists()
+
+
+@needs_cc
+def test_the_export_job_returns_its_typed_report(tmp_path):
+    """wmrjax.export.job.run from Python: the report's fields are the summary on disk, and its
+    agreement is the checks' against the tolerance."""
+    from wmrjax.export import job
+    from wmrjax.problem import Problem
+
+    problem = Problem.load(ROOT / "wmrjax/examples/section_6_1.toml")
+    r = job.run(tmp_path, problem, n_samples=20, cc=CC, progress=lambda m: None)
+    on_disk = json.loads((tmp_path / "summary.json").read_text())
+    assert isinstance(r, job.ExportReport) and json.loads(json.dumps(r.summary())) == on_disk
+    assert r.agrees and on_disk["agrees"] and r.checks["samples"] == 20
+    assert set(r.files) == {f"{r.step.name}.h", f"{r.step.name}.c", f"{r.step.name}.jax_export", "robot_loop.c"}
+    assert r.initial_compensator.shape == (r.step.n_compensator,)
+    strict = job.ExportReport(**{**r.__dict__, "tolerance": 0.0})  # nothing agrees to 0 but exact equality
+    assert strict.agrees == (max(r.checks[k] for k in ("jax_vs_simulator", "artifact_vs_jax", "c_vs_jax")) == 0.0)

@@ -117,6 +117,27 @@ def test_table_matches_direct_simulations(tiny):
     assert (out / "map_initial_error_x_initial_error_y.png").stat().st_size > 10_000
 
 
+def test_the_library_sweep_is_the_command_line_s(tiny, cache, tmp_path):
+    """wmrjax.sweep.sweep (one process, from Python) writes the table and summary the command line
+    wrote, and returns them as a typed report whose summary is the file."""
+    from wmrjax.problem import Problem
+    from wmrjax.sweep import SweepReport, sweep
+
+    spec, out = tiny
+    r = sweep(Problem.load(spec), tmp_path / "lib", source=str(spec), progress=lambda m: None)
+    assert isinstance(r, SweepReport) and r.table == tmp_path / "lib" / "runs.parquet"
+    on_disk = json.loads((tmp_path / "lib" / "summary.json").read_text())
+    assert json.loads(json.dumps(r.summary())) == on_disk
+    cli = json.loads((out / "summary.json").read_text())
+    timing = ("execution", "wall_time_s")
+    assert {k: v for k, v in on_disk.items() if k not in timing} == {k: v for k, v in cli.items() if k not in timing}
+    assert r.counts == cli["counts"] and r.execution["runs_computed"] == 18
+    a, b = _table(r.table), _table(out / "runs.parquet")
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)  # bit for bit (NaN where NaN)
+
+
 def test_killed_sweep_resumes_to_the_same_table(tiny, cache, tmp_path, monkeypatch):
     spec, out = tiny
     done = []

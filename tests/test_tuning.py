@@ -417,7 +417,10 @@ def test_cli_writes_summary_and_gains(tmp_path):
     np.testing.assert_allclose(on_disk["initial_gains"]["coefficients_k0_to_kr-1"], [[1.0, 2.0]] * 2, rtol=1e-12)
     for f in ("loss.png", "trajectories.png", "schedule.png", "radii.png"):
         assert (out / f).read_bytes()[:4] == b"\x89PNG"
-    assert s["heldout_loss"] == on_disk["heldout_loss"]
+    # the typed report: its summary is the file; its fields are the numbers in it
+    assert json.loads(json.dumps(s.summary())) == on_disk
+    assert s.heldout_loss == (ho["paper_gains"], ho["tuned"]) and s.result.rollouts == on_disk["rollouts"]
+    np.testing.assert_allclose(s.tuned_gains.coeffs, on_disk["tuned_gains"]["coefficients_k0_to_kr-1"], rtol=1e-15)
     # the lowest held-out loss of every method and seed, and its gains on disk
     best = on_disk["best_heldout"]
     seeds = [p["best_heldout_loss"] for b in on_disk["baselines"].values() for p in b["per_seed"]]

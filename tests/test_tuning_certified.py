@@ -2,6 +2,8 @@
 cannot be kept refused, and the Pareto front's points certified and resumed. (Apart from
 test_tuning.py so that the two files run on different workers.)"""
 
+import json
+
 import jax.numpy as jnp
 import pytest
 from test_tuning import TINY, TINY_DATA, TS, run_tiny
@@ -125,16 +127,17 @@ def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch):
     problem = TINY.with_values({"simulation.dt": dt})  # the falsifier's step is the problem's
     s = pareto.run(problem, out, "position", fractions=[1.0], log=lambda *_: None)
     assert programs and set(programs) == {(certify.CONFIRM_DT_FACTOR * dt, certify.CONFIRM_BLOCK, False)}
-    (pt,) = s["points"]
-    assert pt["required_radius"] == s["initial_gains"]["radius"] <= pt["tuned_radius"]
-    assert s["every_point_certified"] and pt["worst_error_confirmed"] and pt["falsified_radius"] is not None
+    (pt,) = s.points
+    assert pt["required_radius"] == s.initial["radius"] <= pt["tuned_radius"]
+    assert json.loads(json.dumps(s.summary())) == json.loads((out / "summary.json").read_text())
+    assert s.every_point_certified and pt["worst_error_confirmed"] and pt["falsified_radius"] is not None
     assert pt["falsified_over_exact"] == pytest.approx(pt["falsified_radius"] / pt["tuned_radius"], rel=1e-12)
     for f in ("pareto.csv", "summary.json", "points/point_00.json"):
         assert (out / f).exists()
     assert (out / "pareto.png").read_bytes()[:4] == b"\x89PNG"
     logged = []
     again = pareto.run(problem, out, "position", fractions=[1.0], log=logged.append)
-    assert sum("kept" in m for m in logged) == 1 and again["points"] == s["points"]
+    assert sum("kept" in m for m in logged) == 1 and again.points == s.points
 
 
 def test_requirement_on_type_12_is_refused_with_its_reason():

@@ -133,13 +133,13 @@ def test_study_end_to_end_writes_and_resumes(tmp_path, monkeypatch):
     agg = on_disk["aggregate"]["tiny"]
     budget = agg["gradient"]["budget_fwd"]
     assert all(agg[m]["budget_fwd"] == budget for m in methods)  # one budget for every method
-    assert "### tiny" in s["table_markdown"]
+    assert "### tiny" in s.table_markdown and json.loads(json.dumps(s.summary())) == on_disk
 
     def recompute(*a, **k):
         raise AssertionError("a finished seed was computed again")
 
     monkeypatch.setattr(study, "run_seed", recompute)
     again = study.study(problems, tmp_path, seeds=2, methods=methods, points=3, log=lambda *_: None)
-    assert again["aggregate"] == s["aggregate"]
+    assert again.aggregate == s.aggregate
     with pytest.raises(AssertionError, match="computed again"):  # another configuration: not kept
         study.study(problems, tmp_path, seeds=2, methods=methods, points=4, log=lambda *_: None)

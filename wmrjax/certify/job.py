@@ -5,6 +5,7 @@ empirical and falsified radii, the problem loop's falsified radius), the slice m
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import jax
@@ -13,7 +14,8 @@ import numpy as np
 
 from wmrjax import _files as files
 from wmrjax import certify as C
-from wmrjax.problem import Law, ProblemError, check_keys, integer, nonnegative, positive
+from wmrjax.problem import Law, Problem, ProblemError, Setting, check_keys, integer, nonnegative, positive
+from wmrjax.report import JobReport
 
 CERTIFY_KEYS = {
     "eps": 1e-2,
@@ -117,8 +119,76 @@ def slice_map(ctrl, params, block, path, *, t_final, dt, eps, n_grid=81, title="
     return {"n_grid": n_grid, "half_width": R, "fraction_unsafe": float(bad.mean())}
 
 
-def run(out, problem, case=None, progress=None) -> dict:
-    """Certify the problem's closed loop; writes ``summary.json`` and ``slice_map.png`` in ``out``."""
+@dataclasses.dataclass(frozen=True)
+class CertifyReport(JobReport):
+    """What :func:`run` found: the nominal loop's radii, the problem loop's certificate, the
+    slice map, and what it cost.
+
+    Attributes:
+        problem: the problem certified.
+        case: the case certified (``None``: the problem has none).
+        settings: the ``[certify]`` section over its defaults (:data:`CERTIFY_KEYS`).
+        setting: the problem's one closed loop (:meth:`wmrjax.problem.Problem.setting`).
+        params: its parameters (geometry, reference, gains).
+        nominal: :func:`wmrjax.certify.analyse`'s report: Lemma 2 three ways, the exact map,
+            the empirical and falsified radii, every one the nominal continuous loop's.
+        problem_certificate: per slice (``"full"``, ``"position"``) the certificate that covers the
+            problem's plant, with what it covers, its kind and the real loop's falsified radius
+            (:func:`wmrjax.certify.problem_certificate`; the nominal one for a problem without
+            ``[plant]``).
+        slice_map: the map's grid side, half-width [m] and fraction of its initial errors that
+            come within eps of the singular set.
+        estimate: the work estimate beside the measured stage times and peak memory.
+        wall_time_s: the job's wall time [s].
+        timing: per progress message, the seconds of work behind it.
+    """
+
+    problem: Problem
+    case: str | None
+    settings: dict
+    setting: Setting
+    params: object
+    nominal: C.CertificationReport
+    problem_certificate: dict
+    slice_map: dict
+    estimate: dict
+    wall_time_s: float
+    timing: list
+
+    @property
+    def alarms(self) -> list[str]:
+        """Results that contradict the theory (a certified radius above a falsified one), the
+        nominal loop's and the problem loop's: errors, not certificates."""
+        return list(self.nominal.alarms) + C.real_loop.problem_alarms(self.problem_certificate)
+
+    @property
+    def warnings(self) -> list[str]:
+        """What the problem's certificate does not cover, said in words."""
+        return C.real_loop.plant_warnings(self.problem_certificate)
+
+    def summary(self) -> dict:
+        """``summary.json``: the problem, the loop, every radius labelled, the problem's certificate,
+        the slice map, the estimate and the timing (plain JSON)."""
+        s = _summary(self, self.nominal.summary())
+        s["slice_map"] = self.slice_map
+        s["estimate"] = self.estimate
+        s["wall_time_s"] = self.wall_time_s
+        s["timing"] = self.timing
+        return files.jsonable(s)
+
+
+def run(out, problem, case=None, progress=None) -> CertifyReport:
+    """Certify the problem's closed loop; writes ``summary.json`` and ``slice_map.png`` in ``out``.
+
+    Args:
+        out: the output directory (``Path``; made if missing).
+        problem: the problem (:class:`wmrjax.problem.Problem`) with a dynamic law.
+        case: the case to certify, for a problem with cases.
+        progress: called with each progress message (default: printed).
+
+    Returns:
+        the :class:`CertifyReport`.
+    """
     report_progress = progress or (lambda msg: print(msg, flush=True))
     stages = []  # (message, time): the timing block charges each stretch to the message ending it
     started = time.perf_counter()
@@ -135,7 +205,7 @@ def run(out, problem, case=None, progress=None) -> dict:
     say(f"certify {ctrl.robot.name} ({ctrl.level}) along {setting.reference.name}, T = {t_final} s, eps = {cfg['eps']}")
 
     later = cfg["map_grid"] ** 2 + (2 * C.planned_runs(setting) if setting.plant else 0)
-    report = C.analyse(
+    nominal = C.analyse(
         ctrl,
         params,
         t_final=t_final,
@@ -149,31 +219,24 @@ def run(out, problem, case=None, progress=None) -> dict:
         later_runs=later,
         log=say,
     )
-    scale = report.estimate.scale
-    # the map's runs scale with its side squared; a side asked below the floor stays as asked
-    map_grid = min(cfg["map_grid"], max(MAP_GRID_FLOOR, round(cfg["map_grid"] * scale**0.5)))
-    plant_directions = max(PLANT_DIRECTIONS_FLOOR, round(C.real_loop.N_DIRECTIONS * scale))
-    exact = {C.Slice.FULL: report.exact_full, C.Slice.POSITION: report.exact_position}
-    falsified = {C.Slice.FULL: report.falsified_full, C.Slice.POSITION: report.falsified_position}
+    map_grid, plant_directions = _sizes(cfg, nominal.estimate.scale)
     t_later = time.perf_counter()
     problem_block = C.problem_certificate(
         setting,
         params,
-        exact,
+        {C.Slice.FULL: nominal.exact_full, C.Slice.POSITION: nominal.exact_position},
         eps=cfg["eps"],
-        falsified=falsified,
+        falsified={C.Slice.FULL: nominal.falsified_full, C.Slice.POSITION: nominal.falsified_position},
         seed=cfg["seed"],
         log=say,
         n_directions=plant_directions,
     )
     say(f"slice map ({map_grid} x {map_grid} runs)")
-    block = report.summary()
     out.mkdir(parents=True, exist_ok=True)
-    summary = _summary(problem, case, cfg, setting, params, block, problem_block)
-    summary["slice_map"] = slice_map(
+    the_map = slice_map(
         ctrl,
         params,
-        block,
+        nominal.summary(),
         out / "slice_map.png",
         t_final=t_final,
         dt=dt,
@@ -181,27 +244,36 @@ def run(out, problem, case=None, progress=None) -> dict:
         n_grid=map_grid,
         title=f"{ctrl.robot.name} along {setting.reference.name}: initial position errors",
     )
-    measured = dict(report.stage_s) | {"later runs": time.perf_counter() - t_later}
-    summary["estimate"] = report.estimate.summary(measured) | {
+    measured = dict(nominal.stage_s) | {"later runs": time.perf_counter() - t_later}
+    estimate = nominal.estimate.summary(measured) | {
         "sizes_used": {"map_grid": map_grid, "plant_directions": plant_directions},
         "measured_peak_rss_bytes": C.budget.peak_resident_bytes(),  # beside the estimate's memory
     }
-    summary["wall_time_s"] = time.time() - t0
-    summary["timing"] = _timing(stages, started, time.perf_counter())
-    files.write_json(out / "summary.json", summary)
-    return summary
+    wall, timing = time.time() - t0, _timing(stages, started, time.perf_counter())
+    report = CertifyReport(problem, case, cfg, setting, params, nominal, problem_block, the_map, estimate, wall, timing)
+    report.write_summary(out)
+    return report
 
 
-def _summary(problem, case, cfg: dict, setting, params, block: dict, problem_block: dict) -> dict:
-    """``summary.json`` but the slice map and the timing: the problem, the loop certified, every
-    radius (``block``: the nominal loop's, labelled) and the problem loop's certificate."""
+def _sizes(cfg: dict, scale: float) -> tuple[int, int]:
+    """``(map_grid, plant_directions)`` scaled to a time budget (``scale`` 1: none): the map's runs
+    scale with its side squared; a side asked below the floor stays as asked."""
+    map_grid = min(cfg["map_grid"], max(MAP_GRID_FLOOR, round(cfg["map_grid"] * scale**0.5)))
+    return map_grid, max(PLANT_DIRECTIONS_FLOOR, round(C.real_loop.N_DIRECTIONS * scale))
+
+
+def _summary(r: CertifyReport, block: dict) -> dict:
+    """``summary.json`` but the slice map, the estimate and the timing: the problem, the loop
+    certified, every radius (``block``: the nominal loop's, labelled) and the problem loop's
+    certificate."""
+    problem, setting, params, problem_block = r.problem, r.setting, r.params, r.problem_certificate
     ctrl, gains = setting.ctrl, params.gains
     return {
         "experiment": "certify",
         "problem_name": problem.title,
-        "case": case,
+        "case": r.case,
         "problem": problem.resolved(),
-        "certify": cfg,
+        "certify": r.settings,
         "robot": ctrl.robot.name,
         "level": str(ctrl.level),
         "reference": setting.reference.name,
@@ -221,8 +293,8 @@ def _summary(problem, case, cfg: dict, setting, params, block: dict, problem_blo
         **block,
         "radius_labels": C.radius_labels(block),
         "problem_certificate": problem_block,
-        "plant_warnings": C.real_loop.plant_warnings(problem_block),
-        "alarms": list(block.get("alarms", [])) + C.real_loop.problem_alarms(problem_block),
+        "plant_warnings": r.warnings,
+        "alarms": r.alarms,
     }
 
 

@@ -45,7 +45,7 @@ import sys
 from pathlib import Path
 
 from wmrjax.certify import Slice
-from wmrjax.certify.job import run, settings, setup
+from wmrjax.certify.job import CertifyReport, run, settings, setup
 from wmrjax.cli import machine, options, problem_args, running
 
 EMPIRICAL_GRID = 48  # radii per ray of certify.empirical_radius (its n_grid)
@@ -66,9 +66,10 @@ def _parser():
     return p
 
 
-def _report(s: dict, out: Path) -> int:
+def _report(r: CertifyReport, out: Path) -> int:
     """Prints the radii with what they cover, the falsified ones, the problem's certificate and the
     alarms; the exit status (1 on an alarm)."""
+    s = r.summary()
     labels = s["radius_labels"]
     print("nominal continuous loop:")
     for k, lab in labels.items():
@@ -76,7 +77,7 @@ def _report(s: dict, out: Path) -> int:
         r = v.get("radius") if isinstance(v, dict) else v
         if r is not None:
             print(f"  {k} {r:.4f} ({lab['kind']})")
-    pc = s["problem_certificate"]
+    pc = r.problem_certificate
     if pc["loop"] != ["nominal"]:
         print(f"problem's loop ({', '.join(pc['loop'])}):")
         for b in Slice:
@@ -100,12 +101,12 @@ def _report(s: dict, out: Path) -> int:
                     f"    mismatch radius {mm['lower_bound']:.4f} (proved over the plant's range; deviation from "
                     f"the nominal loop <= {dev}, bound by {mm['bound_by']})"
                 )
-    print(f"wrote {out}/summary.json and slice_map.png in {s['wall_time_s']:.0f} s")
-    for msg in s["plant_warnings"]:
+    print(f"wrote {out}/summary.json and slice_map.png in {r.wall_time_s:.0f} s")
+    for msg in r.warnings:
         print(f"warning: {msg}", file=sys.stderr)
-    for msg in s["alarms"]:  # a result that contradicts the theory is an error, not a certificate
+    for msg in r.alarms:  # a result that contradicts the theory is an error, not a certificate
         print(f"error: {msg}", file=sys.stderr)
-    return 1 if s["alarms"] else 0
+    return 1 if r.alarms else 0
 
 
 def main(argv=None) -> int:

@@ -64,7 +64,7 @@ def main(argv=None) -> int:
             check_initial(setting, a.initial)
     except ValueError as e:
         p.error(str(e))
-    s = running.work(
+    r = running.work(
         p,
         a,
         lambda progress: run(
@@ -79,13 +79,13 @@ def main(argv=None) -> int:
             progress=progress,
         ),
     )
-    c = s["checks"]
+    c = r.checks
     print(
-        f"{s['name']}: JAX step vs simulator {c['jax_vs_simulator']:.1e}, artifact vs JAX {c['artifact_vs_jax']:.1e}"
+        f"{r.step.name}: JAX step vs simulator {c['jax_vs_simulator']:.1e}, artifact vs JAX {c['artifact_vs_jax']:.1e}"
         + (f", C vs JAX {c['c_vs_jax']:.1e}, C step {c['c_seconds_per_step'] * 1e9:.0f} ns" if "c_vs_jax" in c else "")
         + f"; wrote {a.out}"
     )
-    if not s["agrees"]:
+    if not r.agrees:
         print(
             f"error: the export disagrees with the simulator beyond {a.tolerance} (see summary.json checks)",
             file=sys.stderr,

@@ -58,7 +58,7 @@ def main(argv=None) -> int:
             I.check_log(read_log(path, model.robot), model.period, model.input_limit)
     except ValueError as e:
         p.error(str(e))
-    s = running.work(
+    r = running.work(
         p,
         a,
         lambda progress: run(
@@ -72,12 +72,12 @@ def main(argv=None) -> int:
             progress=progress,
         ),
     )
-    for name, e in s["parameters"].items():
-        if e["identifiable"]:
-            lo, hi = e["interval_95"]
-            print(f"{name:16s} {e['estimate']:.6g} +- {e['std_error']:.2g}   95 %: [{lo:.6g}, {hi:.6g}]")
+    for e in r.identification.parameters:
+        if e.identifiable:
+            lo, hi = e.interval_95
+            print(f"{e.name:16s} {e.estimate:.6g} +- {e.std_error:.2g}   95 %: [{lo:.6g}, {hi:.6g}]")
         else:
-            print(f"{name:16s} not identifiable: {e['note']}")
+            print(f"{e.name:16s} not identifiable: {e.note}")
     print(f"wrote {a.out}")
     return 0
 

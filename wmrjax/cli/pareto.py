@@ -52,14 +52,12 @@ def main(argv=None) -> int:
         certified.check(setting, settings.gain_family(setting))
     except ValueError as e:
         p.error(str(e))
-    s = running.work(p, a, lambda progress: run(problem, a.out, a.slice, a.fractions, a.radii, log=progress))
-    for pt in s["points"]:
+    r = running.work(p, a, lambda progress: run(problem, a.out, a.slice, a.fractions, a.radii, log=progress))
+    for pt in r.points:
         print(
             f"required {pt['required_radius']:.4g}: radius {pt['tuned_radius']:.4g} (falsified "
             f"{pt['falsified_radius']}), held-out {pt['heldout_loss']:.4g}, certified {pt['certified']}"
         )
-    print(
-        f"initial gains: radius {s['initial_gains']['radius']:.4g}, held-out {s['initial_gains']['heldout_loss']:.4g}"
-    )
-    print(f"wrote {a.out}/pareto.csv, pareto.png, summary.json, points/ ({s['wall_time_s']:.0f} s)")
+    print(f"initial gains: radius {r.initial['radius']:.4g}, held-out {r.initial['heldout_loss']:.4g}")
+    print(f"wrote {a.out}/pareto.csv, pareto.png, summary.json, points/ ({r.wall_time_s:.0f} s)")
     return 0

@@ -57,19 +57,6 @@ def parser():
     return p
 
 
-def run(args, log=print) -> dict:
-    """The study of the command line's options (``args`` from :func:`parser`)."""
-    return study(
-        problems_of(args),
-        args.out,
-        seeds=args.seeds,
-        methods=args.methods,
-        points=args.points,
-        budget=args.budget,
-        log=log,
-    )
-
-
 def problems_of(args) -> dict:
     """The problems of the command line's options, overrides applied: name -> (problem, requirement).
 
@@ -109,12 +96,12 @@ def main(argv=None) -> int:
         problems = problems_of(a)
     except ValueError as e:
         options.fail(p, str(e))
-    s = running.work(
+    r = running.work(
         p,
         a,
         lambda progress: study(
             problems, a.out, seeds=a.seeds, methods=a.methods, points=a.points, budget=a.budget, log=progress
         ),
     )
-    print(f"wrote {a.out}/study.csv, summary.json, study.png ({s['wall_time_s']:.0f} s)")
+    print(f"wrote {a.out}/study.csv, summary.json, study.png ({r.wall_time_s:.0f} s)")
     return 0

@@ -3,7 +3,6 @@ a multi-host run (``--coordinator HOST:PORT --process-id I --num-processes N``).
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -11,10 +10,9 @@ from pathlib import Path
 
 import jax
 
-from wmrjax import _files as files
 from wmrjax.cli import launch, machine, options, problem_args, running
 from wmrjax.problem import CASE_NAME, ProblemError
-from wmrjax.sweep import report, run
+from wmrjax.sweep import job, run
 from wmrjax.sweep import spec as S
 
 DOC = """Run a sweep file: a controller over robots, references, initial conditions, gains and
@@ -131,7 +129,8 @@ def _prepare(p, a, devices: int) -> None:
 
 
 def _run(p, a, pid: int, n_proc: int) -> int:
-
+    """One process of the sweep (of ``n_proc``): joins the others, computes its share; process 0
+    writes the report and prints its counts."""
     t_start = time.perf_counter()
     machine.enable_x64()
 
@@ -146,42 +145,27 @@ def _run(p, a, pid: int, n_proc: int) -> int:
 
             multihost_utils.sync_global_devices(name)
 
-    say = (lambda m: print(m, file=sys.stderr, flush=True)) if pid == 0 else (lambda m: None)
+    say = (lambda m: print(f"{a.file}: {m}", file=sys.stderr, flush=True)) if pid == 0 else (lambda m: None)
     try:  # the user's errors (the file, --out): an argparse-style exit
-        plan = S.plan(problem_of(a))
-        run.check_memory(plan, len(jax.local_devices()))  # this process's share (the launcher checked all)
-        say(
-            f"{a.file}: {plan.n_runs} runs in {len(plan.blocks())} blocks of {plan.block} "
-            f"({len(plan.groups)} group(s); {plan.n_steps} RK4 steps each), {n_proc} process(es) x "
-            f"{len(jax.local_devices())} device(s)"
-        )
-        if pid == 0:
-            resumed = run.prepare(plan, a.out, a.fresh)
-            if resumed:
-                say(f"resuming: {resumed} of {len(plan.blocks())} blocks already done in {a.out}")
+        plan = job.start(problem_of(a), a.out, fresh=a.fresh, process_id=pid, progress=say)
     except ValueError as err:
         options.fail(p, str(err))
-    barrier("sweep-prepared")
-    if pid != 0 and run.read_state(a.out) is None:
-        raise RuntimeError(
-            f"{a.out}/{run.STATE_FILE} missing: process 0 did not prepare the output directory "
-            "(with several hosts, --out must be one shared directory)"
-        )
-    t0 = time.perf_counter()
-    stats = run.compute(plan, a.out, process_id=pid, num_processes=n_proc)
-    stats["wall_s"] = time.perf_counter() - t0
-
-    files.write_json(a.out / "blocks" / f"process_{pid}.json", stats)
-    barrier("sweep-computed")
-    if pid != 0:
+    r = job.compute_share(
+        plan,
+        a.out,
+        source=str(a.file),
+        t_start=t_start,
+        process_id=pid,
+        num_processes=n_proc,
+        barrier=barrier,
+        progress=say,
+    )
+    if r is None:
         return 0
-    say("writing runs.parquet, certified radii and figures")
-    procs = [json.loads((a.out / "blocks" / f"process_{i}.json").read_text()) for i in range(n_proc)]
-    summary = report.finish(plan, a.out, str(a.file), procs, len(jax.local_devices()), t_start)
-    c = summary["counts"]
+    c = r.counts
     print(
         f"{plan.n_runs} runs: {c['converged']} converged, {c['not_converged']} not converged, {c['singular']} "
         f"singular, {c['failed']} failed; wrote {a.out}/runs.parquet, summary.json and "
-        f"{len(summary['figures'])} figures ({summary['wall_time_s']:.0f} s)"
+        f"{len(r.figures)} figures ({r.wall_time_s:.0f} s)"
     )
     return 0

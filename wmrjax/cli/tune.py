@@ -60,25 +60,25 @@ def main(argv=None) -> int:
         baseline_budget(settings, family)
     except ValueError as e:
         p.error(str(e))
-    s = running.work(
+    r = running.work(
         p,
         a,
         lambda progress: run(problem, a.out, a.fresh, log=progress, falsify=a.falsify),
         hint=lambda msg: msg + "; or rerun with --fresh to start over" if "checkpoint" in msg else msg,
     )
-    b = s["baselines"]
+    s, b = r.summary(), r.baselines
     print(
         f"{problem.title}: {s['n_parameters']} parameters; held-out loss initial {s['heldout_loss']['paper_gains']:.4g} "
         f"-> tuned {s['heldout_loss']['tuned']:.4g} (CMA-ES {b['cma_es']['best_heldout_loss']:.4g}, random search "
         f"{b['random_search']['best_heldout_loss']:.4g}); singular events {s['singularity_events']}; "
         f"gradient rollouts {s['rollouts']}, to match CMA-ES {s['rollouts_to_match']['cma_es']} (CMA-ES best after "
-        f"{b['cma_es']['rollouts_to_best']:.0f}); {s['wall_time_s']:.1f} s"
+        f"{b['cma_es']['rollouts_to_best']:.0f}); {r.wall_time_s:.1f} s"
     )
-    for line in radius_change_lines(s["radii"]):
+    for line in radius_change_lines(r.radii):
         print(line)
     print(
         f"wrote {a.out}/gains.json, summary.json, history.json, checkpoint.json, loss.png, schedule.png, "
-        "trajectories.png" + (", radii.png" if "initial" in s["radii"] else "")
+        "trajectories.png" + (", radii.png" if "initial" in r.radii else "")
     )
     return 0
 

@@ -6,6 +6,7 @@ simulator over a run (:mod:`wmrjax.export.check`), with an example robot loop an
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -16,6 +17,8 @@ from wmrjax import _files as files
 from wmrjax import export as X
 from wmrjax.controllers import place
 from wmrjax.export.check import C_FLAGS, verify, write_export
+from wmrjax.problem import Problem, Setting
+from wmrjax.report import JobReport
 
 
 def initial_state(setting, params, index: int | None = None):
@@ -28,7 +31,7 @@ def initial_state(setting, params, index: int | None = None):
         nonzero = np.flatnonzero(norms > 0)
         index = int(nonzero[np.argmin(norms[nonzero])]) if nonzero.size else 0
     check_initial(setting, index)
-    branch = setting.branch[0] if len(setting.branch) else 1.0
+    branch = float(setting.branch[0]) if len(setting.branch) else 1.0  # +-1.0 (the problem holds ints)
     return place(setting.ctrl, params, errors[index], setting.space, setting.task, branch), index
 
 
@@ -46,10 +49,109 @@ def setup(problem, case=None):
     return setting, setting.ctrl, setting.params()
 
 
+@dataclasses.dataclass(frozen=True)
+class ExportReport(JobReport):
+    """What :func:`run` wrote and how well it agrees with the simulator.
+
+    Attributes:
+        problem: the problem exported.
+        case: its case (``None``: the problem has none).
+        setting: the problem's one closed loop (:meth:`wmrjax.problem.Problem.setting`).
+        step: the exported step (:class:`wmrjax.export.ControlStep`: its name, sizes and signal names).
+        files: the files written into the output directory, ``summary.json`` aside.
+        initial_index: the initial condition the check ran from (an index into the problem's).
+        initial_compensator: ``(n_compensator,)`` the law's compensator at that condition.
+        checks: each comparison's largest difference (``jax_vs_simulator``, ``artifact_vs_jax``,
+            ``c_vs_jax``, ...) and whether the artifact imported wmrjax (``artifact_imported_wmrjax``).
+        tolerance: the largest difference accepted.
+        c_compiler: the C compiler used.
+        wall_time_s: the job's wall time [s].
+    """
+
+    problem: Problem
+    case: str | None
+    setting: Setting
+    step: X.ControlStep
+    files: tuple
+    initial_index: int
+    initial_compensator: np.ndarray
+    checks: dict
+    tolerance: float
+    c_compiler: str
+    wall_time_s: float
+
+    @property
+    def agrees(self) -> bool:
+        """Whether the JAX step, the artifact and the C step agree with the simulator within
+        :attr:`tolerance` and the artifact runs without wmrjax (the driven step carries its own
+        compensator, which leaves the simulator's by rounding: reported only)."""
+        compared = ("jax_vs_simulator", "artifact_vs_jax", "c_vs_jax")
+        worst = max(v for k, v in self.checks.items() if k in compared)
+        return bool(worst <= self.tolerance) and not self.checks["artifact_imported_wmrjax"]
+
+    def summary(self) -> dict:
+        """``summary.json`` (plain JSON)."""
+        step, setting = self.step, self.setting
+        return files.jsonable(
+            {
+                "experiment": "export",
+                "problem_name": self.problem.title,
+                "case": self.case,
+                "problem": self.problem.resolved(),
+                "gains": self.problem.resolved().get("gains"),
+                "name": step.name,
+                "robot": step.robot,
+                "level": step.level,
+                "reference": setting.reference.name,
+                # [s] where a sampled path's data define it; outside, the step's regularity is 0 (stop)
+                "reference_span_s": step.span,
+                "sizes": {
+                    "measured": step.n_measured,
+                    "state": step.n_state,
+                    "command": step.n_command,
+                    "compensator": step.n_compensator,
+                },
+                "names": {
+                    "measured": step.measured_names,
+                    "command": step.command_names,
+                    "compensator": step.compensator_names,
+                },
+                "files": list(self.files),
+                "initial_condition": {
+                    "index": self.initial_index,
+                    "error": setting.initial_errors()[self.initial_index].tolist(),
+                },
+                "initial_compensator": self.initial_compensator.tolist(),
+                "checks": self.checks,
+                "tolerance": self.tolerance,
+                "agrees": self.agrees,
+                "c_compiler": self.c_compiler,
+                "c_flags": list(C_FLAGS),
+                "wall_time_s": self.wall_time_s,
+            }
+        )
+
+
 def run(
     out: Path, problem, *, case=None, period=None, n_samples=None, initial=None, cc="cc", tolerance=1e-12, progress=None
-) -> dict:
-    """Export and check the problem's controller; writes the files and ``summary.json`` into ``out``."""
+) -> ExportReport:
+    """Export and check the problem's controller; writes the files and ``summary.json`` into ``out``.
+
+    Args:
+        out: the output directory (``Path``; made if missing).
+        problem: the problem (:class:`wmrjax.problem.Problem`) with one controller.
+        case: the case to export, for a problem with cases.
+        period: the controller period of the check [s] (default: the problem's, else
+            :data:`DEFAULT_PERIOD`).
+        n_samples: the periods checked (default: the problem's horizon).
+        initial: the index of the initial condition checked (default: :func:`initial_state`'s).
+        cc: the C compiler.
+        tolerance: the largest difference accepted.
+        progress: called with each progress message (default: printed).
+
+    Returns:
+        the :class:`ExportReport`.
+    """
     say = progress or (lambda msg: print(msg, flush=True))
     jax.config.update("jax_enable_x64", True)  # the job runs in float64
     t0 = time.time()
@@ -69,43 +171,11 @@ def run(
     comp0 = np.asarray(sim.initial_state)[: step.n_compensator]
     files.write_bytes(out / "robot_loop.c", _robot_loop(step, np.asarray(sim.measured)[0], comp0, period).encode())
     checks = verify(step, sim, period=period, directory=out, cc=cc)
-    # the driven step carries its own compensator, which leaves the simulator's by rounding: reported only
-    worst = max(v for k, v in checks.items() if k in ("jax_vs_simulator", "artifact_vs_jax", "c_vs_jax"))
-    summary = {
-        "experiment": "export",
-        "problem_name": problem.title,
-        "case": case,
-        "problem": problem.resolved(),
-        "gains": problem.resolved().get("gains"),
-        "name": step.name,
-        "robot": step.robot,
-        "level": step.level,
-        "reference": setting.reference.name,
-        # [s] where a sampled path's data define it; outside, the step's regularity is 0 (stop)
-        "reference_span_s": X.reference_span(params.reference),
-        "sizes": {
-            "measured": step.n_measured,
-            "state": step.n_state,
-            "command": step.n_command,
-            "compensator": step.n_compensator,
-        },
-        "names": {
-            "measured": step.measured_names,
-            "command": step.command_names,
-            "compensator": step.compensator_names,
-        },
-        "files": written + ["robot_loop.c"],
-        "initial_condition": {"index": index, "error": setting.initial_errors()[index].tolist()},
-        "initial_compensator": comp0.tolist(),
-        "checks": checks,
-        "tolerance": tolerance,
-        "agrees": bool(worst <= tolerance) and not checks["artifact_imported_wmrjax"],
-        "c_compiler": cc,
-        "c_flags": list(C_FLAGS),
-        "wall_time_s": time.time() - t0,
-    }
-    files.write_json(out / "summary.json", summary)
-    return summary
+    report = ExportReport(
+        problem, case, setting, step, (*written, "robot_loop.c"), index, comp0, checks, tolerance, cc, time.time() - t0
+    )
+    report.write_summary(out)
+    return report
 
 
 def _robot_loop(step, measured0, comp0, period) -> str:

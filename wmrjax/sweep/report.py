@@ -4,6 +4,7 @@ final errors and margins -- read back from ``runs.parquet``."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import re
 import time
@@ -13,6 +14,7 @@ import numpy as np
 
 from wmrjax import _files, _math, certify
 from wmrjax.problem import Task
+from wmrjax.report import JobReport
 from wmrjax.sweep import run
 from wmrjax.sweep import spec as S
 from wmrjax.sweep.run import OUTCOMES
@@ -429,9 +431,46 @@ def execution(plan, n_proc: int, n_devices: int, procs: list) -> dict:
     }
 
 
-def finish(plan, out: Path, source: str, procs: list, n_devices: int, t_start: float) -> dict:
+@dataclasses.dataclass(frozen=True)
+class SweepReport(JobReport):
+    """What a finished sweep found (:func:`wmrjax.sweep.sweep`): its outcomes counted and
+    summarized from the table ``runs.parquet``, the certified radii, the figures.
+
+    Attributes:
+        plan: the sweep's plan (:func:`wmrjax.sweep.spec.plan`: its groups, runs and blocks).
+        source: the problem file, as the user named it.
+        table: the path of ``runs.parquet`` (one row per run; :func:`read_table` reads it).
+        statistics: the outcomes counted (``counts``, ``fractions``, per group ``by_group``), the
+            quantiles of the regular runs' final errors and margins, and the certified radii
+            (:func:`summarize`).
+        execution: processes, devices, blocks computed and resumed, throughput (:func:`execution`).
+        figures: the PNG files written (names in the output directory).
+        wall_time_s: the job's wall time [s].
+    """
+
+    plan: S.Plan
+    source: str
+    table: Path
+    statistics: dict
+    execution: dict
+    figures: tuple
+    wall_time_s: float
+
+    @property
+    def counts(self) -> dict:
+        """Runs per outcome (``converged``, ``not_converged``, ``singular``, ``failed``)."""
+        return self.statistics["counts"]
+
+    def summary(self) -> dict:
+        """``summary.json`` (plain JSON)."""
+        s = header(self.plan, self.source) | self.statistics
+        s |= {"execution": self.execution, "figures": list(self.figures), "wall_time_s": self.wall_time_s}
+        return _files.jsonable(s)
+
+
+def finish(plan, out: Path, source: str, procs: list, n_devices: int, t_start: float) -> SweepReport:
     """After every block is computed: the table ``runs.parquet``, the certified radii, the figures
-    and ``summary.json`` (written atomically); returns the summary.
+    and ``summary.json`` (written atomically).
 
     Args:
       plan: the sweep's plan (:func:`wmrjax.sweep.spec.plan`).
@@ -440,13 +479,16 @@ def finish(plan, out: Path, source: str, procs: list, n_devices: int, t_start: f
       procs: each process's block statistics (``blocks/process_<i>.json``).
       n_devices: JAX devices per process.
       t_start: ``time.perf_counter()`` when the job started (for ``wall_time_s``).
+
+    Returns:
+      the :class:`SweepReport`.
     """
     path = run.assemble(plan, out)
     table = read_table(path, columns=columns_needed(plan))
     certified = certified_radii(plan)
-    summary = header(plan, source) | summarize(plan, table, certified)
-    summary["execution"] = execution(plan, len(procs), n_devices, procs)
-    summary["figures"] = figures(plan, table, certified, out)
-    summary["wall_time_s"] = time.perf_counter() - t_start
-    _files.write_json(out / "summary.json", summary)
-    return summary
+    statistics = summarize(plan, table, certified)
+    drawn = figures(plan, table, certified, out)
+    ran = execution(plan, len(procs), n_devices, procs)
+    report = SweepReport(plan, source, path, statistics, ran, tuple(drawn), time.perf_counter() - t_start)
+    report.write_summary(out)
+    return report

@@ -5,6 +5,7 @@ gains, and ``gains.json``, ``history.json``, the figures and ``summary.json``.""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -16,14 +17,88 @@ import numpy as np
 
 from wmrjax import _files as files
 from wmrjax import references as R
-from wmrjax.problem import gains_file_dict, gains_owner, law_state
+from wmrjax.problem import Problem, Setting, gains_file_dict, gains_owner, law_state
+from wmrjax.report import JobReport
 from wmrjax.tune import baselines, certified, config, loop
+from wmrjax.tune.gains import GainFamily
 from wmrjax.tune.scenarios import rollout
 
 
-def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsify: bool = False) -> dict:
-    """Tune, evaluate, run the baselines, write ``gains.json``, the figures and ``summary.json``;
-    returns the summary (``falsify``: falsify the exact-map radii of the initial and tuned gains)."""
+@dataclasses.dataclass(frozen=True)
+class TuneReport(JobReport):
+    """What :func:`run` found: the tuned gains, their losses beside the initial gains' and the
+    baselines', and the certified radii of both.
+
+    Attributes:
+        problem: the problem tuned.
+        setting: its closed loop (:meth:`wmrjax.problem.Problem.setting`).
+        settings: the ``[tune]`` section (:class:`wmrjax.tune.config.TuneSettings`).
+        family: the gain parameterization tuned (:class:`wmrjax.tune.GainFamily`).
+        result: the gradient run (:class:`wmrjax.tune.TuneResult`: history, best parameters, rollouts).
+        initial_raw: ``(family.size,)`` the initial gains' raw parameters.
+        tuned_raw: ``(family.size,)`` the tuned gains' (the best validation loss of the run).
+        train_loss: the training objective of ``(initial, tuned)`` gains.
+        heldout_loss: the held-out objective of ``(initial, tuned)`` gains (+inf where not finite).
+        heldout_ok: ``(2, n_heldout)`` which held-out scenarios ran without failing, per gains.
+        heldout_metrics: the held-out loss terms per gains and scenario (leading axis 2).
+        baselines: random search and CMA-ES at the same budget, per method: per seed, the best
+            losses and the rollouts used.
+        rollouts_to_match: per baseline, the gradient's rollouts to reach its best loss.
+        radii: the certified radii of the initial and tuned gains, the requirement and how it was
+            kept (:func:`wmrjax.tune.certified.radii`; ``{"skipped": reason}`` without a certificate).
+        best_heldout: the method and seed with the lowest held-out loss, whose gains are in
+            :data:`BEST_FILE`.
+        gradient_wall_time_s: the gradient run's wall time, compilation included [s].
+        wall_time_s: the job's wall time [s].
+    """
+
+    problem: Problem
+    setting: Setting
+    settings: config.TuneSettings
+    family: GainFamily
+    result: loop.TuneResult
+    initial_raw: jax.Array
+    tuned_raw: jax.Array
+    train_loss: tuple
+    heldout_loss: tuple
+    heldout_ok: np.ndarray
+    heldout_metrics: object
+    baselines: dict
+    rollouts_to_match: dict
+    radii: dict
+    best_heldout: dict
+    gradient_wall_time_s: float
+    wall_time_s: float
+
+    @property
+    def tuned_gains(self):
+        """The tuned gains (:class:`wmrjax.Gains` or :class:`wmrjax.GainSchedule`), as ``gains.json``."""
+        return self.family.gains(self.tuned_raw)
+
+    @property
+    def initial_gains(self):
+        """The initial gains, in the same parameterization."""
+        return self.family.gains(self.initial_raw)
+
+    def summary(self) -> dict:
+        """``summary.json`` (plain JSON); it is a gains file too (the tuned gains)."""
+        return files.jsonable(_summary(self) | {"best_heldout": self.best_heldout, "wall_time_s": self.wall_time_s})
+
+
+def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsify: bool = False) -> TuneReport:
+    """Tune, evaluate, run the baselines, write ``gains.json``, the figures and ``summary.json``.
+
+    Args:
+        problem: the problem (:class:`wmrjax.problem.Problem`) with its ``[tune]`` section.
+        out: the output directory (``Path``; made if missing), which holds the resumable checkpoint.
+        fresh: start over, discarding a checkpoint in ``out``.
+        log: called with each line of the run's log.
+        progress: called with each stage's message (default: ``log``).
+        falsify: also falsify the exact-map radii of the initial and tuned gains.
+
+    Returns:
+        the :class:`TuneReport`.
+    """
     jax.config.update("jax_enable_x64", True)  # this entry point runs in float64
 
     say = progress or log
@@ -55,30 +130,15 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
         )
     say("certifying the initial and the tuned gains (Lemma 2, exact map" + (", falsifier)" if falsify else ")"))
     radius = _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify)
-    summary = _summary(
-        problem,
-        setting,
-        settings,
-        family,
-        res,
-        paper_raw,
-        tuned_raw,
-        train,
-        held,
-        ho_ok,
-        ho_m,
-        base,
-        match,
-        radius,
-        grad_wall,
-    )
     say("writing gains, history, figures and summary")
     _write(out, problem, setting, family, res, runs, paper_raw, tuned_raw, programs, radius)
-    summary["best_heldout"] = best
     files.write_json(out / BEST_FILE, gains_file_dict(family.gains(best_raw), setting.ctrl))
-    summary["wall_time_s"] = time.perf_counter() - t0
-    files.write_json(out / "summary.json", summary)
-    return summary
+    report = TuneReport(
+        problem, setting, settings, family, res, paper_raw, tuned_raw, train, held, ho_ok, ho_m, base, match,
+        radius, best, grad_wall, time.perf_counter() - t0,
+    )  # fmt: skip
+    report.write_summary(out)
+    return report
 
 
 BEST_FILE = "gains_best_heldout.json"
@@ -331,26 +391,12 @@ def _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify: bool):
     return out
 
 
-def _summary(
-    problem,
-    setting,
-    settings,
-    family,
-    res,
-    paper_raw,
-    tuned_raw,
-    train,
-    heldout,
-    ho_ok,
-    ho_m,
-    base,
-    match,
-    radius,
-    grad_wall,
-) -> dict:
-
+def _summary(r: TuneReport) -> dict:
+    """``summary.json`` but the best held-out gains and the wall time."""
+    problem, setting, settings, family, res = r.problem, r.setting, r.settings, r.family, r.result
+    paper_raw, tuned_raw, train, heldout, ho_ok = r.initial_raw, r.tuned_raw, r.train_loss, r.heldout_loss, r.heldout_ok
     hist = res.history
-    m_paper, m_tuned = (jax.tree_util.tree_map(lambda x: x[i], ho_m) for i in (0, 1))
+    m_paper, m_tuned = (jax.tree_util.tree_map(lambda x: x[i], r.heldout_metrics) for i in (0, 1))
     ho_paper, ho_tuned = heldout
     ctrl = setting.ctrl
     return {
@@ -398,13 +444,13 @@ def _summary(
         "rollout_counting": "one rollout = one scenario simulated once; a gradient step over B scenarios counts B "
         "(its extra cost is in gradient_wall_time_s); held-out and validation runs are not counted",
         "objective": f"mean loss of the valid scenarios + {loop.FAILURE_PENALTY} x fraction failed (+ certificate term)",
-        "baselines": base,
-        "rollouts_to_match": match,
+        "baselines": r.baselines,
+        "rollouts_to_match": r.rollouts_to_match,
         "steps": len(hist),
         "stopped_early": res.stopped_early,
-        "gradient_wall_time_s": grad_wall,
+        "gradient_wall_time_s": r.gradient_wall_time_s,
         "tuning_wall_time_s_including_compile": res.wall_time_s,
-        "radii": radius,
+        "radii": r.radii,
     }
 
 

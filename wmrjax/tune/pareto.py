@@ -23,6 +23,7 @@ finished points), ``pareto.csv``, ``pareto.png`` and ``summary.json``.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import hashlib
 import io as _stdio
 import json
@@ -34,6 +35,8 @@ import jax.numpy as jnp
 
 from wmrjax import _files as files
 from wmrjax.certify import Slice
+from wmrjax.problem import Problem
+from wmrjax.report import JobReport
 from wmrjax.tune import certified, config, loop
 
 AGREEMENT = 0.01  # a point is certified when falsified / exact - 1 <= this
@@ -112,8 +115,68 @@ def tune_point(problem, required: float, slice_: str, eps: float, log=print) -> 
     }
 
 
-def run(problem, out: Path, slice_: str = Slice.FULL, fractions=None, radii=None, eps=None, log=print) -> dict:
-    """Every point (resuming finished ones), then the table, the figure and ``summary.json``."""
+@dataclasses.dataclass(frozen=True)
+class ParetoReport(JobReport):
+    """The Pareto front of tracking against the certified region (:func:`run`).
+
+    Attributes:
+        problem: the problem tuned.
+        slice: the slice whose exact-map radius was required (:class:`wmrjax.certify.Slice`).
+        eps: the margin to the singular set [output-error units].
+        initial: the initial gains' radius and held-out and training losses.
+        points: per required radius (ascending), the tuned point: ``required_radius``,
+            ``tuned_radius``, ``falsified_radius``, ``certified``, the losses, the parameters
+            (the columns of ``pareto.csv``, :data:`COLUMNS`).
+        wall_time_s: the job's wall time [s].
+    """
+
+    problem: Problem
+    slice: Slice
+    eps: float
+    initial: dict
+    points: tuple
+    wall_time_s: float
+
+    @property
+    def every_point_certified(self) -> bool:
+        """Whether every point's tuned radius is at least its requirement and the falsifier agrees."""
+        return all(p["certified"] for p in self.points)
+
+    def summary(self) -> dict:
+        """``summary.json`` (plain JSON)."""
+        return files.jsonable(
+            {
+                "experiment": "pareto",
+                "problem_name": self.problem.title,
+                "problem": self.problem.resolved(),
+                "slice": self.slice,
+                "eps": self.eps,
+                "agreement_tolerance": AGREEMENT,
+                "initial_gains": self.initial,
+                "points": [{k: p[k] for k in COLUMNS} for p in self.points],
+                "every_point_certified": self.every_point_certified,
+                "note": "tuned_radius: the exact-map radius of the tuned gains (closed form); falsified_radius: the "
+                "smallest initial error the falsifier drives within eps (rollouts, an upper bound)",
+                "wall_time_s": self.wall_time_s,
+            }
+        )
+
+
+def run(problem, out: Path, slice_: str = Slice.FULL, fractions=None, radii=None, eps=None, log=print) -> ParetoReport:
+    """Every point (resuming finished ones), then the table, the figure and ``summary.json``.
+
+    Args:
+        problem: the problem (:class:`wmrjax.problem.Problem`) with a certifiable closed loop.
+        out: the output directory (``Path``): ``points/`` holds each finished point (resumed).
+        slice_: the slice whose exact-map radius is required (:class:`wmrjax.certify.Slice`).
+        fractions: the required radii as multiples of the initial gains' (default: 0 to 1.25).
+        radii: the required radii [output-error units] (instead of ``fractions``).
+        eps: the margin to the singular set (default: the problem's ``[certify] eps``).
+        log: called with each progress message.
+
+    Returns:
+        the :class:`ParetoReport`.
+    """
     jax.config.update("jax_enable_x64", True)
 
     t0 = time.perf_counter()
@@ -156,7 +219,7 @@ def _initial_point(setting, family, settings, raw0) -> dict:
     return {"heldout_loss": float(loop.objective(val, ok)), "train_loss": float(loop.objective(tr, tr_ok))}
 
 
-def _write(out, problem, setting, family, raw0, slice_, eps, initial, points, wall) -> dict:
+def _write(out, problem, setting, family, raw0, slice_, eps, initial, points, wall) -> ParetoReport:
     """``pareto.csv``, ``pareto.png`` and ``summary.json`` of the finished points."""
     settings = config.read(problem.section("tune"), problem.section("certify"))
     base = {"radius": initial, **_initial_point(setting, family, settings, raw0)}
@@ -167,22 +230,9 @@ def _write(out, problem, setting, family, raw0, slice_, eps, initial, points, wa
         wr.writerow({k: json.dumps(p[k]) if isinstance(p[k], (dict, list)) else p[k] for k in COLUMNS})
     files.write_bytes(out / "pareto.csv", buf.getvalue().encode())
     _figure(out, problem.title, slice_, eps, base, points)
-    summary = {
-        "experiment": "pareto",
-        "problem_name": problem.title,
-        "problem": problem.resolved(),
-        "slice": slice_,
-        "eps": eps,
-        "agreement_tolerance": AGREEMENT,
-        "initial_gains": base,
-        "points": [{k: p[k] for k in COLUMNS} for p in points],
-        "every_point_certified": all(p["certified"] for p in points),
-        "note": "tuned_radius: the exact-map radius of the tuned gains (closed form); falsified_radius: the "
-        "smallest initial error the falsifier drives within eps (rollouts, an upper bound)",
-        "wall_time_s": wall,
-    }
-    files.write_json(out / "summary.json", summary)
-    return summary
+    report = ParetoReport(problem, Slice(slice_), eps, base, tuple(points), wall)
+    report.write_summary(out)
+    return report
 
 
 def _figure(out, title, slice_, eps, base, points) -> None:

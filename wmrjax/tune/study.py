@@ -51,6 +51,7 @@ the same way):
 from __future__ import annotations
 
 import csv
+import dataclasses
 import functools
 import hashlib
 import io as _stdio
@@ -64,6 +65,7 @@ import numpy as np
 
 from wmrjax import _files as files
 from wmrjax.examples import PROBLEMS
+from wmrjax.report import JobReport
 from wmrjax.tune import baselines, certified, config, loop
 from wmrjax.tune.scenarios import draw_set
 
@@ -449,9 +451,23 @@ def problem_cost(p: Plan, out: Path, say=print) -> dict:
     return cost
 
 
-def study(problems: dict, out, *, seeds: int, methods=METHODS, points: int = 8, budget: float = 1.0, log=print) -> dict:
-    """Run (or resume) the study of ``problems`` (name -> (Problem, requirement family or None))
-    into ``out`` and write its three files; returns the summary."""
+def study(
+    problems: dict, out, *, seeds: int, methods=METHODS, points: int = 8, budget: float = 1.0, log=print
+) -> StudyReport:
+    """Run (or resume) the study of ``problems`` into ``out`` and write its three files.
+
+    Args:
+        problems: name -> ``(Problem, requirement)``, the requirement ``(radius, slice)`` or None.
+        out: the output directory (``str`` or ``Path``; made if missing); finished seeds are kept.
+        seeds: seeds per problem and method.
+        methods: the methods compared (:data:`METHODS`).
+        points: compute points per curve.
+        budget: the baselines' budget as a multiple of the gradient's.
+        log: called with each progress message.
+
+    Returns:
+        the :class:`StudyReport`.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     token = files.acquire_output(out, "wmrjax.tune.study")  # a second writer is refused (OutputLocked)
@@ -504,33 +520,69 @@ def _check_budget(p: Plan, budget: float) -> None:
         )
 
 
-def _write(out: Path, rows, notes, costs, seeds, budget, wall, log) -> dict:
+@dataclasses.dataclass(frozen=True)
+class StudyReport(JobReport):
+    """The study's result (:func:`study`): every method's loss against compute, per problem.
+
+    Attributes:
+        problems: the problems' names.
+        seeds: the seeds per problem and method.
+        budget: the baselines' budget as a multiple of the gradient's.
+        costs: per problem, the measured cost of a gradient step in forward rollouts (``ratio``).
+        notes: per problem, how its certified-radius requirement was set ("" without one).
+        rows: one row per problem, seed, method and compute point (the columns of ``study.csv``,
+            :data:`FIELDS`).
+        aggregate: per problem and method, the median and interquartile range over seeds
+            (:func:`aggregate`).
+        wall_time_s: the job's wall time [s].
+    """
+
+    problems: tuple
+    seeds: int
+    budget: float
+    costs: dict
+    notes: dict
+    rows: tuple
+    aggregate: dict
+    wall_time_s: float
+
+    @property
+    def table_markdown(self) -> str:
+        """The aggregate as Markdown tables, one per problem (:func:`markdown`)."""
+        return markdown(self.aggregate)
+
+    def summary(self) -> dict:
+        """``summary.json`` (plain JSON)."""
+        return files.jsonable(
+            {
+                "experiment": "tuning study on equal terms",
+                "problems": list(self.problems),
+                "seeds": self.seeds,
+                "statistic": "median and interquartile range (25th-75th percentile) over seeds",
+                "compute_unit": "forward-rollout equivalents (one scenario simulated once, forward)",
+                "cost_per_problem": self.costs,
+                "baseline_budget_multiple": self.budget,
+                "tolerance": TOLERANCE,
+                "requirement_notes": {k: v for k, v in self.notes.items() if v},
+                "aggregate": self.aggregate,
+                "table_markdown": self.table_markdown,
+                "wall_time_s": self.wall_time_s,
+            }
+        )
+
+
+def _write(out: Path, rows, notes, costs, seeds, budget, wall, log) -> StudyReport:
     """``study.csv``, ``summary.json`` and ``study.png`` of the rows."""
-    agg = aggregate(rows)
-    table = markdown(agg)
     buf = _stdio.StringIO()
     wr = csv.DictWriter(buf, fieldnames=list(FIELDS))
     wr.writeheader()
     wr.writerows(rows)
     files.write_bytes(out / "study.csv", buf.getvalue().encode())
     figure(out / "study.png", rows)
-    summary = {
-        "experiment": "tuning study on equal terms",
-        "problems": list(costs),
-        "seeds": seeds,
-        "statistic": "median and interquartile range (25th-75th percentile) over seeds",
-        "compute_unit": "forward-rollout equivalents (one scenario simulated once, forward)",
-        "cost_per_problem": costs,
-        "baseline_budget_multiple": budget,
-        "tolerance": TOLERANCE,
-        "requirement_notes": {k: v for k, v in notes.items() if v},
-        "aggregate": agg,
-        "table_markdown": table,
-        "wall_time_s": wall,
-    }
-    files.write_json(out / "summary.json", summary)
-    log(table)
-    return summary
+    report = StudyReport(tuple(costs), seeds, budget, costs, notes, tuple(rows), aggregate(rows), wall)
+    report.write_summary(out)
+    log(report.table_markdown)
+    return report
 
 
 def figure(path: Path, rows: list[dict]) -> None:
