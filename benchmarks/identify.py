@@ -1,7 +1,7 @@
 """Identification from logs (issue 56): do the 95 % intervals cover the truth, and how long does a
 fit take?
 
-    .venv/bin/python benchmarks/identify.py --out results/benchmarks/identify [--seeds 50]
+    python -m benchmarks.identify [--seeds 50] [--record]
 
 1. Coverage. For (2,0) and (1,1) at velocity level and (1,1) at torque level, ``--seeds`` logs
    (10 s at 50 Hz, one log per fit) integrated by SciPy's DOP853 from known parameters with
@@ -18,7 +18,8 @@ fit take?
    (torque level) fitted in a fresh process: the fit's wall time cold (compilation included),
    and warm (a second fit of the same shapes).
 
-Writes ``identify.json`` into ``--out`` and prints the tables (docs/benchmarks.md).
+Writes ``identify.json`` into ``--out`` and prints the tables; ``--record``: the page's record too
+(``benchmarks/records/identify.json``, rendered into docs/benchmarks.md by :mod:`benchmarks.page`).
 """
 
 from __future__ import annotations
@@ -26,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -36,6 +36,7 @@ import jax
 import numpy as np
 
 import wmrjax as w
+from benchmarks import page
 from wmrjax import _files as files
 from wmrjax import identify
 from wmrjax.cli import machine
@@ -157,7 +158,12 @@ def timing() -> dict:
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     t0 = time.time()
     out = subprocess.run(
-        [sys.executable, __file__, "--time-one"], cwd=ROOT, env=env, capture_output=True, text=True, check=True
+        [sys.executable, "-m", "benchmarks.identify", "--time-one"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
     )
     return {**json.loads(out.stdout.strip().splitlines()[-1]), "process_s": time.time() - t0}
 
@@ -199,6 +205,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "identify")
     p.add_argument("--seeds", type=int, default=50)
     p.add_argument("--replicates", type=int, default=200, help="the parametric bootstrap's fits per robot")
+    p.add_argument("--record", action="store_true", help="write the page's record (benchmarks/records/identify.json)")
     p.add_argument("--time-one", action="store_true", help=argparse.SUPPRESS)  # the timing's fresh process
     a = p.parse_args(argv)
     machine.configure_xla()  # before JAX starts its backend
@@ -215,14 +222,11 @@ def main(argv=None) -> int:
     boot = bootstrap(a.replicates)
     print(bootstrap_table(boot))
     a.out.mkdir(parents=True, exist_ok=True)
-    result = {
-        "timing": t,
-        "coverage": rows,
-        "seeds": a.seeds,
-        "machine": platform.processor() or platform.machine(),
-        "cores": os.cpu_count(),
-    }
-    files.write_json(a.out / "identify.json", result)
+    result = {"timing": t, "coverage": rows, "bootstrap": boot, "seeds": a.seeds, "replicates": a.replicates}
+    files.write_json(a.out / "identify.json", result | {"machine": page.machine()})
+    if a.record:
+        command = f"python -m benchmarks.identify --seeds {a.seeds} --replicates {a.replicates} --record"
+        page.record("identify", command=command, **result)
     return 0
 
 

@@ -2,7 +2,7 @@
 spline's collocation system is banded and solved block by block, in time and memory linear in
 the samples).
 
-    .venv/bin/python benchmarks/sampled_path.py --out results/benchmarks/sampled_path
+    python -m benchmarks.sampled_path [--record]
 
 Per row, in a fresh process (so that its peak resident memory is the load's own and its time
 includes compiling): samples of a circle of radius 2 m at 0.5 rad/s every 0.01 s,
@@ -10,15 +10,14 @@ includes compiling): samples of a circle of radius 2 m at 0.5 rad/s every 0.01 s
 torque-level (1,1) law's), then one position evaluated mid-path (the pieces are ready). Reports
 the wall seconds of the load, the process's peak resident memory and the position's distance
 to the circle.
-Writes ``sampled_path.json`` into ``--out`` and prints the table (docs/benchmarks.md).
+Writes ``sampled_path.json`` into ``--out`` and prints the table; ``--record``: the page's record too
+(``benchmarks/records/sampled_path.json``, rendered into docs/benchmarks.md by :mod:`benchmarks.page`).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import subprocess
 import sys
@@ -28,6 +27,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from benchmarks import page
 from wmrjax import _files as files
 from wmrjax import references as R
 from wmrjax.cli import machine
@@ -55,22 +55,12 @@ def load_one(n: int, degree: int) -> dict:
     }
 
 
-def table(rows) -> str:
-    lines = ["| samples | degree | load [s] | peak RSS [MB] | off the circle [m] |", "|---|---|---|---|---|"]
-    for r in rows:
-        if "error" in r:
-            lines.append(f"| {r['samples']:,} | {r['degree']} | refused: {r['error'][:80]} | | |")
-        else:
-            lines.append(
-                f"| {r['samples']:,} | {r['degree']} | {r['load_s']:.2f} | {r['peak_rss_bytes'] / 1e6:.0f} | "
-                f"{r['position_error_m']:.1e} |"
-            )
-    return "\n".join(lines)
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=ROOT / "results" / "benchmarks" / "sampled_path")
+    p.add_argument(
+        "--record", action="store_true", help="write the page's record (benchmarks/records/sampled_path.json)"
+    )
     p.add_argument("--one", nargs=2, type=int, help=argparse.SUPPRESS)  # the fresh process: samples, degree
     a = p.parse_args(argv)
     machine.configure_xla()  # the command lines' XLA:CPU settings (the children inherit them), before JAX starts
@@ -80,19 +70,22 @@ def main(argv=None) -> int:
     rows = []
     for n in SIZES:
         for degree in (5, 7):
-            env = dict(os.environ, PYTHONPATH=str(ROOT))
             r = subprocess.run(
-                [sys.executable, __file__, "--one", str(n), str(degree)], capture_output=True, text=True, env=env
+                [sys.executable, "-m", "benchmarks.sampled_path", "--one", str(n), str(degree)],
+                cwd=ROOT,
+                capture_output=True,
+                text=True,
             )
             if r.returncode:
                 rows.append({"samples": n, "degree": degree, "error": (r.stderr.strip().splitlines() or ["?"])[-1]})
             else:
                 rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
-            print(table(rows[-1:]).splitlines()[-1], flush=True)
-    print(table(rows))
+            print(page.sampled_path({"rows": rows[-1:]}).splitlines()[-1], flush=True)
+    print(page.sampled_path({"rows": rows}))
     a.out.mkdir(parents=True, exist_ok=True)
-    result = {"rows": rows, "machine": platform.processor() or platform.machine(), "cores": os.cpu_count()}
-    files.write_json(a.out / "sampled_path.json", result)
+    files.write_json(a.out / "sampled_path.json", {"rows": rows, "machine": page.machine()})
+    if a.record:
+        page.record("sampled_path", command="python -m benchmarks.sampled_path --record", rows=rows)
     return 0
 
 
