@@ -32,11 +32,17 @@ PAGE = ROOT / "docs" / "benchmarks.md"
 BLOCK = re.compile(r"(<!-- generated: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- end generated -->)", re.S)
 
 
+MEASURED = ("wmrjax", "benchmarks", "tests/identify_oracle.py", "pyproject.toml")
+"""What a measurement runs: a change here, not yet committed, makes the record's commit ``+dirty``
+(the docs, the tests and the records themselves do not)."""
+
+
 def _commit() -> str:
-    """The checkout's commit, ``+dirty`` where tracked files differ from it (not what was measured)."""
+    """The checkout's commit, ``+dirty`` where what is measured differs from it (:data:`MEASURED`)."""
     git = lambda *a: subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     head = git("rev-parse", "--short=7", "HEAD") or "unknown"
-    return head + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", *MEASURED, ":!benchmarks/records")
+    return head + ("+dirty" if changed else "")
 
 
 def _cpu() -> str:
