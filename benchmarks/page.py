@@ -133,7 +133,9 @@ def _by_parameter(rows, cell) -> str:
     """A table of parameters (rows) by robot and level (columns); ``cell(row)`` fills it, "—"
     where the robot has no such parameter or the logs do not determine it."""
     robots = list(dict.fromkeys(f"{x['robot']} {x['level']}" for x in rows))
-    params = list(dict.fromkeys(x["parameter"] for x in rows))
+    of = lambda k: [x["parameter"] for x in rows if f"{x['robot']} {x['level']}" == k]
+    # the order of the robot with the most parameters, then any the others add
+    params = list(dict.fromkeys(max((of(k) for k in robots), key=len) + [x["parameter"] for x in rows]))
     at = {(f"{x['robot']} {x['level']}", x["parameter"]): x for x in rows}
     lines = ["| parameter | " + " | ".join(robots) + " |", "|---" * (len(robots) + 1) + "|"]
     for p in params:
