@@ -79,7 +79,8 @@ def _run(tree: Path, argv: list, out: Path) -> float:
         capture_output=True,
         text=True,
     )
-    if r.returncode not in (0, 1):  # 1: certify's alarms (the files are written); compared like any value
+    # 1: certify's alarms (the files are written; compared like any value), never a traceback
+    if r.returncode not in (0, 1) or "Traceback (most recent call last)" in r.stderr:
         raise RuntimeError(f"{' '.join(argv)} in {tree} failed ({r.returncode}):\n{r.stderr[-3000:]}")
     return time.perf_counter() - t0
 

@@ -46,21 +46,33 @@ def test_section_6_1_outputs(tmp_path):
     assert s["simulation"] == on_disk["simulation"]
 
 
-def test_certify_cli(tmp_path):
-    """The CLI writes every key and the map; (1,2)'s curved singular set is covered in test_certify."""
+def test_certify_cli(tmp_path, monkeypatch, capsys):
+    """The CLI writes every key and the map, prints the job's typed report and exits 0; (1,2)'s
+    curved singular set is covered in test_certify."""
+    from wmrjax.certify import job
     from wmrjax.cli import certify
     from wmrjax.problem import Problem
 
-    problem = Problem.from_dict(
-        {
-            "controller": {"law": "dynamic", "robot": "(2,1)"},
-            "reference": {"family": "circle"},
-            "initial": {"space": "output"},
-            "simulation": {"t_final": 3.0, "dt": 0.02},
-            "certify": {"n_empirical": 16, "n_directions": 4, "n_starts": 0, "map_grid": 5},
-        }
+    path = tmp_path / "p.toml"
+    path.write_text(
+        '[controller]\nlaw = "dynamic"\nrobot = "(2,1)"\n[reference]\nfamily = "circle"\n'
+        '[initial]\nspace = "output"\n[simulation]\nt_final = 3.0\ndt = 0.02\n'
+        "[certify]\nn_empirical = 16\nn_directions = 4\nn_starts = 0\nmap_grid = 5\n"
     )
-    s = certify.run(tmp_path, problem)
+    problem = Problem.load(path)
+    reports = []
+
+    def spy(*args, **kw):  # the job's report, as the command line got it
+        reports.append(job.run(*args, **kw))
+        return reports[-1]
+
+    monkeypatch.setattr(certify, "run", spy)
+    out = tmp_path / "out"
+    assert certify.main([str(path), "--out", str(out), "--no-compile-cache", "--devices", "1"]) == 0
+    (s,) = reports
+    printed = capsys.readouterr().out
+    assert f"radius_exact_map_position_slice {s.nominal.exact_position.radius:.4f} (attained)" in printed
+    tmp_path = out
     on_disk = json.loads((tmp_path / "summary.json").read_text())
     assert on_disk["m1"].startswith("closed form")
     assert 0 < on_disk["radius_lyapunov"] <= on_disk["radius_exact_norm"] <= on_disk["radius_exact_map"]

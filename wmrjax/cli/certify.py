@@ -74,9 +74,9 @@ def _report(r: CertifyReport, out: Path) -> int:
     print("nominal continuous loop:")
     for k, lab in labels.items():
         v = s.get(k)
-        r = v.get("radius") if isinstance(v, dict) else v
-        if r is not None:
-            print(f"  {k} {r:.4f} ({lab['kind']})")
+        radius = v.get("radius") if isinstance(v, dict) else v
+        if radius is not None:
+            print(f"  {k} {radius:.4f} ({lab['kind']})")
     pc = r.problem_certificate
     if pc["loop"] != ["nominal"]:
         print(f"problem's loop ({', '.join(pc['loop'])}):")
