@@ -157,11 +157,49 @@ def identify_bootstrap(r: dict) -> str:
     return _by_parameter(r["bootstrap"], lambda x: f"{x['bootstrap_sd'] / x['hessian_std_error']:.2f}")
 
 
+def certify_cost_times(r: dict) -> str:
+    """``benchmarks/certify_cost.py``: ``wmrjax certify`` with and without the problem's ``[plant]``."""
+    lines = ["| problem | plant | with `[plant]` [s] | without [s] | ratio |", "|---|---|---|---|---|"]
+    for x in r["rows"]:
+        lines.append(
+            f"| `{x['problem']}` | {', '.join(x['plant'])} | {x['with_plant_s']:.1f} | {x['without_plant_s']:.1f} | "
+            f"{x['with_plant_s'] / x['without_plant_s']:.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def certify_cost_radii(r: dict) -> str:
+    """Per problem and slice: the nominal exact map, the saturation-free radius, the problem's
+    certificate (what covers the plant) and the real loop's falsified radius, with their ratio."""
+    f = lambda v: "none" if v is None else f"{v:.4g}"
+    lines = [
+        "| problem, slice | nominal exact map (proved) | saturation-free (proved) | problem certificate | "
+        "real loop falsified (estimated) | certified / falsified |",
+        "|---|---|---|---|---|---|",
+    ]
+    for x in r["rows"]:
+        for b, c in x["slices"].items():
+            cert = (
+                f"{f(c['problem_certificate'])} (covers {', '.join(c['covers'])})"
+                if c["problem_certificate"] is not None
+                else f"none proved (not covered: {', '.join(c['not_covered'])})"
+            )
+            ok = c["problem_certificate"] is not None and c["falsified"]
+            ratio = f"{c['problem_certificate'] / c['falsified']:.2f}" if ok else "—"
+            lines.append(
+                f"| `{x['problem']}`, {b} | {f(c['nominal_exact_map'])} | {f(c['saturation_free'])} | {cert} | "
+                f"{f(c['falsified'])} | {ratio} |"
+            )
+    return "\n".join(lines)
+
+
 TABLES = {
     "sampled_path": ("sampled_path", sampled_path, True),
     "identify_timing": ("identify", identify_timing, True),
     "identify_coverage": ("identify", identify_coverage, False),
     "identify_bootstrap": ("identify", identify_bootstrap, False),
+    "certify_cost_times": ("certify_cost", certify_cost_times, True),
+    "certify_cost_radii": ("certify_cost", certify_cost_radii, False),
 }
 """Table name on the page -> (results file, renderer, whether the provenance line leads it)."""
 
