@@ -58,10 +58,11 @@ def row(name: str, real: dict, nominal: dict) -> dict:
     s = real["summary"]
     pc = s["problem_certificate"]
     slices = {}
-    for b in ("full", "position"):
+    for b, key in (("full", "falsified_full"), ("position", "falsified_position_slice")):
         c = pc[b]
         slices[b] = {
             "nominal_exact_map": c["nominal_radius"],
+            "nominal_falsified": (s.get(key) or {}).get("radius"),
             "saturation_free": _radius(c.get("saturation_free")),
             "problem_certificate": c["radius"],
             "covers": c["covers"],
