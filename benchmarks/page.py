@@ -1,7 +1,7 @@
 """The benchmarks page's tables, regenerated from the results files the benchmarks write.
 
-    python -m benchmarks.page            # rewrite docs/benchmarks.md's generated tables
-    python -m benchmarks.page --check    # exit 1 where the page and its results files differ
+    python -m benchmarks.page            # rewrite the generated tables of the pages (PAGES)
+    python -m benchmarks.page --check    # exit 1 where a page and its records differ
 
 A benchmark that has a table on the page records its current numbers with :func:`record`:
 ``benchmarks/records/NAME.json`` holds when, at which commit, on which machine and by which
@@ -28,7 +28,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORDS = ROOT / "benchmarks" / "records"
-PAGE = ROOT / "docs" / "benchmarks.md"
+PAGES = (ROOT / "docs" / "benchmarks.md", ROOT / "docs" / "commands" / "certify.md")
+"""The pages with generated tables."""
 BLOCK = re.compile(r"(<!-- generated: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- end generated -->)", re.S)
 
 
@@ -172,7 +173,8 @@ def certify_cost_radii(r: dict) -> str:
     """Per problem and slice: the nominal loop's proved and falsified radii, the saturation-free
     radius, the problem's certificate (what covers its plant) and the real loop's falsified radius;
     the nominal proved radius over the real loop's falsified one (above 1: the nominal
-    certificate is contradicted by the problem's own loop)."""
+    certificate is contradicted by the problem's own loop). The saturation-free radius is computed
+    where limits are the plant's only feature ("—" otherwise)."""
     f = lambda v: "none" if v is None else f"{v:.4f}"
     lines = [
         "| problem (plant) | slice | nominal, proved | nominal, falsified | saturation-free, proved | "
@@ -187,7 +189,8 @@ def certify_cost_radii(r: dict) -> str:
             shown = "—" if ratio is None else (f"**{ratio:.3f}**" if ratio > 1 else f"{ratio:.3f}")
             lines.append(
                 f"| {label} | {b} | {f(c['nominal_exact_map'])} | {f(c['nominal_falsified'])} | "
-                f"{f(c['saturation_free'])} | {cert} | {f(c['falsified'])} | {shown} |"
+                f"{'—' if c['saturation_free'] is None else f(c['saturation_free'])} | {cert} | {f(c['falsified'])} | "
+                f"{shown} |"
             )
     return "\n".join(lines)
 
@@ -221,18 +224,21 @@ def regenerate(text: str) -> str:
 
 
 def main(argv=None) -> int:
-    """Rewrite the page (or, with ``--check``, say where it differs from its results files)."""
+    """Rewrite the pages (or, with ``--check``, say where they differ from their records)."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--check", action="store_true", help="exit 1 where the page differs from its results files")
+    p.add_argument("--check", action="store_true", help="exit 1 where a page differs from its records")
     a = p.parse_args(argv)
-    text = PAGE.read_text()
-    new = regenerate(text)
-    if a.check:
+    stale = []
+    for page in PAGES:
+        text = page.read_text()
+        new = regenerate(text)
         if new != text:
-            print(f"{PAGE.relative_to(ROOT)} differs from benchmarks/records: run python -m benchmarks.page")
-            return 1
-        return 0
-    PAGE.write_text(new)
+            stale.append(str(page.relative_to(ROOT)))
+            if not a.check:
+                page.write_text(new)
+    if a.check and stale:
+        print(f"{', '.join(stale)}: differ from benchmarks/records: run python -m benchmarks.page")
+        return 1
     return 0
 
 

@@ -387,15 +387,23 @@ def _tiny_file(tmp_path):
     return path
 
 
-def test_cli_writes_summary_and_gains(tmp_path):
-    from wmrjax.cli import problem_args
+def test_cli_writes_summary_and_gains(tmp_path, monkeypatch, capsys):
     from wmrjax.cli import tune as cli
     from wmrjax.tune import job
 
     path = _tiny_file(tmp_path)
     out = tmp_path / "out"
-    problem = problem_args.problem_from_args(cli.parser().parse_args([str(path), "--out", str(out)]))
-    s = job.run(problem, out, fresh=True, log=lambda *_: None)
+    reports = []
+
+    def spy(*args, **kw):  # the job's report, as the command line got it
+        reports.append(job.run(*args, **kw))
+        return reports[-1]
+
+    monkeypatch.setattr(cli, "run", spy)
+    assert cli.main([str(path), "--out", str(out), "--fresh", "--no-compile-cache"]) == 0
+    (s,) = reports
+    printed = capsys.readouterr().out
+    assert f"tuned {s.heldout_loss[1]:.4g}" in printed and "certified radius (position slice" in printed
     on_disk = json.loads((out / "summary.json").read_text())
     hist = json.loads((out / "history.json").read_text())
     assert on_disk["rollouts"] == 6 * 3 and len(hist["gradient"]) == 6 and on_disk["n_parameters"] == 2
@@ -431,7 +439,7 @@ def test_cli_writes_summary_and_gains(tmp_path):
         assert kept == json.loads((out / "gains.json").read_text())
     # the summary carries the whole problem: it runs again from there alone
     again = Problem.from_dict(on_disk["problem"])
-    assert again.resolved() == problem.resolved() and on_disk["tune"]["steps"] == 6
+    assert again.resolved() == s.problem.resolved() and on_disk["tune"]["steps"] == 6
     # gains.json is the tuned gains, for this robot and level
     gains = json.loads((out / "gains.json").read_text())
     assert (gains["kind"], gains["robot"], gains["level"]) == ("wmrjax.gains", "(2,0)", "velocity")

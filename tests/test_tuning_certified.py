@@ -6,7 +6,7 @@ import json
 
 import jax.numpy as jnp
 import pytest
-from test_tuning import TINY, TINY_DATA, TS, run_tiny
+from test_tuning import TINY, TINY_DATA, TS, _tiny_file, run_tiny
 
 from wmrjax.problem import ProblemError
 from wmrjax.tune import config, loop, mean_loss, objective
@@ -99,7 +99,7 @@ def test_requirement_refuses_what_it_cannot_keep(tiny, tmp_path):
     assert box == pytest.approx(1.0)  # the +-0.5 box in x, y, vx, vy: half-diagonal 1
 
 
-def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch):
+def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch, capsys):
     """One point of the tiny problem's front, at the initial gains' position radius: tuned, its
     exact-map radius meeting the requirement, confirmed by rollouts of the map's worst error
     (the falsifier, blind to the map, misses this one: 31.3 m against 8.80 m, so the point
@@ -111,6 +111,7 @@ def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch):
     import importlib
 
     from wmrjax import certify
+    from wmrjax.cli import pareto as cli
     from wmrjax.tune import pareto
 
     E = importlib.import_module("wmrjax.certify.empirical")
@@ -124,8 +125,20 @@ def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch):
         ),
     )
     out, dt = tmp_path / "pareto", 0.01
-    problem = TINY.with_values({"simulation.dt": dt})  # the falsifier's step is the problem's
-    s = pareto.run(problem, out, "position", fractions=[1.0], log=lambda *_: None)
+    path = _tiny_file(tmp_path)  # the falsifier's step is the problem's: --set simulation.dt
+    argv = [str(path), "--set", f"simulation.dt={dt}", "--slice", "position", "--fractions", "1.0", "--out", str(out)]
+    reports = []
+
+    def spy(*args, **kw):  # the job's report, as the command line got it
+        reports.append(pareto.run(*args, **kw))
+        return reports[-1]
+
+    monkeypatch.setattr(cli, "run", spy)
+    assert cli.main([*argv, "--no-compile-cache"]) == 0
+    (s,) = reports
+    problem = TINY.with_values({"simulation.dt": dt})
+    assert s.problem.resolved() == problem.resolved()
+    assert f"initial gains: radius {s.initial['radius']:.4g}" in capsys.readouterr().out
     assert programs and set(programs) == {(certify.CONFIRM_DT_FACTOR * dt, certify.CONFIRM_BLOCK, False)}
     (pt,) = s.points
     assert pt["required_radius"] == s.initial["radius"] <= pt["tuned_radius"]
@@ -136,7 +149,7 @@ def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch):
         assert (out / f).exists()
     assert (out / "pareto.png").read_bytes()[:4] == b"\x89PNG"
     logged = []
-    again = pareto.run(problem, out, "position", fractions=[1.0], log=logged.append)
+    again = pareto.run(s.problem, out, "position", fractions=[1.0], log=logged.append)
     assert sum("kept" in m for m in logged) == 1 and again.points == s.points
 
 

@@ -99,8 +99,9 @@ GAIN_GRID = 4096
 TUBE_TRIES = 8
 """Iterations of the tube's radius R per initial radius before that radius counts as not certified."""
 ENCLOSURE_COMPILE = {"xla_backend_optimization_level": 0}
-"""The held enclosure's program is large (two nested derivatives of the law, each value an affine
-form) and runs a few dozen times: XLA's optimizer would take minutes over it for little gain."""
+"""The enclosures' programs are large (nested derivatives of the law, each value an affine form;
+the held one two of them) and run a few dozen times: XLA's optimizer would take minutes over
+them for little gain (the continuous one on ``steered_21``: 165 s of its 260 s certification)."""
 JET_INSET = 1e-9
 """Relative inset of a controller period's box for the reference jet's enclosure (see :class:`_Tube`)."""
 TUBE_FACTOR = 1.25
@@ -326,7 +327,7 @@ def _rate_and_fit(delta: Interval, applied: Interval, limit):
     return jnp.where(jnp.isfinite(rate), rate, jnp.inf), fits
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1))
+@functools.partial(jax.jit, static_argnums=(0, 1), compiler_options=ENCLOSURE_COMPILE)
 def _box_rates(ctrl, turn: bool, params, P, limit, scales, jc, jg, je, t_c, h, rho, tube):
     r"""Per time box: the bound of :math:`\|\Delta\|` over the tube, and whether the applied
     input's enclosure fits the limits. ``scales`` is (2, n_input + 1): the input scales' and
@@ -482,7 +483,8 @@ class _Tube:
     def rate(self, rho: float, tube: float, assumed: float) -> tuple[float, bool]:
         r"""``(delta_bar, fits)`` over every box at radius ``rho``, tube width ``tube`` and, for a
         digital controller, :math:`\|\Delta\| \le` ``assumed`` on each period."""
-        program = self.program(*(jnp.asarray(v) for v in (rho, tube, assumed)))
+        # strongly typed: a Python float's weak type would compile a second program (50 s on steered_21)
+        program = self.program(*(jnp.asarray(np.float64(v)) for v in (rho, tube, assumed)))
         rates, fits = fixed_blocks(program, (*self.jets, self.t_c, self.h), BOX_BLOCK)
         return float(np.max(rates)), bool(np.all(fits))
 
