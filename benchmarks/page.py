@@ -201,7 +201,7 @@ TABLES = {
     "identify_coverage": ("identify", identify_coverage, False),
     "identify_bootstrap": ("identify", identify_bootstrap, False),
     "certify_cost_times": ("certify_cost", certify_cost_times, True),
-    "certify_cost_radii": ("certify_cost", certify_cost_radii, False),
+    "certify_cost_radii": ("certify_cost", certify_cost_radii, True),
 }
 """Table name on the page -> (results file, renderer, whether the provenance line leads it)."""
 
