@@ -25,7 +25,6 @@ import time
 from pathlib import Path
 
 from benchmarks import page
-from wmrjax import _files as files
 from wmrjax.identify.sections import with_plant_section
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -104,10 +103,9 @@ def main(argv=None) -> int:
             print(page.certify_cost_times({"rows": [r]}).splitlines()[-1], flush=True)
     print(page.certify_cost_times({"rows": rows}))
     print(page.certify_cost_radii({"rows": rows}))
-    a.out.mkdir(parents=True, exist_ok=True)
-    files.write_json(a.out / "certify_cost.json", {"rows": rows, "machine": page.machine()})
-    if a.record:
-        page.record("certify_cost", command="python -m benchmarks.certify_cost --record", rows=rows)
+    page.save(
+        "certify_cost", a.out, record_too=a.record, command="python -m benchmarks.certify_cost --record", rows=rows
+    )
     return 0
 
 

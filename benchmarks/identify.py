@@ -37,7 +37,6 @@ import numpy as np
 
 import wmrjax as w
 from benchmarks import page
-from wmrjax import _files as files
 from wmrjax import identify
 from wmrjax.cli import machine
 from wmrjax.controllers.law import Level
@@ -221,12 +220,11 @@ def main(argv=None) -> int:
     print(table(rows))
     boot = bootstrap(a.replicates)
     print(bootstrap_table(boot))
-    a.out.mkdir(parents=True, exist_ok=True)
-    result = {"timing": t, "coverage": rows, "bootstrap": boot, "seeds": a.seeds, "replicates": a.replicates}
-    files.write_json(a.out / "identify.json", result | {"machine": page.machine()})
-    if a.record:
-        command = f"python -m benchmarks.identify --seeds {a.seeds} --replicates {a.replicates} --record"
-        page.record("identify", command=command, **result)
+    command = f"python -m benchmarks.identify --seeds {a.seeds} --replicates {a.replicates} --record"
+    page.save(
+        "identify", a.out, record_too=a.record, command=command, timing=t, coverage=rows, bootstrap=boot,
+        seeds=a.seeds, replicates=a.replicates,
+    )  # fmt: skip
     return 0
 
 

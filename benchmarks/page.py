@@ -91,12 +91,32 @@ def record(name: str, *, command: str, backend: str = "cpu", **data) -> Path:
         "command": command,
         **data,
     }
-    RECORDS.mkdir(parents=True, exist_ok=True)
-    path = RECORDS / f"{name}.json"
+    return _write(RECORDS / f"{name}.json", out)
+
+
+def _write(path: Path, obj: dict) -> Path:
+    """``obj`` as JSON at ``path``, atomically (a killed benchmark leaves the previous file whole)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(out, indent=1) + "\n")
-    tmp.replace(path)  # atomic: a killed benchmark leaves the previous record whole
+    tmp.write_text(json.dumps(obj, indent=1) + "\n")
+    tmp.replace(path)
     return path
+
+
+def save(name: str, out: Path, *, record_too: bool, command: str, **data) -> None:
+    """A benchmark's results: ``out/NAME.json`` (with this machine), and with ``record_too`` the
+    page's record (:func:`record`).
+
+    Args:
+        name: the benchmark's name.
+        out: its ``--out`` directory (made if missing).
+        record_too: whether ``--record`` was given.
+        command: the command that measured it, as a user types it.
+        **data: plain-JSON values (lists of row dicts).
+    """
+    _write(out / f"{name}.json", data | {"machine": machine()})
+    if record_too:
+        record(name, command=command, **data)
 
 
 def provenance(r: dict) -> str:

@@ -28,7 +28,6 @@ import jax
 import numpy as np
 
 from benchmarks import page
-from wmrjax import _files as files
 from wmrjax import references as R
 from wmrjax.cli import machine
 
@@ -82,10 +81,9 @@ def main(argv=None) -> int:
                 rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
             print(page.sampled_path({"rows": rows[-1:]}).splitlines()[-1], flush=True)
     print(page.sampled_path({"rows": rows}))
-    a.out.mkdir(parents=True, exist_ok=True)
-    files.write_json(a.out / "sampled_path.json", {"rows": rows, "machine": page.machine()})
-    if a.record:
-        page.record("sampled_path", command="python -m benchmarks.sampled_path --record", rows=rows)
+    page.save(
+        "sampled_path", a.out, record_too=a.record, command="python -m benchmarks.sampled_path --record", rows=rows
+    )
     return 0
 
 
