@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 from benchmarks import page
+from wmrjax.cli import machine
 from wmrjax.identify.sections import with_plant_section
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -89,6 +90,7 @@ def main(argv=None) -> int:
         "--record", action="store_true", help="write the page's record (benchmarks/records/certify_cost.json)"
     )
     a = p.parse_args(argv)
+    machine.configure_xla()  # as every command line that imports the package (its runs are child processes)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp) / "examples"

@@ -143,7 +143,7 @@ def _mains():
 
 def test_every_command_line_calls_configure_xla_in_main():
     mains = dict(_mains())
-    assert len(mains) == 17, sorted(mains)
+    assert len(mains) == 18, sorted(mains)
     for path, text in mains.items():
         body = text[text.index("def main(") :]
         uses_tracking_cli = "common.tracking_cli(" in body
