@@ -50,6 +50,24 @@ S2 = math.sqrt(2.0)
 
 
 @pytest.fixture
+def returns(monkeypatch):
+    """``returns(module, name)``: patch ``module.name`` to record what each call returns (a command
+    line's job report, as the command line got it); returns that list."""
+
+    def attach(module, name: str) -> list:
+        real, results = getattr(module, name), []
+
+        def recorded(*args, **kw):
+            results.append(real(*args, **kw))
+            return results[-1]
+
+        monkeypatch.setattr(module, name, recorded)
+        return results
+
+    return attach
+
+
+@pytest.fixture
 def rng():
     """A fresh generator per test: its draws do not depend on which tests ran before it in the
     same worker (pytest-xdist distributes them differently from run to run)."""

@@ -46,10 +46,9 @@ def test_section_6_1_outputs(tmp_path):
     assert s["simulation"] == on_disk["simulation"]
 
 
-def test_certify_cli(tmp_path, monkeypatch, capsys):
+def test_certify_cli(tmp_path, returns, capsys):
     """The CLI writes every key and the map, prints the job's typed report and exits 0; (1,2)'s
     curved singular set is covered in test_certify."""
-    from wmrjax.certify import job
     from wmrjax.cli import certify
     from wmrjax.problem import Problem
 
@@ -60,13 +59,7 @@ def test_certify_cli(tmp_path, monkeypatch, capsys):
         "[certify]\nn_empirical = 16\nn_directions = 4\nn_starts = 0\nmap_grid = 5\n"
     )
     problem = Problem.load(path)
-    reports = []
-
-    def spy(*args, **kw):  # the job's report, as the command line got it
-        reports.append(job.run(*args, **kw))
-        return reports[-1]
-
-    monkeypatch.setattr(certify, "run", spy)
+    reports = returns(certify, "run")
     out = tmp_path / "out"
     assert certify.main([str(path), "--out", str(out), "--no-compile-cache", "--devices", "1"]) == 0
     (s,) = reports

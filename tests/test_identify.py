@@ -216,7 +216,7 @@ def test_the_identified_plant_goes_into_the_problem(diff_drive):
     assert appended["plant"] == data["plant"]
 
 
-def test_the_command_writes_the_identified_problem(tmp_path, monkeypatch):
+def test_the_command_writes_the_identified_problem(tmp_path, returns):
     """wmrjax identify: summary.json's parameters block, plant.toml, a problem.toml
     that loads, the figure, the job's typed report; a bad log is refused before anything runs
     (status 2, the row named)."""
@@ -226,13 +226,7 @@ def test_the_command_writes_the_identified_problem(tmp_path, monkeypatch):
     log = synthetic("(1,1)", "torque", 1.05, [0.95, 1.0], 201, 4)
     path = _write(tmp_path / "run.csv", "t,x,y,theta,beta1,u1,u2", np.column_stack([log.t, log.posture, log.command]))
     out = tmp_path / "out"
-    reports = []
-
-    def spy(*args, **kw):  # the job's report, as the command line got it
-        reports.append(job.run(*args, **kw))
-        return reports[-1]
-
-    monkeypatch.setattr(cli, "run", spy)
+    reports = returns(cli, "run")
     assert cli.main([str(CAR), "--log", str(path), "--out", str(out)]) == 0  # the session's compilation cache
     s = json.loads((out / "summary.json").read_text())
     (r,) = reports  # the command line printed from this report and wrote its summary

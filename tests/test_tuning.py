@@ -387,19 +387,12 @@ def _tiny_file(tmp_path):
     return path
 
 
-def test_cli_writes_summary_and_gains(tmp_path, monkeypatch, capsys):
+def test_cli_writes_summary_and_gains(tmp_path, returns, capsys):
     from wmrjax.cli import tune as cli
-    from wmrjax.tune import job
 
     path = _tiny_file(tmp_path)
     out = tmp_path / "out"
-    reports = []
-
-    def spy(*args, **kw):  # the job's report, as the command line got it
-        reports.append(job.run(*args, **kw))
-        return reports[-1]
-
-    monkeypatch.setattr(cli, "run", spy)
+    reports = returns(cli, "run")
     assert cli.main([str(path), "--out", str(out), "--fresh", "--no-compile-cache"]) == 0
     (s,) = reports
     printed = capsys.readouterr().out

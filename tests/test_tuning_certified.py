@@ -99,7 +99,7 @@ def test_requirement_refuses_what_it_cannot_keep(tiny, tmp_path):
     assert box == pytest.approx(1.0)  # the +-0.5 box in x, y, vx, vy: half-diagonal 1
 
 
-def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch, capsys):
+def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch, returns, capsys):
     """One point of the tiny problem's front, at the initial gains' position radius: tuned, its
     exact-map radius meeting the requirement, confirmed by rollouts of the map's worst error
     (the falsifier, blind to the map, misses this one: 31.3 m against 8.80 m, so the point
@@ -127,13 +127,7 @@ def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch, capsys):
     out, dt = tmp_path / "pareto", 0.01
     path = _tiny_file(tmp_path)  # the falsifier's step is the problem's: --set simulation.dt
     argv = [str(path), "--set", f"simulation.dt={dt}", "--slice", "position", "--fractions", "1.0", "--out", str(out)]
-    reports = []
-
-    def spy(*args, **kw):  # the job's report, as the command line got it
-        reports.append(pareto.run(*args, **kw))
-        return reports[-1]
-
-    monkeypatch.setattr(cli, "run", spy)
+    reports = returns(cli, "run")
     assert cli.main([*argv, "--no-compile-cache"]) == 0
     (s,) = reports
     problem = TINY.with_values({"simulation.dt": dt})

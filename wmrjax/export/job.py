@@ -91,14 +91,14 @@ class ExportReport(JobReport):
 
     def summary(self) -> dict:
         """``summary.json`` (plain JSON)."""
-        step, setting = self.step, self.setting
+        step, setting, resolved = self.step, self.setting, self.problem.resolved()
         return files.jsonable(
             {
                 "experiment": "export",
                 "problem_name": self.problem.title,
                 "case": self.case,
-                "problem": self.problem.resolved(),
-                "gains": self.problem.resolved().get("gains"),
+                "problem": resolved,
+                "gains": resolved.get("gains"),
                 "name": step.name,
                 "robot": step.robot,
                 "level": step.level,
