@@ -60,6 +60,23 @@ def test_kinematic_equals_table1(kind, rng):
         np.testing.assert_allclose(d, np.concatenate([table1(kind, X, u, L), v]), rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_the_geometry_the_kinematics_use_is_table1s(kind, rng):
+    """kinematics_use_geometry (read from the model's program) against Table 1 typed in above: it
+    moves with L for (1,1) and (1,2) only, and with e never. Where it says False, the model
+    with any geometry is the model with the default one, bit for bit."""
+    rt = w.robot_type(kind)
+    moves = False
+    for _ in range(5):
+        X, u = rng.uniform(-4, 4, size=rt.n_state), rng.normal(size=rt.n_input)
+        moves |= not np.allclose(table1(kind, X, u, 0.5), table1(kind, X, u, 1.5), rtol=0, atol=1e-12)
+        if not robots.kinematics_use_geometry(rt):
+            g = w.Geometry(L=rng.uniform(0.2, 2.0), e=rng.uniform(-1, 1), delta=rng.uniform(-3, 3))
+            same = robots.kinematic(rt, jnp.asarray(X), jnp.asarray(u), w.Geometry())
+            assert np.array_equal(robots.kinematic(rt, jnp.asarray(X), jnp.asarray(u), g), same)
+    assert robots.kinematics_use_geometry(rt) == moves == (kind in ("(1,1)", "(1,2)"))
+
+
 def test_models_vmap_over_geometry():
     rt = w.robot_type("(1,1)")
     X = jnp.array([0.0, 0.0, 0.3, 0.7])

@@ -159,6 +159,29 @@ def test_a_limits_only_plant_is_certified_and_its_worst_errors_stay_eps_away_in_
         assert np.abs(sol.sol(np.linspace(0.0, T_FINAL, 20001))[3]).min() >= EPS
 
 
+def test_a_geometry_range_the_kinematics_ignore_keeps_the_limits_certificate(certified):
+    """The (2,0) kinematics have no L and e (wmrjax.robots.kinematics_use_geometry): a +-10 %
+    geometry range changes no plant, so the problem certificate is the limits-only one to the last
+    bit, covers the range (listed as inert, with its reason), and is not contradicted by the real
+    loop's falsifier on the range's plants."""
+    *_, limits_only = certified
+    plant = {"input_limit": LIMIT.tolist(), "geometry_scale": [0.9, 1.0, 1.1]}
+    setting = _problem(plant).setting("certification")
+    params = setting.params()
+    exact = {b: C.exact_map_radius(setting.ctrl, params, t_final=T_FINAL, eps=EPS, basis=b, n_t=601) for b in C.Slice}
+    pc = C.problem_certificate(setting, params, exact, eps=EPS, n_directions=8)
+    assert pc["loop"] == ["input_limit", "geometry_scale"] and C.real_loop.problem_alarms(pc) == []
+    for basis in ("full", "position"):
+        b, want = pc[basis], limits_only[basis]
+        assert b["radius"] == want["radius"] and b["bound_by"] == want["bound_by"] == "saturation_free"
+        assert b["covers"] == ["nominal", "input_limit", "geometry_scale"] and b["kind"] == "proved"
+        assert (
+            set(b["inert"]) == {"geometry_scale"} and "(2,0) kinematics do not depend" in b["inert"]["geometry_scale"]
+        )
+        assert "mismatch" not in b and b["falsified"]["variants"] == 3
+        assert b["radius"] <= b["falsified_radius"]
+
+
 def test_binding_limits_fail_inside_the_nominal_certificate_confirmed_by_scipy(certified):
     """(Moved from test_certify_real_loop: the same plant.) The nominal position radius does not
     hold for the saturated loop; the reported failure, integrated independently (DOP853), dips

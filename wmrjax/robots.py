@@ -17,8 +17,11 @@ The frame convention is the paper's: for type (2,0), ``xdot = -eta1 sin(theta)``
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable, NamedTuple
 
+import jax
+import jax.extend.core as jex
 import jax.numpy as jnp
 
 from wmrjax import _math
@@ -241,6 +244,39 @@ def dynamic(robot: RobotType, state, v, geometry: Geometry):
     n = robot.n_state
     X, u = state[:n], state[n:]
     return jnp.concatenate([kinematic(robot, X, u, geometry), v])
+
+
+@functools.cache
+def kinematics_use_geometry(robot: RobotType) -> bool:
+    r"""Whether the kinematic model (5) of ``robot`` depends on its geometry's L and e at all.
+
+    Read from the model's own program, not from a table: :func:`kinematic` (which
+    :func:`dynamic` and every plant the simulator runs call) is traced with L and e as inputs,
+    and an output counts as dependent when any equation on a path from those inputs to it
+    exists (an equation with one dependent input makes all its outputs dependent: the analysis
+    may say True where a derivative happens to vanish, never False where the model moves with
+    L or e). Types (3,0), (2,0) and (2,1) give False (:math:`\Sigma` has no L; e only places
+    the controlled point, which the law computes with its own geometry), (1,1) and (1,2) True.
+
+    Args:
+      robot: the robot type.
+
+    Returns:
+      False when no plant geometry (L, e, any values) changes :math:`\dot X` for any state and
+      input: a plant whose geometry differs from the law's moves as the law's model.
+    """
+    X, u = jnp.zeros(robot.n_state), jnp.zeros(robot.n_input)
+    closed = jax.make_jaxpr(lambda L, e: kinematic(robot, X, u, Geometry(L=L, e=e)))(1.0, 0.0)
+    return any(_depends_on_inputs(closed.jaxpr))
+
+
+def _depends_on_inputs(jaxpr) -> list[bool]:
+    """Per output of ``jaxpr``: whether it is reachable from any of its inputs (conservative)."""
+    dependent = set(jaxpr.invars)
+    for eqn in jaxpr.eqns:
+        if any(isinstance(v, jex.Var) and v in dependent for v in eqn.invars):
+            dependent.update(eqn.outvars)
+    return [isinstance(v, jex.Var) and v in dependent for v in jaxpr.outvars]
 
 
 def check_model_args(robot, X, u, geometry, *, torque: bool = False) -> RobotType:

@@ -90,6 +90,7 @@ from wmrjax.certify.real_loop import (  # noqa: F401
     Feature,
     Kind,
     RealLoopFalsified,
+    inert_features,
     planned_runs,
     plant_features,
     plant_range,

@@ -19,9 +19,10 @@ can fail (issue 54: a 20 Hz hold on the S-path fails at 0.98 of the nominal radi
   proof covers every feature of its plant, labelled with what it covers, beside the real
   loop's falsified radius.
 
-Proofs cover input limits (:func:`wmrjax.certify.saturation_free_radius`) and, for a continuous
-controller at velocity level, input-scale and geometry ranges with limits
-(:func:`wmrjax.certify.mismatch_radius`). A loop with a feature no proof covers (a digital
+Proofs cover input limits (:func:`wmrjax.certify.saturation_free_radius`), geometry ranges on
+robots whose kinematics do not depend on the geometry (:func:`inert_features`: the loop is the
+nominal one) and, for a continuous controller at velocity level, input-scale and geometry
+ranges with limits (:func:`wmrjax.certify.mismatch_radius`). A loop with a feature no proof covers (a digital
 controller, noise, mismatch at torque level) gets no proved radius (``radius`` None, the
 features listed as not covered) and the real loop's falsified radius, so that the nominal
 radius is never printed as the answer for a loop it does not describe.
@@ -39,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wmrjax import robots
 from wmrjax._validate import check_int, check_positive
 from wmrjax.certify.deviation import Mismatch, mismatch_radius
 from wmrjax.certify.empirical import sample_sphere
@@ -92,6 +94,31 @@ def plant_features(setting) -> tuple:
     if any(setting.noise_std):
         out.append(Feature.NOISE)
     return tuple(out)
+
+
+def inert_features(setting) -> dict:
+    """The plant features of a problem that cannot change its loop, each with the reason: a
+    ``geometry_scale`` range on a robot whose kinematics do not depend on L and e
+    (:func:`wmrjax.robots.kinematics_use_geometry`, read from the model's program: types (3,0),
+    (2,0), (2,1)). The law computes with its own geometry whatever the plant's, so every plant
+    of such a range runs the loop of the nominal geometry exactly, and a proof of that loop
+    covers the range.
+
+    Args:
+      setting: a :class:`wmrjax.problem.Setting`.
+
+    Returns:
+      ``{Feature: reason}`` (empty: every feature of the plant acts on its loop).
+    """
+    robot = setting.ctrl.robot
+    if Feature.GEOMETRY_SCALE in plant_features(setting) and not robots.kinematics_use_geometry(robot):
+        return {
+            Feature.GEOMETRY_SCALE: (
+                f"the {robot.name} kinematics do not depend on L and e (wmrjax.robots.kinematics_use_geometry): "
+                "every plant geometry of the range moves as the law's model"
+            )
+        }
+    return {}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -492,8 +519,11 @@ def problem_certificate(
     geometry ranges (and limits) on a continuous velocity-level loop, the radius is
     :func:`wmrjax.certify.mismatch_radius` over the plant's range (:func:`plant_range`;
     ``bound_by`` "mismatch_tube" or "mismatch_exact_map", a ``mismatch`` block with the
-    deviation bound). For any other feature (a controller period, noise, mismatch at torque
-    level) no proof in this package covers it yet: ``radius`` and ``kind`` are None,
+    deviation bound). A feature that cannot change the loop (:func:`inert_features`: a geometry
+    range on a robot whose kinematics have no L and e) is covered by the proof of the loop
+    without it: it is listed in ``covers`` and, with its reason, in ``inert``. For any other
+    feature (a controller period, noise, mismatch at torque level) no proof in this package
+    covers it yet: ``radius`` and ``kind`` are None,
     ``not_covered`` lists the features, and the nominal radius is reported beside it as the
     nominal loop's.
 
@@ -532,10 +562,7 @@ def problem_certificate(
             )
             out[basis] = block
             continue
-        sat = _saturation_free(setting, params, basis, features, log)
-        block.update(_plant_radius(em, nominal, kind, sat, features))
-        if block["radius"] is None and kind == Kind.PROVED and _mismatch_covered(setting, params, features):
-            block.update(_mismatch_block(setting, params, basis, features, em, eps, log))
+        block.update(_proved_block(setting, params, basis, em, eps, nominal, kind, log))
         if not falsify or not np.isfinite(float(em.radius)):  # not asked, or no scale to search
             block.update(falsified_radius=None, falsified=None)
         else:
@@ -544,6 +571,20 @@ def problem_certificate(
             )
         out[basis] = block
     return out
+
+
+def _proved_block(setting, params, basis: str, em, eps: float, nominal: float, kind, log) -> dict:
+    """A slice's proved radius of a loop with a plant, from the proof that covers the features
+    acting on it (the inert ones, :func:`inert_features`, are covered by the same proof)."""
+    features, inert = plant_features(setting), inert_features(setting)
+    active = tuple(f for f in features if f not in inert)
+    sat = _saturation_free(setting, params, basis, active, log)
+    block = _plant_radius(em, nominal, kind, sat, features, active)
+    if inert:
+        block["inert"] = {str(f): why for f, why in inert.items()}
+    if block["radius"] is None and kind == Kind.PROVED and _mismatch_covered(setting, params, active):
+        block.update(_mismatch_block(setting, params, basis, features, em, eps, log))
+    return block
 
 
 def _falsified_block(setting, params, basis: str, em, eps: float, nominal_falsified, seed: int, log, search) -> dict:
@@ -566,8 +607,9 @@ def _falsified_block(setting, params, basis: str, em, eps: float, nominal_falsif
 
 def _saturation_free(setting, params, basis: str, features, log):
     """The saturation-free radius of a slice under the plant's tightest listed limits, where input
-    limits are the plant's only feature (None otherwise: with a hold, mismatch or noise no proof
-    uses it yet, and its programs take tens of seconds to compile)."""
+    limits are the only feature (of ``features``: those that act on the loop) (None otherwise:
+    with a hold, mismatch or noise no proof uses it yet, and its programs take tens of seconds to
+    compile)."""
     if tuple(features) != (Feature.INPUT_LIMIT,):
         return None
     limits = np.min(
@@ -582,21 +624,22 @@ def _saturation_free(setting, params, basis: str, features, log):
     return sat
 
 
-def _plant_radius(em, nominal: float, kind, sat, features) -> dict:
-    """The problem certificate's fields for a loop with a plant: a proved radius where its only
-    feature beyond the nominal loop is input limits (the smaller of the exact map's and the
-    saturation-free radius: inside both, the saturated loop is the nominal one), none otherwise."""
+def _plant_radius(em, nominal: float, kind, sat, features, active) -> dict:
+    """The problem certificate's fields for a loop with a plant: a proved radius where the only
+    feature acting on the loop (``active``; the others are inert, :func:`inert_features`) is
+    input limits (the smaller of the exact map's and the saturation-free radius: inside both, the
+    saturated loop is the nominal one) or none (the exact map's), none otherwise. ``covers``
+    lists every feature of the plant (``features``), the inert ones included."""
     block = {"saturation_free": None if sat is None else _saturation_summary(sat)}
-    only_limits = tuple(features) == (Feature.INPUT_LIMIT,)
-    if not only_limits or kind != Kind.PROVED:
-        block.update(radius=None, worst_error=None, covers=[], not_covered=[str(x) for x in features], kind=None)
+    if tuple(active) not in ((), (Feature.INPUT_LIMIT,)) or kind != Kind.PROVED:
+        block.update(radius=None, worst_error=None, covers=[], not_covered=[str(x) for x in active], kind=None)
         return block
-    binding_sat = sat.lower_bound < nominal
+    binding_sat = sat is not None and sat.lower_bound < nominal
     worst = sat.worst_error if binding_sat else np.asarray(em.worst_error)
     block.update(
-        radius=min(nominal, sat.lower_bound),
+        radius=nominal if sat is None else min(nominal, sat.lower_bound),
         worst_error=None if worst is None else [float(v) for v in np.asarray(worst)],
-        covers=[str(Feature.NOMINAL), str(Feature.INPUT_LIMIT)],
+        covers=[str(Feature.NOMINAL), *(str(f) for f in features)],
         not_covered=[],
         kind=str(Kind.PROVED),
         bound_by="saturation_free" if binding_sat else "exact_map",
