@@ -16,8 +16,9 @@ gradient falsifier's smallest failing radius, full and position slice. These are
 continuous loop's (``radius_labels`` says what each covers and how it is known). A ``[plant]``
 section (limits, a digital controller, mismatch, noise) describes another loop:
 ``problem_certificate`` gives, per slice, the radius a proof covers for it (input limits alone:
-the smaller of the exact map's and the saturation-free radius; input-scale and geometry
-ranges with a continuous velocity-level controller: the mismatch radius; a digital controller,
+the smaller of the exact map's and the saturation-free radius, also with a geometry range the
+robot's kinematics ignore; input-scale and geometry ranges with a continuous velocity-level
+controller: the mismatch radius; a digital controller,
 noise or mismatch at torque level: none yet, ``not_covered`` lists them) and that loop's
 falsified radius, from its own runs; a nominal radius above it is printed as a warning, a
 proved one above it is an alarm (exit status 1).
@@ -94,6 +95,8 @@ def _report(r: CertifyReport, out: Path) -> int:
             if sf is not None:
                 up = "none found" if sf["upper_bound"] is None else f"{sf['upper_bound']:.4f} (attained)"
                 print(f"    saturation-free radius {sf['lower_bound']:.4f} (proved), {up}")
+            for feature, why in c.get("inert", {}).items():
+                print(f"    {feature} inert: {why}")
             mm = c.get("mismatch")
             if mm is not None:
                 dev = "unbounded" if mm["deviation_bound"] is None else f"{mm['deviation_bound']:.4g}"
