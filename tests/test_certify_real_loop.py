@@ -96,6 +96,26 @@ def test_without_a_plant_the_problem_certificate_is_the_exact_maps_proved_bound(
         assert np.allclose(b["worst_error"], np.asarray(em.worst_error))
 
 
+def test_a_geometry_range_alone_on_a_20_robot_is_certified_by_the_exact_map(nominal):
+    """(2,0) kinematics have no L and e: a geometry range alone leaves the nominal loop, so the
+    problem certificate is the exact map's proved bound, covering the range (its reason in
+    ``inert``); beside an input scale (which acts) the geometry range is still the inert one."""
+    _, params, exact = nominal
+    setting = _problem({"geometry_scale": [0.8, 1.2]}).setting("certification")
+    assert set(C.inert_features(setting)) == {C.Feature.GEOMETRY_SCALE}
+    pc = C.problem_certificate(setting, params, exact, eps=EPS, falsify=False)
+    for basis, em in exact.items():
+        b = pc[basis]
+        assert b["radius"] == em.lower_bound and b["kind"] == "proved" and b["bound_by"] == "exact_map"
+        assert (
+            b["covers"] == ["nominal", "geometry_scale"] and b["not_covered"] == [] and "geometry_scale" in b["inert"]
+        )
+        assert b["saturation_free"] is None and "mismatch" not in b
+    acting = _problem({"geometry_scale": [0.8, 1.2], "input_scale": [0.9, 1.1]}).setting("c")
+    assert set(C.inert_features(acting)) == {C.Feature.GEOMETRY_SCALE}
+    assert C.inert_features(_problem({"input_scale": [0.9, 1.1]}).setting("c")) == {}
+
+
 def test_plant_features_name_every_section_key():
     assert C.plant_features(_problem({"input_limit": [1.5, 1.0]}).setting("c")) == (C.Feature.INPUT_LIMIT,)
     full = {

@@ -628,10 +628,12 @@ def _plant_radius(em, nominal: float, kind, sat, features, active) -> dict:
     """The problem certificate's fields for a loop with a plant: a proved radius where the only
     feature acting on the loop (``active``; the others are inert, :func:`inert_features`) is
     input limits (the smaller of the exact map's and the saturation-free radius: inside both, the
-    saturated loop is the nominal one) or none (the exact map's), none otherwise. ``covers``
-    lists every feature of the plant (``features``), the inert ones included."""
+    saturated loop is the nominal one) or none (the exact map's radius, of its ``kind``, as for a
+    problem without a plant), none otherwise. ``covers`` lists every feature of the plant
+    (``features``), the inert ones included."""
     block = {"saturation_free": None if sat is None else _saturation_summary(sat)}
-    if tuple(active) not in ((), (Feature.INPUT_LIMIT,)) or kind != Kind.PROVED:
+    limits_proved = tuple(active) == (Feature.INPUT_LIMIT,) and kind == Kind.PROVED
+    if active and not limits_proved:
         block.update(radius=None, worst_error=None, covers=[], not_covered=[str(x) for x in active], kind=None)
         return block
     binding_sat = sat is not None and sat.lower_bound < nominal
@@ -641,7 +643,7 @@ def _plant_radius(em, nominal: float, kind, sat, features, active) -> dict:
         worst_error=None if worst is None else [float(v) for v in np.asarray(worst)],
         covers=[str(Feature.NOMINAL), *(str(f) for f in features)],
         not_covered=[],
-        kind=str(Kind.PROVED),
+        kind=str(kind),
         bound_by="saturation_free" if binding_sat else "exact_map",
     )
     return block
