@@ -97,6 +97,18 @@ def state_part_size(closed, n_state_leaves: int) -> int:
     return len(pe.partial_eval_jaxpr_nounits(closed, unknown, instantiate=True)[1].jaxpr.eqns)
 
 
+def depends_on(closed, inputs) -> tuple[bool, ...]:
+    """Per output of ``closed`` (a closed jaxpr): whether it depends on the inputs flagged True in
+    ``inputs`` (one flag per input leaf), by the same partial evaluation as :func:`split_field`:
+    an output it reports False is computed from the other inputs alone.
+
+    Args:
+      closed: the traced program.
+      inputs: one bool per input leaf of ``closed``.
+    """
+    return tuple(pe.partial_eval_jaxpr_nounits(closed, [bool(x) for x in inputs], instantiate=False)[2])
+
+
 def batched(x) -> bool:
     """True when ``x`` is batched by an enclosing ``jax.vmap`` traced around this call (looked
     for through the differentiation tracers' primal values). A trace-time question: a ``vmap``

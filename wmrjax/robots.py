@@ -21,10 +21,9 @@ import functools
 from typing import Callable, NamedTuple
 
 import jax
-import jax.extend.core as jex
 import jax.numpy as jnp
 
-from wmrjax import _math
+from wmrjax import _hoist, _math
 from wmrjax._validate import check_finite, check_number, check_shape, concrete
 
 
@@ -252,10 +251,10 @@ def kinematics_use_geometry(robot: RobotType) -> bool:
 
     Read from the model's own program, not from a table: :func:`kinematic` (which
     :func:`dynamic` and every plant the simulator runs call) is traced with L and e as inputs,
-    and an output counts as dependent when any equation on a path from those inputs to it
-    exists (an equation with one dependent input makes all its outputs dependent: the analysis
-    may say True where a derivative happens to vanish, never False where the model moves with
-    L or e). Types (3,0), (2,0) and (2,1) give False (:math:`\Sigma` has no L; e only places
+    and JAX's partial evaluation (:func:`wmrjax._hoist.depends_on`, the cut the simulator's
+    hoisting uses) says which outputs need them: an output it computes without them cannot move
+    with L or e (it may say True where a derivative happens to vanish, never False where the
+    model moves). Types (3,0), (2,0) and (2,1) give False (:math:`\Sigma` has no L; e only places
     the controlled point, which the law computes with its own geometry), (1,1) and (1,2) True.
 
     Args:
@@ -267,16 +266,7 @@ def kinematics_use_geometry(robot: RobotType) -> bool:
     """
     X, u = jnp.zeros(robot.n_state), jnp.zeros(robot.n_input)
     closed = jax.make_jaxpr(lambda L, e: kinematic(robot, X, u, Geometry(L=L, e=e)))(1.0, 0.0)
-    return any(_depends_on_inputs(closed.jaxpr))
-
-
-def _depends_on_inputs(jaxpr) -> list[bool]:
-    """Per output of ``jaxpr``: whether it is reachable from any of its inputs (conservative)."""
-    dependent = set(jaxpr.invars)
-    for eqn in jaxpr.eqns:
-        if any(isinstance(v, jex.Var) and v in dependent for v in eqn.invars):
-            dependent.update(eqn.outvars)
-    return [isinstance(v, jex.Var) and v in dependent for v in jaxpr.outvars]
+    return any(_hoist.depends_on(closed, (True, True)))
 
 
 def check_model_args(robot, X, u, geometry, *, torque: bool = False) -> RobotType:
