@@ -199,6 +199,31 @@ def test_every_module_says_what_it_is():
             assert doc and len(doc) > 20 and "TODO" not in doc, f"{f.relative_to(ROOT)}: {doc!r}"
 
 
+def test_every_package_declares_its_public_api():
+    """Every package of ``wmrjax`` lists its public names in ``__all__``: each is defined there,
+    none twice, and a package of re-exports lists every name it imports (none re-exported by
+    accident, as a ``noqa: F401`` once allowed)."""
+    for f in sorted((ROOT / "wmrjax").rglob("__init__.py")):
+        name = _module(f)
+        module = __import__(name, fromlist=["__all__"])
+        public = getattr(module, "__all__", None)
+        assert public is not None, f"{name} has no __all__"
+        assert len(set(public)) == len(public), f"{name}.__all__ repeats a name"
+        missing = [n for n in public if not hasattr(module, n)]
+        assert not missing, f"{name}.__all__ names what it does not define: {missing}"
+        tree = ast.parse(f.read_text())
+        imported = {
+            a.asname or a.name
+            for node in tree.body
+            if isinstance(node, ast.ImportFrom) and node.module not in ("__future__", None) and node.level == 0
+            and node.module.startswith("wmrjax")
+            for a in node.names
+        }  # fmt: skip
+        defines = any(isinstance(node, (ast.FunctionDef, ast.ClassDef)) for node in tree.body)
+        if not defines:  # a package of re-exports: all of them public
+            assert imported <= set(public), f"{name} imports {sorted(imported - set(public))}, not in __all__"
+
+
 def test_the_library_runs_without_the_cli_extra(tmp_path):
     """With matplotlib, pyarrow, cmaes and optuna made unimportable, ``import wmrjax`` and a short
     simulation work, and nothing of the upper layers is loaded."""

@@ -37,8 +37,8 @@ loop's.
 Only dynamic linearizing laws are certified: a static law raises ``ValueError``.
 """
 
-from wmrjax.certify.budget import Counts, WorkEstimate, plan, scaled, step_cost  # noqa: F401
-from wmrjax.certify.deviation import (  # noqa: F401
+from wmrjax.certify.budget import Counts, WorkEstimate, plan, scaled, step_cost
+from wmrjax.certify.deviation import (
     Mismatch,
     MismatchRadius,
     deviation_rate,
@@ -46,7 +46,7 @@ from wmrjax.certify.deviation import (  # noqa: F401
     mismatch_radius,
     sampled_inputs,
 )
-from wmrjax.certify.empirical import (  # noqa: F401
+from wmrjax.certify.empirical import (
     CONFIRM_BLOCK,
     CONFIRM_DT_FACTOR,
     Distances,
@@ -58,7 +58,7 @@ from wmrjax.certify.empirical import (  # noqa: F401
     verify,
     verify_all,
 )
-from wmrjax.certify.exact_map import (  # noqa: F401
+from wmrjax.certify.exact_map import (
     ExactMapRadius,
     Slice,
     curved_exact_map_radius,
@@ -68,8 +68,8 @@ from wmrjax.certify.exact_map import (  # noqa: F401
     singular_rows,
     slice_basis,
 )
-from wmrjax.certify.falsify import Falsification, FalsifiedRadius, falsified_radius, falsify  # noqa: F401
-from wmrjax.certify.lemma2 import (  # noqa: F401
+from wmrjax.certify.falsify import Falsification, FalsifiedRadius, falsified_radius, falsify
+from wmrjax.certify.lemma2 import (
     Certificate,
     Lemma2Report,
     LyapunovBound,
@@ -85,8 +85,8 @@ from wmrjax.certify.lemma2 import (  # noqa: F401
     m1_numerical,
     transition_steps,
 )
-from wmrjax.certify.pipeline import CertificationReport, EmpiricalCheck, analyse, plain  # noqa: F401
-from wmrjax.certify.real_loop import (  # noqa: F401
+from wmrjax.certify.pipeline import CertificationReport, EmpiricalCheck, analyse, plain
+from wmrjax.certify.real_loop import (
     Feature,
     Kind,
     RealLoopFalsified,
@@ -99,4 +99,71 @@ from wmrjax.certify.real_loop import (  # noqa: F401
     real_loop_distances,
     real_loop_falsified_radius,
 )
-from wmrjax.certify.saturation import SaturationFreeRadius, saturation_free_radius  # noqa: F401
+from wmrjax.certify.saturation import SaturationFreeRadius, saturation_free_radius
+
+__all__ = [
+    "Counts",
+    "WorkEstimate",
+    "plan",
+    "scaled",
+    "step_cost",
+    "Mismatch",
+    "MismatchRadius",
+    "deviation_rate",
+    "hold_rate",
+    "mismatch_radius",
+    "sampled_inputs",
+    "CONFIRM_BLOCK",
+    "CONFIRM_DT_FACTOR",
+    "Distances",
+    "EmpiricalRadius",
+    "Verification",
+    "empirical_radius",
+    "min_distance",
+    "sample_sphere",
+    "verify",
+    "verify_all",
+    "ExactMapRadius",
+    "Slice",
+    "curved_exact_map_radius",
+    "differentiable_exact_map_radius",
+    "exact_map_radius",
+    "min_norm_to_ball",
+    "singular_rows",
+    "slice_basis",
+    "Falsification",
+    "FalsifiedRadius",
+    "falsified_radius",
+    "falsify",
+    "Certificate",
+    "Lemma2Report",
+    "LyapunovBound",
+    "certificate",
+    "check_lemma2_args",
+    "k2_exact",
+    "k2_lyapunov",
+    "k2_paper",
+    "k2_transition",
+    "lemma2",
+    "lyapunov_bound",
+    "m1_closed_form",
+    "m1_numerical",
+    "transition_steps",
+    "CertificationReport",
+    "EmpiricalCheck",
+    "analyse",
+    "plain",
+    "Feature",
+    "Kind",
+    "RealLoopFalsified",
+    "inert_features",
+    "planned_runs",
+    "plant_features",
+    "plant_range",
+    "problem_certificate",
+    "radius_labels",
+    "real_loop_distances",
+    "real_loop_falsified_radius",
+    "SaturationFreeRadius",
+    "saturation_free_radius",
+]

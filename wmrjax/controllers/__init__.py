@@ -9,13 +9,13 @@
 * :mod:`~wmrjax.controllers.placement` -- the one placement of an initial state near a reference.
 """
 
-from wmrjax.controllers.dynamic import TABLE4, DynamicLinearization, DynamicParams, Table4Row, dynamic_linearization  # noqa: F401
-from wmrjax.controllers.hybrid import Hybrid, HybridParams, HybridState, TimeVarying, hybrid_parking, stabilizer  # noqa: F401
-from wmrjax.controllers.law import DET_FLOOR, Aux, Extension, Level, LinearizingController, LinearizingLaw, Task  # noqa: F401
-from wmrjax.controllers.placement import Space, initial_keys, place  # noqa: F401
-from wmrjax.controllers.plant import PlantLoop, PlantParams, with_plant  # noqa: F401
-from wmrjax.controllers.sampled import SampledLoop, SampledParams, SampledState, measurement_noise, sampled  # noqa: F401
-from wmrjax.controllers.static import (  # noqa: F401
+from wmrjax.controllers.dynamic import TABLE4, DynamicLinearization, DynamicParams, Table4Row, dynamic_linearization
+from wmrjax.controllers.hybrid import Hybrid, HybridParams, HybridState, TimeVarying, hybrid_parking, stabilizer
+from wmrjax.controllers.law import DET_FLOOR, Aux, Extension, Level, LinearizingController, LinearizingLaw, Task
+from wmrjax.controllers.placement import Space, initial_keys, place
+from wmrjax.controllers.plant import PlantLoop, PlantParams, with_plant
+from wmrjax.controllers.sampled import SampledLoop, SampledParams, SampledState, measurement_noise, sampled
+from wmrjax.controllers.static import (
     TABLE3,
     InternalDynamics,
     StaticLinearization,
@@ -26,4 +26,46 @@ from wmrjax.controllers.static import (  # noqa: F401
     static_linearization,
     steering_constant,
 )
-from wmrjax.system import ClosedLoop  # noqa: F401
+from wmrjax.system import ClosedLoop
+
+__all__ = [
+    "TABLE4",
+    "DynamicLinearization",
+    "DynamicParams",
+    "Table4Row",
+    "dynamic_linearization",
+    "Hybrid",
+    "HybridParams",
+    "HybridState",
+    "TimeVarying",
+    "hybrid_parking",
+    "stabilizer",
+    "DET_FLOOR",
+    "Aux",
+    "Extension",
+    "Level",
+    "LinearizingController",
+    "LinearizingLaw",
+    "Task",
+    "Space",
+    "initial_keys",
+    "place",
+    "PlantLoop",
+    "PlantParams",
+    "with_plant",
+    "SampledLoop",
+    "SampledParams",
+    "SampledState",
+    "measurement_noise",
+    "sampled",
+    "TABLE3",
+    "InternalDynamics",
+    "StaticLinearization",
+    "StaticParams",
+    "Steering",
+    "Table3Row",
+    "controller",
+    "static_linearization",
+    "steering_constant",
+    "ClosedLoop",
+]

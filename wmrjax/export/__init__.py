@@ -49,6 +49,18 @@ from wmrjax.controllers.sampled import SampledLoop, SampledParams, SampledState,
 from wmrjax.references import DOMAIN_RTOL
 from wmrjax.simulate import scalarized, simulate
 
+__all__ = [
+    "ControlStep",
+    "Run",
+    "control_step",
+    "drive",
+    "export_artifact",
+    "generate_c",
+    "program",
+    "reference_run",
+    "reference_span",
+]
+
 
 @dataclasses.dataclass(frozen=True)
 class ControlStep(_cgen.Signature):

@@ -17,10 +17,35 @@ Example::
     result = wmrjax.tune.tune(setting, settings.gain_family(setting), optax.adam(0.1), steps=40)
 """
 
-from wmrjax.examples import PROBLEMS, problem_file  # noqa: F401
-from wmrjax.tune.baselines import BaselineRun, cma_es, random_search  # noqa: F401
-from wmrjax.tune.config import Baselines, Optimizer, Scenarios, Stopping, TuneSettings  # noqa: F401
-from wmrjax.tune.gains import GainFamily  # noqa: F401
-from wmrjax.tune.loop import Context, TuneResult, mean_loss, mean_loss_and_grad, objective, tune  # noqa: F401
-from wmrjax.tune.losses import LossWeights, Metrics, metrics  # noqa: F401
-from wmrjax.tune.scenarios import Scenario, rollout  # noqa: F401
+from wmrjax.examples import PROBLEMS, problem_file
+from wmrjax.tune.baselines import BaselineRun, cma_es, random_search
+from wmrjax.tune.config import Baselines, Optimizer, Scenarios, Stopping, TuneSettings
+from wmrjax.tune.gains import GainFamily
+from wmrjax.tune.loop import Context, TuneResult, mean_loss, mean_loss_and_grad, objective, tune
+from wmrjax.tune.losses import LossWeights, Metrics, metrics
+from wmrjax.tune.scenarios import Scenario, rollout
+
+__all__ = [
+    "PROBLEMS",
+    "problem_file",
+    "BaselineRun",
+    "cma_es",
+    "random_search",
+    "Baselines",
+    "Optimizer",
+    "Scenarios",
+    "Stopping",
+    "TuneSettings",
+    "GainFamily",
+    "Context",
+    "TuneResult",
+    "mean_loss",
+    "mean_loss_and_grad",
+    "objective",
+    "tune",
+    "LossWeights",
+    "Metrics",
+    "metrics",
+    "Scenario",
+    "rollout",
+]
