@@ -28,8 +28,12 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 # The command lines the tests start inherit the level through XLA_FLAGS. WMRJAX_TEST_OPT_LEVEL=default runs the whole
 # session at the default level (docs/development.md).
 DEFAULT_OPT_LEVEL = {"xla_backend_optimization_level": 3}  # XLA's default (its DebugOptions)
+# XLA:CPU's legacy elemental emitters too, not its MLIR fusion emitters: they compile this suite's
+# programs a third faster (the saturation search's enclosure 45 -> 31 s, tests/test_forward_car.py
+# 150 -> 121 s, 2 cores) to the same values within rounding; the library's own processes keep XLA's default.
+TEST_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"
 if os.environ.get("WMRJAX_TEST_OPT_LEVEL", "0") != "default":
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + TEST_XLA_FLAGS).strip()
 
 # The command lines' XLA:CPU setting (every time loop compiled into one kernel, wmrjax.xla_cpu), so
 # that the tests run the programs the command lines run, in-process and in the processes they start.
@@ -86,34 +90,57 @@ def paper61():
     return ctrl, params, z0
 
 
-# pytest-xdist (--dist loadfile) hands whole files to the workers in collection order, and the
-# run ends when the last file does: the files that compile the most go first, so that the two
-# workers finish together instead of one waiting for a long file started last.
+# pytest-xdist (--dist loadfile) hands whole files to the workers, and the run ends when the last
+# file does: the files that take longest go first (measured at 9ecbec5, 2 cores, heaviest first),
+# so that the two workers finish together instead of one waiting for a long file started last.
 HEAVY_FIRST = (
-    "test_tuning_certified.py",
-    "test_export.py",
-    "test_resources.py",
-    "test_sweep.py",
-    "test_scalarize.py",
+    "test_mismatch.py",
+    "test_saturation.py",
+    "test_certify_real_loop.py",
+    "test_forward_car.py",
     "test_certify.py",
-    "test_tuning.py",
-    "test_experiments_bench.py",
-    "test_experiments.py",
-    "test_autodiff.py",
-    "test_certify_tightness.py",
-    "test_tuning_study.py",
-    "test_experiments_tracking.py",
-    "test_simulate.py",
-    "test_tuning_problems.py",
-    "test_guards.py",
+    "test_sweep.py",
     "test_samples.py",
-    "test_static.py",
     "test_dynamic.py",
-    "test_hybrid.py",
+    "test_scalarize.py",
+    "test_tuning.py",
+    "test_simulate.py",
+    "test_static.py",
+    "test_experiments_bench.py",
+    "test_autodiff.py",
+    "test_output_safety.py",
+    "test_tuning_certified.py",
+    "test_hoist.py",
+    "test_math.py",
+    "test_certify_tightness.py",
+    "test_export.py",
+    "test_linearize.py",
+    "test_experiments.py",
+    "test_guards.py",
     "test_cli.py",
 )
+# Files whose tests compile the same heavy programs (the circle loop's saturation search, 45 s of
+# compiling) are one work unit: one worker runs them one after the other and finds the programs
+# compiled in its own process (two workers would compile them twice, at once, on two cores).
+SHARED_UNITS = {name: "certification of the circle loop's plant" for name in HEAVY_FIRST[:3]}
 
 
 def pytest_collection_modifyitems(config, items):
     rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(HEAVY_FIRST)))  # stable: file order kept
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """--dist loadfile with :data:`SHARED_UNITS` and the files in collection order (xdist's own
+    order, by number of tests, would undo :data:`HEAVY_FIRST`)."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling  # pytest-xdist: loaded by a parallel session only
+
+    class Scheduling(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = super()._split_scope(nodeid)
+            return SHARED_UNITS.get(path.rsplit("/", 1)[-1], path)
+
+    config.option.loadscopereorder = False
+    return Scheduling(config, log)
