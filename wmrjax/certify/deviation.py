@@ -98,10 +98,12 @@ GAIN_GRID = 4096
 """Steps of the Riemann sums of :math:`G_T` and :math:`G_C`."""
 TUBE_TRIES = 8
 """Iterations of the tube's radius R per initial radius before that radius counts as not certified."""
-ENCLOSURE_COMPILE = {"xla_backend_optimization_level": 0}
+ENCLOSURE_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 """The enclosures' programs are large (nested derivatives of the law, each value an affine form;
 the held one two of them) and run a few dozen times: XLA's optimizer would take minutes over
-them for little gain (the continuous one on ``steered_21``: 165 s of its 260 s certification)."""
+them for little gain (the continuous one on ``steered_21``: 165 s of its 260 s certification),
+and XLA:CPU's legacy elemental emitters compile them faster than its MLIR fusion emitters (as
+:data:`wmrjax.certify.saturation.SEARCH_COMPILE`)."""
 JET_INSET = 1e-9
 """Relative inset of a controller period's box for the reference jet's enclosure (see :class:`_Tube`)."""
 TUBE_FACTOR = 1.25
