@@ -30,7 +30,8 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 DEFAULT_OPT_LEVEL = {"xla_backend_optimization_level": 3}  # XLA's default (its DebugOptions)
 # XLA:CPU's legacy elemental emitters too, not its MLIR fusion emitters: they compile this suite's
 # programs a third faster (the saturation search's enclosure 45 -> 31 s, tests/test_forward_car.py
-# 150 -> 121 s, 2 cores) to the same values within rounding; the library's own processes keep XLA's default.
+# 150 -> 121 s, 2 cores) to the same values within rounding. The library keeps XLA's default but for
+# its enclosures' programs, which choose these emitters themselves (wmrjax.certify.saturation.SEARCH_COMPILE).
 TEST_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"
 if os.environ.get("WMRJAX_TEST_OPT_LEVEL", "0") != "default":
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + TEST_XLA_FLAGS).strip()
@@ -122,7 +123,9 @@ HEAVY_FIRST = (
 # Files whose tests compile the same heavy programs (the circle loop's saturation search, 45 s of
 # compiling) are one work unit: one worker runs them one after the other and finds the programs
 # compiled in its own process (two workers would compile them twice, at once, on two cores).
-SHARED_UNITS = {name: "certification of the circle loop's plant" for name in HEAVY_FIRST[:3]}
+SHARED_UNITS = dict.fromkeys(
+    ("test_mismatch.py", "test_saturation.py", "test_certify_real_loop.py"), "certification of the circle loop's plant"
+)
 
 
 def pytest_collection_modifyitems(config, items):
