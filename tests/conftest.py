@@ -30,7 +30,7 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 DEFAULT_OPT_LEVEL = {"xla_backend_optimization_level": 3}  # XLA's default (its DebugOptions)
 # XLA:CPU's legacy elemental emitters too, not its MLIR fusion emitters: they compile this suite's
 # programs a third faster (the saturation search's enclosure 45 -> 31 s, tests/test_forward_car.py
-# 150 -> 121 s, 2 cores) to the same values within rounding. The library keeps XLA's default but for
+# 148 -> 121 s alone, 2 cores) to the same values within rounding. The library keeps XLA's default but for
 # its enclosures' programs, which choose these emitters themselves (wmrjax.certify.saturation.SEARCH_COMPILE).
 TEST_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"
 if os.environ.get("WMRJAX_TEST_OPT_LEVEL", "0") != "default":

@@ -545,7 +545,7 @@ def problem_certificate(
       ``falsified_radius`` and ``falsified`` (the real loop's search), ``nominal_radius``; and
       ``loop`` (the features of the problem's loop).
     """
-    features = plant_features(setting)
+    features, inert = plant_features(setting), inert_features(setting)
     out = {"loop": [str(f) for f in features] or [str(Feature.NOMINAL)]}
     for basis, em in exact.items():
         nominal = float(em.radius) if em.lower_bound is None else float(em.lower_bound)
@@ -562,7 +562,7 @@ def problem_certificate(
             )
             out[basis] = block
             continue
-        block.update(_proved_block(setting, params, basis, em, eps, nominal, kind, log))
+        block.update(_proved_block(setting, params, basis, em, eps, nominal, kind, features, inert, log))
         if not falsify or not np.isfinite(float(em.radius)):  # not asked, or no scale to search
             block.update(falsified_radius=None, falsified=None)
         else:
@@ -573,10 +573,9 @@ def problem_certificate(
     return out
 
 
-def _proved_block(setting, params, basis: str, em, eps: float, nominal: float, kind, log) -> dict:
-    """A slice's proved radius of a loop with a plant, from the proof that covers the features
-    acting on it (the inert ones, :func:`inert_features`, are covered by the same proof)."""
-    features, inert = plant_features(setting), inert_features(setting)
+def _proved_block(setting, params, basis: str, em, eps: float, nominal: float, kind, features, inert, log) -> dict:
+    """A slice's proved radius of a loop with a plant (its ``features``), from the proof that covers
+    the features acting on it (the ``inert`` ones, :func:`inert_features`, are covered by the same proof)."""
     active = tuple(f for f in features if f not in inert)
     sat = _saturation_free(setting, params, basis, active, log)
     block = _plant_radius(em, nominal, kind, sat, features, active)
