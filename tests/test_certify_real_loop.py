@@ -187,9 +187,19 @@ def test_the_tuner_says_its_radii_are_the_nominal_loops():
         "covered": True,
         "note": "the problem's loop is the nominal one",
     }
-    loop = certified.problem_loop(_problem({"input_limit": [1.3, 0.8], "control_period": 0.1}).setting("c"))
+    setting = _problem({"input_limit": [1.3, 0.8], "control_period": 0.1}).setting("c")
+    loop = certified.problem_loop(setting)
     assert loop["features"] == ["input_limit", "control_period"] and not loop["covered"]
-    assert "no proof covers this problem's input_limit, control_period" in loop["note"]
+    assert "exact-map radii here are the nominal continuous loop's" in loop["note"]
+    for which, covers, rest in (
+        ("problem", "nominal, input_limit", "control_period"),
+        ("nominal", "nominal", "input_limit, control_period"),
+    ):
+        note = certified.problem_loop(setting, certified.Requirement(1.0, "full", EPS, which))["note"]
+        assert (
+            f"the requirement keeps a radius of the loop with {covers}; no proof the tuner keeps covers this problem's {rest}"
+            in note
+        )
 
 
 def test_the_plant_table_runs_each_feature_alone_then_together(tmp_path):

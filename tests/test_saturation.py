@@ -22,6 +22,8 @@ from wmrjax.certify import affine, interval
 from wmrjax.certify.interval import Interval
 from wmrjax.cli import tune as tune_cli
 from wmrjax.tune import certified as tune_certified
+from wmrjax.tune import config as tune_config
+from wmrjax.tune import loop as tune_loop
 
 LIMIT = np.array([1.3, 0.8])  # binding inside the nominal certificate (test_certify_real_loop)
 
@@ -93,6 +95,7 @@ def _commands(setting, params, s, ts):
     """(T, D, 2) nominal commands (chi1, theta') of the (2,0) law at e = 0 along the circle, from
     output errors e^{At} s, in closed form: chi1 = |P'| (branch +1), theta' = -(c, s).v / chi1."""
     A = np.asarray(setting.ctrl.error_matrix(params.gains))
+    k = np.asarray(params.gains.coeffs)  # (2, 2): per output, the position and the velocity error's gain
     out = []
     for t in ts:
         err = np.atleast_2d(s) @ scipy.linalg.expm(A * t).T  # (D, 4)
@@ -100,7 +103,7 @@ def _commands(setting, params, s, ts):
         P, V = ref[:2] + err[:, :2], ref[2:] + err[:, 2:]
         chi = np.linalg.norm(V, axis=1)
         th = np.arctan2(-V[:, 0], V[:, 1])
-        v = -(OMEGA**2) * ref[:2] - 2.0 * err[:, 2:] - err[:, :2]
+        v = -(OMEGA**2) * ref[:2] - k[:, 1] * err[:, 2:] - k[:, 0] * err[:, :2]
         eta2 = -(np.cos(th) * v[:, 0] + np.sin(th) * v[:, 1]) / chi
         del P
         out.append(np.stack([chi, eta2], axis=1))
@@ -238,3 +241,74 @@ def test_the_tuners_problem_radii_are_the_problem_certificates(certified):
     radii = {"initial": {}, "tuned": {}, "problem_certificate": {"initial": got, "tuned": got}}
     lines = tune_cli.radius_change_lines(radii)
     assert any("position slice, the problem's loop: nominal, input_limit, proved" in x and "+0 %" in x for x in lines)
+
+
+TUNE_STEPS = 4
+TUNE = {"steps": TUNE_STEPS, "scenarios": {"train": 3, "validation": 2, "heldout": 2}, "stopping": {"eval_every": 2}}
+
+
+@pytest.fixture(scope="module")
+def kept_run():
+    """Tuning the circle loop with binding limits, its position slice's problem certificate
+    required at the initial gains' value (``[tune.requirement] radius = "initial"``, loop
+    "problem": the default)."""
+    setting = _problem({"input_limit": LIMIT.tolist()}).setting("tuning")
+    ts = tune_config.read(TUNE)
+    family = ts.gain_family(setting)
+    req = tune_certified.Requirement("initial", "position", EPS)
+    kw = dict(scenarios=ts.scenarios, loss=ts.loss, stopping=ts.stopping, seed=ts.seed, log=lambda *_: None)
+    res = tune_loop.tune(setting, family, ts.optimizer.build(TUNE_STEPS), steps=TUNE_STEPS, requirement=req, **kw)
+    return setting, family, res
+
+
+def test_the_tuner_keeps_the_problem_certificate_at_every_accepted_step(certified, kept_run):
+    """Issue 54 item 5: the requirement is on the problem certificate of the loop with limits (the
+    smaller of the exact map's and the saturation-free radius, both proved), the same number as
+    the certification's at the initial gains; every accepted point keeps it (the saturation-free
+    radius binds throughout here, and steps were projected back onto it), and the tuned gains'
+    saturation-free sphere is checked by SciPy's expm commands (never over a limit)."""
+    _, _, _, pc = certified
+    setting, family, res = kept_run
+    kept = res.context.kept
+    assert kept.radius.kind == "proved" and kept.radius.covers == ("nominal", "input_limit")
+    assert kept.radius.not_covered == ()
+    assert kept.initial == kept.required == pc["position"]["radius"]  # certify's, to the last bit
+    hist = res.history
+    assert len(hist) == TUNE_STEPS and min(h["radius"] for h in hist) >= kept.required
+    assert {h["radius_bound_by"] for h in hist} == {"saturation_free"}
+    assert any(h["halvings"] != 0 for h in hist)  # the requirement was active
+    for raw in (res.raw, res.best_raw):
+        params = setting.params(gains=family.gains(jnp.asarray(raw)))
+        sat = C.saturation_free_radius(setting.ctrl, params, LIMIT, t_final=T_FINAL, basis="position")
+        em = C.exact_map_radius(setting.ctrl, params, t_final=T_FINAL, eps=EPS, basis="position")
+        assert min(sat.lower_bound, em.lower_bound) >= kept.required
+        P = np.asarray(C.slice_basis(setting.ctrl, "position"))
+        d = np.random.default_rng(4).normal(size=(100, 2)) @ P.T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        u = _commands(setting, params, sat.lower_bound * d, np.linspace(0.0, T_FINAL, 1501))
+        assert np.all(np.abs(u) <= LIMIT)
+
+
+def test_the_saturation_free_radius_gradient_matches_finite_differences(kept_run):
+    """The tuner's direction on the saturation-free radius (the implicit function theorem at the
+    attained point, scaled to the proved bound) against central differences of the proved bound."""
+    setting, family, res = kept_run
+    raw0 = np.asarray(tune_loop.initial_raw(setting, family), float)
+    value, grad = res.context.kept.radius.value_and_grad(jnp.asarray(raw0))
+    fd = []
+    for k in range(raw0.size):
+        e = np.zeros_like(raw0)
+        e.flat[k] = 1e-4
+        lo = [
+            C.saturation_free_radius(
+                setting.ctrl,
+                setting.params(gains=family.gains(jnp.asarray(raw0 + s * e))),
+                LIMIT,
+                t_final=T_FINAL,
+                basis="position",
+            ).lower_bound
+            for s in (1.0, -1.0)
+        ]
+        fd.append((lo[0] - lo[1]) / 2e-4)
+    fd = np.asarray(fd)
+    assert np.linalg.norm(np.asarray(grad).ravel() - fd) <= 0.05 * np.linalg.norm(fd)

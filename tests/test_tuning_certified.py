@@ -50,7 +50,7 @@ def test_requirement_holds_at_every_step(tiny, free_run, scale):
     initial = _position_radius(setting, family.gains(loop.initial_raw(setting, family)))
     required = scale * initial
     assert _position_radius(setting, family.gains(free_run.best_raw)) < 0.9 * initial
-    res = run_tiny(setting, family, requirement=certified.Requirement(required, "position", 0.01))
+    res = run_tiny(setting, family, requirement=certified.Requirement(required, "position", 0.01, "nominal"))
     kept = res.context.kept
     assert kept.required == required and abs(kept.initial - initial) <= 1e-12 * initial
     radii = [h["radius"] for h in res.history]
@@ -73,7 +73,7 @@ def test_requirement_refuses_what_it_cannot_keep(tiny, tmp_path):
     setting, family, _ = tiny
     # the full slice's radius is capped by the reference's own distance at t = 0 (4.99 = 5 - eps)
     with pytest.raises(ValueError, match="beyond what this gain family reaches"):
-        run_tiny(setting, family, steps=1, requirement=certified.Requirement(5.5, "full", 0.01))
+        run_tiny(setting, family, steps=1, requirement=certified.Requirement(5.5, "full", 0.01, "nominal"))
     static = TINY.with_values(
         {
             "controller.law": "static",
@@ -92,11 +92,41 @@ def test_requirement_refuses_what_it_cannot_keep(tiny, tmp_path):
         ({"radius": 1.0, "slice": "diag"}, "slice"),
         ({"radius": 1.0, "eps": 0.0}, "eps"),
         ({"radius": 1.0, "margin": 1}, "margin"),
+        ({"radius": 1.0, "loop": "real"}, "loop: expected one of"),
     ):
         with pytest.raises(ProblemError, match=match):
             config.read({**TINY_DATA["tune"], "requirement": table})
     box = certified.required_radius(setting, certified.Requirement("box", "full"), None, None)
     assert box == pytest.approx(1.0)  # the +-0.5 box in x, y, vx, vy: half-diagonal 1
+
+
+def test_a_requirement_says_which_loop_it_keeps(tiny):
+    """TINY's plant has limits, a 10 Hz controller and noise: on the problem's loop (the default)
+    the requirement keeps the problem certificate's radius under the limits, labelled as not
+    covering the hold and the noise; on the nominal loop the exact map's, covering none of the
+    plant; a gain schedule cannot keep the limits' radius (refused before anything compiles)."""
+    from wmrjax.tune import certified
+
+    setting, family, _ = tiny
+    req = config.read({**TINY_DATA["tune"], "requirement": {"radius": 1.0}}).requirement
+    assert req.loop == "problem"
+    rad = certified.radius_function(setting, family, req)
+    assert rad.covers == ("nominal", "input_limit") and rad.not_covered == ("control_period", "noise")
+    assert rad.kind == "proved" and rad.detail is not None
+    nominal = certified.radius_function(setting, family, req._replace(loop="nominal"))
+    assert nominal.covers == ("nominal",) and nominal.not_covered == ("input_limit", "control_period", "noise")
+    assert nominal.kind == "attained" and nominal.detail is None
+    loop_note = certified.problem_loop(setting, req)
+    assert (
+        not loop_note["covered"]
+        and "no proof the tuner keeps covers this problem's control_period, noise" in (loop_note["note"])
+    )
+    schedule = config.read({**TINY_DATA["tune"], "family": {"parameterization": "damping", "knots": 2}}).gain_family(
+        setting
+    )
+    with pytest.raises(ValueError, match="needs constant gains"):
+        certified.check(setting, schedule, req)
+    certified.check(setting, schedule, req._replace(loop="nominal"))
 
 
 def test_pareto_point_is_certified_and_resumes(tmp_path, monkeypatch, returns, capsys):

@@ -604,6 +604,13 @@ def _falsified_block(setting, params, basis: str, em, eps: float, nominal_falsif
     return {"falsified_radius": f.radius, "falsified": f.summary()}
 
 
+def tightest_limits(setting) -> np.ndarray:
+    """(n_input,) the smallest of the ``[plant]``'s listed ``input_limit`` values per input (inf:
+    none): a loop within them is within every listed plant's."""
+    n = setting.ctrl.robot.n_input
+    return np.min(np.asarray(setting.axis("plant").payload["limit"], float).reshape(-1, n), axis=0)
+
+
 def _saturation_free(setting, params, basis: str, features, log):
     """The saturation-free radius of a slice under the plant's tightest listed limits, where input
     limits are the only feature (of ``features``: those that act on the loop) (None otherwise:
@@ -611,9 +618,7 @@ def _saturation_free(setting, params, basis: str, features, log):
     compile)."""
     if tuple(features) != (Feature.INPUT_LIMIT,):
         return None
-    limits = np.min(
-        np.asarray(setting.axis("plant").payload["limit"], float).reshape(-1, setting.ctrl.robot.n_input), axis=0
-    )
+    limits = tightest_limits(setting)
     sat = saturation_free_radius(setting.ctrl, params, limits, t_final=setting.t_final, basis=basis)
     if log is not None:
         log(

@@ -375,3 +375,48 @@ def saturation_free_radius(
     order = np.argsort(rho)[:RAY_TIMES]
     up, err, t_up = _attained(ctrl, params, P, lim, t_c[order], max(lower, 1e-9), n_directions, seed)
     return SaturationFreeRadius(lower, up, err, t_up, int(t_c.size))
+
+
+def limit_usage(ctrl, params, limit, direction, t, rho):
+    r"""The largest fraction of its limit that the nominal loop's command uses at time ``t`` from
+    the initial error ``rho * direction``: :math:`\max_i |u_i(t, \rho d)| / \bar u_i` (1 on the
+    saturation-free radius's boundary). Traceable in the gains, ``t`` and ``rho`` (a gradient for
+    :func:`saturation_free_sensitivity`).
+
+    Args:
+      ctrl: a dynamic linearizing controller with constant gains.
+      params: its parameters.
+      limit: (n_input,) the limits, > 0 (a large finite value for none).
+      direction: (n,) the initial output error's direction (unit in the slice's coordinates).
+      t: time [s].
+      rho: the radius [output-error units].
+    """
+    A = ctrl.error_matrix(params.gains)
+    jet = ctrl.reference_jet(t, params)[: ctrl.relative_degree + 1]
+    u = command(ctrl, params, jet, _math.expm_small(A * t) @ (rho * direction))
+    return jnp.max(jnp.abs(u) / limit)
+
+
+def saturation_free_sensitivity(usage_grad, sat: SaturationFreeRadius, theta):
+    r"""The saturation-free radius's derivative in the parameters ``theta`` of the gains, by the
+    implicit function theorem at its attained point (``sat.worst_error`` at ``sat.worst_time``,
+    where the command meets its limit, :math:`g(\theta, \rho) = 1` for :func:`limit_usage`):
+    :math:`\partial\rho/\partial\theta = -g_\theta / g_\rho`, scaled by ``lower_bound /
+    upper_bound`` (the proved bound's ratio to the attained one). It is the attained bound's
+    derivative (the envelope theorem at its minimising time and direction, which the rays
+    approximate), a direction for a step, not a bound; zero where no point was attained.
+
+    Args:
+      usage_grad: ``(theta, direction, t, rho) -> (g_theta, g_rho)``, the gradient of
+        :func:`limit_usage` with the gains a function of ``theta``.
+      sat: :class:`SaturationFreeRadius` at ``theta``.
+      theta: the parameters (an array).
+    """
+    theta = jnp.asarray(theta)
+    if sat.worst_error is None or not np.isfinite(sat.upper_bound) or sat.upper_bound <= 0:
+        return jnp.zeros_like(theta)
+    direction = jnp.asarray(sat.worst_error) / sat.upper_bound
+    g_theta, g_rho = usage_grad(theta, direction, sat.worst_time, sat.upper_bound)
+    if not np.isfinite(float(g_rho)) or float(g_rho) <= 0.0:
+        return jnp.zeros_like(theta)
+    return -g_theta / g_rho * (sat.lower_bound / sat.upper_bound)

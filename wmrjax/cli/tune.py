@@ -56,7 +56,7 @@ def main(argv=None) -> int:
         family = settings.gain_family(setting)
         loop.check(setting, family, settings.scenarios, settings.loss)
         if settings.requirement is not None:
-            certified.check(setting, family)
+            certified.check(setting, family, settings.requirement)
         baseline_budget(settings, family)
     except ValueError as e:
         p.error(str(e))
@@ -100,15 +100,24 @@ def radius_change_lines(radii: dict) -> list:
             f"certified radius ({key.removeprefix('exact_map_')} slice, exact map, nominal loop, proved): "
             f"initial {r0:.4g} -> tuned {r1:.4g} ({change})"
         )
-    pc = radii.get("problem_certificate")
+    pc, req = radii.get("problem_certificate"), radii.get("requirement")
     for basis in Slice if pc is not None else ():
         b0, b1 = pc["initial"][basis], pc["tuned"][basis]
         if b0["radius"] is None or b1["radius"] is None:
             continue
         change = f"{100.0 * (b1['radius'] - b0['radius']) / b0['radius']:+.0f} %" if b0["radius"] > 0 else "n/a"
+        kept = req is not None and req["slice"] == basis and req["kind"] == "proved" and req["covers"] == b1["covers"]
         lines.append(
             f"certified radius ({basis} slice, the problem's loop: {', '.join(b1['covers'])}, {b1['kind']}): "
-            f"initial {b0['radius']:.4g} -> tuned {b1['radius']:.4g} ({change}); not kept by the tuner"
+            f"initial {b0['radius']:.4g} -> tuned {b1['radius']:.4g} ({change}); "
+            + ("kept by the requirement" if kept else "not kept by the tuner")
+        )
+    if req is not None:
+        lines.append(
+            f"requirement ({req['slice']} slice, {req['measured_by']}; covers {', '.join(req['covers'])}"
+            + (f"; not {', '.join(req['not_covered'])}" if req["not_covered"] else "")
+            + f"): {req['required_radius']:.4g}, the run's smallest accepted radius {req['smallest_radius_of_the_run']:.4g}, "
+            f"tuned {req['tuned_radius']:.4g} ({req['kind']}): " + ("held" if req["held"] else "NOT held")
         )
     loop = radii.get("problem_loop")
     if loop is not None and not loop["covered"]:

@@ -16,7 +16,13 @@ the gains (:func:`wmrjax.certify.differentiable_exact_map_radius`). The tuner
   back onto the requirement along the radius's gradient (a few Newton steps), or failing that
   halves it back toward the last accepted point (:func:`feasible_step`).
 
-Every accepted point therefore holds the requirement, not just the last. For (1,2), whose
+Every accepted point therefore holds the requirement, not just the last. On a problem whose
+``[plant]`` has input limits the requirement is on the problem's loop by default
+(:class:`Loop`): the radius kept is the problem certificate's under those limits, the smaller of
+the exact map's proved lower bound and the saturation-free radius
+(:func:`problem_radius_function`), labelled with the plant features it covers and those it does
+not (a controller period, noise, mismatch ranges that act on the loop: no proof the tuner
+keeps covers them, :func:`loop_coverage`). For (1,2), whose
 singular set is curved, the radius is a branch and bound over (t, heading) with a proved lower
 bound (:func:`wmrjax.certify.curved_exact_map_radius`): not differentiable, and far too slow
 to evaluate at every step (thousands of boxes per round, a dozen rounds), so a
@@ -27,6 +33,7 @@ through the certificate term of the loss.
 
 from __future__ import annotations
 
+import enum
 import math
 from typing import Callable, NamedTuple
 
@@ -35,8 +42,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import certify
-from wmrjax.certify import Slice
+from wmrjax.certify import Feature, Kind, Slice
 from wmrjax.certify.job import CERTIFY_KEYS
+from wmrjax.certify.real_loop import inert_features, tightest_limits
+from wmrjax.certify.saturation import limit_usage, saturation_free_sensitivity
 from wmrjax.controllers import Space
 from wmrjax.controllers.dynamic import DynamicLinearization
 from wmrjax.problem import ProblemError, check_keys, positive
@@ -50,6 +59,20 @@ RESTORE_STEPS = 200  # ascent steps on the radius when the initial gains miss th
 RESTORE_STEP = 0.2  # their first length in the unconstrained parameters
 RESTORE_MARGIN = 1e-3  # the ascent and the projection aim this fraction above the requirement
 PROJECTION_STEPS = 5  # Newton steps projecting a step back onto the requirement
+CACHED_POINTS = 8  # the problem loop's radii kept per point (a step evaluates one point a few times)
+
+
+class Loop(enum.StrEnum):
+    """The closed loop whose radius a requirement keeps."""
+
+    PROBLEM = "problem"  # the problem's own: its [plant]'s features, as far as the tuner's proof covers them
+    NOMINAL = "nominal"  # the law's nominal continuous loop (the exact map alone)
+
+
+TUNER_PROOFS = frozenset({Feature.INPUT_LIMIT})
+"""Plant features that a radius the tuner keeps can cover (with the features that cannot change
+the loop, :func:`wmrjax.certify.inert_features`): the saturation-free radius is a few seconds a
+point; the mismatch tube's bisection (:func:`wmrjax.certify.mismatch_radius`) is minutes."""
 
 
 class Requirement(NamedTuple):
@@ -63,11 +86,16 @@ class Requirement(NamedTuple):
         start of the ``[initial]`` box differs in) or ``"position"`` (the position error only,
         the paper's setting).
       eps: the margin to the singular set (the problem's ``[certify] eps`` by default).
+      loop: ``"problem"`` (default; :class:`Loop`): with a ``[plant]`` that has input limits the
+        radius is the problem certificate's, the smaller of the exact map's and the
+        saturation-free radius (both proved); ``"nominal"``: the exact map's alone (attained),
+        the nominal continuous loop's.
     """
 
     radius: float | str
     slice: str = str(Slice.FULL)
     eps: float = DEFAULT_EPS
+    loop: str = str(Loop.PROBLEM)
 
 
 def read(table: dict | None, certify_section: dict) -> Requirement | None:
@@ -87,13 +115,23 @@ def read(table: dict | None, certify_section: dict) -> Requirement | None:
     if sl not in SLICES:
         raise ProblemError(f"[tune.requirement] slice: expected one of {[str(s) for s in SLICES]}, got {sl!r}")
     eps = positive("tune.requirement", "eps", table.get("eps", certify_section.get("eps", DEFAULT_EPS)))
-    # the slice's name, a plain string: a requirement's repr is part of a checkpoint's fingerprint
-    return Requirement(float(r) if not isinstance(r, str) else r, str(Slice(sl)), float(eps))
+    lp = table.get("loop", str(Loop.PROBLEM))
+    if lp not in tuple(Loop):
+        raise ProblemError(f"[tune.requirement] loop: expected one of {[str(x) for x in Loop]}, got {lp!r}")
+    # names, plain strings: a requirement's repr is part of a checkpoint's fingerprint
+    return Requirement(float(r) if not isinstance(r, str) else r, str(Slice(sl)), float(eps), str(Loop(lp)))
 
 
-def check(setting, family) -> None:
+def check(setting, family, req: Requirement | None = None) -> None:
     """ValueError when the problem has no exact-map radius to keep: a static law, a random
-    reference family (no fixed reference), or type (1,2) (see the module docstring)."""
+    reference family (no fixed reference), or type (1,2) (see the module docstring); with
+    ``req`` on the problem's loop with input limits, a gain schedule (the saturation-free
+    radius follows :math:`e^{At}`, constant gains)."""
+    if req is not None and family.knots and str(Feature.INPUT_LIMIT) in loop_coverage(setting, req)[0]:
+        raise ValueError(
+            "a requirement on the problem's loop with input limits needs constant gains (the saturation-free "
+            'radius follows e^{At}); tune a gain schedule with [tune.requirement] loop = "nominal"'
+        )
     if not isinstance(setting.ctrl, DynamicLinearization):
         raise ValueError("a certified-region requirement needs a dynamic linearizing law (only those are certified)")
     if FAMILIES[setting.data["reference"]["family"]].kind == "random":
@@ -114,22 +152,96 @@ class Radius(NamedTuple):
       value: ``raw -> radius`` (a float).
       value_and_grad: ``raw -> (radius, gradient in raw)``.
       label: what it is, for the summary.
+      covers: the features of the loop it holds for (:class:`wmrjax.certify.Feature` names).
+      not_covered: the problem's plant features it does not hold for.
+      kind: how it is known (:class:`wmrjax.certify.Kind`).
+      detail: ``raw -> dict`` of the bounds it is the smaller of and which one binds (None: one bound).
     """
 
     value: Callable
     value_and_grad: Callable | None
     label: str
+    covers: tuple = (str(Feature.NOMINAL),)
+    not_covered: tuple = ()
+    kind: str = str(Kind.ATTAINED)
+    detail: Callable | None = None
+
+
+def loop_coverage(setting, req: Requirement) -> tuple[tuple, tuple]:
+    """``(covers, not_covered)`` of the radius a requirement keeps on the problem's loop (feature
+    names): the nominal loop with the features that cannot change it and, for ``loop =
+    "problem"``, those of :data:`TUNER_PROOFS`; the rest of the plant's features are not covered."""
+    features = certify.plant_features(setting)
+    inert = inert_features(setting) if features else {}
+    proved = TUNER_PROOFS if Loop(req.loop) == Loop.PROBLEM else frozenset()
+    covered = [f for f in features if f in inert or f in proved]
+    rest = [f for f in features if f not in covered]
+    return tuple(str(f) for f in (Feature.NOMINAL, *covered)), tuple(str(f) for f in rest)
 
 
 def radius_function(setting, family, req: Requirement) -> Radius:
-    """The exact-map radius of the gains ``family.gains(raw)`` on the problem's reference,
-    nominal geometry and horizon (:func:`wmrjax.certify.differentiable_exact_map_radius`)."""
-    check(setting, family)
+    """The radius a requirement keeps, as a function of the raw parameters of ``family``: the
+    exact-map radius of the gains on the problem's reference, nominal geometry and horizon
+    (:func:`wmrjax.certify.differentiable_exact_map_radius`), or with ``loop = "problem"`` on a
+    plant with input limits the problem certificate's radius (:func:`problem_radius_function`)."""
+    check(setting, family, req)
+    covers, not_covered = loop_coverage(setting, req)
+    if str(Feature.INPUT_LIMIT) in covers:
+        return problem_radius_function(setting, family, req, covers, not_covered)
     base = setting.params()
     kw = dict(t_final=setting.t_final, eps=req.eps, basis=req.slice)
     fn = lambda raw: certify.differentiable_exact_map_radius(setting.ctrl, base._replace(gains=family.gains(raw)), **kw)
     vg = jax.jit(jax.value_and_grad(fn))
-    return Radius(lambda raw: float(vg(raw)[0]), vg, f"exact map ({req.slice})")
+    return Radius(lambda raw: float(vg(raw)[0]), vg, f"exact map ({req.slice})", covers, not_covered)
+
+
+def problem_radius_function(setting, family, req: Requirement, covers, not_covered) -> Radius:
+    r"""The problem certificate's radius under input limits as a function of the raw parameters:
+    the smaller of the exact map's proved lower bound and the saturation-free radius's
+    (:func:`wmrjax.certify.saturation_free_radius` under the plant's tightest limits), each as
+    ``wmrjax certify`` computes it, so every point the tuner accepts has a proved radius at or
+    above the requirement. Its gradient, a direction for the projections only, is the binding
+    bound's: the exact map's envelope gradient, or the saturation-free radius's implicit one
+    (:func:`wmrjax.certify.saturation.saturation_free_sensitivity`). The two bounds of a point
+    are kept (:data:`CACHED_POINTS`): a step asks for one point's value and gradient in turn.
+    """
+    ctrl, T, base, basis = setting.ctrl, setting.t_final, setting.params(), req.slice
+    limit = tightest_limits(setting)
+    lim = jnp.asarray(np.where(np.isfinite(limit), limit, np.finfo(float).max))
+    at = lambda raw: base._replace(gains=family.gains(raw))
+    exact = lambda raw: certify.differentiable_exact_map_radius(ctrl, at(raw), t_final=T, eps=req.eps, basis=basis)
+    exact_grad = jax.jit(jax.grad(exact))
+    usage_grad = jax.jit(jax.grad(lambda raw, d, t, rho: limit_usage(ctrl, at(raw), lim, d, t, rho), argnums=(0, 3)))
+    cache: dict = {}
+
+    def bounds(raw):
+        key = np.asarray(raw, float).tobytes()
+        if key not in cache:
+            params = at(jnp.asarray(raw))
+            em = certify.exact_map_radius(ctrl, params, t_final=T, eps=req.eps, basis=basis)
+            sat = certify.saturation_free_radius(ctrl, params, limit, t_final=T, basis=basis)
+            if len(cache) >= CACHED_POINTS:
+                cache.pop(next(iter(cache)))
+            cache[key] = (float(em.lower_bound), sat)
+        return cache[key]
+
+    def value(raw):
+        em, sat = bounds(raw)
+        return min(em, float(sat.lower_bound))
+
+    def value_and_grad(raw):
+        em, sat = bounds(raw)
+        if sat.lower_bound < em:
+            return value(raw), saturation_free_sensitivity(usage_grad, sat, raw)
+        return value(raw), exact_grad(jnp.asarray(raw))
+
+    def detail(raw):
+        em, sat = bounds(raw)
+        by = "saturation_free" if sat.lower_bound < em else "exact_map"
+        return {"exact_map": em, "saturation_free": float(sat.lower_bound), "bound_by": by}
+
+    label = f"problem certificate ({basis}): min(exact map, saturation-free), both proved"
+    return Radius(value, value_and_grad, label, covers, not_covered, str(Kind.PROVED), detail)
 
 
 def required_radius(setting, req: Requirement, radius: Radius, raw0) -> float:
@@ -311,30 +423,26 @@ def problem_radii(setting, gains, *, eps: float) -> dict:
     return {"loop": pc["loop"], **{b: {k: pc[b].get(k) for k in keys} for b in SLICES}}
 
 
-def problem_loop(setting) -> dict:
-    """What the radii above cover against the problem's loop: its plant features
-    (:func:`wmrjax.certify.plant_features`) and whether the tuner's radii cover them (never
-    yet: every radius of the tuner, and its requirement, is the nominal continuous loop's;
-    ``wmrjax certify`` proves the radius of a plant with input limits, and of input-scale and
-    geometry ranges under a continuous velocity-level controller; the tuner does not keep it)."""
+def problem_loop(setting, requirement: Requirement | None = None) -> dict:
+    """What the tuner's radii cover against the problem's loop: its plant features
+    (:func:`wmrjax.certify.plant_features`), whether the radii cover them (``covered``: only where
+    the loop is the nominal one; Lemma 2's and the exact map's radii are the nominal continuous
+    loop's) and a ``note`` saying so, with what a ``requirement`` keeps (:func:`loop_coverage`)."""
     features = [str(f) for f in certify.plant_features(setting)]
-    provable = {str(certify.Feature.INPUT_LIMIT), str(certify.Feature.INPUT_SCALE), str(certify.Feature.GEOMETRY_SCALE)}
-    return {
-        "features": features,
-        "covered": not features,
-        "note": (
-            "every radius here and the requirement are the nominal continuous loop's; no proof covers "
-            f"this problem's {', '.join(features)} (wmrjax certify gives the problem "
-            "loop's falsified radius)"
-            if features and not set(features) <= provable
-            else "every radius here and the requirement are the nominal continuous loop's; wmrjax certify "
-            "proves a radius of this problem's loop where it can (its problem_certificate: input limits; "
-            "input-scale and geometry ranges under a continuous velocity-level controller), the tuner "
-            "does not keep it"
-            if features
-            else "the problem's loop is the nominal one"
-        ),
-    }
+    if not features:
+        return {"features": [], "covered": True, "note": "the problem's loop is the nominal one"}
+    note = (
+        "the Lemma 2 and exact-map radii here are the nominal continuous loop's; problem_certificate is the loop's own"
+    )
+    if requirement is not None:
+        covers, rest = loop_coverage(setting, requirement)
+        note += f"; the requirement keeps a radius of the loop with {', '.join(covers)}"
+        if rest:
+            note += (
+                f"; no proof the tuner keeps covers this problem's {', '.join(rest)} "
+                "(wmrjax certify gives the problem loop's falsified radius)"
+            )
+    return {"features": features, "covered": False, "note": note}
 
 
 CONFIRM_SCALES = (0.99, 1.01)  # the exact map's worst initial error, simulated this much inside and outside

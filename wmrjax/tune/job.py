@@ -364,7 +364,7 @@ def _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify: bool):
     out = {
         "initial": certified.radii(setting, family.gains(paper_raw), **kw),
         "tuned": certified.radii(setting, family.gains(tuned_raw), **kw),
-        "problem_loop": certified.problem_loop(setting),
+        "problem_loop": certified.problem_loop(setting, req),
     }
     if setting.plant:  # the problem loop's proved radius of both gains, where a proof covers the plant
         out["problem_certificate"] = {
@@ -372,23 +372,39 @@ def _radii(setting, settings, family, res, paper_raw, tuned_raw, falsify: bool):
             for k, raw in (("initial", paper_raw), ("tuned", tuned_raw))
         }
     if kept is not None:
-        path = [h["radius"] for h in res.history if "radius" in h]
-        tuned = out["tuned"][f"exact_map_{req.slice}"]
-        held = tuned["radius"]  # the attained radius, the one the tuner keeps (differentiable)
-        out["requirement"] = {
-            **req._asdict(),
-            "required_radius": kept.required,
-            "measured_by": kept.radius.label,
-            "covers": tuned["covers"],
-            "initial_gains_radius": kept.initial,
-            "smallest_radius_of_the_run": float(np.min(path)),
-            "tuned_radius": held,
-            "tuned_radius_lower_bound": tuned.get("lower_bound"),
-            "held": bool(held >= kept.required),
-            "steps_projected": sum(1 for h in res.history if h.get("halvings") == -1),
-            "steps_halved": sum(1 for h in res.history if h.get("halvings", 0) > 0),
-        }
+        out["requirement"] = _requirement_block(req, kept, res, out["tuned"], tuned_raw)
     return out
+
+
+def _requirement_block(req, kept, res, tuned: dict, tuned_raw) -> dict:
+    """How the requirement was kept: the radius it is on (what it covers, its kind), the run's
+    smallest accepted radius and the tuned gains' (plain JSON)."""
+    rad, hist = kept.radius, res.history
+    held = rad.value(jnp.asarray(tuned_raw))
+    block = {
+        **req._asdict(),
+        "required_radius": kept.required,
+        "measured_by": rad.label,
+        "covers": list(rad.covers),
+        "not_covered": list(rad.not_covered),
+        "kind": rad.kind,
+        "initial_gains_radius": kept.initial,
+        "smallest_radius_of_the_run": float(np.min([h["radius"] for h in hist if "radius" in h])),
+        "tuned_radius": held,
+        # the exact map keeps its attained radius; its proved bound is certify's
+        "tuned_radius_lower_bound": held
+        if rad.kind == certified.Kind.PROVED
+        else tuned[f"exact_map_{req.slice}"].get("lower_bound"),
+        "held": bool(held >= kept.required),
+        "steps_projected": sum(1 for h in hist if h.get("halvings") == -1),
+        "steps_halved": sum(1 for h in hist if h.get("halvings", 0) > 0),
+    }
+    if rad.detail is not None:
+        block["tuned_bounds"] = rad.detail(jnp.asarray(tuned_raw))
+        block["steps_bound_by"] = {
+            k: sum(1 for h in hist if h.get("radius_bound_by") == k) for k in ("exact_map", "saturation_free")
+        }
+    return block
 
 
 def _summary(r: TuneReport) -> dict:

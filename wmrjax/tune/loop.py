@@ -500,6 +500,7 @@ def _begin(setting, family: GainFamily, optimizer, scenarios, loss, seed: int, r
     )
     raw = initial_raw(setting, family)
     if requirement is not None:
+        log(f"requirement ({requirement.slice} slice, the {requirement.loop} loop): the initial gains' radius")
         ctx = ctx._replace(kept=keep(setting, family, requirement, raw))
         run_id += repr(tuple(requirement))
         raw, _ = certified.restore(raw, ctx.kept.radius, ctx.kept.required, log)
@@ -600,10 +601,11 @@ def _kept_step(kept: Kept, update, grad, opt_state, raw, rec: dict):
     halved back to it (:mod:`wmrjax.tune.certified`); records the point's radius and the halvings."""
     rad = kept.radius
     r, g_r = rad.value_and_grad(raw)
-    r = float(r)
+    rec["radius"] = r = float(r)
+    if rad.detail is not None:  # which bound of the problem certificate binds at this point
+        rec["radius_bound_by"] = rad.detail(raw)["bound_by"]
     proposal, opt_state = update(certified.project(grad, r, g_r, kept.required), opt_state, raw)
-    raw, _, halvings = certified.feasible_step(raw, proposal, rad, kept.required)
-    rec["radius"], rec["halvings"] = r, halvings
+    raw, _, rec["halvings"] = certified.feasible_step(raw, proposal, rad, kept.required)
     return raw, opt_state
 
 

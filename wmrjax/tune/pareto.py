@@ -73,7 +73,7 @@ def tune_point(problem, required: float, slice_: str, eps: float, log=print) -> 
     setting = problem.setting("tuning")
     settings = config.read(problem.section("tune"), problem.section("certify"))
     family = settings.gain_family(setting)
-    req = certified.Requirement(float(required), str(Slice(slice_)), float(eps))
+    req = certified.Requirement(float(required), str(Slice(slice_)), float(eps), str(certified.Loop.NOMINAL))
     res = loop.tune(
         setting,
         family,
@@ -185,9 +185,9 @@ def run(problem, out: Path, slice_: str = Slice.FULL, fractions=None, radii=None
     family = settings.gain_family(setting)
     eps = float(eps if eps is not None else problem.section("certify").get("eps", certified.DEFAULT_EPS))
     raw0 = loop.initial_raw(setting, family)
-    initial = certified.radius_function(setting, family, certified.Requirement(0.0, str(Slice(slice_)), eps)).value(
-        jnp.asarray(raw0)
-    )
+    initial = certified.radius_function(
+        setting, family, certified.Requirement(0.0, str(Slice(slice_)), eps, str(certified.Loop.NOMINAL))
+    ).value(jnp.asarray(raw0))
     if radii is None:
         fractions = fractions if fractions is not None else (0.0, 0.25, 0.5, 0.75, 1.0, 1.25)
         radii = [f * initial for f in fractions]

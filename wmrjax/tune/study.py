@@ -116,7 +116,8 @@ def plan(name: str, problem, require=None) -> Plan:
         trial = problem.with_values({"tune.requirement": {"radius": require[0], "slice": require[1]}})
         s = trial.setting("tuning")
         try:
-            certified.check(s, config.read(trial.section("tune"), trial.section("certify")).gain_family(s))
+            ts = config.read(trial.section("tune"), trial.section("certify"))
+            certified.check(s, ts.gain_family(s), ts.requirement)
             problem = trial
         except ValueError as err:  # e.g. a random reference family: no fixed path to certify
             note = f"requirement not applied: {err}"
