@@ -284,7 +284,9 @@ def feasible_step(raw, proposal, radius: Radius, required: float):
     """``(accepted point, its radius, halvings)`` for an optimizer's ``proposal`` from ``raw``.
 
     A proposal below ``required`` is first projected back along the radius's gradient (Newton
-    steps on ``radius = required (1 + RESTORE_MARGIN)``, at most :data:`PROJECTION_STEPS`): the
+    steps on ``radius = required (1 + RESTORE_MARGIN)``, at most :data:`PROJECTION_STEPS`, ending
+    at the first iterate that meets ``required``: aiming above it and stopping once inside, each
+    evaluation of a costly radius counts, the problem certificate's a few seconds): the
     iterate slides along the boundary instead of stopping at it (a step tangent to it still
     loses radius at second order where the radius is concave). Where that fails the step is halved back toward ``raw``: the furthest of
     ``raw + 2^-k (proposal - raw)`` that meets ``required``, else ``raw`` itself (``halvings``
@@ -298,7 +300,7 @@ def feasible_step(raw, proposal, radius: Radius, required: float):
     for _ in range(PROJECTION_STEPS):
         rv, g = radius.value_and_grad(p)
         gg = float(jnp.sum(g * g))
-        if float(rv) >= target or gg == 0.0 or not np.isfinite(gg):
+        if float(rv) >= required or gg == 0.0 or not np.isfinite(gg):
             break
         p = p + (target - float(rv)) / gg * g
     r = radius.value(p)
