@@ -152,7 +152,8 @@ class RealLoopFalsified(NamedTuple):
       distance: its confirmed min_t distance to the singular set (0: the run failed).
       searched_up_to: the largest radius simulated.
       rollouts: runs simulated (confirmations included).
-      variants: plant values times noise realisations searched.
+      variants: plant values times noise realisations searched (the loops that differ:
+        :func:`distinct_loops`).
       noise: how the noise was searched (a sentence), or None without noise.
     """
 
@@ -205,7 +206,8 @@ def real_loop_falsified_radius(
     The loop is :meth:`wmrjax.problem.Setting.run`'s: the law with the problem's gains, closed
     around its plant (limits, input and geometry scales, a zero-order hold at its period,
     measurement noise). Every listed plant value is searched (a list of scales: every value,
-    its range's ends included), each with ``n_noise`` Gaussian noise realisations (seeds from
+    its range's ends included; values that cannot change the loop, a geometry the kinematics
+    ignore, once: :func:`distinct_loops`), each with ``n_noise`` Gaussian noise realisations (seeds from
     ``[plant] noise_seed``) when the plant has noise: realisations, not a worst case within a
     bound. Initial errors are ``rho P d`` for unit directions d of the slice (``directions``
     first, e.g. the nominal exact map's worst error, then ``n_directions`` random ones), and
@@ -243,6 +245,7 @@ def real_loop_falsified_radius(
     P = np.asarray(slice_basis(ctrl, basis))
     dirs, own = _directions(P, directions, n_directions, seed)
     variants, noise = _variants(setting, n_noise)
+    variants = distinct_loops(setting, variants)
     search = _Search(setting, params, P, eps)
     grid = r_max * np.arange(1, n_grid + 1) / n_grid
     # per direction, its radii: the grid, and around a given error's own norm a fine one (the
@@ -278,7 +281,7 @@ def planned_runs(
     """The runs :func:`real_loop_falsified_radius` makes on one slice with these sizes (the
     confirmation taken as one run; :func:`problem_certificate` searches two slices), from
     ``n_known`` given failures' rays and the setting's plant variants: for a size estimate."""
-    n_var = len(_variants(setting, n_noise)[0])
+    n_var = len(distinct_loops(setting, _variants(setting, n_noise)[0]))
     return (n_known + n_directions) * n_var * n_grid + n_known * n_var * len(FINE_AROUND) + n_refine * n_bisect + 1
 
 
@@ -405,6 +408,21 @@ def _variants(setting, n_noise: int) -> tuple[list, str | None]:
         else None
     )
     return out, noise
+
+
+def distinct_loops(setting, variants: list) -> list:
+    """The plant variants that run different loops, in their order: where the plant's geometry
+    cannot change the loop (:func:`inert_features`), plants that differ in their geometry scale
+    alone run the same loop to the last bit, and the first of them is searched for all."""
+    if Feature.GEOMETRY_SCALE not in inert_features(setting):
+        return variants
+    seen, out = set(), []
+    for v in variants:
+        key = (tuple(np.asarray(v.limit, float)), tuple(np.asarray(v.input_scale, float)), v.noise)
+        if key not in seen:
+            seen.add(key)
+            out.append(v)
+    return out
 
 
 class _Search:
