@@ -244,8 +244,7 @@ def real_loop_falsified_radius(
     _check_sizes(n_directions=n_directions, n_grid=n_grid, n_noise=n_noise, n_bisect=n_bisect, n_refine=n_refine)
     P = np.asarray(slice_basis(ctrl, basis))
     dirs, own = _directions(P, directions, n_directions, seed)
-    variants, noise = _variants(setting, n_noise)
-    variants = distinct_loops(setting, variants)
+    variants, noise = _variants(setting, n_noise, distinct=True)
     search = _Search(setting, params, P, eps)
     grid = r_max * np.arange(1, n_grid + 1) / n_grid
     # per direction, its radii: the grid, and around a given error's own norm a fine one (the
@@ -281,7 +280,7 @@ def planned_runs(
     """The runs :func:`real_loop_falsified_radius` makes on one slice with these sizes (the
     confirmation taken as one run; :func:`problem_certificate` searches two slices), from
     ``n_known`` given failures' rays and the setting's plant variants: for a size estimate."""
-    n_var = len(distinct_loops(setting, _variants(setting, n_noise)[0]))
+    n_var = len(_variants(setting, n_noise, distinct=True)[0])
     return (n_known + n_directions) * n_var * n_grid + n_known * n_var * len(FINE_AROUND) + n_refine * n_bisect + 1
 
 
@@ -391,8 +390,9 @@ class _Variant(NamedTuple):
         }
 
 
-def _variants(setting, n_noise: int) -> tuple[list, str | None]:
-    """Every plant value of the setting's axis times the noise realisations, and how noise was searched."""
+def _variants(setting, n_noise: int, distinct: bool = False) -> tuple[list, str | None]:
+    """Every plant value of the setting's axis times the noise realisations (with ``distinct``,
+    those that run different loops: :func:`distinct_loops`), and how noise was searched."""
     pv = setting.axis("plant").payload
     noisy = bool(setting.plant and setting.control_period is not None and any(setting.noise_std))
     reals = list(range(n_noise)) if noisy else [None]
@@ -402,6 +402,7 @@ def _variants(setting, n_noise: int) -> tuple[list, str | None]:
         for i in rows
         for k in reals
     ]
+    out = distinct_loops(setting, out) if distinct else out
     noise = (
         f"{n_noise} Gaussian realisations of std {list(setting.noise_std)} per plant value (not a worst case)"
         if noisy
