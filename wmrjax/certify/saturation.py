@@ -232,16 +232,17 @@ def _box_radii(ctrl, turn: bool, params, P, limit, t_c, h, rho_hi: float, iters:
     return np.where(top, rho_hi, lo)
 
 
+def command_at(ctrl, params, t, initial_error):
+    """The nominal loop's command at time ``t`` [s] from the initial output error
+    ``initial_error`` ((n,)): :func:`command` at the reference's jet and :math:`e^{At}` times it."""
+    jet = ctrl.reference_jet(t, params)[: ctrl.relative_degree + 1]
+    return command(ctrl, params, jet, _math.expm_small(ctrl.error_matrix(params.gains) * t) @ initial_error)
+
+
 @functools.partial(jax.jit, static_argnums=0)
 def _ray_commands(ctrl, params, P, ts, dirs, radii):
     """Commands at (time, direction, radius): shape (T, D, R, n_input)."""
-    A = ctrl.error_matrix(params.gains)
-    r = ctrl.relative_degree
-
-    def at(t, d, rho):
-        jet = ctrl.reference_jet(t, params)[: r + 1]
-        return command(ctrl, params, jet, _math.expm_small(A * t) @ (P @ (rho * d)))
-
+    at = lambda t, d, rho: command_at(ctrl, params, t, P @ (rho * d))
     f = jax.vmap(jax.vmap(jax.vmap(at, (None, None, 0)), (None, 0, None)), (0, None, None))
     return f(ts, dirs, radii)
 
@@ -391,10 +392,7 @@ def limit_usage(ctrl, params, limit, direction, t, rho):
       t: time [s].
       rho: the radius [output-error units].
     """
-    A = ctrl.error_matrix(params.gains)
-    jet = ctrl.reference_jet(t, params)[: ctrl.relative_degree + 1]
-    u = command(ctrl, params, jet, _math.expm_small(A * t) @ (rho * direction))
-    return jnp.max(jnp.abs(u) / limit)
+    return jnp.max(jnp.abs(command_at(ctrl, params, t, rho * direction)) / limit)
 
 
 def saturation_free_sensitivity(usage_grad, sat: SaturationFreeRadius, theta):
