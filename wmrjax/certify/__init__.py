@@ -27,6 +27,8 @@ else keyword-only; each returns a NamedTuple with fixed fields:
   from the nominal one under input-scale and geometry ranges, a digital controller's zero-order
   hold and bounded measurement noise, bounded through the exact error map, and the radius it
   leaves (velocity level);
+* :mod:`~wmrjax.certify.reach` -- a digital controller's loop (hold, noise, limits,
+  scales) enclosed period by period from a ball of initial errors: its proved radius;
 * :mod:`~wmrjax.certify.real_loop` -- what each radius covers (:class:`Feature`, :class:`Kind`)
   and the problem's own loop (limits, a digital controller, mismatch, noise): its falsified
   radius and the problem's certificate (:func:`problem_certificate`).
@@ -86,6 +88,14 @@ from wmrjax.certify.lemma2 import (
     transition_steps,
 )
 from wmrjax.certify.pipeline import CertificationReport, EmpiricalCheck, analyse, plain
+from wmrjax.certify.reach import (
+    HeldReach,
+    HeldReachRadius,
+    SingularDistance,
+    Uncertainty,
+    held_reach,
+    held_reach_radius,
+)
 from wmrjax.certify.real_loop import (
     Feature,
     Kind,
@@ -164,6 +174,12 @@ __all__ = [
     "radius_labels",
     "real_loop_distances",
     "real_loop_falsified_radius",
+    "HeldReach",
+    "HeldReachRadius",
+    "SingularDistance",
+    "Uncertainty",
+    "held_reach",
+    "held_reach_radius",
     "SaturationFreeRadius",
     "saturation_free_radius",
 ]

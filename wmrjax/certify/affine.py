@@ -222,6 +222,49 @@ _SMOOTH = {
 }
 
 
+def _relu(a, ctx):
+    r"""``max(a, 0)``: ``a`` where it is surely >= 0, 0 where surely <= 0; across 0 (range
+    [l, u]) the parallel to the chord, :math:`\lambda a - \lambda l/2 \pm \lambda l/2` with
+    :math:`\lambda = u/(u - l)`, which holds max(x, 0) for every x in [l, u] (the zonotope
+    ReLU of Singh et al. 2018): a clamp that may engage keeps its dependence on the symbols."""
+    box = to_interval(a, ctx)
+    lo, hi = box.lo, box.hi
+    pos, neg = lo >= 0, hi <= 0
+    finite = jnp.isfinite(lo) & jnp.isfinite(hi)
+    lam = jnp.where(pos, 1.0, jnp.where(neg | ~finite, 0.0, hi / jnp.where(pos | neg, 1.0, hi - lo)))
+    mu = jnp.where(pos | neg, 0.0, iv._up(-lam * lo * 0.5))
+    out = _scale(a, lam, mu)
+    out = _make(out.c + mu, out.g, out.e)
+    # an unbounded range across 0: its hull, through the interval rule
+    hull = _from_interval(iv._max(box, Interval.point(jnp.zeros_like(lo))), ctx)
+    keep = pos | neg | finite
+    return Affine(
+        jnp.where(keep, out.c, hull.c), jnp.where(keep[..., None], out.g, hull.g), jnp.where(keep, out.e, hull.e)
+    )
+
+
+def _abs(a, ctx):
+    """``|a|``: ``a`` or ``-a`` where its sign is sure, else ``2 relu(a) - a``."""
+    return _sub(_scale(_relu(a, ctx), jnp.full(a.c.shape, 2.0)), a)
+
+
+def _decided(a, b, ctx, lower: bool):
+    """``max(a, b)`` (``min`` with ``lower``): the argument that surely wins keeps its form, else
+    ``b + relu(a - b)`` (``a - relu(a - b)``)."""
+    shape = jnp.broadcast_shapes(a.c.shape, b.c.shape)
+    a, b = (
+        Affine(*(jnp.broadcast_to(x, s) for x, s in zip(v, (shape, shape + v.g.shape[-1:], shape)))) for v in (a, b)
+    )
+    ia, ib = to_interval(a, ctx), to_interval(b, ctx)
+    a_wins = ib.hi <= ia.lo if not lower else ia.hi <= ib.lo
+    b_wins = ia.hi <= ib.lo if not lower else ib.hi <= ia.lo
+    r = _relu(_sub(a, b), ctx)
+    mixed = _sub(a, r) if lower else _add(b, r)
+    pick = lambda x, y, z: jnp.where(a_wins, x, jnp.where(b_wins, y, z))
+    pick_g = lambda x, y, z: jnp.where(a_wins[..., None], x, jnp.where(b_wins[..., None], y, z))
+    return Affine(pick(a.c, b.c, mixed.c), pick_g(a.g, b.g, mixed.g), pick(a.e, b.e, mixed.e))
+
+
 def _integer_pow(a, y, ctx):
     if y == 0:
         return _point(jnp.ones_like(a.c), ctx)
@@ -338,6 +381,10 @@ class _Evaluator:
             return lambda a: _smooth(a[0], ctx, f, df, _d2_bound(name))
         if name == "select_n":
             return lambda a: _select(a[0], a[1:], ctx)
+        if name == "abs":
+            return lambda a: _abs(a[0], ctx)
+        if name in ("max", "min"):
+            return lambda a: _decided(a[0], a[1], ctx, lower=name == "min")
         if name == "reduce_sum":
             return lambda a: _reduce_sum(a[0], params["axes"])
         if name == "dot_general":

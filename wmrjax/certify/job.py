@@ -25,6 +25,7 @@ CERTIFY_KEYS = {
     "map_grid": 81,
     "seed": 0,
     "budget": 0.0,
+    "noise_bound": 3.0,
 }
 """The ``[certify]`` keys and their defaults (eps [output-error units: m, m/s]; budget [s], 0:
 none), written once."""
@@ -49,6 +50,8 @@ def read_section(data: dict) -> dict:
             out[k] = positive("certify", k, v)
         elif k == "budget":
             out[k] = nonnegative("certify", k, v)
+        elif k == "noise_bound":
+            out[k] = positive("certify", k, v)
         else:
             out[k] = integer("certify", k, v, {"n_empirical": 0, "n_starts": 0, "seed": 0, "map_grid": 2}.get(k, 1))
     return out
@@ -229,6 +232,7 @@ def run(out, problem, case=None, progress=None) -> CertifyReport:
         falsified={C.Slice.FULL: nominal.falsified_full, C.Slice.POSITION: nominal.falsified_position},
         seed=cfg["seed"],
         log=say,
+        noise_bound=cfg["noise_bound"],
         n_directions=plant_directions,
     )
     say(f"slice map ({map_grid} x {map_grid} runs)")

@@ -34,7 +34,7 @@ import dataclasses
 import enum
 import functools
 import math
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -46,10 +46,10 @@ from wmrjax.certify.deviation import Mismatch, mismatch_radius
 from wmrjax.certify.empirical import sample_sphere
 from wmrjax.certify.exact_map import Slice, singular_rows, slice_basis
 from wmrjax.certify.lemma2 import check_dynamic
+from wmrjax.certify.reach import NOISE_BOUND, SingularDistance, held_reach_radius
 from wmrjax.certify.saturation import saturation_free_radius
 from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.law import Level
-from wmrjax.problem import law_state
 from wmrjax.simulate import fixed_blocks
 
 
@@ -119,25 +119,6 @@ def inert_features(setting) -> dict:
             )
         }
     return {}
-
-
-@dataclasses.dataclass(frozen=True)
-class _SingularDistance:
-    """``simulate``'s ``save_fn``: the law state's distance to the singular set in zeta coordinates
-    (static and hashable: the loop and the law's nominal geometry as Python floats)."""
-
-    system: Any
-    ctrl: Any
-    geometry: Any
-
-    def __call__(self, t, z, aux):
-        del t, aux
-        zl = law_state(self.system, z)
-        jet = self.ctrl.law.jet(zl, self.geometry)[0]
-        rows = singular_rows(self.ctrl)
-        if rows is None:
-            return self.ctrl.row.singular_distance(jet, self.geometry, 1.0)
-        return jnp.linalg.norm(jet.reshape(-1)[jnp.asarray(rows)])
 
 
 class RealLoopFalsified(NamedTuple):
@@ -449,7 +430,7 @@ class _Search:
         sc = np.array([[*np.asarray(v.input_scale), v.geometry_scale] for v in variants], float)
         nk = np.array([0 if v.noise is None else v.noise for v in variants], np.int32)
         self.rollouts += len(errs)
-        dist_fn = _SingularDistance(s.system(), s.ctrl, self.geometry)
+        dist_fn = SingularDistance(s.system(), s.ctrl, self.geometry)
         program = lambda *b: (_runs(s, dist_fn, self.base, self.params, self.branch, self.key, *b),)
         block = min(self.BLOCK, len(errs))
         return fixed_blocks(program, (errs, lim, sc, nk), block)[0]
@@ -524,6 +505,7 @@ def problem_certificate(
     seed: int = 0,
     log=None,
     falsify: bool = True,
+    noise_bound: float = NOISE_BOUND,
     **search,
 ) -> dict:
     """The problem's certificate per slice (``full``, ``position``): the radius a proof gives for
@@ -557,6 +539,8 @@ def problem_certificate(
         None): the problem loop's falsified radius where it is the nominal loop; with a plant,
         its failure's ray is searched first with the exact map's worst error's.
       falsify: run the real loop's falsifier (False: ``falsified_radius`` and ``falsified`` None).
+      noise_bound: the measurement noise a digital controller's proof covers, in multiples of
+        ``noise_std`` (:func:`wmrjax.certify.held_reach_radius`).
       search: :func:`real_loop_falsified_radius`'s sizes.
 
     Returns:
@@ -581,7 +565,7 @@ def problem_certificate(
             )
             out[basis] = block
             continue
-        block.update(_proved_block(setting, params, basis, em, eps, nominal, kind, features, inert, log))
+        block.update(_proved_block(setting, params, basis, em, eps, nominal, kind, features, inert, log, noise_bound))
         if not falsify or not np.isfinite(float(em.radius)):  # not asked, or no scale to search
             block.update(falsified_radius=None, falsified=None)
         else:
@@ -592,7 +576,9 @@ def problem_certificate(
     return out
 
 
-def _proved_block(setting, params, basis: str, em, eps: float, nominal: float, kind, features, inert, log) -> dict:
+def _proved_block(
+    setting, params, basis: str, em, eps: float, nominal: float, kind, features, inert, log, noise_bound
+) -> dict:
     """A slice's proved radius of a loop with a plant (its ``features``), from the proof that covers
     the features acting on it (the ``inert`` ones, :func:`inert_features`, are covered by the same proof)."""
     active = tuple(f for f in features if f not in inert)
@@ -602,7 +588,37 @@ def _proved_block(setting, params, basis: str, em, eps: float, nominal: float, k
         block["inert"] = {str(f): why for f, why in inert.items()}
     if block["radius"] is None and kind == Kind.PROVED and _mismatch_covered(setting, params, active):
         block.update(_mismatch_block(setting, params, basis, features, em, eps, log))
+    if block["radius"] is None and kind == Kind.PROVED and Feature.CONTROL_PERIOD in active:
+        block.update(_held_block(setting, params, basis, features, active, nominal, eps, noise_bound, log))
     return block
+
+
+def _held_block(setting, params, basis: str, features, active, nominal: float, eps: float, noise_bound, log) -> dict:
+    """The problem certificate's fields from :func:`wmrjax.certify.held_reach_radius`: the digital
+    controller's loop enclosed period by period, up to the nominal exact map's proved radius."""
+    if log is not None:
+        log(f"  held reach ({basis}): enclosing the sampled loop period by period (the first slice compiles)")
+    hr = held_reach_radius(
+        setting, params, slice_basis(setting.ctrl, basis), eps=eps, r_max=nominal, noise_multiple=noise_bound, log=log
+    )
+    proved = hr.radius > 0
+    if log is not None:
+        why = (
+            ""
+            if proved
+            else f" (fails from the smallest radius tried, {hr.failed_radius:.3g}: {hr.reason} at t = {hr.failed_at:g} s)"
+        )
+        log(f"  held reach ({basis}): proved {hr.radius:.4g}{why}")
+    summary = dict(hr.summary(), covers=[str(Feature.NOMINAL), *(str(f) for f in features)], kind=str(Kind.PROVED))
+    return {
+        "radius": hr.radius if proved else None,
+        "worst_error": None,
+        "covers": summary["covers"] if proved else [],
+        "not_covered": [] if proved else [str(f) for f in active],
+        "kind": str(Kind.PROVED) if proved else None,
+        "bound_by": "held_reach",
+        "held_reach": summary,
+    }
 
 
 def _falsified_block(setting, params, basis: str, em, eps: float, nominal_falsified, seed: int, log, search) -> dict:

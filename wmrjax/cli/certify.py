@@ -91,25 +91,44 @@ def _report(r: CertifyReport, out: Path) -> int:
                 else f"not covered: {', '.join(c['not_covered'])}"
             )
             print(f"  {b}: certified radius {proved} ({covered}); falsified {falsified}")
-            sf = c.get("saturation_free")
-            if sf is not None:
-                up = "none found" if sf["upper_bound"] is None else f"{sf['upper_bound']:.4f} (attained)"
-                print(f"    saturation-free radius {sf['lower_bound']:.4f} (proved), {up}")
-            for feature, why in c.get("inert", {}).items():
-                print(f"    {feature} inert: {why}")
-            mm = c.get("mismatch")
-            if mm is not None:
-                dev = "unbounded" if mm["deviation_bound"] is None else f"{mm['deviation_bound']:.4g}"
-                print(
-                    f"    mismatch radius {mm['lower_bound']:.4f} (proved over the plant's range; deviation from "
-                    f"the nominal loop <= {dev}, bound by {mm['bound_by']})"
-                )
+            for line in _plant_lines(c):
+                print(f"    {line}")
     print(f"wrote {out}/summary.json and slice_map.png in {r.wall_time_s:.0f} s")
     for msg in r.warnings:
         print(f"warning: {msg}", file=sys.stderr)
     for msg in r.alarms:  # a result that contradicts the theory is an error, not a certificate
         print(f"error: {msg}", file=sys.stderr)
     return 1 if r.alarms else 0
+
+
+def _plant_lines(c: dict) -> list:
+    """The console's lines under a slice's problem certificate: the proofs' own numbers."""
+    out = []
+    sf = c.get("saturation_free")
+    if sf is not None:
+        up = "none found" if sf["upper_bound"] is None else f"{sf['upper_bound']:.4f} (attained)"
+        out.append(f"saturation-free radius {sf['lower_bound']:.4f} (proved), {up}")
+    for feature, why in c.get("inert", {}).items():
+        out.append(f"{feature} inert: {why}")
+    mm = c.get("mismatch")
+    if mm is not None:
+        dev = "unbounded" if mm["deviation_bound"] is None else f"{mm['deviation_bound']:.4g}"
+        out.append(
+            f"mismatch radius {mm['lower_bound']:.4f} (proved over the plant's range; deviation from "
+            f"the nominal loop <= {dev}, bound by {mm['bound_by']})"
+        )
+    hr = c.get("held_reach")
+    if hr is not None:
+        nxt = (
+            ""
+            if hr["failed_radius"] is None
+            else f"; from {hr['failed_radius']:.4g}: {hr['reason']} at t = {hr['failed_at']:g} s"
+        )
+        out.append(
+            f"held reach {hr['radius']:.4f} (proved: the sampled loop enclosed period by period, noise within "
+            f"{hr['noise_multiple']:g} noise_std{nxt})"
+        )
+    return out
 
 
 def main(argv=None) -> int:

@@ -710,11 +710,13 @@ class LinearizingController(ClosedLoop):
         a sign change between two evaluations of a run is a crossing)."""
         return self.law._control(self.reference_jet(t, params), z, params.gains.coeffs_at(t), params.geometry)
 
-    def control_and_error(self, t, z_measured, z_true, params):
+    def control_and_error(self, t, z_measured, z_true, params, jet=None):
         """``(U, det K, error)`` at one time from one evaluation of the reference's jet: the law at
         the measured state (:meth:`control_and_regularity`) and the output error of the true one
-        (:meth:`error`), as a digital controller's sample needs them."""
-        jet = self.reference_jet(t, params)
+        (:meth:`error`), as a digital controller's sample needs them. ``jet``: the reference's jet
+        at ``t`` where the caller has it (an enclosure of the sampled loop evaluates it in floats,
+        at a point, where interval rules would straddle a sampled path's knot)."""
+        jet = self.reference_jet(t, params) if jet is None else jet
         U, reg = self.law._control(jet, z_measured, params.gains.coeffs_at(t), params.geometry)
         return U, reg, self.law.error(jet, z_true, params.geometry)
 

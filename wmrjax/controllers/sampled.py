@@ -207,9 +207,10 @@ class SampledLoop(ClosedLoop):
         dz = SampledState(dplant, *(jnp.zeros_like(x) for x in z[1:]))
         return dz, Aux(a, jnp.abs(z.regularity), z.regularity)
 
-    def sample(self, k, t, z: SampledState, params: SampledParams) -> SampledState:
+    def sample(self, k, t, z: SampledState, params: SampledParams, jet=None) -> SampledState:
         """Sample ``k`` at time ``t``: measure, evaluate the law, hold its command and rate (and
-        record the true state's output error)."""
+        record the true state's output error); ``jet``: the reference's jet at ``t`` where the
+        caller has it (:meth:`wmrjax.controllers.law.LinearizingController.control_and_error`)."""
         ctrl, law = self.ctrl, self.ctrl.law
         nX = self.robot.n_state
         g = params.plant.law.geometry
@@ -219,7 +220,7 @@ class SampledLoop(ClosedLoop):
         zm = jnp.concatenate([z.plant[:nX] + noise, c])
         if self._torque:
             zm = law.lift_measured(zm, z.plant[nX:], g)  # measured wheel velocities
-        U, regularity, error = ctrl.control_and_error(t, zm, self.law_state(z), params.plant.law)
+        U, regularity, error = ctrl.control_and_error(t, zm, self.law_state(z), params.plant.law, jet)
         command = law.plant_control(zm, U, g)
         rate = law.field(zm, U, g)[nX:]
         error = error.reshape(-1)
