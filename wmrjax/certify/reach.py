@@ -264,7 +264,9 @@ def _reduce(g, e, lay: _Layout):
     order = jnp.argsort(-score)
     n_top = lay.n_history - d
     boxed = jnp.sum(jnp.abs(rest[:, order[n_top:]]), axis=1)
-    boxed = iv._up(boxed * (1 + 4 * 2.0**-52) + iv._TINY)
+    # a float sum of q magnitudes is within q ulps of the exact one: rounded up past that
+    q = rest.shape[1] - n_top
+    boxed = iv._up(boxed * (1 + 2 * (q + 1) * 2.0**-52) + iv._TINY)
     hist = jnp.concatenate([rest[:, order[:n_top]], jnp.diag(boxed)], axis=1)
     out = jnp.zeros((d, lay.n)).at[:, :nk].set(g[:, :nk])
     return out.at[:, lay.cols("history")].set(hist)
