@@ -504,14 +504,10 @@ def held_reach_radius(
     h, periods = float(setting.control_period), setting.n_steps // setting.steps_per_sample
     branch = float(ctrl.reference_branch(params))
     uncs = uncertainties(setting, noise_multiple)
-    run = jax.jit(
-        jax.vmap(
-            lambda r, u: held_reach(loop, params, dist, branch, h, periods, Pn, r, u, eps, margin_floor), (0, None)
-        )
-    )
 
     def passes(radii):
-        outs = [run(jnp.asarray(radii), u) for u in uncs]
+        args = (loop, params, dist, branch, h, periods, Pn, jnp.asarray(radii))
+        outs = [reach_radii(*args, u, eps, margin_floor) for u in uncs]
         ok = np.all([np.asarray(o.ok) for o in outs], axis=0)
         return ok, outs
 

@@ -124,9 +124,10 @@ def _plant_lines(c: dict) -> list:
             if hr["failed_radius"] is None
             else f"; from {hr['failed_radius']:.4g}: {hr['reason']} at t = {hr['failed_at']:g} s"
         )
+        radius = "none" if hr["radius"] <= 0 else f"{hr['radius']:.4f} (proved)"
         out.append(
-            f"held reach {hr['radius']:.4f} (proved: the sampled loop enclosed period by period, noise within "
-            f"{hr['noise_multiple']:g} noise_std{nxt})"
+            f"held reach {radius}: the sampled loop enclosed period by period, noise within "
+            f"{hr['noise_multiple']:g} noise_std{nxt}"
         )
     return out
 
