@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 import scipy.integrate
 import scipy.linalg
+from circle_loop import circle_problem
 
 import wmrjax.certify as C
-from wmrjax.problem import Problem
 
 EPS = 0.01
 T_FINAL = 6.0
@@ -26,17 +26,7 @@ RADIUS, OMEGA = 2.0, 0.5  # the circle reference's defaults: 1 m/s, counter-cloc
 
 
 def _problem(plant=None):
-    data = {
-        "controller": {"law": "dynamic", "robot": "(2,0)", "level": "velocity"},
-        "geometry": {"e": 0.0},
-        "reference": {"family": "circle"},
-        "gains": {"poles": 1.0},
-        "initial": {"space": "output", "x": 0.1},
-        "simulation": {"t_final": T_FINAL, "dt": 0.02},
-    }
-    if plant is not None:
-        data["plant"] = plant
-    return Problem.from_dict(data)
+    return circle_problem(plant, t_final=T_FINAL)
 
 
 @pytest.fixture(scope="module")

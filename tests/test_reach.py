@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.integrate
+from circle_loop import circle_problem
 
 import wmrjax.certify as C
 from wmrjax.certify import affine
@@ -32,17 +33,7 @@ def _problem(noise: bool = True):
     plant = {"input_limit": LIMIT.tolist(), "control_period": PERIOD}
     if noise:
         plant["noise_std"] = NOISE.tolist()
-    return Problem.from_dict(
-        {
-            "controller": {"law": "dynamic", "robot": "(2,0)", "level": "velocity"},
-            "geometry": {"e": 0.0},
-            "reference": {"family": "circle"},
-            "gains": {"poles": 1.0},
-            "initial": {"space": "output", "x": 0.1},
-            "simulation": {"t_final": T_FINAL, "dt": 0.02},
-            "plant": plant,
-        }
-    )
+    return circle_problem(plant, t_final=T_FINAL)
 
 
 @pytest.fixture(scope="module")
