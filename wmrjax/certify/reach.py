@@ -193,9 +193,16 @@ def _sampled(loop: SampledLoop, law_params, unc: Uncertainty, t, jet, x, c, nois
     sp = _plant_params(law_params, unc, s_in, sigma)
     n_x = loop.robot.n_state
     measured = jnp.concatenate([x[:n_x] + noise, x[n_x:]])
-    ne = loop.ctrl.m * loop.ctrl.relative_degree
-    z = SampledState(measured, c, jnp.zeros_like(c), t, jnp.zeros(loop.robot.n_input), jnp.zeros(()), jnp.zeros(ne))
+    z = _state(loop, measured, c, t=t)
     return loop.sample(0, t, z, sp, jet)._replace(plant=x), sp
+
+
+def _state(loop: SampledLoop, plant, controller, command=None, t=0.0) -> SampledState:
+    """A loop state with its plant, compensator and held command, the rest zero (a sample
+    overwrites them; the held-input field reads only the plant and the command)."""
+    nc, ne = loop.n_controller, loop.ctrl.m * loop.ctrl.relative_degree
+    command = jnp.zeros(loop.robot.n_input) if command is None else command
+    return SampledState(plant, controller, jnp.zeros(nc), t, command, jnp.zeros(()), jnp.zeros(ne))
 
 
 def _field(loop: SampledLoop, z: SampledState, sp, order: int):
@@ -211,18 +218,13 @@ def _field(loop: SampledLoop, z: SampledState, sp, order: int):
 def _period_forms(loop, law_params, unc, t, jet, x, c, noise, s_in, sigma):
     """The sample's command, compensator, rate and det K, and the Taylor terms F, F'F at ``x``."""
     z, sp = _sampled(loop, law_params, unc, t, jet, x, c, noise, s_in, sigma)
-    f = lambda xx: loop.vector_field(0.0, z._replace(plant=xx), sp)[0].plant
-    f1 = f(x)
-    f2 = jax.jvp(f, (x,), (f1,))[1]
-    return f1, f2, z.command, z.controller, z.rate, z.regularity
+    return _field(loop, z, sp, 1), _field(loop, z, sp, 2), z.command, z.controller, z.rate, z.regularity
 
 
 def _held_field(loop, law_params, unc, x, command, s_in, sigma, order: int):
     """d^order X / dt^order of the plant under the held ``command`` (for the interval rules)."""
     sp = _plant_params(law_params, unc, s_in, sigma)
-    nc, ne = loop.n_controller, loop.ctrl.m * loop.ctrl.relative_degree
-    z = SampledState(x, jnp.zeros(nc), jnp.zeros(nc), jnp.zeros(()), command, jnp.zeros(()), jnp.zeros(ne))
-    return _field(loop, z, sp, order)
+    return _field(loop, _state(loop, x, jnp.zeros(loop.n_controller), command), sp, order)
 
 
 def _picard_box(loop, law_params, unc, h: float, x0: Interval, held: tuple):
@@ -246,11 +248,7 @@ def _advance(loop: SampledLoop, dist, h: float, x, f1, f2, c, rate, tau, rem):
     """The state at the next sample, and the distance to the singular set at ``t_k + tau``."""
     x_next = x + h * f1 + (0.5 * h * h) * f2 + rem
     x_tau = x + tau * f1 + (0.5 * tau * tau) * f2 + rem
-    nc, ne = loop.n_controller, loop.ctrl.m * loop.ctrl.relative_degree
-    z = SampledState(
-        x_tau, c, jnp.zeros(nc), jnp.zeros(()), jnp.zeros(loop.robot.n_input), jnp.zeros(()), jnp.zeros(ne)
-    )
-    return x_next, c + h * rate, dist(0.0, z, None)
+    return x_next, c + h * rate, dist(0.0, _state(loop, x_tau, c), None)
 
 
 def _reduce(g, e, lay: _Layout):
