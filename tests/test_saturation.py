@@ -78,6 +78,59 @@ def test_affine_keeps_dependencies_that_intervals_lose():
     assert float(af_box.hi - af_box.lo) < 4 * 0.1**2
 
 
+_BOX_FUNCTIONS = {  # one per signed second-derivative rule, and a product of one symbol with itself
+    "square": lambda v: v[0] * v[0] - 2.0 * v[0] * v[1] + v[1] ** 2,
+    "sin": lambda v: jnp.sin(1.5 * v[0] + v[1]),
+    "cos": lambda v: jnp.cos(v[0] - 2.0 * v[1]),
+    "reciprocal": lambda v: 1.0 / (2.0 + v[0] - v[1]) - 1.0 / (-2.0 + v[1]),
+    "sqrt": lambda v: jnp.sqrt(2.5 + v[0] + v[1] * v[2]),
+    "exp_log": lambda v: jnp.exp(v[0] - v[2]) + jnp.log(2.0 + v[1]) + jnp.log1p(0.5 * v[2]),
+    "atan_tanh": lambda v: jnp.arctan(v[0]) + jnp.tanh(v[1] - v[2]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(_BOX_FUNCTIONS))
+def test_affine_enclosure_over_box_symbols_contains_every_sampled_value(name):
+    """Two ball symbols and two box symbols in [-1, 1] (a time and a noise), sampled at random and
+    at the box's corners: the signed Taylor remainders and the box's squares (eps_i^2 in [0, 1])
+    move the centre, and the moved enclosure still holds every value."""
+    fn = _BOX_FUNCTIONS[name]
+    centre = jnp.array([0.2, -0.1, 0.3])
+    gen = np.zeros((3, 4))
+    gen[:, :2] = 0.3 * np.array([[1.0, 0.2], [0.0, 1.0], [0.5, -0.5]])  # the ball's columns
+    gen[:, 2:] = 0.25 * np.array([[1.0, 0.0], [0.6, -1.0], [0.0, 1.0]])  # the boxes'
+    out, ctx = affine.enclose(fn, affine.symbols(centre, jnp.asarray(gen)), n_ball=2)
+    box = affine.to_interval(out, ctx)
+    rng = np.random.default_rng(3)
+    ball = rng.normal(size=(6000, 2))
+    ball *= rng.uniform(size=(6000, 1)) ** 0.5 / np.linalg.norm(ball, axis=1, keepdims=True)
+    ball[:200] /= np.linalg.norm(ball[:200], axis=1, keepdims=True)  # on the sphere
+    boxes = rng.uniform(-1.0, 1.0, size=(6000, 2))
+    boxes[: 4 * 200] = np.repeat(np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]]), 200, axis=0)  # corners
+    eps = np.concatenate([ball, boxes], axis=1)
+    vals = np.asarray(jax.vmap(fn)(np.asarray(centre) + eps @ gen.T))
+    assert np.all(vals >= float(box.lo)) and np.all(vals <= float(box.hi))
+    # not vacuous: within a few times the sampled range's own width
+    assert float(box.hi - box.lo) < 4.0 * (vals.max() - vals.min())
+
+
+def test_a_box_symbols_square_is_enclosed_by_zero_to_one_and_a_convex_functions_tangent_from_one_side():
+    """eps^2 over [-1, 1] is exactly [0, 1] (was [-1, 1]: the product of the radii); exp(eps) is
+    enclosed with its remainder in [0, e/2] (was +-e/2); 1/x on [1, 3] likewise one-sided."""
+    x = affine.symbols(jnp.array([0.0]), jnp.array([[1.0]]))
+    sq, ctx = affine.enclose(lambda v: v[0] * v[0], x, n_ball=0)
+    b = affine.to_interval(sq, ctx)
+    np.testing.assert_allclose([float(b.lo), float(b.hi)], [0.0, 1.0], atol=1e-12)
+    ex, ctx = affine.enclose(lambda v: jnp.exp(v[0]), x, n_ball=0)
+    b = affine.to_interval(ex, ctx)
+    # tangent 1 + eps on [0, 2] plus [0, e/2]: [0, 2 + e/2], against [e^-1, e] the true range
+    np.testing.assert_allclose([float(b.lo), float(b.hi)], [0.0, 2.0 + np.e / 2], atol=1e-12)
+    rc, ctx = affine.enclose(lambda v: 1.0 / (2.0 + v[0]), x, n_ball=0)
+    b = affine.to_interval(rc, ctx)
+    # tangent 1/2 - eps/4 on [1/4, 3/4] plus [0, (2/1^3)/2] = [0, 1]: [1/4, 7/4] (true: [1/3, 1])
+    np.testing.assert_allclose([float(b.lo), float(b.hi)], [0.25, 1.75], atol=1e-12)
+
+
 def test_an_angle_across_the_branch_cut_is_kept_whole_for_sin_and_cos_only():
     box = Interval(jnp.array([-1.0, -0.1]), jnp.array([-0.9, 0.1]))  # x < 0, y across 0: the cut
     used = interval.enclose(lambda v: jnp.cos(jnp.arctan2(v[1], v[0])), box)

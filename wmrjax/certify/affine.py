@@ -5,9 +5,12 @@ symbols :math:`\varepsilon` shared by every value of one evaluation: the first `
 symbols lie in the Euclidean unit ball (an initial error ``s = rho * eps`` of a certificate's
 ball), the others in [-1, 1] (time in a box), and :math:`\varepsilon_0` is a fresh symbol per
 value (:math:`|\varepsilon_0| \le 1`) collecting everything not kept linear. Linear operations are exact in the
-symbols; a smooth function is replaced by its tangent at the centre plus a bound of its
-Taylor remainder over the value's range (:math:`\tfrac12 \sup|f''|\,\mathrm{rad}^2`); a product
-keeps both first-order terms and bounds the second-order one by the product of the radii.
+symbols; a smooth function is replaced by its tangent at the centre plus its Taylor remainder
+over the value's range (:math:`\tfrac12 f''(\xi)\,\delta^2` with :math:`\delta^2 \in [0,
+\mathrm{rad}^2]`: signed where :math:`f''` keeps its sign, its midpoint joining the centre); a
+product keeps both first-order terms and bounds the second-order one by the product of the radii
+(a ball's quadratic form and a box symbol's square :math:`\varepsilon_i^2 \in [0, 1]` are
+enclosed by their own ranges).
 This is affine arithmetic (Comba & Stolfi 1993; de Figueiredo & Stolfi 2004), here with a ball
 of symbols, so dependencies between the many uses of one initial error cancel to first order,
 where plain intervals (:mod:`wmrjax.certify.interval`) multiply them.
@@ -124,31 +127,49 @@ def _parts(a: Affine, ctx: _Context):
 
 
 def _mul(a, b, ctx):
-    """Product: a ball's quadratic form x^T (g_a g_b^T) x over its unit ball lies in
+    r"""Product: a ball's quadratic form x^T (g_a g_b^T) x over its unit ball lies in
     [(g_a.g_b - |g_a||g_b|) / 2, (g_a.g_b + |g_a||g_b|) / 2]: its midpoint joins the centre;
-    the products across two balls, and with the box symbols, are bounded by their norms."""
+    over the box symbols the diagonal terms :math:`g_i h_i \varepsilon_i^2` lie in
+    :math:`[\min(g_i h_i, 0), \max(g_i h_i, 0)]` (their midpoint joins the centre, half their
+    magnitude is kept of the bound) and the others by the product of the magnitudes; the
+    products across groups, and with the error terms, are bounded by their norms."""
     na, ra = _parts(a, ctx)
     nb, rb = _parts(b, ctx)
     nbs = sum(ctx.balls)
     dot = jnp.sum(a.g[..., :nbs] * b.g[..., :nbs], axis=-1)
+    diag = a.g[..., nbs:] * b.g[..., nbs:]
+    box_dot, box_same = jnp.sum(diag, axis=-1), jnp.sum(jnp.abs(diag), axis=-1)
     sa, sb = jnp.sum(na, axis=-1), jnp.sum(nb, axis=-1)
     same = jnp.sum(na * nb, axis=-1)
     # (an inf radius times 0 gives NaN: _make turns it into e = inf, "nothing known")
-    quad = 0.5 * same + (sa * sb - same) + sa * rb + ra * (sb + rb)
+    bound = 0.5 * same + (sa * sb - same) + sa * rb + ra * (sb + rb)
+    # ra rb >= the box magnitudes' sum: no cancellation; rounded past the difference's ulps
+    quad = iv._up(bound * (1 + 2.0**-49) - 0.5 * box_same * (1 - 2.0**-49))
     g = a.c[..., None] * b.g + b.c[..., None] * a.g
     e = jnp.abs(a.c) * b.e + jnp.abs(b.c) * a.e + quad
-    return _make(a.c * b.c + 0.5 * dot, g, e)
+    return _make(a.c * b.c + 0.5 * (dot + box_dot), g, e)
 
 
 def _smooth(a, ctx, f, df, d2):
-    """``f(a)``: tangent at the centre plus ``sup|f''|/2 rad^2``; ``d2(box)`` bounds |f''| on the range."""
+    r"""``f(a)``: the tangent at the centre plus Taylor's remainder :math:`\tfrac12 f''(\xi)\delta^2`,
+    :math:`\delta^2 \in [0, \mathrm{rad}^2]`: with ``d2(box)`` an :class:`Interval` holding
+    :math:`f''` on the range, the remainder lies in
+    :math:`[\tfrac12 \min(m, 0)\,\mathrm{rad}^2, \tfrac12 \max(M, 0)\,\mathrm{rad}^2]`; its
+    midpoint joins the centre and its half-width the error (half the symmetric bound's where
+    :math:`f''` keeps its sign: the tangent lies on one side of a convex function)."""
     r = rad(a, ctx)
     box = to_interval(a, ctx)
     c = f(a.c)
-    out = _scale(a, df(a.c), 0.5 * d2(box) * r * r)
+    curv = d2(box)
+    half = iv._up(0.5 * r * r * (1 + 2.0**-49))  # with the curvature's own rounding
+    lo, hi = half * jnp.minimum(curv.lo, 0.0), half * jnp.maximum(curv.hi, 0.0)
+    shift = 0.5 * (lo + hi)
+    out = _scale(a, df(a.c), iv._up(0.5 * (hi - lo)))
     e = out.e + iv._REL * jnp.abs(c)  # the elementary function's own ulps at the centre
-    bad = ~jnp.isfinite(e) | ~jnp.isfinite(c)
-    return Affine(jnp.where(bad, 0.0, c), jnp.where(bad[..., None], 0.0, out.g), jnp.where(bad, jnp.inf, e))
+    e = e + 2.0**-52 * jnp.abs(shift)  # the shift's own rounding (_make's allowance covers the sum)
+    bad = ~jnp.isfinite(e) | ~jnp.isfinite(c) | ~jnp.isfinite(shift)
+    out = _make(c + shift, out.g, e)
+    return Affine(jnp.where(bad, 0.0, out.c), jnp.where(bad[..., None], 0.0, out.g), jnp.where(bad, jnp.inf, out.e))
 
 
 def _mag(b: Interval):
@@ -161,22 +182,32 @@ def _mig(b: Interval):
 
 
 def _reciprocal(a, ctx):
-    return _smooth(a, ctx, lambda x: 1.0 / x, lambda x: -1.0 / (x * x), lambda b: 2.0 / _mig(b) ** 3)
+    # f'' = 2 / x^3: the sign of x where the range excludes 0 (else _mig = 0: unbounded)
+    def d2(b):
+        m = 2.0 / _mig(b) ** 3
+        pos, neg = b.lo > 0, b.hi < 0
+        return Interval(jnp.where(pos, 0.0, -m), jnp.where(neg, 0.0, m))
+
+    return _smooth(a, ctx, lambda x: 1.0 / x, lambda x: -1.0 / (x * x), d2)
 
 
 def _sqrt(a, ctx):
     lo = to_interval(a, ctx).lo
-    d2 = lambda b: jnp.where(b.lo > 0, 0.25 / jnp.maximum(b.lo, iv._TINY) ** 1.5, jnp.inf)
+    # f'' = -x^(-3/2) / 4 < 0
+    d2 = lambda b: Interval(
+        jnp.where(b.lo > 0, -0.25 / jnp.maximum(b.lo, iv._TINY) ** 1.5, -jnp.inf), jnp.zeros_like(b.lo)
+    )
     out = _smooth(a, ctx, jnp.sqrt, lambda x: 0.5 / jnp.sqrt(x), d2)
     return Affine(out.c, out.g, jnp.where(lo > 0, out.e, jnp.inf))
 
 
 def _sin(a, ctx):
-    return _smooth(a, ctx, jnp.sin, jnp.cos, lambda b: _mag(iv._sin(b)))
+    # f'' = -sin: the interval rule's range of sin over the box, negated
+    return _smooth(a, ctx, jnp.sin, jnp.cos, lambda b: iv._neg(iv._sin(b)))
 
 
 def _cos(a, ctx):
-    return _smooth(a, ctx, jnp.cos, lambda x: -jnp.sin(x), lambda b: _mag(iv._cos(b)))
+    return _smooth(a, ctx, jnp.cos, lambda x: -jnp.sin(x), lambda b: iv._neg(iv._cos(b)))
 
 
 def _atan2(y, x, ctx, unwrapped: bool):
@@ -202,13 +233,18 @@ def _atan2(y, x, ctx, unwrapped: bool):
 
 
 def _d2_bound(name):
+    """An :class:`Interval` holding f'' of ``name`` over a box (signed: see :func:`_smooth`)."""
+    zero = lambda b: jnp.zeros_like(b.lo)
+    sym = lambda m: lambda b: Interval(jnp.full_like(b.lo, -m), jnp.full_like(b.lo, m))
     return {
-        "exp": lambda b: jnp.exp(b.hi),
-        "expm1": lambda b: jnp.exp(b.hi),
-        "log": lambda b: jnp.where(b.lo > 0, 1.0 / jnp.maximum(b.lo, iv._TINY) ** 2, jnp.inf),
-        "log1p": lambda b: jnp.where(b.lo > -1, 1.0 / jnp.maximum(1.0 + b.lo, iv._TINY) ** 2, jnp.inf),
-        "atan": lambda b: jnp.full_like(b.lo, 0.65),  # max |d2 atan| = 3 sqrt(3) / 8
-        "tanh": lambda b: jnp.full_like(b.lo, 0.77),  # max |d2 tanh| = 4 / (3 sqrt(3))
+        "exp": lambda b: Interval(zero(b), jnp.exp(b.hi)),
+        "expm1": lambda b: Interval(zero(b), jnp.exp(b.hi)),
+        "log": lambda b: Interval(jnp.where(b.lo > 0, -1.0 / jnp.maximum(b.lo, iv._TINY) ** 2, -jnp.inf), zero(b)),
+        "log1p": lambda b: Interval(
+            jnp.where(b.lo > -1, -1.0 / jnp.maximum(1.0 + b.lo, iv._TINY) ** 2, -jnp.inf), zero(b)
+        ),
+        "atan": sym(0.65),  # max |d2 atan| = 3 sqrt(3) / 8
+        "tanh": sym(0.77),  # max |d2 tanh| = 4 / (3 sqrt(3))
     }[name]
 
 
