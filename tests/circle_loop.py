@@ -4,8 +4,9 @@
 from wmrjax.problem import Problem
 
 
-def circle_problem(plant=None, *, t_final: float, dt: float = 0.02) -> Problem:
-    """The (2,0) law at e = 0 on the default circle (2 m, 1 m/s), poles -1, with ``plant``."""
+def circle_problem(plant=None, *, t_final: float, dt: float = 0.02, sections: dict | None = None) -> Problem:
+    """The (2,0) law at e = 0 on the default circle (2 m, 1 m/s), poles -1, with ``plant`` (and
+    further ``sections``, a job's table)."""
     data = {
         "controller": {"law": "dynamic", "robot": "(2,0)", "level": "velocity"},
         "geometry": {"e": 0.0},
@@ -16,4 +17,5 @@ def circle_problem(plant=None, *, t_final: float, dt: float = 0.02) -> Problem:
     }
     if plant is not None:
         data["plant"] = plant
+    data.update(sections or {})
     return Problem.from_dict(data)

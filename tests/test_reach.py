@@ -21,6 +21,10 @@ from circle_loop import circle_problem
 import wmrjax.certify as C
 from wmrjax.certify import affine
 from wmrjax.problem import Problem
+from wmrjax.tune import certified as tune_certified
+from wmrjax.tune import config as tune_config
+from wmrjax.tune import loop as tune_loop
+from wmrjax.tune.loop import initial_raw
 
 EPS = 0.01
 T_FINAL, PERIOD = 4.0, 0.1
@@ -168,3 +172,78 @@ def test_the_clamps_affine_rule_contains_every_sampled_value(seed):
         )
     far, ctx = affine.enclose(lambda v: jnp.maximum(v, -10.0), affine.symbols(c, g), n_ball=2)
     np.testing.assert_array_equal(np.asarray(far.g), np.asarray(g))  # surely above: the form itself
+
+
+TUNE_STEPS = 3
+TUNE = {"steps": TUNE_STEPS, "scenarios": {"train": 3, "validation": 2, "heldout": 2}, "stopping": {"eval_every": 3}}
+
+
+def _tuning_setting(noise_bound: float = 1.0):
+    plant = {"input_limit": LIMIT.tolist(), "control_period": PERIOD, "noise_std": NOISE.tolist()}
+    return circle_problem(plant, t_final=T_FINAL, sections={"certify": {"noise_bound": noise_bound}}).setting("tuning")
+
+
+@pytest.fixture(scope="module")
+def tuning():
+    """The tuning setting, its gain family, the initial raw parameters and the requirement's radius
+    function at the problem's loop (one held-reach compile serves both tests below)."""
+    setting = _tuning_setting()
+    ts = tune_config.read(TUNE)
+    family = ts.gain_family(setting)
+    raw0 = initial_raw(setting, family)
+    radius = tune_certified.radius_function(setting, family, tune_certified.Requirement("initial", "full", EPS))
+    return setting, ts, family, raw0, radius
+
+
+def test_the_tuner_keeps_the_held_reach_at_every_accepted_step(tuning):
+    """Issue 54 item 5 on a digital controller's loop: the requirement is the held reach's proved
+    radius at the problem's [certify] noise_bound, the same number as the certification's; every
+    accepted point keeps it, each checked again here by the certify module's own search, and the
+    requirement's block says what it covers."""
+    setting, ts, family, raw0, radius = tuning
+    initial = radius.value(raw0)
+    req = tune_certified.Requirement(0.8 * initial, "full", EPS)  # room to move: at "initial" every step lost a little
+    kw = dict(scenarios=ts.scenarios, loss=ts.loss, stopping=ts.stopping, seed=ts.seed, log=lambda *_: None)
+    res = tune_loop.tune(setting, family, ts.optimizer.build(TUNE_STEPS), steps=TUNE_STEPS, requirement=req, **kw)
+    kept = res.context.kept
+    assert kept.radius.kind == "proved" and kept.radius.value_and_grad is None
+    assert kept.radius.covers == ("nominal", "input_limit", "control_period", "noise")
+    assert kept.radius.not_covered == ()
+    P = C.slice_basis(setting.ctrl, "full")
+
+    def certified_radius(raw):
+        params = setting.params(gains=family.gains(jnp.asarray(raw)))
+        em = C.exact_map_radius(setting.ctrl, params, t_final=T_FINAL, eps=EPS, basis="full")
+        return C.held_reach_radius(setting, params, P, eps=EPS, r_max=em.lower_bound, noise_multiple=1.0).radius
+
+    assert kept.initial == initial == certified_radius(raw0) > 0  # certify's search, to the last bit
+    # the summary's problem_certificate reads the same [certify] noise_bound (it had used 3 noise_std)
+    pr = tune_certified.problem_radii(setting, family.gains(raw0), eps=EPS)["full"]
+    assert pr["radius"] == initial and pr["bound_by"] == "held_reach" and pr["kind"] == "proved"
+    hist = res.history
+    assert len(hist) == TUNE_STEPS and min(h["radius"] for h in hist) >= kept.required
+    assert {h["radius_bound_by"] for h in hist} == {"held_reach"}
+    # never projected (the reach has no gradient), and halved at most HELD_HALVINGS times
+    assert all(0 <= h["halvings"] <= tune_certified.HELD_HALVINGS + 1 for h in hist)
+    for raw in (res.raw, res.best_raw):
+        assert certified_radius(raw) >= kept.required
+    assert not np.array_equal(np.asarray(res.raw), np.asarray(raw0))  # it moved
+
+
+def test_a_held_reach_requirement_the_initial_gains_miss_is_refused(tuning):
+    """No gradient to climb: the tuner says so before its first step."""
+    _, _, _, raw0, radius = tuning
+    required = 1.25 * radius.value(raw0)
+    with pytest.raises(ValueError, match="no gradient to climb"):
+        tune_certified.restore(raw0, radius, required, log=lambda *_: None)
+
+
+def test_an_initial_requirement_that_proves_nothing_is_refused(tuning):
+    """At ten noise_std (0.1 m of position noise) this loop's held reach proves no ball (measured
+    0.0; 0.0053 at three): keeping "initial" would keep a radius of zero, so the tuner refuses it
+    and says what to change."""
+    _, ts, _, raw0, _ = tuning
+    setting = _tuning_setting(noise_bound=10.0)
+    family = ts.gain_family(setting)
+    with pytest.raises(ValueError, match="nothing to keep; lower \\[certify\\] noise_bound"):
+        tune_loop.keep(setting, family, tune_certified.Requirement("initial", "full", EPS), raw0)

@@ -102,24 +102,26 @@ def test_requirement_refuses_what_it_cannot_keep(tiny, tmp_path):
 
 def test_a_requirement_says_which_loop_it_keeps(tiny):
     """TINY's plant has limits, a 10 Hz controller and noise: on the problem's loop (the default)
-    the requirement keeps the problem certificate's radius under the limits, labelled as not
-    covering the hold and the noise; on the nominal loop the exact map's, covering none of the
-    plant; a gain schedule cannot keep the limits' radius (refused before anything compiles)."""
+    the requirement keeps the held reach's radius, covering all three (issue 54 item 5); on the
+    nominal loop the exact map's, covering none of the plant; a gain schedule cannot keep the
+    problem loop's radius (refused before anything compiles)."""
     from wmrjax.tune import certified
 
     setting, family, _ = tiny
     req = config.read({**TINY_DATA["tune"], "requirement": {"radius": 1.0}}).requirement
     assert req.loop == "problem"
     rad = certified.radius_function(setting, family, req)
-    assert rad.covers == ("nominal", "input_limit") and rad.not_covered == ("control_period", "noise")
-    assert rad.kind == "proved" and rad.detail is not None
+    assert rad.covers == ("nominal", "input_limit", "control_period", "noise") and rad.not_covered == ()
+    assert rad.kind == "proved" and rad.detail is not None and rad.value_and_grad is None  # halved, not projected
     nominal = certified.radius_function(setting, family, req._replace(loop="nominal"))
     assert nominal.covers == ("nominal",) and nominal.not_covered == ("input_limit", "control_period", "noise")
     assert nominal.kind == "attained" and nominal.detail is None
     loop_note = certified.problem_loop(setting, req)
+    assert not loop_note["covered"] and "no proof the tuner keeps covers" not in loop_note["note"]
+    assert "keeps a radius of the loop with nominal, input_limit, control_period, noise" in loop_note["note"]
     assert (
-        not loop_note["covered"]
-        and "no proof the tuner keeps covers this problem's control_period, noise" in (loop_note["note"])
+        "no proof the tuner keeps covers this problem's input_limit, control_period, noise"
+        in (certified.problem_loop(setting, req._replace(loop="nominal"))["note"])
     )
     schedule = config.read({**TINY_DATA["tune"], "family": {"parameterization": "damping", "knots": 2}}).gain_family(
         setting

@@ -356,10 +356,11 @@ def _optuna(
     return _record(method, seed, np.concatenate(vals), np.concatenate(raws), n_train, secs)
 
 
-def requirement_check(setting, family, requirement, raw0) -> Callable:
-    """``feasible(raw) -> bool`` of a :class:`wmrjax.tune.certified.Requirement`: the exact-map radius of
-    the gains at or above the required one (as :func:`wmrjax.tune.loop.keep` resolves it from ``raw0``)."""
-    kept = loop.keep(setting, family, requirement, raw0)
+def requirement_check(setting, family, requirement, raw0, kept=None) -> Callable:
+    """``feasible(raw) -> bool`` of a :class:`wmrjax.tune.certified.Requirement`: the radius the
+    requirement keeps (:func:`wmrjax.tune.certified.radius_function`) at or above the required one
+    (as :func:`wmrjax.tune.loop.keep` resolves it from ``raw0``; ``kept``: already resolved)."""
+    kept = loop.keep(setting, family, requirement, raw0) if kept is None else kept
     return lambda raw: bool(kept.radius.value(jnp.asarray(raw)) >= kept.required)
 
 

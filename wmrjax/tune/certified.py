@@ -21,8 +21,11 @@ Every accepted point therefore holds the requirement, not just the last. On a pr
 (:class:`Loop`): the radius kept is the problem certificate's under those limits, the smaller of
 the exact map's proved lower bound and the saturation-free radius
 (:func:`problem_radius_function`), labelled with the plant features it covers and those it does
-not (a controller period, noise, mismatch ranges that act on the loop: no proof the tuner
-keeps covers them, :func:`loop_coverage`). For (1,2), whose
+not (noise, mismatch ranges that act on a continuous loop: no proof the tuner keeps covers them,
+:func:`loop_coverage`). On a digital controller's loop (a ``control_period``) the radius kept is
+the held reach's (:func:`held_radius_function`), which covers the whole plant with the noise
+within ``[certify] noise_bound``: it has no gradient, so steps are halved back, never projected,
+and the initial gains must meet the requirement. For (1,2), whose
 singular set is curved, the radius is a branch and bound over (t, heading) with a proved lower
 bound (:func:`wmrjax.certify.curved_exact_map_radius`): not differentiable, and far too slow
 to evaluate at every step (thousands of boxes per round, a dozen rounds), so a
@@ -43,7 +46,7 @@ import numpy as np
 
 from wmrjax import certify
 from wmrjax.certify import Feature, Kind, Slice
-from wmrjax.certify.job import CERTIFY_KEYS
+from wmrjax.certify.job import CERTIFY_KEYS, read_section
 from wmrjax.certify.real_loop import inert_features, tightest_limits
 from wmrjax.certify.saturation import limit_usage, saturation_free_sensitivity
 from wmrjax.controllers import Space
@@ -55,6 +58,7 @@ SLICES = tuple(Slice)
 DEFAULT_EPS = CERTIFY_KEYS["eps"]  # the certification's default margin [output-error units]
 BAND = 0.02  # project the gradient when the radius is within 2 % of the requirement
 MAX_HALVINGS = 30  # a rejected step is halved at most this often (2^-30 of it), then not taken
+HELD_HALVINGS = 3  # the same for a radius without a gradient (the held reach: a search per halving)
 RESTORE_STEPS = 200  # ascent steps on the radius when the initial gains miss the requirement
 RESTORE_STEP = 0.2  # their first length in the unconstrained parameters
 RESTORE_MARGIN = 1e-3  # the ascent and the projection aim this fraction above the requirement
@@ -70,9 +74,16 @@ class Loop(enum.StrEnum):
 
 
 TUNER_PROOFS = frozenset({Feature.INPUT_LIMIT})
-"""Plant features that a radius the tuner keeps can cover (with the features that cannot change
-the loop, :func:`wmrjax.certify.inert_features`): the saturation-free radius is a few seconds a
-point; the mismatch tube's bisection (:func:`wmrjax.certify.mismatch_radius`) is minutes."""
+"""Plant features that a radius the tuner keeps can cover on a continuous loop (with the features
+that cannot change the loop, :func:`wmrjax.certify.inert_features`): the saturation-free radius is
+a few seconds a point; the mismatch tube's bisection (:func:`wmrjax.certify.mismatch_radius`) is
+minutes. A digital controller's loop (a ``control_period``) is kept by the held reach instead,
+which covers every feature of the plant (:data:`HELD_PROOFS`)."""
+
+HELD_PROOFS = frozenset(Feature) - {Feature.NOMINAL}
+"""What the held reach (:func:`wmrjax.certify.held_reach_radius`) covers: the sampled, held,
+clipped loop of every plant of the range, with the noise within the problem's ``[certify]
+noise_bound``."""
 
 
 class Requirement(NamedTuple):
@@ -88,8 +99,8 @@ class Requirement(NamedTuple):
       eps: the margin to the singular set (the problem's ``[certify] eps`` by default).
       loop: ``"problem"`` (default; :class:`Loop`): with a ``[plant]`` that has input limits the
         radius is the problem certificate's, the smaller of the exact map's and the
-        saturation-free radius (both proved); ``"nominal"``: the exact map's alone (attained),
-        the nominal continuous loop's.
+        saturation-free radius (both proved), and with a ``control_period`` the held reach's
+        (proved); ``"nominal"``: the exact map's alone (attained), the nominal continuous loop's.
     """
 
     radius: float | str
@@ -125,12 +136,14 @@ def read(table: dict | None, certify_section: dict) -> Requirement | None:
 def check(setting, family, req: Requirement | None = None) -> None:
     """ValueError when the problem has no exact-map radius to keep: a static law, a random
     reference family (no fixed reference), or type (1,2) (see the module docstring); with
-    ``req`` on the problem's loop with input limits, a gain schedule (the saturation-free
-    radius follows :math:`e^{At}`, constant gains)."""
-    if req is not None and family.knots and str(Feature.INPUT_LIMIT) in loop_coverage(setting, req)[0]:
+    ``req`` on the problem's loop with input limits or a control period, a gain schedule (the
+    saturation-free radius follows :math:`e^{At}`, constant gains)."""
+    covered = loop_coverage(setting, req)[0] if req is not None else ()
+    if family.knots and (str(Feature.INPUT_LIMIT) in covered or str(Feature.CONTROL_PERIOD) in covered):
         raise ValueError(
-            "a requirement on the problem's loop with input limits needs constant gains (the saturation-free "
-            'radius follows e^{At}); tune a gain schedule with [tune.requirement] loop = "nominal"'
+            "a requirement on the problem's loop with input limits or a control period needs constant gains "
+            "(the saturation-free radius follows e^{At}, the held reach is searched below the exact map's proved "
+            'radius); tune a gain schedule with [tune.requirement] loop = "nominal"'
         )
     if not isinstance(setting.ctrl, DynamicLinearization):
         raise ValueError("a certified-region requirement needs a dynamic linearizing law (only those are certified)")
@@ -173,7 +186,9 @@ def loop_coverage(setting, req: Requirement) -> tuple[tuple, tuple]:
     "problem"``, those of :data:`TUNER_PROOFS`; the rest of the plant's features are not covered."""
     features = certify.plant_features(setting)
     inert = inert_features(setting) if features else {}
-    proved = TUNER_PROOFS if Loop(req.loop) == Loop.PROBLEM else frozenset()
+    proved = frozenset()
+    if Loop(req.loop) == Loop.PROBLEM:
+        proved = HELD_PROOFS if Feature.CONTROL_PERIOD in features else TUNER_PROOFS
     covered = [f for f in features if f in inert or f in proved]
     rest = [f for f in features if f not in covered]
     return tuple(str(f) for f in (Feature.NOMINAL, *covered)), tuple(str(f) for f in rest)
@@ -186,6 +201,8 @@ def radius_function(setting, family, req: Requirement) -> Radius:
     plant with input limits the problem certificate's radius (:func:`problem_radius_function`)."""
     check(setting, family, req)
     covers, not_covered = loop_coverage(setting, req)
+    if str(Feature.CONTROL_PERIOD) in covers:
+        return held_radius_function(setting, family, req, covers)
     if str(Feature.INPUT_LIMIT) in covers:
         return problem_radius_function(setting, family, req, covers, not_covered)
     base = setting.params()
@@ -244,11 +261,50 @@ def problem_radius_function(setting, family, req: Requirement, covers, not_cover
     return Radius(value, value_and_grad, label, covers, not_covered, str(Kind.PROVED), detail)
 
 
+def held_radius_function(setting, family, req: Requirement, covers) -> Radius:
+    """The problem certificate's radius of a digital controller's loop as a function of the raw
+    parameters: the held reach's proved radius (:func:`wmrjax.certify.held_reach_radius`, with the
+    problem's ``[certify] noise_bound``) searched up to the exact map's proved lower bound, as
+    ``wmrjax certify`` computes it. It has no gradient (``value_and_grad`` None): a step that
+    misses the requirement is halved back, never projected, and initial gains that miss it are
+    refused (nothing to climb). One evaluation is a few seconds after the reach's one compile."""
+    ctrl, T, base, P = setting.ctrl, setting.t_final, setting.params(), certify.slice_basis(setting.ctrl, req.slice)
+    noise = read_section(setting.data)["noise_bound"]
+    cache: dict = {}
+
+    def bounds(raw):
+        key = np.asarray(raw, float).tobytes()
+        if key not in cache:
+            params = base._replace(gains=family.gains(jnp.asarray(raw)))
+            ex = certify.exact_map_radius(ctrl, params, t_final=T, eps=req.eps, basis=req.slice)
+            em = float(ex.radius if ex.lower_bound is None else ex.lower_bound)  # as certify's nominal radius
+            hr = certify.held_reach_radius(setting, params, P, eps=req.eps, r_max=em, noise_multiple=noise)
+            if len(cache) >= CACHED_POINTS:
+                cache.pop(next(iter(cache)))
+            cache[key] = (em, hr)
+        return cache[key]
+
+    def detail(raw):
+        em, hr = bounds(raw)
+        return {"exact_map": em, "held_reach": hr.radius, "noise_multiple": hr.noise_multiple, "bound_by": "held_reach"}
+
+    label = f"problem certificate ({req.slice}): the held reach at {noise:g} noise_std, proved"
+    return Radius(lambda raw: bounds(raw)[1].radius, None, label, covers, (), str(Kind.PROVED), detail)
+
+
 def required_radius(setting, req: Requirement, radius: Radius, raw0) -> float:
     """The requirement as a number: ``"initial"`` is the radius at ``raw0``, ``"box"`` the
-    half-diagonal of the ``[initial]`` box in the slice."""
+    half-diagonal of the ``[initial]`` box in the slice. ValueError where ``"initial"`` is zero (the
+    initial gains' radius proves nothing: a requirement of zero would keep nothing)."""
     if req.radius == "initial":
-        return radius.value(raw0)
+        r = radius.value(raw0)
+        if not r > 0.0:
+            raise ValueError(
+                f'[tune.requirement] radius = "initial": the initial gains\' {radius.label} is {r:.4g}, so there '
+                "is nothing to keep; lower [certify] noise_bound (a digital controller's loop), or keep the "
+                'nominal loop\'s radius with [tune.requirement] loop = "nominal"'
+            )
+        return r
     if req.radius == "box":
         if Space(setting.data["initial"].get("space", "output")) != Space.OUTPUT:
             raise ValueError(
@@ -270,8 +326,8 @@ def _half_width(v) -> float:
 def project(grad, r: float, g_r, required: float):
     """The loss gradient without the part that would shrink the radius, when the radius is within
     :data:`BAND` of ``required`` (a descent step moves by about ``-grad``; it lowers the radius
-    where ``grad . g_r > 0``)."""
-    if r > required * (1.0 + BAND):
+    where ``grad . g_r > 0``); unchanged where the radius has no gradient (``g_r`` None)."""
+    if g_r is None or r > required * (1.0 + BAND):  # None: a radius without a gradient
         return grad
     g, gr = np.asarray(grad, float), np.asarray(g_r, float)
     dot, nn = float(np.sum(g * gr)), float(np.sum(gr * gr))
@@ -290,14 +346,15 @@ def feasible_step(raw, proposal, radius: Radius, required: float):
     iterate slides along the boundary instead of stopping at it (a step tangent to it still
     loses radius at second order where the radius is concave). Where that fails the step is halved back toward ``raw``: the furthest of
     ``raw + 2^-k (proposal - raw)`` that meets ``required``, else ``raw`` itself (``halvings``
-    is then ``MAX_HALVINGS + 1``; -1 marks a projected step).
+    is then ``MAX_HALVINGS + 1``, ``HELD_HALVINGS + 1`` for a radius without a gradient; -1
+    marks a projected step).
     """
     proposal = jnp.asarray(proposal)
     r = radius.value(proposal)
     if r >= required:
         return proposal, r, 0
     p, target = proposal, required * (1.0 + RESTORE_MARGIN)
-    for _ in range(PROJECTION_STEPS):
+    for _ in range(PROJECTION_STEPS if radius.value_and_grad is not None else 0):  # no gradient: halve only
         rv, g = radius.value_and_grad(p)
         gg = float(jnp.sum(g * g))
         if float(rv) >= required or gg == 0.0 or not np.isfinite(gg):
@@ -306,13 +363,13 @@ def feasible_step(raw, proposal, radius: Radius, required: float):
     r = radius.value(p)
     if r >= required:
         return p, r, -1
-    raw = np.asarray(raw)
-    for k in range(1, MAX_HALVINGS + 1):
+    raw, n = np.asarray(raw), MAX_HALVINGS if radius.value_and_grad is not None else HELD_HALVINGS
+    for k in range(1, n + 1):
         cand = jnp.asarray(raw + 0.5**k * (np.asarray(proposal) - raw))
         r = radius.value(cand)
         if r >= required:
             return cand, r, k
-    return jnp.asarray(raw), radius.value(jnp.asarray(raw)), MAX_HALVINGS + 1
+    return jnp.asarray(raw), radius.value(jnp.asarray(raw)), n + 1
 
 
 def restore(raw, radius: Radius, required: float, log=print):
@@ -321,6 +378,12 @@ def restore(raw, radius: Radius, required: float, log=print):
     r = radius.value(raw)
     if r >= required:
         return raw, r
+    if radius.value_and_grad is None:
+        raise ValueError(
+            f"the initial gains' {radius.label} is {r:.4g}, below the requirement {required:.4g}, and it has no "
+            "gradient to climb: start from gains that meet it, lower the requirement, or (a digital "
+            "controller's loop) lower [certify] noise_bound"
+        )
     target, step = required * (1.0 + RESTORE_MARGIN), RESTORE_STEP
     for _ in range(RESTORE_STEPS):
         r, g = radius.value_and_grad(raw)
@@ -408,7 +471,8 @@ def radii(setting, gains, *, eps: float, falsify=False, seed: int = 0, n_starts:
 
 def problem_radii(setting, gains, *, eps: float) -> dict:
     """The problem loop's proved radius of ``gains`` per slice, where a proof covers its plant
-    (:func:`wmrjax.certify.problem_certificate` without its falsifier): ``loop`` (the plant's
+    (:func:`wmrjax.certify.problem_certificate` without its falsifier, a digital controller's with
+    the noise within the problem's ``[certify] noise_bound``): ``loop`` (the plant's
     features) and per slice ``radius`` (None where no proof covers them), ``kind``, ``covers``,
     ``not_covered``, ``bound_by``.
 
@@ -420,7 +484,8 @@ def problem_radii(setting, gains, *, eps: float) -> dict:
     ctrl, T = setting.ctrl, setting.t_final
     params = setting.params(gains=gains)
     exact = {b: certify.exact_map_radius(ctrl, params, t_final=T, eps=eps, basis=b) for b in SLICES}
-    pc = certify.problem_certificate(setting, params, exact, eps=eps, falsify=False)
+    noise = read_section(setting.data)["noise_bound"]  # the problem's, as wmrjax certify reads it
+    pc = certify.problem_certificate(setting, params, exact, eps=eps, falsify=False, noise_bound=noise)
     keys = ("radius", "kind", "covers", "not_covered", "bound_by")
     return {"loop": pc["loop"], **{b: {k: pc[b].get(k) for k in keys} for b in SLICES}}
 

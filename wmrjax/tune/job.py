@@ -402,7 +402,8 @@ def _requirement_block(req, kept, res, tuned: dict, tuned_raw) -> dict:
     if rad.detail is not None:
         block["tuned_bounds"] = rad.detail(jnp.asarray(tuned_raw))
         block["steps_bound_by"] = {
-            k: sum(1 for h in hist if h.get("radius_bound_by") == k) for k in ("exact_map", "saturation_free")
+            k: sum(1 for h in hist if h.get("radius_bound_by") == k)
+            for k in ("exact_map", "saturation_free", "held_reach")
         }
     return block
 

@@ -600,7 +600,7 @@ def _kept_step(kept: Kept, update, grad, opt_state, raw, rec: dict):
     """One optimizer step that keeps the requirement: the gradient projected near it, the step
     halved back to it (:mod:`wmrjax.tune.certified`); records the point's radius and the halvings."""
     rad = kept.radius
-    r, g_r = rad.value_and_grad(raw)
+    r, g_r = rad.value_and_grad(raw) if rad.value_and_grad is not None else (rad.value(raw), None)
     rec["radius"] = r = float(r)
     if rad.detail is not None:  # which bound of the problem certificate binds at this point
         rec["radius_bound_by"] = rad.detail(raw)["bound_by"]

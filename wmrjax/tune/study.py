@@ -111,13 +111,15 @@ class Plan(NamedTuple):
 def plan(name: str, problem, require=None) -> Plan:
     """The :class:`Plan` of a problem; ``require`` (a radius, 'initial' or 'box', and a slice)
     replaces its requirement where the problem can keep one."""
-    note = ""
+    note, kept = "", None
     if require is not None:
         trial = problem.with_values({"tune.requirement": {"radius": require[0], "slice": require[1]}})
         s = trial.setting("tuning")
         try:
             ts = config.read(trial.section("tune"), trial.section("certify"))
             certified.check(s, ts.gain_family(s), ts.requirement)
+            # resolved here: "initial" can be a radius that proves nothing (a held reach at 3 noise_std)
+            kept = loop.keep(s, ts.gain_family(s), ts.requirement, loop.initial_raw(s, ts.gain_family(s)))
             problem = trial
         except ValueError as err:  # e.g. a random reference family: no fixed path to certify
             note = f"requirement not applied: {err}"
@@ -135,7 +137,7 @@ def plan(name: str, problem, require=None) -> Plan:
 
     evaluate = baselines.candidate_evaluator(objective, family.shape, compiler_options=loop.LOOP_COMPILE)
     req = settings.requirement
-    feasible = baselines.requirement_check(setting, family, req, raw0) if req is not None else None
+    feasible = baselines.requirement_check(setting, family, req, raw0, kept) if req is not None else None
     n, mismatch = settings.scenarios.train, settings.scenarios.mismatch
     # one program for every seed's batches, compiled here: a baseline's seconds hold no compilation
     draw = jax.jit(lambda key: draw_set(setting, mismatch, jax.random.split(key, n)))
