@@ -5,6 +5,7 @@ test_tuning.py so that the two files run on different workers.)"""
 import json
 
 import jax.numpy as jnp
+import numpy as np
 import pytest
 from test_tuning import TINY, TINY_DATA, TS, _tiny_file, run_tiny
 
@@ -196,3 +197,38 @@ def test_requirement_on_type_12_is_refused_with_its_reason():
     st = pr.setting("tuning")
     with pytest.raises(ValueError, match=r"\(1,2\) is not supported: .*branch and bound"):
         certified.check(st, TS.gain_family(st))
+
+
+def test_the_tune_commands_baselines_keep_the_requirement(tiny):
+    """The tune command's random search and CMA-ES keep the gradient's requirement: a candidate
+    the check rejects is never simulated, and a seed with no feasible candidate never supplies the
+    best held-out gains (they had been free: on s_path, with a held-reach requirement, the best
+    held-out gains were random search's, with no certificate). Fake evaluators: the loss is the
+    distance to (3, 3), the check accepts the first coordinate below ``raw0``'s + 0.2."""
+    from wmrjax.tune import job
+
+    _, family, _ = tiny
+    raw0 = np.asarray(loop.initial_raw(*tiny[:2]))
+    seen = []
+
+    def evaluate(raws, scenarios=None):
+        seen.extend(np.asarray(raws).tolist())
+        return np.sum((np.asarray(raws) - 3.0) ** 2, axis=-1)
+
+    def feasible(raw):
+        return bool(raw[0] < raw0[0] + 0.2)
+
+    settings = TS._replace(baselines=TS.baselines._replace(seeds=2))
+    say = lambda *_: None  # noqa: E731
+    budget = job.baseline_budget(settings, family)
+    pop = settings.baselines.population(family.size)
+    runs, _ = job._baseline_runs(settings, family, evaluate, raw0, budget, pop, say, feasible)
+    assert seen and all(feasible(np.asarray(r)) for r in seen)  # nothing rejected was simulated
+    for rs in runs.values():
+        assert all(feasible(np.asarray(r.best_raw)) for r in rs if np.isfinite(r.best_loss))
+    # nothing feasible at all: the gradient's gains stay the best, whatever the held-out loss
+    none, _ = job._baseline_runs(settings, family, evaluate, raw0, budget, pop, say, lambda raw: False)
+    base = {k: job._baseline_report(k, rs, evaluate, [], budget, 0.0, say)[0] for k, rs in none.items()}
+    assert all(np.isinf(p["best_heldout_loss"]) for b in base.values() for p in b["per_seed"])
+    best, raw = job._best_heldout(base, none, 1e9, jnp.asarray(raw0))
+    assert best["method"] == "gradient" and np.array_equal(np.asarray(raw), raw0)

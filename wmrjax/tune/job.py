@@ -120,7 +120,11 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
     heldout_eval = functools.partial(evaluate_on, scenarios=ctx.sets.heldout)
 
     train, held, ho_ok, ho_m = _evaluate(train_eval, heldout_eval, paper_raw, tuned_raw, say, log)
-    base, runs, match = _baselines(settings, family, train_eval, heldout_eval, paper_raw, res.history, say, log)
+    # the baselines keep the gradient's requirement: a candidate that misses it is not simulated
+    feasible = None if ctx.kept is None else baselines.requirement_check(setting, family, None, paper_raw, ctx.kept)
+    base, runs, match = _baselines(
+        settings, family, train_eval, heldout_eval, paper_raw, res.history, say, log, feasible
+    )
     best, best_raw = _best_heldout(base, runs, held[1], tuned_raw)
     if best["method"] != "gradient":
         log(
@@ -253,12 +257,13 @@ def baseline_budget(settings, family) -> int:
     return budget
 
 
-def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say, log):
-    """Random search and CMA-ES, every seed: ``(report, runs, gradient rollouts to match)``."""
+def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say, log, feasible=None):
+    """Random search and CMA-ES, every seed: ``(report, runs, gradient rollouts to match)``;
+    ``feasible``: the requirement's check of a candidate (None: no requirement)."""
     b = settings.baselines
     budget = baseline_budget(settings, family)
     pop = b.population(family.size)
-    runs, t_base = _baseline_runs(settings, family, train_eval, paper_raw, budget, pop, say)
+    runs, t_base = _baseline_runs(settings, family, train_eval, paper_raw, budget, pop, say, feasible)
     base, match = {}, {}
     for name, rs in runs.items():
         base[name], match[name] = _baseline_report(name, rs, heldout_eval, hist, budget, t_base[name], log)
@@ -274,15 +279,17 @@ def _baselines(settings, family, train_eval, heldout_eval, paper_raw, hist, say,
     return base, runs, match
 
 
-def _baseline_runs(settings, family, train_eval, paper_raw, budget: int, pop: int, say):
-    """Run random search and CMA-ES for every seed: ``(runs by name, wall time by name)``."""
+def _baseline_runs(settings, family, train_eval, paper_raw, budget: int, pop: int, say, feasible=None):
+    """Run random search and CMA-ES for every seed: ``(runs by name, wall time by name)``; a
+    candidate ``feasible`` rejects scores +inf, unsimulated (and is charged its rollouts)."""
     b = settings.baselines
     runs = {"random_search": [], "cma_es": []}
     t_base = {"random_search": 0.0, "cma_es": 0.0}
     n_train = settings.scenarios.train
     for k in range(b.seeds):
         seed = settings.seed * 1000 + k
-        say(f"baselines, seed {k + 1}/{b.seeds}: random search and CMA-ES, {budget} rollouts each")
+        kept = "" if feasible is None else ", each candidate checked against the requirement first"
+        say(f"baselines, seed {k + 1}/{b.seeds}: random search and CMA-ES, {budget} rollouts each{kept}")
         t1 = time.perf_counter()
         runs["random_search"].append(
             baselines.random_search(
@@ -294,6 +301,7 @@ def _baseline_runs(settings, family, train_eval, paper_raw, budget: int, pop: in
                 seed=seed,
                 low=b.search_low,
                 high=b.search_high,
+                feasible=feasible,
             )
         )
         t2 = time.perf_counter()
@@ -307,6 +315,7 @@ def _baseline_runs(settings, family, train_eval, paper_raw, budget: int, pop: in
                 seed=seed,
                 population=pop,
                 sigma=b.cma_sigma,
+                feasible=feasible,
             )
         )
         t_base["random_search"] += t2 - t1
@@ -316,7 +325,9 @@ def _baseline_runs(settings, family, train_eval, paper_raw, budget: int, pop: in
 
 def _baseline_report(name: str, rs, heldout_eval, hist, budget: int, wall: float, log):
     """One baseline's report over its seeds and the gradient rollouts to match it (None: never)."""
-    held = heldout_eval(np.stack([np.asarray(r.best_raw) for r in rs]))
+    held = np.asarray(heldout_eval(np.stack([np.asarray(r.best_raw) for r in rs])), float)
+    # a seed whose every candidate missed the requirement has no gains to report (never the best)
+    held = np.where(np.isfinite([r.best_loss for r in rs]), held, np.inf)
     reach = [baselines.rollouts_to_reach(hist, r.best_loss) for r in rs]
     rep = {
         "best_loss": float(np.median([r.best_loss for r in rs])),
