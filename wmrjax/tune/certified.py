@@ -197,8 +197,10 @@ def loop_coverage(setting, req: Requirement) -> tuple[tuple, tuple]:
 def radius_function(setting, family, req: Requirement) -> Radius:
     """The radius a requirement keeps, as a function of the raw parameters of ``family``: the
     exact-map radius of the gains on the problem's reference, nominal geometry and horizon
-    (:func:`wmrjax.certify.differentiable_exact_map_radius`), or with ``loop = "problem"`` on a
-    plant with input limits the problem certificate's radius (:func:`problem_radius_function`)."""
+    (:func:`wmrjax.certify.differentiable_exact_map_radius`), or with ``loop = "problem"`` the
+    problem certificate's radius: on a digital controller's loop the held reach's
+    (:func:`held_radius_function`), on a continuous one with input limits the smaller of the exact
+    map's and the saturation-free radius (:func:`problem_radius_function`)."""
     check(setting, family, req)
     covers, not_covered = loop_coverage(setting, req)
     if str(Feature.CONTROL_PERIOD) in covers:
@@ -267,7 +269,20 @@ def held_radius_function(setting, family, req: Requirement, covers) -> Radius:
     problem's ``[certify] noise_bound``) searched up to the exact map's proved lower bound, as
     ``wmrjax certify`` computes it. It has no gradient (``value_and_grad`` None): a step that
     misses the requirement is halved back, never projected, and initial gains that miss it are
-    refused (nothing to climb). One evaluation is a few seconds after the reach's one compile."""
+    refused (nothing to climb). One evaluation is one search (about 13 s on ``s_path``, 2 cores,
+    after the reach's one compile); the last :data:`CACHED_POINTS` points are kept.
+
+    Args:
+      setting: the problem's :class:`wmrjax.problem.Setting`, with a ``control_period``.
+      family: the :class:`wmrjax.tune.GainFamily` the raw parameters are of (constant gains).
+      req: the :class:`Requirement` (its ``slice`` and ``eps``).
+      covers: the plant features the radius holds for (:func:`loop_coverage`).
+
+    Returns:
+      A :class:`Radius` with ``value_and_grad`` None, ``kind`` "proved" and ``detail`` giving the
+      exact map's proved radius [output-error units], the held reach's, the noise multiple and
+      ``bound_by`` "held_reach".
+    """
     ctrl, T, base, P = setting.ctrl, setting.t_final, setting.params(), certify.slice_basis(setting.ctrl, req.slice)
     noise = read_section(setting.data)["noise_bound"]
     cache: dict = {}
