@@ -41,8 +41,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wmrjax.tune import loop
-
 
 class BaselineRun(NamedTuple):
     """One seed of one baseline (plain Python values: JSON-ready)."""
@@ -356,11 +354,9 @@ def _optuna(
     return _record(method, seed, np.concatenate(vals), np.concatenate(raws), n_train, secs)
 
 
-def requirement_check(setting, family, requirement, raw0, kept=None) -> Callable:
-    """``feasible(raw) -> bool`` of a :class:`wmrjax.tune.certified.Requirement`: the radius the
-    requirement keeps (:func:`wmrjax.tune.certified.radius_function`) at or above the required one
-    (as :func:`wmrjax.tune.loop.keep` resolves it from ``raw0``; ``kept``: already resolved)."""
-    kept = loop.keep(setting, family, requirement, raw0) if kept is None else kept
+def requirement_check(kept) -> Callable:
+    """``feasible(raw) -> bool`` of a resolved requirement (:func:`wmrjax.tune.loop.keep`): the
+    radius it keeps (:func:`wmrjax.tune.certified.radius_function`) at or above the required one."""
     return lambda raw: bool(kept.radius.value(jnp.asarray(raw)) >= kept.required)
 
 

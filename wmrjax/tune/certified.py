@@ -214,6 +214,22 @@ def radius_function(setting, family, req: Requirement) -> Radius:
     return Radius(lambda raw: float(vg(raw)[0]), vg, f"exact map ({req.slice})", covers, not_covered)
 
 
+def _point_cache(compute):
+    """``compute(raw)`` kept for the last :data:`CACHED_POINTS` raw points (a step asks for one
+    point's value, gradient and detail in turn; each is a search)."""
+    cache: dict = {}
+
+    def cached(raw):
+        key = np.asarray(raw, float).tobytes()
+        if key not in cache:
+            if len(cache) >= CACHED_POINTS:
+                cache.pop(next(iter(cache)))
+            cache[key] = compute(raw)
+        return cache[key]
+
+    return cached
+
+
 def problem_radius_function(setting, family, req: Requirement, covers, not_covered) -> Radius:
     r"""The problem certificate's radius under input limits as a function of the raw parameters:
     the smaller of the exact map's proved lower bound and the saturation-free radius's
@@ -231,18 +247,12 @@ def problem_radius_function(setting, family, req: Requirement, covers, not_cover
     exact = lambda raw: certify.differentiable_exact_map_radius(ctrl, at(raw), t_final=T, eps=req.eps, basis=basis)
     exact_grad = jax.jit(jax.grad(exact))
     usage_grad = jax.jit(jax.grad(lambda raw, d, t, rho: limit_usage(ctrl, at(raw), lim, d, t, rho), argnums=(0, 3)))
-    cache: dict = {}
 
+    @_point_cache
     def bounds(raw):
-        key = np.asarray(raw, float).tobytes()
-        if key not in cache:
-            params = at(jnp.asarray(raw))
-            em = certify.exact_map_radius(ctrl, params, t_final=T, eps=req.eps, basis=basis)
-            sat = certify.saturation_free_radius(ctrl, params, limit, t_final=T, basis=basis)
-            if len(cache) >= CACHED_POINTS:
-                cache.pop(next(iter(cache)))
-            cache[key] = (float(em.lower_bound), sat)
-        return cache[key]
+        params = at(jnp.asarray(raw))
+        em = certify.exact_map_radius(ctrl, params, t_final=T, eps=req.eps, basis=basis)
+        return float(em.lower_bound), certify.saturation_free_radius(ctrl, params, limit, t_final=T, basis=basis)
 
     def value(raw):
         em, sat = bounds(raw)
@@ -285,19 +295,12 @@ def held_radius_function(setting, family, req: Requirement, covers) -> Radius:
     """
     ctrl, T, base, P = setting.ctrl, setting.t_final, setting.params(), certify.slice_basis(setting.ctrl, req.slice)
     noise = read_section(setting.data)["noise_bound"]
-    cache: dict = {}
 
+    @_point_cache
     def bounds(raw):
-        key = np.asarray(raw, float).tobytes()
-        if key not in cache:
-            params = base._replace(gains=family.gains(jnp.asarray(raw)))
-            ex = certify.exact_map_radius(ctrl, params, t_final=T, eps=req.eps, basis=req.slice)
-            em = float(ex.radius if ex.lower_bound is None else ex.lower_bound)  # as certify's nominal radius
-            hr = certify.held_reach_radius(setting, params, P, eps=req.eps, r_max=em, noise_multiple=noise)
-            if len(cache) >= CACHED_POINTS:
-                cache.pop(next(iter(cache)))
-            cache[key] = (em, hr)
-        return cache[key]
+        params = base._replace(gains=family.gains(jnp.asarray(raw)))
+        em = float(certify.exact_map_radius(ctrl, params, t_final=T, eps=req.eps, basis=req.slice).lower_bound)
+        return em, certify.held_reach_radius(setting, params, P, eps=req.eps, r_max=em, noise_multiple=noise)
 
     def detail(raw):
         em, hr = bounds(raw)

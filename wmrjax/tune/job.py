@@ -121,7 +121,7 @@ def run(problem, out: Path, fresh: bool = False, log=print, progress=None, falsi
 
     train, held, ho_ok, ho_m = _evaluate(train_eval, heldout_eval, paper_raw, tuned_raw, say, log)
     # the baselines keep the gradient's requirement: a candidate that misses it is not simulated
-    feasible = None if ctx.kept is None else baselines.requirement_check(setting, family, None, paper_raw, ctx.kept)
+    feasible = None if ctx.kept is None else baselines.requirement_check(ctx.kept)
     base, runs, match = _baselines(
         settings, family, train_eval, heldout_eval, paper_raw, res.history, say, log, feasible
     )

@@ -66,7 +66,7 @@ import numpy as np
 from wmrjax import _files as files
 from wmrjax.examples import PROBLEMS
 from wmrjax.report import JobReport
-from wmrjax.tune import baselines, certified, config, loop
+from wmrjax.tune import baselines, config, loop
 from wmrjax.tune.scenarios import draw_set
 
 BASES = ("gradient", "random_search", "cma_es", "optuna_tpe", "optuna_cmaes")
@@ -117,9 +117,9 @@ def plan(name: str, problem, require=None) -> Plan:
         s = trial.setting("tuning")
         try:
             ts = config.read(trial.section("tune"), trial.section("certify"))
-            certified.check(s, ts.gain_family(s), ts.requirement)
-            # resolved here: "initial" can be a radius that proves nothing (a held reach at 3 noise_std)
-            kept = loop.keep(s, ts.gain_family(s), ts.requirement, loop.initial_raw(s, ts.gain_family(s)))
+            # checked (certified.check) and resolved: "initial" can prove nothing (a held reach at 3 noise_std)
+            fam = ts.gain_family(s)
+            kept = loop.keep(s, fam, ts.requirement, loop.initial_raw(s, fam))
             problem = trial
         except ValueError as err:  # e.g. a random reference family: no fixed path to certify
             note = f"requirement not applied: {err}"
@@ -137,7 +137,9 @@ def plan(name: str, problem, require=None) -> Plan:
 
     evaluate = baselines.candidate_evaluator(objective, family.shape, compiler_options=loop.LOOP_COMPILE)
     req = settings.requirement
-    feasible = baselines.requirement_check(setting, family, req, raw0, kept) if req is not None else None
+    if req is not None and kept is None:  # the problem's own requirement
+        kept = loop.keep(setting, family, req, raw0)
+    feasible = baselines.requirement_check(kept) if req is not None else None
     n, mismatch = settings.scenarios.train, settings.scenarios.mismatch
     # one program for every seed's batches, compiled here: a baseline's seconds hold no compilation
     draw = jax.jit(lambda key: draw_set(setting, mismatch, jax.random.split(key, n)))
