@@ -56,6 +56,30 @@ def test_interval_enclosure_contains_every_sampled_value(half):
         assert np.all(np.asarray(out.hi - out.lo) < 1e-4)
 
 
+def _equations(jaxpr) -> int:
+    return sum(1 + sum(_equations(j) for j in jax.extend.core.jaxprs_in_params(e.params)) for e in jaxpr.eqns)
+
+
+@pytest.mark.parametrize("rewrites", ["1", "0"])
+def test_an_enclosure_is_of_the_simplified_program(monkeypatch, rewrites):
+    """The enclosed program is the simplified one (wmrjax.certify.interval's docstring): a repeated
+    sine is enclosed once, and a structural zero divided by a box holding 0 is 0, not the whole
+    line; with the rewrites off (WMRJAX_JAXPR_REWRITES=0) the plain program is enclosed."""
+    monkeypatch.setenv("WMRJAX_JAXPR_REWRITES", rewrites)
+    box, span = Interval(jnp.asarray(0.1), jnp.asarray(0.2)), Interval(jnp.asarray(-1.0), jnp.asarray(1.0))
+    size = lambda fn: _equations(
+        jax.make_jaxpr(lambda lo, hi: interval.enclose(fn, Interval(lo, hi)))(box.lo, box.hi).jaxpr
+    )
+    once, twice = size(jnp.sin), size(lambda x: jnp.sin(x) + jnp.sin(x))
+    out = interval.enclose(lambda x: jnp.sin(x) + jnp.sin(x), box)
+    assert float(out.lo) <= 2 * np.sin(0.1) and 2 * np.sin(0.2) <= float(out.hi)
+    zero = interval.enclose(lambda y: 0.0 / y, span)
+    if rewrites == "1":
+        assert twice < 1.5 * once and (float(zero.lo), float(zero.hi)) == (0.0, 0.0)
+    else:
+        assert twice > 1.9 * once and np.isneginf(float(zero.lo)) and np.isposinf(float(zero.hi))
+
+
 @pytest.mark.parametrize("rho", [1e-3, 0.2, 0.5])
 def test_affine_enclosure_over_a_ball_contains_every_sampled_value(rho):
     centre = jnp.array([0.3, -0.2])

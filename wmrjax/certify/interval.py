@@ -24,6 +24,13 @@ What makes it a bound at every step:
   kept as one unwrapped interval (``sin``/``cos`` are 2 pi-periodic, so the enclosure of the
   use is still valid).
 
+**The program enclosed.** It is first rewritten by :func:`wmrjax._simplify.simplify`, as the
+library's runs are: an operation repeated on the same operands is enclosed once (the same
+interval), and a structural zero (a literal or constant 0, such as a constant's Taylor
+coefficient) times any real number, or divided by a nonzero one, is 0 (the rule of the
+operation would give the whole line where the other operand's box is unbounded or holds 0; the
+runs compute the rewritten program too, so a 0 / 0 of the plain one is 0 in both).
+
 A primitive without a rule raises ``NotImplementedError`` naming it (never a silent guess).
 Only float64 is enclosed (float32's rounding is not modelled): other float types raise.
 """
@@ -40,7 +47,7 @@ from jax import lax
 from jax.extend.core import ClosedJaxpr, Literal, Primitive
 from jax.interpreters import ad, batching, mlir
 
-from wmrjax import _math
+from wmrjax import _math, _simplify
 
 ELEMENTARY_ULPS = 8
 """Ulps by which the end points of an elementary function's value are widened (see module)."""
@@ -565,7 +572,10 @@ def trace(fn, args, is_box, to_box, eval_eqn):
     def flat(*xs):
         return fn(*jax.tree_util.tree_unflatten(tree, list(xs)))
 
-    closed = jax.make_jaxpr(flat)(*points)
+    # simplified first (module docstring): an enclosure of the same function with fewer equations
+    # to enclose, trace and compile (the held reach's program: 45 909 -> 25 314, nested jvp
+    # recomputing each primal)
+    closed = jax.make_jaxpr(_simplify.simplify(flat))(*points)
     out_tree = jax.tree_util.tree_structure(jax.eval_shape(flat, *points))
     outs = run_jaxpr(closed.jaxpr, [Interval.point(c) for c in closed.consts], boxes, eval_eqn)
     return jax.tree_util.tree_unflatten(out_tree, outs)
