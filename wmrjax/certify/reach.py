@@ -233,15 +233,23 @@ def _picard_box(loop, law_params, unc, h: float, x0: Interval, held: tuple):
     field = lambda b: iv.enclose(lambda x, *a: _held_field(loop, law_params, unc, x, *a, order=1), b, *held)
     span = Interval(jnp.zeros(()), jnp.asarray(h))
     step = lambda b: iv._add(x0, iv._mul(span, field(b)))
-    b = step(x0)
-    for _ in range(PICARD_STEPS):
+    pick = lambda p, a, b: Interval(jnp.where(p, a.lo, b.lo), jnp.where(p, a.hi, b.hi))
+    last = PICARD_STEPS + 1
+
+    # one enclosure of the field in a loop (not PICARD_STEPS + 2 copies of it in the program):
+    # pass 0 steps from x0; passes 1 .. PICARD_STEPS step from the box widened by a quarter and
+    # keep it where it closed; the last pass checks the box found
+    def one(i, carry):
+        b, _ = carry
         r = jnp.maximum(b.hi - b.lo, 1e-12)
         wide = Interval(iv._down(b.lo - 0.25 * r), iv._up(b.hi + 0.25 * r))
-        nb = step(wide)
-        closed = jnp.all((nb.lo >= wide.lo) & (nb.hi <= wide.hi))
-        b = Interval(jnp.where(closed, wide.lo, nb.lo), jnp.where(closed, wide.hi, nb.hi))
-    nb = step(b)
-    return b, jnp.all((nb.lo >= b.lo) & (nb.hi <= b.hi)) & jnp.all(jnp.isfinite(b.lo) & jnp.isfinite(b.hi))
+        cand = pick(i == 0, x0, pick(i == last, b, wide))
+        nb = step(cand)
+        closed = jnp.all((nb.lo >= cand.lo) & (nb.hi <= cand.hi))
+        return pick((i == 0) | ((i < last) & ~closed), nb, pick(i == last, b, cand)), closed
+
+    b, closed = jax.lax.fori_loop(0, last + 1, one, (x0, jnp.asarray(False)))
+    return b, closed & jnp.all(jnp.isfinite(b.lo) & jnp.isfinite(b.hi))
 
 
 def _advance(loop: SampledLoop, dist, h: float, x, f1, f2, c, rate, tau, rem):
