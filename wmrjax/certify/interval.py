@@ -575,8 +575,9 @@ def trace(fn, args, is_box, to_box, eval_eqn):
     # simplified first (module docstring): an enclosure of the same function with fewer equations
     # to enclose, trace and compile (the held reach's program: 45 909 -> 25 314, nested jvp
     # recomputing each primal)
-    closed = jax.make_jaxpr(_simplify.simplify(flat))(*points)
-    out_tree = jax.tree_util.tree_structure(jax.eval_shape(flat, *points))
+    # (its output's structure from the same trace: eval_shape would trace fn once more)
+    closed, shapes = jax.make_jaxpr(_simplify.simplify(flat), return_shape=True)(*points)
+    out_tree = jax.tree_util.tree_structure(shapes)
     outs = run_jaxpr(closed.jaxpr, [Interval.point(c) for c in closed.consts], boxes, eval_eqn)
     return jax.tree_util.tree_unflatten(out_tree, outs)
 
