@@ -68,7 +68,8 @@ from wmrjax.robots import Geometry
 HISTORY_PER_STATE = 24
 """The zonotope's history generators per component of the loop's state."""
 PICARD_STEPS = 4
-"""Widening steps of the a-priori box of a period's flow."""
+"""The a-priori box of a period's flow is tried PICARD_STEPS + 1 times after its first step:
+widened until one closes, then narrowed (:func:`_picard_box`)."""
 NOISE_BOUND = 3.0
 """The measurement noise a proof covers: each component within this many ``noise_std``."""
 
@@ -234,22 +235,22 @@ def _picard_box(loop, law_params, unc, h: float, x0: Interval, held: tuple):
     span = Interval(jnp.zeros(()), jnp.asarray(h))
     step = lambda b: iv._add(x0, iv._mul(span, field(b)))
     pick = lambda p, a, b: Interval(jnp.where(p, a.lo, b.lo), jnp.where(p, a.hi, b.hi))
-    last = PICARD_STEPS + 1
 
-    # one enclosure of the field in a loop (not PICARD_STEPS + 2 copies of it in the program):
-    # pass 0 steps from x0; passes 1 .. PICARD_STEPS step from the box widened by a quarter and
-    # keep it where it closed; the last pass checks the box found
+    # one enclosure of the field in a loop (not PICARD_STEPS + 2 copies of it in the program).
+    # Pass 0 steps from x0. Until a box closes (step(C) inside C), each pass tries the last step
+    # widened by a quarter; after, it tries the last step itself, which is inside the box that
+    # closed and, where it closes too, a narrower proof. The box returned is the last one that closed.
     def one(i, carry):
-        b, _ = carry
+        b, good, found = carry
         r = jnp.maximum(b.hi - b.lo, 1e-12)
         wide = Interval(iv._down(b.lo - 0.25 * r), iv._up(b.hi + 0.25 * r))
-        cand = pick(i == 0, x0, pick(i == last, b, wide))
+        cand = pick(i == 0, x0, pick(found, b, wide))
         nb = step(cand)
-        closed = jnp.all((nb.lo >= cand.lo) & (nb.hi <= cand.hi))
-        return pick((i == 0) | ((i < last) & ~closed), nb, pick(i == last, b, cand)), closed
+        closed = (i > 0) & jnp.all((nb.lo >= cand.lo) & (nb.hi <= cand.hi))
+        return nb, pick(closed, cand, good), found | closed
 
-    b, closed = jax.lax.fori_loop(0, last + 1, one, (x0, jnp.asarray(False)))
-    return b, closed & jnp.all(jnp.isfinite(b.lo) & jnp.isfinite(b.hi))
+    _, b, found = jax.lax.fori_loop(0, PICARD_STEPS + 2, one, (x0, x0, jnp.asarray(False)))
+    return b, found & jnp.all(jnp.isfinite(b.lo) & jnp.isfinite(b.hi))
 
 
 def _advance(loop: SampledLoop, dist, h: float, x, f1, f2, c, rate, tau, rem):
