@@ -137,7 +137,7 @@ def test_affine_enclosure_over_box_symbols_contains_every_sampled_value(name):
 
 def test_a_box_symbols_square_is_enclosed_by_zero_to_one_and_a_convex_functions_tangent_from_one_side():
     """eps^2 over [-1, 1] is exactly [0, 1] (was [-1, 1]: the product of the radii); exp(eps) is
-    enclosed with its remainder in [0, e/2] (was +-e/2); 1/x on [1, 3] likewise one-sided."""
+    enclosed with its remainder in [0, e/2] (was +-e/2)."""
     x = affine.symbols(jnp.array([0.0]), jnp.array([[1.0]]))
     sq, ctx = affine.enclose(lambda v: v[0] * v[0], x, n_ball=0)
     b = affine.to_interval(sq, ctx)
@@ -146,10 +146,38 @@ def test_a_box_symbols_square_is_enclosed_by_zero_to_one_and_a_convex_functions_
     b = affine.to_interval(ex, ctx)
     # tangent 1 + eps on [0, 2] plus [0, e/2]: [0, 2 + e/2], against [e^-1, e] the true range
     np.testing.assert_allclose([float(b.lo), float(b.hi)], [0.0, 2.0 + np.e / 2], atol=1e-12)
-    rc, ctx = affine.enclose(lambda v: 1.0 / (2.0 + v[0]), x, n_ball=0)
-    b = affine.to_interval(rc, ctx)
-    # tangent 1/2 - eps/4 on [1/4, 3/4] plus [0, (2/1^3)/2] = [0, 1]: [1/4, 7/4] (true: [1/3, 1])
-    np.testing.assert_allclose([float(b.lo), float(b.hi)], [0.25, 1.75], atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "fn, centre, radius, expected",
+    [
+        # 1/x on [1, 3]: chord slope -1/3, 1/x + x/3 is 4/3 at both ends and 2/sqrt(3) at sqrt(3):
+        # -x/3 + [2/sqrt 3, 4/3], i.e. [2/sqrt 3 - 1, 1] (true [1/3, 1]; the tangent's: [1/4, 7/4])
+        (lambda v: 1.0 / v, 2.0, 1.0, [2.0 / np.sqrt(3.0) - 1.0, 1.0]),
+        # sqrt on [1/4, 4]: slope 0.4, sqrt x - 0.4 x is 0.4 at both ends and 0.625 at 1.5625:
+        # [0.5, 2.225] (true [0.5, 2]; the tangent's at 2.125 goes below 0: no bound at all)
+        (jnp.sqrt, 2.125, 1.875, [0.5, 2.225]),
+        # 1/x on [-3, -1]: the mirror of the first
+        (lambda v: 1.0 / v, -2.0, 1.0, [-1.0, 1.0 - 2.0 / np.sqrt(3.0)]),
+    ],
+)
+def test_a_convex_function_over_a_wide_range_takes_its_chord_form(fn, centre, radius, expected):
+    """Over a wide range the chord's (Chebyshev) form is narrower than the tangent's and is kept
+    (closed forms in the cases); over a narrow one the tangent's is, and both enclose."""
+    x = affine.symbols(jnp.array([centre]), jnp.array([[radius]]))
+    out, ctx = affine.enclose(lambda v: fn(v[0]), x, n_ball=0)
+    b = affine.to_interval(out, ctx)
+    np.testing.assert_allclose([float(b.lo), float(b.hi)], expected, rtol=1e-12, atol=1e-12)
+    # the form itself encloses f at every point, not just its range
+    eps = np.linspace(-1.0, 1.0, 2001)
+    vals = np.asarray(fn(jnp.asarray(centre + radius * eps)))
+    assert np.all(np.abs(vals - (float(out.c) + eps * float(out.g[0]))) <= float(out.e))
+    narrow = affine.symbols(jnp.array([centre]), jnp.array([[1e-3 * radius]]))
+    out, ctx = affine.enclose(lambda v: fn(v[0]), narrow, n_ball=0)
+    b, f0 = affine.to_interval(out, ctx), float(fn(jnp.asarray(centre)))
+    d = abs(float(jax.grad(fn)(jnp.asarray(centre)))) * 1e-3 * radius  # first order: the true half-range
+    assert float(b.lo) <= f0 - d * (1 - 1e-3) and float(b.hi) >= f0 + d * (1 - 1e-3)
+    assert float(b.hi - b.lo) < 2 * d * (1 + 1e-2)
 
 
 def test_an_angle_across_the_branch_cut_is_kept_whole_for_sin_and_cos_only():

@@ -7,7 +7,9 @@ ball), the others in [-1, 1] (time in a box), and :math:`\varepsilon_0` is a fre
 value (:math:`|\varepsilon_0| \le 1`) collecting everything not kept linear. Linear operations are exact in the
 symbols; a smooth function is replaced by its tangent at the centre plus its Taylor remainder
 over the value's range (:math:`\tfrac12 f''(\xi)\,\delta^2` with :math:`\delta^2 \in [0,
-\mathrm{rad}^2]`: signed where :math:`f''` keeps its sign, its midpoint joining the centre); a
+\mathrm{rad}^2]`: signed where :math:`f''` keeps its sign, its midpoint joining the centre),
+or, for sqrt and the reciprocal, by the chord's (Chebyshev) form where that is the narrower (a
+wide range, over which the curvature's worst point would be charged everywhere); a
 product keeps both first-order terms and bounds the second-order one by the product of the radii
 (a ball's quadratic form and a box symbol's square :math:`\varepsilon_i^2 \in [0, 1]` are
 enclosed by their own ranges).
@@ -150,13 +152,17 @@ def _mul(a, b, ctx):
     return _make(a.c * b.c + 0.5 * (dot + box_dot), g, e)
 
 
-def _smooth(a, ctx, f, df, d2):
+def _smooth(a, ctx, f, df, d2, chord=None):
     r"""``f(a)``: the tangent at the centre plus Taylor's remainder :math:`\tfrac12 f''(\xi)\delta^2`,
     :math:`\delta^2 \in [0, \mathrm{rad}^2]`: with ``d2(box)`` an :class:`Interval` holding
     :math:`f''` on the range, the remainder lies in
     :math:`[\tfrac12 \min(m, 0)\,\mathrm{rad}^2, \tfrac12 \max(M, 0)\,\mathrm{rad}^2]`; its
     midpoint joins the centre and its half-width the error (half the symmetric bound's where
-    :math:`f''` keeps its sign: the tangent lies on one side of a convex function)."""
+    :math:`f''` keeps its sign: the tangent lies on one side of a convex function).
+
+    With ``chord`` (:func:`_chord`'s ``tangent`` and ``side``), where the range is wide the chord's
+    form is taken instead where its radius is the smaller: Taylor's remainder charges the
+    curvature's worst point (sqrt near its range's low end) to the whole range."""
     r = rad(a, ctx)
     box = to_interval(a, ctx)
     c = f(a.c)
@@ -169,6 +175,46 @@ def _smooth(a, ctx, f, df, d2):
     e = e + 2.0**-52 * jnp.abs(shift)  # the shift's own rounding (_make's allowance covers the sum)
     bad = ~jnp.isfinite(e) | ~jnp.isfinite(c) | ~jnp.isfinite(shift)
     out = _make(c + shift, out.g, e)
+    out = Affine(jnp.where(bad, 0.0, out.c), jnp.where(bad[..., None], 0.0, out.g), jnp.where(bad, jnp.inf, out.e))
+    if chord is None:
+        return out
+    alt = _chord(a, box, f, df, *chord)
+    take = rad(alt, ctx) < rad(out, ctx)  # both enclose f(a): either is sound, the narrower is kept
+    return Affine(jnp.where(take, alt.c, out.c), jnp.where(take[..., None], alt.g, out.g), jnp.where(take, alt.e, out.e))
+
+
+def _chord(a, box: Interval, f, df, tangent, side):
+    r"""``f(a)`` as :math:`\alpha a + [\beta_-, \beta_+]` with :math:`\alpha` the chord's slope over
+    the range :math:`[l, u]` (the Chebyshev form of affine arithmetic, de Figueiredo & Stolfi 2004)
+    where ``side(box)`` says f is convex (+1) or concave (-1) there (0: not known; the form is then
+    unbounded). For convex f, :math:`g = f - \alpha x` is largest at an end, and
+    :math:`g \ge g(x^*) - |g'(x^*)|\,(u - l)` for any :math:`x^*` of the range (its tangent
+    there lies below it): with :math:`x^* =` ``tangent(alpha)`` clipped to the range (where
+    :math:`f' = \alpha`, so the term is the rounding's) the bound is the chord's own. Every
+    evaluation of f and f' is charged its ulps, and the slope may be any float: the bounds are
+    computed for the slope used."""
+    s = side(box)
+    # f is evaluated only where the range is in its domain (elsewhere at 1, and the form is
+    # discarded): no NaN in either branch of the choice, nor in its gradient
+    one = jnp.ones_like(box.lo)
+    l, u = jnp.where(s != 0, box.lo, one), jnp.where(s != 0, box.hi, one)
+    fl, fu = f(l), f(u)
+    width = u - l
+    alpha = jnp.where(width > 0, (fu - fl) / jnp.where(width > 0, width, 1.0), df(l))
+    xs = jnp.clip(tangent(alpha), l, u)
+    fx = f(xs)
+    slop = lambda fv, x: iv._REL * jnp.abs(fv) + 2.0**-50 * (jnp.abs(fv) + jnp.abs(alpha * x))
+    gl, gu, gx = fl - alpha * l, fu - alpha * u, fx - alpha * xs
+    ends_hi = jnp.maximum(gl + slop(fl, l), gu + slop(fu, u))
+    ends_lo = jnp.minimum(gl - slop(fl, l), gu - slop(fu, u))
+    reach = (jnp.abs(df(xs) - alpha) + iv._REL * jnp.abs(df(xs))) * width * (1 + 2.0**-49) + slop(fx, xs)
+    b_lo = jnp.where(s > 0, gx - reach, ends_lo)
+    b_hi = jnp.where(s > 0, ends_hi, gx + reach)
+    mid = 0.5 * (b_lo + b_hi)
+    halfw = iv._up(0.5 * (b_hi - b_lo) + 2.0**-52 * jnp.abs(mid))
+    out = _scale(a, alpha, halfw)
+    out = _make(out.c + mid, out.g, out.e + 2.0**-52 * jnp.abs(out.c + mid))
+    bad = (s == 0) | ~jnp.isfinite(out.e) | ~jnp.isfinite(out.c) | ~(width >= 0)
     return Affine(jnp.where(bad, 0.0, out.c), jnp.where(bad[..., None], 0.0, out.g), jnp.where(bad, jnp.inf, out.e))
 
 
@@ -188,7 +234,10 @@ def _reciprocal(a, ctx):
         pos, neg = b.lo > 0, b.hi < 0
         return Interval(jnp.where(pos, 0.0, -m), jnp.where(neg, 0.0, m))
 
-    return _smooth(a, ctx, lambda x: 1.0 / x, lambda x: -1.0 / (x * x), d2)
+    # f' = -1 / x^2 = alpha at x = +-1 / sqrt(-alpha): convex for x > 0, concave for x < 0
+    sgn = lambda b: jnp.where(b.lo > 0, 1, jnp.where(b.hi < 0, -1, 0))
+    tangent = lambda al: jnp.sign(a.c) / jnp.sqrt(jnp.maximum(-al, iv._TINY))
+    return _smooth(a, ctx, lambda x: 1.0 / x, lambda x: -1.0 / (x * x), d2, (tangent, sgn))
 
 
 def _sqrt(a, ctx):
@@ -197,7 +246,10 @@ def _sqrt(a, ctx):
     d2 = lambda b: Interval(
         jnp.where(b.lo > 0, -0.25 / jnp.maximum(b.lo, iv._TINY) ** 1.5, -jnp.inf), jnp.zeros_like(b.lo)
     )
-    out = _smooth(a, ctx, jnp.sqrt, lambda x: 0.5 / jnp.sqrt(x), d2)
+    # f' = 1 / (2 sqrt x) = alpha at x = 1 / (4 alpha^2); concave where x > 0
+    tangent = lambda al: 0.25 / jnp.maximum(al * al, iv._TINY)
+    concave = lambda b: jnp.where(b.lo > 0, -1, 0)
+    out = _smooth(a, ctx, jnp.sqrt, lambda x: 0.5 / jnp.sqrt(x), d2, (tangent, concave))
     return Affine(out.c, out.g, jnp.where(lo > 0, out.e, jnp.inf))
 
 
