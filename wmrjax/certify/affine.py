@@ -180,7 +180,9 @@ def _smooth(a, ctx, f, df, d2, chord=None):
         return out
     alt = _chord(a, box, f, df, *chord)
     take = rad(alt, ctx) < rad(out, ctx)  # both enclose f(a): either is sound, the narrower is kept
-    return Affine(jnp.where(take, alt.c, out.c), jnp.where(take[..., None], alt.g, out.g), jnp.where(take, alt.e, out.e))
+    return Affine(
+        jnp.where(take, alt.c, out.c), jnp.where(take[..., None], alt.g, out.g), jnp.where(take, alt.e, out.e)
+    )
 
 
 def _chord(a, box: Interval, f, df, tangent, side):
