@@ -93,6 +93,16 @@ def _make(c, g, e) -> Affine:
     return Affine(c, g, _rounding(c, g, e))
 
 
+def _where(p, a: Affine, b: Affine) -> Affine:
+    """``a`` where ``p``, else ``b`` (entrywise, the generators along)."""
+    return Affine(jnp.where(p, a.c, b.c), jnp.where(p[..., None], a.g, b.g), jnp.where(p, a.e, b.e))
+
+
+def _unbounded_where(bad, a: Affine) -> Affine:
+    """``a``, with the entries where ``bad`` unbounded (centre 0, no generators, e = inf)."""
+    return Affine(jnp.where(bad, 0.0, a.c), jnp.where(bad[..., None], 0.0, a.g), jnp.where(bad, jnp.inf, a.e))
+
+
 def _add(a, b):
     return _make(a.c + b.c, a.g + b.g, a.e + b.e)
 
@@ -175,14 +185,12 @@ def _smooth(a, ctx, f, df, d2, chord=None):
     e = e + 2.0**-52 * jnp.abs(shift)  # the shift's own rounding (_make's allowance covers the sum)
     bad = ~jnp.isfinite(e) | ~jnp.isfinite(c) | ~jnp.isfinite(shift)
     out = _make(c + shift, out.g, e)
-    out = Affine(jnp.where(bad, 0.0, out.c), jnp.where(bad[..., None], 0.0, out.g), jnp.where(bad, jnp.inf, out.e))
+    out = _unbounded_where(bad, out)
     if chord is None:
         return out
     alt = _chord(a, box, f, df, *chord)
     take = rad(alt, ctx) < rad(out, ctx)  # both enclose f(a): either is sound, the narrower is kept
-    return Affine(
-        jnp.where(take, alt.c, out.c), jnp.where(take[..., None], alt.g, out.g), jnp.where(take, alt.e, out.e)
-    )
+    return _where(take, alt, out)
 
 
 def _chord(a, box: Interval, f, df, tangent, side):
@@ -217,7 +225,7 @@ def _chord(a, box: Interval, f, df, tangent, side):
     out = _scale(a, alpha, halfw)
     out = _make(out.c + mid, out.g, out.e + 2.0**-52 * jnp.abs(out.c + mid))
     bad = (s == 0) | ~jnp.isfinite(out.e) | ~jnp.isfinite(out.c) | ~(width >= 0)
-    return Affine(jnp.where(bad, 0.0, out.c), jnp.where(bad[..., None], 0.0, out.g), jnp.where(bad, jnp.inf, out.e))
+    return _unbounded_where(bad, out)
 
 
 def _mag(b: Interval):
@@ -281,9 +289,7 @@ def _atan2(y, x, ctx, unwrapped: bool):
     if not unwrapped:  # across the branch cut the value jumps by 2 pi: only its range is known
         bad = bad | crosses
     whole = _from_interval(Interval(jnp.full_like(c, -math.pi), jnp.full_like(c, math.pi)), ctx)
-    return Affine(
-        jnp.where(bad, whole.c, out.c), jnp.where(bad[..., None], whole.g, out.g), jnp.where(bad, whole.e, out.e)
-    )
+    return _where(bad, whole, out)
 
 
 def _d2_bound(name):
@@ -328,9 +334,7 @@ def _relu(a, ctx):
     # an unbounded range across 0: its hull, through the interval rule
     hull = _from_interval(iv._max(box, Interval.point(jnp.zeros_like(lo))), ctx)
     keep = pos | neg | finite
-    return Affine(
-        jnp.where(keep, out.c, hull.c), jnp.where(keep[..., None], out.g, hull.g), jnp.where(keep, out.e, hull.e)
-    )
+    return _where(keep, out, hull)
 
 
 def _abs(a, ctx):
@@ -373,9 +377,7 @@ def _select(pred: Interval, cases, ctx):
     out = hull
     for k, case in enumerate(cases):
         sure = (lo_i == k) & (hi_i == k)
-        out = Affine(
-            jnp.where(sure, case.c, out.c), jnp.where(sure[..., None], case.g, out.g), jnp.where(sure, case.e, out.e)
-        )
+        out = _where(sure, case, out)
     return out
 
 
