@@ -29,6 +29,8 @@ else keyword-only; each returns a NamedTuple with fixed fields:
   leaves (velocity level);
 * :mod:`~wmrjax.certify.reach` -- a digital controller's loop (hold, noise, limits,
   scales) enclosed period by period from a ball of initial errors: its proved radius;
+* :mod:`~wmrjax.certify.worst_noise` -- the measurement noise within that bound that brings a
+  run closest to the singular set (projected gradient: estimated, for the falsifier);
 * :mod:`~wmrjax.certify.real_loop` -- what each radius covers (:class:`Feature`, :class:`Kind`)
   and the problem's own loop (limits, a digital controller, mismatch, noise): its falsified
   radius and the problem's certificate (:func:`problem_certificate`).
@@ -110,6 +112,7 @@ from wmrjax.certify.real_loop import (
     real_loop_falsified_radius,
 )
 from wmrjax.certify.saturation import SaturationFreeRadius, saturation_free_radius
+from wmrjax.certify.worst_noise import WorstNoise, worst_noise
 
 __all__ = [
     "Counts",
@@ -182,4 +185,6 @@ __all__ = [
     "held_reach_radius",
     "SaturationFreeRadius",
     "saturation_free_radius",
+    "WorstNoise",
+    "worst_noise",
 ]

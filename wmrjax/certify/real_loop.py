@@ -48,6 +48,7 @@ from wmrjax.certify.exact_map import Slice, singular_rows, slice_basis
 from wmrjax.certify.lemma2 import check_dynamic
 from wmrjax.certify.reach import NOISE_BOUND, SingularDistance, held_reach_radius
 from wmrjax.certify.saturation import saturation_free_radius
+from wmrjax.certify.worst_noise import NOISE_STEPS, noise_runs, worst_noise
 from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.law import Level
 from wmrjax.simulate import fixed_blocks
@@ -136,6 +137,8 @@ class RealLoopFalsified(NamedTuple):
       variants: plant values times noise realisations searched (the loops that differ:
         :func:`distinct_loops`).
       noise: how the noise was searched (a sentence), or None without noise.
+      worst_noise: the worst-case noise stage (:func:`wmrjax.certify.worst_noise`): its bound, radii and
+        distances, and the radius it confirmed (None: without noise, or not run).
     """
 
     radius: float | None
@@ -146,6 +149,7 @@ class RealLoopFalsified(NamedTuple):
     rollouts: int
     variants: int
     noise: str | None
+    worst_noise: dict | None = None
 
     def summary(self) -> dict:
         """Plain JSON."""
@@ -158,6 +162,7 @@ class RealLoopFalsified(NamedTuple):
             "rollouts": self.rollouts,
             "variants": self.variants,
             "noise": self.noise,
+            "worst_noise": self.worst_noise,
             "kind": str(Kind.ESTIMATED),
         }
 
@@ -180,6 +185,8 @@ def real_loop_falsified_radius(
     n_bisect: int = 8,
     n_refine: int = 4,
     seed: int = 0,
+    noise_bound: float = NOISE_BOUND,
+    noise_steps: int = NOISE_STEPS,
 ) -> RealLoopFalsified:
     r"""Search the problem's own closed loop for initial errors that come within eps of the
     singular set: the real loop's falsified radius (an upper bound, estimated).
@@ -188,18 +195,18 @@ def real_loop_falsified_radius(
     around its plant (limits, input and geometry scales, a zero-order hold at its period,
     measurement noise). Every listed plant value is searched (a list of scales: every value,
     its range's ends included; values that cannot change the loop, a geometry the kinematics
-    ignore, once: :func:`distinct_loops`), each with ``n_noise`` Gaussian noise realisations (seeds from
-    ``[plant] noise_seed``) when the plant has noise: realisations, not a worst case within a
-    bound. Initial errors are ``rho P d`` for unit directions d of the slice (``directions``
-    first, e.g. the nominal exact map's worst error, then ``n_directions`` random ones), and
-    the distance to the singular set of the law's state is measured at every RK4 step (at every
-    sample of a digital controller: what it sees, and where ``simulate`` can save).
+    ignore, once: :func:`distinct_loops`), each with ``n_noise`` Gaussian noise realisations
+    (seeds from ``[plant] noise_seed``) when the plant has noise, then the worst case within
+    ``noise_bound`` noise_std (the held reach's bound) on the smallest failure's ray
+    (:func:`worst_noise`). Initial errors are ``rho P d`` for unit directions d of the slice
+    (``directions`` first, e.g. the nominal exact map's worst error, then ``n_directions``
+    random ones); the distance to the singular set is measured at every RK4 step (at every
+    sample of a digital controller: what it sees).
 
     Stages: every direction and plant variant on a grid of ``n_grid`` radii up to ``r_max`` (a
     given error's ray also at :data:`FINE_AROUND` times its norm); the ``n_refine`` (direction,
     variant) pairs failing at the smallest radius are bisected ``n_bisect`` times between their
-    last safe and first failing radius; the smallest failure is confirmed at a quarter of the
-    step (the same controller period).
+    last safe and first failing radius; the smallest failure is confirmed at a quarter of the step.
 
     Args:
       setting: the problem's :class:`wmrjax.problem.Setting` (one value per axis but the plant's).
@@ -214,6 +221,8 @@ def real_loop_falsified_radius(
       n_bisect: bisection steps of each refined pair.
       n_refine: (direction, variant) pairs failing at the smallest radius that are bisected.
       seed: the search's PRNG seed.
+      noise_bound: the worst-case noise stage's bound, in multiples of ``noise_std``.
+      noise_steps: its gradient steps (0: the stage is not run).
 
     Returns:
       :class:`RealLoopFalsified`.
@@ -222,22 +231,18 @@ def real_loop_falsified_radius(
     check_dynamic(ctrl, params)
     check_positive("eps", eps)
     check_positive("r_max", r_max)
-    _check_sizes(n_directions=n_directions, n_grid=n_grid, n_noise=n_noise, n_bisect=n_bisect, n_refine=n_refine)
+    sizes = dict(n_directions=n_directions, n_grid=n_grid, n_noise=n_noise, n_bisect=n_bisect, n_refine=n_refine)
+    _check_sizes(**sizes, noise_steps=noise_steps)
+    check_positive("noise_bound", noise_bound)
     P = np.asarray(slice_basis(ctrl, basis))
     dirs, own = _directions(P, directions, n_directions, seed)
     variants, noise = _variants(setting, n_noise, distinct=True)
     search = _Search(setting, params, P, eps)
-    grid = r_max * np.arange(1, n_grid + 1) / n_grid
-    # per direction, its radii: the grid, and around a given error's own norm a fine one (the
-    # exact map's worst error fails only within a few per mille beyond it: the ray grazes the
-    # eps-ball of the singular set there)
-    rays = [np.unique(np.concatenate([grid, n * FINE_AROUND])) if n > 0 else grid for n in own]
-    pairs = [(d, v, r) for d in range(len(dirs)) for v in range(len(variants)) for r in rays[d]]
-    d_i, v_i, r_i = (np.array(x) for x in zip(*pairs))
-    bad = search.distances(dirs[d_i], r_i, [variants[k] for k in v_i]) < eps
-    cands = _first_failures(bad, d_i, v_i, r_i)
+    cands = _grid_failures(search, dirs, own, variants, r_max, n_grid)
+    worst = functools.partial(_worst_case, search, dirs, variants, noise_bound, noise_steps)
     if not cands:
-        return RealLoopFalsified(None, None, None, None, float(r_max), search.rollouts, len(variants), noise)
+        none = RealLoopFalsified(None, None, None, None, float(r_max), search.rollouts, len(variants), noise)
+        return worst(none, 0, 0)
     cands = sorted(cands)[:n_refine]
     hi, lo = np.array([c[0] for c in cands]), np.array([c[1] for c in cands])
     which_d, which_v = [c[2] for c in cands], [variants[c[3]] for c in cands]
@@ -245,7 +250,7 @@ def real_loop_falsified_radius(
         mid = 0.5 * (lo + hi)
         fail = search.distances(dirs[which_d], mid, which_v) < eps
         lo, hi = np.where(fail, lo, mid), np.where(fail, mid, hi)
-    return _confirmed(search, dirs, cands, hi, variants, r_max, noise)
+    return worst(*_confirmed(search, dirs, cands, hi, variants, r_max, noise))
 
 
 def planned_runs(
@@ -257,16 +262,33 @@ def planned_runs(
     n_noise: int = 2,
     n_bisect: int = 8,
     n_refine: int = 4,
+    noise_steps: int = NOISE_STEPS,
 ) -> int:
     """The runs :func:`real_loop_falsified_radius` makes on one slice with these sizes (the
-    confirmation taken as one run; :func:`problem_certificate` searches two slices), from
-    ``n_known`` given failures' rays and the setting's plant variants: for a size estimate."""
-    n_var = len(_variants(setting, n_noise, distinct=True)[0])
-    return (n_known + n_directions) * n_var * n_grid + n_known * n_var * len(FINE_AROUND) + n_refine * n_bisect + 1
+    confirmation taken as one run, a gradient step of the worst-case noise stage as one run per
+    radius; :func:`problem_certificate` searches two slices), from ``n_known`` given failures'
+    rays and the setting's plant variants: for a size estimate."""
+    variants = _variants(setting, n_noise, distinct=True)[0]
+    worst = len(WORST_FRACTIONS) * (noise_steps + 2) if noise_steps and variants[0].noise is not None else 0
+    grid = (n_known + n_directions) * len(variants) * n_grid + n_known * len(variants) * len(FINE_AROUND)
+    return grid + n_refine * n_bisect + 1 + worst
 
 
 # the search's sizes and their least values (n_refine: the failures refined, at least the first)
-SIZE_FLOORS = {"n_directions": 0, "n_grid": 1, "n_noise": 1, "n_bisect": 0, "n_refine": 1}
+SIZE_FLOORS = {"n_directions": 0, "n_grid": 1, "n_noise": 1, "n_bisect": 0, "n_refine": 1, "noise_steps": 0}
+
+
+def _grid_failures(search, dirs, own, variants, r_max: float, n_grid: int) -> list:
+    """:func:`_first_failures` of every direction and variant on the grid of ``n_grid`` radii up to
+    ``r_max`` (a given error's ray, of norm ``own`` > 0, also at :data:`FINE_AROUND` times it)."""
+    grid = r_max * np.arange(1, n_grid + 1) / n_grid
+    # the exact map's worst error fails only within a few per mille beyond its norm: the ray
+    # grazes the eps-ball of the singular set there
+    rays = [np.unique(np.concatenate([grid, n * FINE_AROUND])) if n > 0 else grid for n in own]
+    pairs = [(d, v, r) for d in range(len(dirs)) for v in range(len(variants)) for r in rays[d]]
+    d_i, v_i, r_i = (np.array(x) for x in zip(*pairs))
+    bad = search.distances(dirs[d_i], r_i, [variants[k] for k in v_i]) < search.eps
+    return _first_failures(bad, d_i, v_i, r_i)
 
 
 def _check_sizes(**sizes) -> None:
@@ -292,15 +314,16 @@ def _first_failures(bad, d_i, v_i, r_i) -> list:
 FINE_AROUND = np.array([0.999, 1.0005, 1.001, 1.002, 1.005, 1.01, 1.02, 1.05])
 
 
-def _confirmed(search, dirs, cands, hi, variants, r_max, noise) -> RealLoopFalsified:
+def _confirmed(search, dirs, cands, hi, variants, r_max, noise) -> tuple[RealLoopFalsified, int, int]:
     """The smallest failure of the bisected candidates ``cands`` (at radii ``hi``) confirmed at a
-    quarter of the step; one that does not confirm falls back to its failing grid radius, confirmed."""
+    quarter of the step; one that does not confirm falls back to its failing grid radius, confirmed.
+    With its direction's and variant's indices (the first candidate's where none confirms)."""
     for k in np.argsort(hi):
         first, _, d, v = cands[k]
         for rad in (hi[k], first):
             (dist,) = search.distances(dirs[[d]], np.array([rad]), [variants[v]], fine=True)
             if dist < search.eps:
-                return RealLoopFalsified(
+                found = RealLoopFalsified(
                     float(rad),
                     np.asarray(search.P @ (rad * dirs[d])),
                     variants[v].summary(),
@@ -310,7 +333,54 @@ def _confirmed(search, dirs, cands, hi, variants, r_max, noise) -> RealLoopFalsi
                     len(variants),
                     noise,
                 )
-    return RealLoopFalsified(None, None, None, None, float(r_max), search.rollouts, len(variants), noise)
+                return found, d, v
+    none = RealLoopFalsified(None, None, None, None, float(r_max), search.rollouts, len(variants), noise)
+    return none, cands[0][2], cands[0][3]
+
+
+WORST_FRACTIONS = np.array([0.8, 0.9, 0.95, 0.97, 0.98, 0.99, 0.995, 1.0])
+"""The radii of the worst-case noise stage, as fractions of the smallest failure's (one batch)."""
+
+
+def _worst_case(search, dirs, variants, noise_bound: float, steps: int, found, d: int, v: int) -> RealLoopFalsified:
+    """``found`` with the worst-case noise stage (a noisy digital controller only): on direction
+    ``d`` and variant ``v``'s plant, at :data:`WORST_FRACTIONS` of the found radius (of the
+    searched range where none failed), the noise within ``noise_bound`` noise_std that brings
+    each run closest to the singular set (:func:`wmrjax.certify.worst_noise`); the smallest
+    radius it fails at, confirmed with the same noise at a quarter of the step, replaces a larger
+    found one."""
+    s = search.setting
+    if steps == 0 or variants[v].noise is None:
+        return found
+    top = found.searched_up_to if found.radius is None else found.radius
+    radii = top * WORST_FRACTIONS
+    errs = radii[:, None] * (dirs[d] @ search.P.T)
+    plant = tuple(np.stack([x] * len(radii)) for x in (variants[v].limit, variants[v].input_scale))
+    plant = (*plant, np.full(len(radii), float(variants[v].geometry_scale)))
+    w = worst_noise(s, search.params, errs, eps=search.eps, plant=plant, noise_multiple=noise_bound, steps=steps)
+    search.rollouts += len(radii) * (steps + 2)
+    stage = {
+        "noise_multiple": float(noise_bound),
+        "steps": int(steps),
+        "radii": [float(r) for r in radii],
+        "distance": [float(x) for x in w.distance],
+        "zero_noise": [float(x) for x in w.zero_noise],
+        "radius": None,
+    }
+    words = f"; then the worst case within {noise_bound:g} noise_std on the smallest failure's ray ({steps} projected gradient steps)"
+    out = found._replace(noise=found.noise + words, rollouts=search.rollouts, worst_noise=stage)
+    for k in np.flatnonzero(w.distance < search.eps):
+        dist = float(search.noise_distances(errs[[k]], tuple(x[[k]] for x in plant), w.noise[[k]])[0])
+        search.rollouts += 1
+        if dist < search.eps:
+            stage["radius"] = float(radii[k])
+            if found.radius is None or radii[k] < found.radius:
+                worst = dict(variants[v].summary(), noise_realisation=f"worst within {noise_bound:g} noise_std")
+                return out._replace(
+                    radius=float(radii[k]), initial_error=errs[k], plant=worst, distance=dist, rollouts=search.rollouts
+                )
+            break
+    return out._replace(rollouts=search.rollouts)
 
 
 def _directions(P, directions, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -434,6 +504,14 @@ class _Search:
         program = lambda *b: (_runs(s, dist_fn, self.base, self.params, self.branch, self.key, *b),)
         block = min(self.BLOCK, len(errs))
         return fixed_blocks(program, (errs, lim, sc, nk), block)[0]
+
+    def noise_distances(self, errs, plant, noise) -> np.ndarray:
+        """(N,) min_t distance (0: failed) at a quarter of the step of the runs from the output errors
+        ``errs`` on ``plant`` (limit, input scale, geometry scale rows) with the given noise."""
+        s = self.fine
+        dist_fn = SingularDistance(s.system(), s.ctrl, self.geometry)
+        sc = np.concatenate([plant[1], plant[2][:, None]], axis=1)
+        return np.asarray(noise_runs(s, dist_fn, s.run_inputs(0), self.params, self.branch, errs, plant[0], sc, noise))
 
 
 @functools.lru_cache(maxsize=8)
@@ -569,9 +647,8 @@ def problem_certificate(
         if not falsify or not np.isfinite(float(em.radius)):  # not asked, or no scale to search
             block.update(falsified_radius=None, falsified=None)
         else:
-            block.update(
-                _falsified_block(setting, params, basis, em, eps, (falsified or {}).get(basis), seed, log, search)
-            )
+            known = (falsified or {}).get(basis)
+            block.update(_falsified_block(setting, params, basis, em, eps, known, seed, log, noise_bound, search))
         out[basis] = block
     return out
 
@@ -621,7 +698,9 @@ def _held_block(setting, params, basis: str, features, active, nominal: float, e
     }
 
 
-def _falsified_block(setting, params, basis: str, em, eps: float, nominal_falsified, seed: int, log, search) -> dict:
+def _falsified_block(
+    setting, params, basis: str, em, eps: float, nominal_falsified, seed: int, log, noise_bound, search
+) -> dict:
     """The problem loop's falsified radius of a slice, searched up to 1.1 times the nominal exact
     map's radius from the known failures' rays first."""
     f = real_loop_falsified_radius(
@@ -632,6 +711,7 @@ def _falsified_block(setting, params, basis: str, em, eps: float, nominal_falsif
         basis=basis,
         directions=_known_failures(em, nominal_falsified),
         seed=seed,
+        noise_bound=noise_bound,
         **search,
     )
     if log is not None:

@@ -227,6 +227,7 @@ class Setting:
         error_tol=1e-3,
         margin_floor=1e-9,
         noise_key=None,
+        noise=None,
         t0=0.0,
         save_fn=None,
     ):
@@ -235,7 +236,10 @@ class Setting:
 
         ``save_every`` (default: every sample of a digital controller, else every step),
         ``error_tol``, ``margin_floor`` and ``save_fn`` are :func:`wmrjax.simulate`'s;
-        ``noise_key`` draws the measurement noise of a digital controller; ``t0`` [s] starts the run.
+        ``noise_key`` draws the measurement noise of a digital controller, or ``noise`` gives it:
+        ((n_steps // steps_per_sample + 1), n_X), row k added to the posture measured at sample k
+        (a worst case searched within a bound, :func:`wmrjax.certify.worst_noise`; it takes
+        precedence over ``noise_key``); ``t0`` [s] starts the run.
 
         Returns:
           ``(trajectory, params)``: the :class:`wmrjax.Trajectory` of :meth:`system`, and the
@@ -249,13 +253,23 @@ class Setting:
         # the law's initial state: given (``z0``), or placed from the initial error
         z0 = p.z0 if p.z0 is not None else place(ctrl, params, p.initial, self.space, self.task, p.branch, t0)
         loop = self.system()
+        if noise is not None and (not self.plant or self.control_period is None):
+            raise ValueError(
+                "noise is the measurement noise of a digital controller: this setting has no control_period"
+            )
+        if noise is not None and jnp.shape(noise) != (self.n_steps // self.steps_per_sample + 1, ctrl.robot.n_state):
+            raise ValueError(
+                f"noise must be ({self.n_steps // self.steps_per_sample + 1}, {ctrl.robot.n_state}) (one row per "
+                f"sample, one column per component of X), got shape {jnp.shape(noise)}"
+            )
         if self.plant:
             scale = jnp.broadcast_to(p.geometry_scale, (2,))  # of L and e (one factor: both)
             pg = Geometry(L=scale[0] * g.L, e=scale[1] * g.e, delta=g.delta)
             plant = PlantParams(params, pg, jnp.broadcast_to(p.input_scale, (ctrl.robot.n_input,)), p.limit)
             if self.control_period is not None:
-                noise = None
-                if any(self.noise_std) and noise_key is not None:
+                if noise is not None:
+                    noise = jnp.asarray(noise, t0.dtype)
+                elif any(self.noise_std) and noise_key is not None:
                     n_samples = self.n_steps // self.steps_per_sample + 1
                     noise = measurement_noise(noise_key, jnp.asarray(self.noise_std), n_samples, ctrl.robot.n_state)
                 sp = SampledParams(plant, jnp.zeros((1, ctrl.robot.n_state), t0.dtype) if noise is None else noise)
