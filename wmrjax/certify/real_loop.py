@@ -13,8 +13,9 @@ can fail (issue 54: a 20 Hz hold on the S-path fails at 0.98 of the nominal radi
   the ball, proved at a grid's times only, attained by an initial error that fails, or estimated
   from simulations);
 * :func:`real_loop_falsified_radius` searches the problem's own loop (every listed plant value,
-  with its period, and noise realisations) for initial errors that come within eps of the
-  singular set: an upper bound on the radius any certificate of that loop can have;
+  with its period, noise realisations and a worst case of the noise within its bound,
+  :func:`wmrjax.certify.worst_noise`) for initial errors that come within eps of the singular
+  set: an upper bound on the radius any certificate of that loop can have;
 * :func:`problem_certificate` is the problem's certificate per slice: a radius only where a
   proof covers every feature of its plant, labelled with what it covers, beside the real
   loop's falsified radius.
