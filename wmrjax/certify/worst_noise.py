@@ -48,11 +48,6 @@ class WorstNoise(NamedTuple):
     zero_noise: np.ndarray
 
 
-def noise_shape(setting) -> tuple[int, int]:
-    """(n_samples, n_X): the noise of one run of ``setting``'s digital controller."""
-    return setting.n_steps // setting.steps_per_sample + 1, setting.ctrl.robot.n_state
-
-
 def worst_noise(
     setting,
     params,
@@ -160,7 +155,7 @@ def _worst_runs(setting, dist_fn, steps: int, temperature: float, base, params, 
             g = jnp.where(jnp.isfinite(g), g, 0.0)  # a failed run's gradient: no step
             return jnp.clip(noise - size * bound * jnp.sign(g), -bound, bound), best, best_noise
 
-        zero = jnp.zeros(noise_shape(setting))
+        zero = jnp.zeros(setting.noise_shape)
         _, zero_d = distances(zero)
         noise, best, best_noise = jax.lax.fori_loop(0, steps, step, (zero, zero_d, zero))
         _, last = distances(noise)

@@ -151,6 +151,14 @@ class Setting:
         """RK4 steps per controller period (None: continuous feedback)."""
         return None if self.control_period is None else int(round(self.control_period / self.dt))
 
+    @property
+    def noise_shape(self) -> tuple[int, int] | None:
+        """(n_samples, n_X): a run's measurement noise, one row per controller sample (None:
+        continuous feedback)."""
+        if self.control_period is None:
+            return None
+        return self.n_steps // self.steps_per_sample + 1, self.ctrl.robot.n_state
+
     def axis(self, name: str) -> Axis:
         """The axis named ``name``."""
         return next(a for a in self.axes if a.name == name)
@@ -237,7 +245,7 @@ class Setting:
         ``save_every`` (default: every sample of a digital controller, else every step),
         ``error_tol``, ``margin_floor`` and ``save_fn`` are :func:`wmrjax.simulate`'s;
         ``noise_key`` draws the measurement noise of a digital controller, or ``noise`` gives it:
-        ((n_steps // steps_per_sample + 1), n_X), row k added to the posture measured at sample k
+        :attr:`noise_shape`, row k added to the posture measured at sample k
         (a worst case searched within a bound, :func:`wmrjax.certify.worst_noise`; it takes
         precedence over ``noise_key``); ``t0`` [s] starts the run.
 
@@ -257,10 +265,10 @@ class Setting:
             raise ValueError(
                 "noise is the measurement noise of a digital controller: this setting has no control_period"
             )
-        if noise is not None and jnp.shape(noise) != (self.n_steps // self.steps_per_sample + 1, ctrl.robot.n_state):
+        if noise is not None and jnp.shape(noise) != self.noise_shape:
             raise ValueError(
-                f"noise must be ({self.n_steps // self.steps_per_sample + 1}, {ctrl.robot.n_state}) (one row per "
-                f"sample, one column per component of X), got shape {jnp.shape(noise)}"
+                f"noise must be {self.noise_shape} (one row per sample, one column per component of X), "
+                f"got shape {jnp.shape(noise)}"
             )
         if self.plant:
             scale = jnp.broadcast_to(p.geometry_scale, (2,))  # of L and e (one factor: both)
@@ -270,8 +278,7 @@ class Setting:
                 if noise is not None:
                     noise = jnp.asarray(noise, t0.dtype)
                 elif any(self.noise_std) and noise_key is not None:
-                    n_samples = self.n_steps // self.steps_per_sample + 1
-                    noise = measurement_noise(noise_key, jnp.asarray(self.noise_std), n_samples, ctrl.robot.n_state)
+                    noise = measurement_noise(noise_key, jnp.asarray(self.noise_std), *self.noise_shape)
                 sp = SampledParams(plant, jnp.zeros((1, ctrl.robot.n_state), t0.dtype) if noise is None else noise)
                 z0, params_run = loop.initial_state(z0, sp), sp
             else:
