@@ -19,7 +19,7 @@ import scipy.linalg
 import wmrjax.certify as C
 from tests.test_certify_real_loop import EPS, OMEGA, T_FINAL, _problem, _reference_jet, _saturated_loop
 from tests.test_scalarize import _all_prims
-from wmrjax.certify import affine, interval
+from wmrjax.certify import affine, interval, saturation
 from wmrjax.certify.interval import Interval
 from wmrjax.cli import tune as tune_cli
 from wmrjax.tune import certified as tune_certified
@@ -320,6 +320,45 @@ def test_the_command_is_the_same_seen_from_turned_axes():
     assert np.allclose(a, b, atol=1e-12)
     # the circle's heading crosses +-pi inside the horizon (pi/2 + 0.5 t): boxes there are certified too
     assert float(saturation.reference_heading(setting.ctrl, params, setting.ctrl.reference_jet(4.0, params))) < 0
+
+
+def test_the_disc_cover_contains_the_disc_and_reaches_as_far_beyond_it_as_stated():
+    cover = saturation.disc_cover(4)
+    assert not cover.ball and cover.centres.shape == (121, 4) and np.all(cover.axes[:, 2:] == 0)
+    rng = np.random.default_rng(0)
+    r = np.concatenate([np.sqrt(rng.uniform(size=20000)), np.ones(4000), np.full(2000, 0.15), np.full(2000, 0.6)])
+    phi = rng.uniform(0.0, 2 * np.pi, r.size)
+    x = np.stack([r * np.cos(phi), r * np.sin(phi)], axis=1)
+    inv = np.linalg.inv(cover.axes[:, :2, :2])  # (Q, 2, 2): a point's symbols in each piece
+    y = np.einsum("qij,pqj->pqi", inv, x[:, None, :] - cover.centres[None, :, :2])
+    assert np.all(np.any(np.all(np.abs(y) <= 1 + 1e-12, axis=2), axis=1))  # every point in some piece
+    corners = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], float)
+    pts = cover.centres[:, None, :2] + np.einsum("qij,cj->qci", cover.axes[:, :2, :2], corners)
+    norms = np.linalg.norm(pts, axis=2)
+    assert np.all(norms.max(axis=1) <= cover.sizes)
+    assert norms.max() == pytest.approx(np.sqrt(1 + np.sin(np.pi / 32) ** 2), rel=1e-12)  # the outer ring's 32
+    with pytest.raises(ValueError, match="increasing rings ending at 1"):
+        saturation.disc_cover(4, (0.5, 0.9), (8,))
+    with pytest.raises(ValueError, match=">= 3 sectors"):
+        saturation.disc_cover(4, (0.5, 1.0), (2,))
+
+
+def test_the_pieces_raise_the_position_slices_proved_radius_to_within_their_gap_of_the_attained(certified, monkeypatch):
+    """Over the disc cover the position slice's proved radius is at least the whole disc's (each
+    box keeps the larger of two proofs), below both searches' attained bounds (an attained point
+    bounds every proof), and the rounds stop within PIECE_GAP of the attained one (the circle's
+    whole disc is there already: the limit binds at t = 0). Forced on (no gap, four rounds), the
+    cover raises it."""
+    setting, params, _, pc = certified
+    pieced = pc["position"]["saturation_free"]
+    whole = C.saturation_free_radius(setting.ctrl, params, LIMIT, t_final=T_FINAL, basis="position", pieces=False)
+    assert whole.lower_bound <= pieced["lower_bound"] <= min(pieced["upper_bound"], whole.upper_bound)
+    assert pieced["lower_bound"] >= (1.0 - saturation.PIECE_GAP) * pieced["upper_bound"]
+    monkeypatch.setattr(saturation, "PIECE_GAP", 0.0)
+    monkeypatch.setattr(saturation, "PIECE_ROUNDS", 4)
+    forced = C.saturation_free_radius(setting.ctrl, params, LIMIT, t_final=T_FINAL, basis="position")
+    assert whole.lower_bound < forced.lower_bound <= min(forced.upper_bound, whole.upper_bound)
+    assert forced.lower_bound == pytest.approx(0.29989, rel=1e-4)  # measured 2026-12-07: 0.2998852 (whole: 0.2990139)
 
 
 def test_saturation_free_radius_refuses_bad_input():

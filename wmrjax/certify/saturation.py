@@ -47,7 +47,10 @@ from wmrjax.controllers.law import DET_FLOOR
 from wmrjax.simulate import fixed_blocks
 
 BOX_BLOCK = 256
-"""Time boxes evaluated per compiled call."""
+"""Time boxes evaluated per compiled call (over the whole ball)."""
+PIECE_BLOCK = 32
+"""Time boxes evaluated per compiled call over a cover's pieces (each box costs as many
+enclosures as the cover has pieces)."""
 SEARCH_COMPILE = {"xla_backend_optimization_level": 3, "xla_cpu_use_fusion_emitters": False}
 """XLA's full optimizer (its default level), whatever the process's own setting: the box search
 runs this program about 130 times a slice (bisection steps times refinement rounds), so its run
@@ -190,11 +193,82 @@ def turns_alike(ctrl, params, t_final: float, seed: int = 0) -> bool:
     return True
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1), compiler_options=SEARCH_COMPILE)
-def _box_fits(ctrl, turn: bool, params, P, limit, jc, jg, je, t_c, h, rho):
-    """Per time box: does the enclosure of the command over the box and the ball of radius rho fit?
-    With ``turn``, seen from axes along the reference's heading at the box's centre (the heading
-    then stays away from atan2's cut at +-pi inside the box; the command is the same:
+class Cover(NamedTuple):
+    r"""Pieces whose union contains the slice's unit ball: piece j is :math:`c_j + H_j\varepsilon`
+    in the slice's coordinates (padded to n), with :math:`\varepsilon` in the unit ball (``ball``)
+    or in :math:`[-1, 1]^n`. A point of the ball of radius :math:`\rho` is :math:`\rho` times a
+    point of some piece, so a command enclosed within the limits over every piece is within them
+    over the ball.
+
+    Attributes:
+      centres: (Q, n) the pieces' centres.
+      axes: (Q, n, n) their generators (columns beyond the slice's k are zero).
+      sizes: (Q,) a bound on the norm of every point of each piece (for the error term of
+        :math:`e^{A(t - t_c)}`).
+      ball: whether the symbols lie in the unit ball (else a box).
+    """
+
+    centres: np.ndarray
+    axes: np.ndarray
+    sizes: np.ndarray
+    ball: bool
+
+
+def whole_ball(n: int) -> Cover:
+    """The ball itself, one piece (the cover of every slice without a finer one)."""
+    return Cover(np.zeros((1, n)), np.eye(n)[None], np.ones(1), True)
+
+
+DISC_RINGS = (0.15, 0.3, 0.45, 0.6, 0.75, 0.9, 1.0)
+"""Radii of the disc cover's rings (:func:`disc_cover`): a square inside the first, then rings."""
+DISC_SECTORS = (8, 12, 16, 24, 28, 32)
+"""Sectors of each ring (121 pieces with the square)."""
+
+
+def disc_cover(n: int, rings=DISC_RINGS, sectors=DISC_SECTORS) -> Cover:
+    r"""A cover of a 2-dimensional slice's unit disc (the position slice) by boxes: the square of
+    half-width ``rings[0]`` (it contains the disc of that radius), and, for each ring
+    :math:`[r_0, r_1]` cut into q sectors of half-angle :math:`\delta = \pi / q`, the rectangle
+    along each sector's mid-direction u (and v, u turned by 90 degrees) that contains it: a point
+    :math:`r(\cos\phi\,u + \sin\phi\,v)` with :math:`r \in [r_0, r_1]`,
+    :math:`|\phi| \le \delta` has u-coordinate in :math:`[r_0\cos\delta, r_1]` and
+    v-coordinate within :math:`r_1\sin\delta`. The rectangles reach
+    :math:`r_1\sqrt{1 + \sin^2\delta}` from the origin (1.9 % beyond the disc for 16 sectors):
+    what the cover costs the first-order part, against a remainder of second order in a piece's
+    size (a quarter to a sixteenth of the disc's).
+
+    Args:
+      n: the padded dimension (the slice's two coordinates come first).
+      rings: increasing radii ending at 1.
+      sectors: sectors per ring (``len(rings) - 1`` of them, each >= 3).
+    """
+    rings, sectors = tuple(float(r) for r in rings), tuple(int(q) for q in sectors)
+    if len(sectors) != len(rings) - 1 or rings[-1] != 1.0 or np.any(np.diff(rings) <= 0) or min(sectors, default=3) < 3:
+        raise ValueError(
+            f"a disc cover needs increasing rings ending at 1 and >= 3 sectors per ring, got {rings}, {sectors}"
+        )
+    cs, hs = [np.zeros(2)], [rings[0] * np.eye(2)]
+    for r0, r1, q in zip(rings[:-1], rings[1:], sectors):
+        d = np.pi / q
+        for j in range(q):
+            u = np.array([np.cos(2 * d * j), np.sin(2 * d * j)])
+            v = np.array([-u[1], u[0]])
+            a, b = 0.5 * (r1 - r0 * np.cos(d)), r1 * np.sin(d)
+            cs.append(0.5 * (r0 * np.cos(d) + r1) * u)
+            hs.append(np.stack([a * u, b * v], axis=1))
+    q = len(cs)
+    centres, axes = np.zeros((q, n)), np.zeros((q, n, n))
+    centres[:, :2], axes[:, :2, :2] = np.array(cs), np.array(hs)
+    sizes = np.linalg.norm(centres, axis=1) + np.linalg.norm(axes, axis=1).sum(axis=1)
+    return Cover(centres, axes, sizes * (1 + 1e-12), False)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2), compiler_options=SEARCH_COMPILE)
+def _box_fits(ctrl, turn: bool, ball: bool, params, P, limit, cover, jc, jg, je, t_c, h, rho):
+    """Per time box: does the enclosure of the command over the box and every piece of ``cover``
+    (centres, axes, sizes: :class:`Cover`, whose ``ball`` is the static ``ball``) at radius rho
+    fit? With ``turn``, seen from axes along the reference's heading at the box's centre (the
+    heading then stays away from atan2's cut at +-pi inside the box; the command is the same:
     :func:`turns_alike`)."""
     A = ctrl.error_matrix(params.gains)
     growth = jnp.expm1(_math.spectral_norm(A) * h)
@@ -202,27 +276,35 @@ def _box_fits(ctrl, turn: bool, params, P, limit, jc, jg, je, t_c, h, rho):
 
     def one(jet, tc, g, rh):
         E = _math.expm_small(A * tc)
-        gen = jnp.concatenate([rh * (E @ P), jnp.zeros((n, 1))], axis=1)
-        err = affine.symbols(jnp.zeros(n), gen)
-        # e^{A t} = e^{A t_c} e^{A (t - t_c)}: the second factor's distance from I, as an error term
-        slack = jnp.linalg.norm(E, axis=1) * g * rh * (1 + 1e-12) + 1e-15 * rh
-        err = affine.Affine(err.c, err.g, err.e + slack)
         phi = reference_heading(ctrl, params, jet.c) if turn else 0.0
         fn = lambda j, e: command(ctrl, params, *rotated(ctrl, j, e, phi))
-        out, ctx = affine.enclose(fn, jet, err, n_ball=n)
-        box = affine.to_interval(out, ctx)
-        ok = (box.lo >= -limit) & (box.hi <= limit) & jnp.isfinite(box.lo) & jnp.isfinite(box.hi)
-        return jnp.all(ok)
+
+        def piece(c, H, size):
+            gen = jnp.concatenate([rh * (E @ P @ H), jnp.zeros((n, 1))], axis=1)
+            err = affine.symbols(rh * (E @ P @ c), gen)
+            # e^{A t} = e^{A t_c} e^{A (t - t_c)}: the second factor's distance from I, an error term
+            slack = jnp.linalg.norm(E, axis=1) * g * rh * size * (1 + 1e-12) + 1e-15 * rh
+            err = affine.Affine(err.c, err.g, err.e + slack)
+            out, ctx = affine.enclose(fn, jet, err, n_ball=n if ball else 0)
+            box = affine.to_interval(out, ctx)
+            ok = (box.lo >= -limit) & (box.hi <= limit) & jnp.isfinite(box.lo) & jnp.isfinite(box.hi)
+            return jnp.all(ok)
+
+        return jnp.all(jax.vmap(piece)(*cover))
 
     return (jax.vmap(one)(affine.Affine(jc, jg, je), t_c, growth, rho),)
 
 
-def _box_radii(ctrl, turn: bool, params, P, limit, t_c, h, rho_hi: float, iters: int):
-    """Bisection per box on rho in [0, rho_hi]: the largest rho whose box fits (0 if none)."""
+def _box_radii(ctrl, turn: bool, params, P, limit, t_c, h, *, rho_hi: float, iters: int, cover: Cover, rho_lo=None):
+    """Bisection per box on rho in [rho_lo, rho_hi] (``rho_lo``, known to fit, default 0): the
+    largest rho whose box fits over every piece of ``cover`` (``rho_lo`` if none above it)."""
     jets = fixed_blocks(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), (t_c, h), BOX_BLOCK)
-    program = lambda *a: _box_fits(ctrl, turn, params, P, limit, *a)
-    fits = lambda rho: np.asarray(fixed_blocks(program, (*jets, t_c, h, rho), BOX_BLOCK)[0], bool)
-    lo, hi = np.zeros_like(t_c), np.full_like(t_c, rho_hi)
+    pieces = tuple(jnp.asarray(x) for x in cover[:3])
+    program = lambda *a: _box_fits(ctrl, turn, cover.ball, params, P, limit, pieces, *a)
+    block = BOX_BLOCK if cover.ball else PIECE_BLOCK
+    fits = lambda rho: np.asarray(fixed_blocks(program, (*jets, t_c, h, rho), block)[0], bool)
+    lo = np.zeros_like(t_c) if rho_lo is None else np.asarray(rho_lo, float).copy()
+    hi = np.full_like(t_c, rho_hi)
     top = fits(hi)
     lo = np.where(top, hi, lo)
     for _ in range(iters):
@@ -272,17 +354,25 @@ RAY_TIMES = 16
 """Times (the worst boxes' centres) at which the rays are tried."""
 
 
-def compile_programs(ctrl, turn: bool, params, n_directions: int) -> None:
-    """Compile the three programs of :func:`saturation_free_radius` at once, each on a thread of
-    its own (XLA compiles them in parallel; the search then finds them compiled)."""
+def compile_programs(ctrl, turn: bool, params, n_directions: int, covers=()) -> None:
+    """Compile the programs of :func:`saturation_free_radius` at once, each on a thread of its own
+    (XLA compiles them in parallel; the search then finds them compiled): the reference's boxes,
+    the fit over the whole ball and over each of ``covers`` (:class:`Cover`), and the rays."""
     n, f = ctrl.relative_degree * ctrl.m, jnp.float64
-    blk = jnp.zeros(BOX_BLOCK, f)
     P, lim = jnp.zeros((n, n), f), jnp.zeros(ctrl.robot.n_input, f)
-    jets = jax.eval_shape(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), blk, blk)
-    jets = [jnp.zeros(x.shape, x.dtype) for x in jets]
+
+    def fit_job(cover: Cover, block: int):
+        blk = jnp.zeros(block, f)
+        jets = jax.eval_shape(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), blk, blk)
+        jets = [jnp.zeros(x.shape, x.dtype) for x in jets]
+        pieces = tuple(jnp.asarray(x) for x in cover[:3])
+        return lambda: _box_fits.lower(ctrl, turn, cover.ball, params, P, lim, pieces, *jets, blk, blk, blk).compile()
+
+    blk = jnp.zeros(BOX_BLOCK, f)
     jobs = [
         lambda: jet_boxes.lower(ctrl, params, blk, blk).compile(),
-        lambda: _box_fits.lower(ctrl, turn, params, P, lim, *jets, blk, blk, blk).compile(),
+        fit_job(whole_ball(n), BOX_BLOCK),
+        *[fit_job(c, PIECE_BLOCK) for c in covers],
         lambda: _ray_commands.lower(
             ctrl, params, P, jnp.zeros(RAY_TIMES, f), jnp.zeros((n_directions, n), f), jnp.zeros(RAY_RADII, f)
         ).compile(),
@@ -308,6 +398,42 @@ def _attained(ctrl, params, P, limit, ts, rho_lo: float, n_dirs: int, seed: int)
     return float(radii[ir]), np.asarray(P) @ (radii[ir] * d[id_]), float(ts[it])
 
 
+PIECE_ROUNDS = 24
+"""Rounds of :func:`_pieced` at most, each over the :data:`PIECE_BLOCK` boxes with the smallest radii."""
+PIECE_ITERS = 16
+"""Bisection steps per box over the pieces (between the box's proved radius and the attained one)."""
+PIECE_GAP = 0.02
+""":func:`_pieced` stops once the proved radius is within this fraction of the attained one."""
+
+
+def _pieced(radii, attain, cover: Cover, t_c, h, rho, rho_hi: float):
+    """The boxes that limit the radius bounded again over ``cover``'s pieces, the smallest first:
+    each round takes the :data:`PIECE_BLOCK` smallest; one not yet pieced is bounded over the
+    pieces, one already pieced is halved in time and its halves bounded over them. A box's radius
+    starts from the one proved for it or for the box it was cut from (each bisection step is a
+    proof of its own), so it never falls. After each round ``attain(times, rho)`` (the attained
+    bound at the smallest boxes' times, :func:`_attained`) bounds the radius from above; the
+    rounds stop at :data:`PIECE_GAP` from the smallest such bound. Returns the boxes' centres,
+    half-widths and radii, and that bound ``(radius, error, time)``."""
+    pieced, best = np.zeros(rho.size, bool), (np.inf, None, None)
+    for _ in range(PIECE_ROUNDS):
+        sel = np.zeros(rho.size, bool)
+        sel[np.argsort(rho, kind="stable")[:PIECE_BLOCK]] = True
+        fresh, split = sel & ~pieced, sel & pieced
+        tc = np.concatenate([t_c[fresh], t_c[split] - 0.5 * h[split], t_c[split] + 0.5 * h[split]])
+        hh = np.concatenate([h[fresh], np.tile(0.5 * h[split], 2)])
+        lo = np.concatenate([rho[fresh], np.tile(rho[split], 2)])
+        hi = max(min(rho_hi, best[0]), lo.max())
+        new = radii(tc, hh, cover=cover, rho_lo=lo, rho_hi=hi, iters=PIECE_ITERS)
+        t_c, h, rho = (np.concatenate([x[~sel], y]) for x, y in ((t_c, tc), (h, hh), (rho, new)))
+        pieced = np.concatenate([pieced[~sel], np.ones(tc.size, bool)])
+        found = attain(t_c[np.argsort(rho)[:RAY_TIMES]], rho.min())
+        best = min(best, found, key=lambda x: x[0])
+        if rho.min() >= (1.0 - PIECE_GAP) * best[0]:
+            break
+    return t_c, h, rho, best
+
+
 def saturation_free_radius(
     ctrl,
     params,
@@ -321,6 +447,7 @@ def saturation_free_radius(
     iters: int = 24,
     n_directions: int = 64,
     seed: int = 0,
+    pieces: bool = True,
 ) -> SaturationFreeRadius:
     """Proved lower and attained upper bounds of the saturation-free radius (module docstring).
 
@@ -337,6 +464,8 @@ def saturation_free_radius(
       iters: bisection steps per box.
       n_directions: rays for the attained bound.
       seed: their seed.
+      pieces: on a 2-dimensional slice (the position slice), bound the boxes that limit the
+        radius again over :func:`disc_cover`'s pieces (False: over the whole disc only).
 
     Raises:
       ValueError: a static law, a gain schedule, limits of the wrong shape or not > 0.
@@ -354,28 +483,33 @@ def saturation_free_radius(
     if not np.any(np.isfinite(limit)):  # no limit at all: nothing can saturate
         return SaturationFreeRadius(np.inf, np.inf, None, None, 0)
     P = slice_basis(ctrl, basis)
-    Pn = _padded(P)
+    Pn, n = _padded(P), P.shape[0]
     _check_periodic(ctrl, params, t_final)
     turn = turns_alike(ctrl, params, t_final)
-    compile_programs(ctrl, turn, params, n_directions)
+    cover = disc_cover(n) if pieces and P.shape[1] == 2 else None
+    compile_programs(ctrl, turn, params, n_directions, () if cover is None else (cover,))
     lim = jnp.asarray(np.where(np.isfinite(limit), limit, np.finfo(float).max))
+    radii = functools.partial(_box_radii, ctrl, turn, params, Pn, lim, iters=iters)
     t_c = (np.arange(n_boxes) + 0.5) * (t_final / n_boxes)
     h = np.full(n_boxes, 0.5 * t_final / n_boxes)
-    rho = _box_radii(ctrl, turn, params, Pn, lim, t_c, h, rho_max, iters)
+    rho = radii(t_c, h, cover=whole_ball(n), rho_hi=rho_max)
     for _ in range(rounds):
         worst = rho <= np.quantile(rho, 0.125)
         tc2 = np.concatenate([t_c[worst] - 0.5 * h[worst], t_c[worst] + 0.5 * h[worst]])
         h2 = np.tile(0.5 * h[worst], 2)
-        rho2 = _box_radii(ctrl, turn, params, Pn, lim, tc2, h2, rho_max, iters)
+        rho2 = radii(tc2, h2, cover=whole_ball(n), rho_hi=rho_max)
         t_c, h, rho = (
             np.concatenate([t_c[~worst], tc2]),
             np.concatenate([h[~worst], h2]),
             np.concatenate([rho[~worst], rho2]),
         )
-    lower = float(rho.min())
-    order = np.argsort(rho)[:RAY_TIMES]
-    up, err, t_up = _attained(ctrl, params, P, lim, t_c[order], max(lower, 1e-9), n_directions, seed)
-    return SaturationFreeRadius(lower, up, err, t_up, int(t_c.size))
+    attain = lambda ts, lo: _attained(ctrl, params, P, lim, ts, max(lo, 1e-9), n_directions, seed)
+    best = (np.inf, None, None)
+    if cover is not None:
+        t_c, h, rho, best = _pieced(radii, attain, cover, t_c, h, rho, rho_max)
+    found = attain(t_c[np.argsort(rho)[:RAY_TIMES]], float(rho.min()))
+    up, err, t_up = min(best, found, key=lambda x: x[0])
+    return SaturationFreeRadius(float(rho.min()), up, err, t_up, int(t_c.size))
 
 
 def limit_usage(ctrl, params, limit, direction, t, rho):
