@@ -417,7 +417,8 @@ def _pieced(radii, attain, cover: Cover, t_c, h, rho, rho_hi: float):
     proof of its own), so it never falls. After each round ``attain(times, rho)`` (the attained
     bound at the smallest boxes' times, :func:`_attained`) bounds the radius from above; the
     rounds stop at :data:`PIECE_GAP` from the smallest such bound. Returns the boxes' centres,
-    half-widths and radii, and that bound ``(radius, error, time)``."""
+    half-widths and radii, and that bound ``(radius, error, time)`` (the last round's rays at the
+    final boxes included: :data:`PIECE_ROUNDS` >= 1)."""
     pieced, best = np.zeros(rho.size, bool), (np.inf, None, None)
     for _ in range(PIECE_ROUNDS):
         sel = np.zeros(rho.size, bool)
@@ -507,11 +508,10 @@ def saturation_free_radius(
             np.concatenate([rho[~worst], rho2]),
         )
     attain = lambda ts, lo: _attained(ctrl, params, P, lim, ts, max(lo, 1e-9), n_directions, seed)
-    best = (np.inf, None, None)
-    if cover is not None:
-        t_c, h, rho, best = _pieced(radii, attain, cover, t_c, h, rho, rho_max)
-    found = attain(t_c[np.argsort(rho)[:RAY_TIMES]], float(rho.min()))
-    up, err, t_up = min(best, found, key=lambda x: x[0])
+    if cover is not None:  # its last round tried the rays at the final boxes' worst times
+        t_c, _, rho, (up, err, t_up) = _pieced(radii, attain, cover, t_c, h, rho, rho_max)
+    else:
+        up, err, t_up = attain(t_c[np.argsort(rho)[:RAY_TIMES]], float(rho.min()))
     return SaturationFreeRadius(float(rho.min()), up, err, t_up, int(t_c.size))
 
 
