@@ -21,7 +21,8 @@ reference's branch, and the plant's command is the law's input there: a known fu
   :math:`\rho`: a box certified at :math:`\rho` is certified below it), and the boxes with the
   smallest radius are halved for a few rounds;
 * the radius is the minimum over the boxes: a **proved** lower bound. An **attained** upper
-  bound comes from point evaluations of :math:`u(t, s)` on rays at the worst boxes' centres.
+  bound comes from point evaluations of :math:`u(t, s)` on rays at t = 0 and at the worst
+  boxes' centres.
 
 The enclosure is first-order tight in :math:`\rho` and h; it loses where the command is
 strongly nonlinear over the ball (near the singular set, where :math:`\det K` is small), which
@@ -300,20 +301,23 @@ def _box_fits(ctrl, turn: bool, ball: bool, params, P, limit, cover, jc, jg, je,
 
 def _box_radii(ctrl, turn: bool, params, P, limit, t_c, h, *, rho_hi: float, iters: int, cover: Cover, rho_lo=None):
     """Bisection per box on rho in [rho_lo, rho_hi] (``rho_lo``, known to fit, default 0): the
-    largest rho whose box fits over every piece of ``cover`` (``rho_lo`` if none above it)."""
+    largest rho whose box fits over every piece of ``cover`` (``rho_lo`` if none above it). A box
+    that fits at ``rho_hi`` is done in one test; only the others are bisected (a box's result does
+    not depend on the boxes evaluated beside it)."""
     jets = fixed_blocks(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), (t_c, h), BOX_BLOCK)
     pieces = tuple(jnp.asarray(x) for x in cover[:3])
     program = lambda *a: _box_fits(ctrl, turn, cover.ball, params, P, limit, pieces, *a)
     block = BOX_BLOCK if cover.ball else PIECE_BLOCK
-    fits = lambda rho: np.asarray(fixed_blocks(program, (*jets, t_c, h, rho), block)[0], bool)
+    fits = lambda i, rho: np.asarray(fixed_blocks(program, (*(x[i] for x in jets), t_c[i], h[i], rho), block)[0], bool)
     lo = np.zeros_like(t_c) if rho_lo is None else np.asarray(rho_lo, float).copy()
-    hi = np.full_like(t_c, rho_hi)
-    top = fits(hi)
-    lo = np.where(top, hi, lo)
-    for _ in range(iters):
-        mid = 0.5 * (lo + hi)
-        ok = fits(mid)
-        lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
+    top = fits(np.arange(t_c.size), np.full_like(t_c, rho_hi))
+    rest = np.flatnonzero(~top)
+    lo_r, hi_r = lo[rest], np.full(rest.size, rho_hi)
+    for _ in range(iters if rest.size else 0):
+        mid = 0.5 * (lo_r + hi_r)
+        ok = fits(rest, mid)
+        lo_r, hi_r = np.where(ok, mid, lo_r), np.where(ok, hi_r, mid)
+    lo[rest] = lo_r
     return np.where(top, rho_hi, lo)
 
 
@@ -354,7 +358,7 @@ def _check_periodic(ctrl, params, t_final: float) -> None:
 RAY_RADII = 151
 """Radii per ray of the attained bound, from the proved radius to 4 times it."""
 RAY_TIMES = 16
-"""Times (the worst boxes' centres) at which the rays are tried."""
+"""Times at which the rays are tried: t = 0 and the worst boxes' centres (:func:`_worst_times`)."""
 
 
 def compile_programs(ctrl, turn: bool, params, n_directions: int, covers=()) -> None:
@@ -409,33 +413,43 @@ PIECE_GAP = 0.02
 """:func:`_pieced` stops once the proved radius is within this fraction of the attained one."""
 
 
-def _pieced(radii, attain, cover: Cover, t_c, h, rho, rho_hi: float):
+def _pieced(radii, attain, cover: Cover, t_c, h, rho, rho_hi: float, best):
     """The boxes that limit the radius bounded again over ``cover``'s pieces, the smallest first:
-    each round takes the :data:`PIECE_BLOCK` smallest; one not yet pieced is bounded over the
-    pieces, one already pieced is halved in time and its halves bounded over them. A box's radius
+    each round takes the :data:`PIECE_BLOCK` smallest below the target, :data:`PIECE_GAP` under
+    the smallest attained bound ``best`` ``(radius, error, time)``. One not yet pieced is bounded
+    over the pieces, one already pieced is halved in time and its halves bounded over them, each
+    tested first at half the gap under ``best`` and bisected below it only if it fails there. A box's radius
     starts from the one proved for it or for the box it was cut from (each bisection step is a
     proof of its own), so it never falls. After each round ``attain(times, rho)`` (the attained
-    bound at the smallest boxes' times, :func:`_attained`) bounds the radius from above; the
-    rounds stop at :data:`PIECE_GAP` from the smallest such bound. Returns the boxes' centres,
-    half-widths and radii, and that bound ``(radius, error, time)`` (the last round's rays at the
-    final boxes included: :data:`PIECE_ROUNDS` >= 1)."""
-    pieced, best = np.zeros(rho.size, bool), (np.inf, None, None)
+    bound at the smallest boxes' times, :func:`_attained`) may lower ``best``; the rounds stop
+    once every box reaches the target. Returns the boxes' centres, half-widths and radii, and the
+    smallest attained bound (rays tried at the final boxes: by the last round or, with none, by
+    the caller)."""
+    pieced = np.zeros(rho.size, bool)
     for _ in range(PIECE_ROUNDS):
+        target = min(rho_hi, (1.0 - PIECE_GAP) * best[0])
+        aim = min(rho_hi, (1.0 - 0.5 * PIECE_GAP) * best[0])  # above the target: one test usually lands it there
+        if rho.min() >= target:
+            break
+        order = np.argsort(rho, kind="stable")[:PIECE_BLOCK]
         sel = np.zeros(rho.size, bool)
-        sel[np.argsort(rho, kind="stable")[:PIECE_BLOCK]] = True
+        sel[order[rho[order] < target]] = True
         fresh, split = sel & ~pieced, sel & pieced
         tc = np.concatenate([t_c[fresh], t_c[split] - 0.5 * h[split], t_c[split] + 0.5 * h[split]])
         hh = np.concatenate([h[fresh], np.tile(0.5 * h[split], 2)])
         lo = np.concatenate([rho[fresh], np.tile(rho[split], 2)])
-        hi = max(min(rho_hi, best[0]), lo.max())
-        new = radii(tc, hh, cover=cover, rho_lo=lo, rho_hi=hi, iters=PIECE_ITERS)
+        new = radii(tc, hh, cover=cover, rho_lo=lo, rho_hi=aim, iters=PIECE_ITERS)
         t_c, h, rho = (np.concatenate([x[~sel], y]) for x, y in ((t_c, tc), (h, hh), (rho, new)))
         pieced = np.concatenate([pieced[~sel], np.ones(tc.size, bool)])
-        found = attain(t_c[np.argsort(rho)[:RAY_TIMES]], rho.min())
-        best = min(best, found, key=lambda x: x[0])
-        if rho.min() >= (1.0 - PIECE_GAP) * best[0]:
-            break
+        best = min(best, attain(_worst_times(t_c, rho), rho.min()), key=lambda x: x[0])
     return t_c, h, rho, best
+
+
+def _worst_times(t_c, rho):
+    """The times of the attained bound's rays: t = 0 (where the initial error is whole; on
+    ``steered_21``'s position slice the limit binds there first) and the centres of the
+    :data:`RAY_TIMES` - 1 boxes with the smallest radii."""
+    return np.concatenate([[0.0], t_c[np.argsort(rho, kind="stable")[: RAY_TIMES - 1]]])
 
 
 def saturation_free_radius(
@@ -508,10 +522,9 @@ def saturation_free_radius(
             np.concatenate([rho[~worst], rho2]),
         )
     attain = lambda ts, lo: _attained(ctrl, params, P, lim, ts, max(lo, 1e-9), n_directions, seed)
-    if cover is not None:  # its last round tried the rays at the final boxes' worst times
-        t_c, _, rho, (up, err, t_up) = _pieced(radii, attain, cover, t_c, h, rho, rho_max)
-    else:
-        up, err, t_up = attain(t_c[np.argsort(rho)[:RAY_TIMES]], float(rho.min()))
+    up, err, t_up = attain(_worst_times(t_c, rho), float(rho.min()))
+    if cover is not None:
+        t_c, _, rho, (up, err, t_up) = _pieced(radii, attain, cover, t_c, h, rho, rho_max, (up, err, t_up))
     return SaturationFreeRadius(float(rho.min()), up, err, t_up, int(t_c.size))
 
 
