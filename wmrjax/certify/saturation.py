@@ -408,7 +408,8 @@ def _attained(ctrl, params, P, limit, ts, rho_lo: float, n_dirs: int, seed: int)
 PIECE_ROUNDS = 24
 """Rounds of :func:`_pieced` at most, each over the :data:`PIECE_BLOCK` boxes with the smallest radii."""
 PIECE_ITERS = 16
-"""Bisection steps per box over the pieces (between the box's proved radius and the attained one)."""
+"""Bisection steps over the pieces for a box that fails its first test (between its proved
+radius and half of :data:`PIECE_GAP` under the attained one)."""
 PIECE_GAP = 0.02
 """:func:`_pieced` stops once the proved radius is within this fraction of the attained one."""
 
