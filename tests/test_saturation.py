@@ -17,6 +17,7 @@ import scipy.integrate
 import scipy.linalg
 
 import wmrjax.certify as C
+import wmrjax.references
 from tests.test_certify_real_loop import EPS, OMEGA, T_FINAL, _problem, _reference_jet, _saturated_loop
 from tests.test_scalarize import _all_prims
 from wmrjax.certify import affine, interval, saturation
@@ -359,6 +360,62 @@ def test_the_pieces_raise_the_position_slices_proved_radius_to_within_their_gap_
     forced = C.saturation_free_radius(setting.ctrl, params, LIMIT, t_final=T_FINAL, basis="position")
     assert whole.lower_bound < forced.lower_bound <= min(forced.upper_bound, whole.upper_bound)
     assert forced.lower_bound == pytest.approx(0.29989, rel=1e-4)  # measured 2026-12-07: 0.2998852 (whole: 0.2990139)
+
+
+def _sampled_circle(setting):
+    """The circle loop's params with its reference replaced by the quintic spline through the
+    circle sampled every 0.5 s from -0.25 s (12 knots inside the horizon; the spline is within
+    about 1e-6 m of the circle)."""
+    params = setting.params()
+    t = -0.25 + 0.5 * np.arange(15)
+    xy = np.stack([_reference_jet(tt)[:2] for tt in t])
+    return params._replace(reference=wmrjax.references.from_samples(t, xy))
+
+
+def test_a_sampled_paths_time_boxes_are_cut_at_its_knots_and_enclose_their_pieces():
+    """A box across a spline knot straddles two pieces (the hull of their coefficients: the
+    jet's remainder unbounded); the boxes are cut at the knots, each enclosing its own piece's
+    polynomial, which holds the reference's jet at every time of the box, the knots included."""
+    setting = _problem({"input_limit": LIMIT.tolist()}).setting("c")
+    ctrl, params = setting.ctrl, _sampled_circle(setting)
+    knots = np.asarray(params.reference.breakpoints())
+    t_c, h, breaks = saturation.time_boxes(params.reference, T_FINAL, 16)
+    edges = np.union1d(t_c - h, t_c + h)
+    inner = knots[(knots > 0) & (knots < T_FINAL)]
+    assert inner.size == 12 and np.all(np.abs(edges[:, None] - inner).min(axis=0) < 1e-12)
+    assert t_c.size == 16 + 12 - 4  # the knots at 0.75, 2.25, 3.75, 5.25 s fall on the equal boxes' edges
+    j = saturation.box_pieces(breaks, t_c, h)
+    assert np.all(knots[j] <= t_c - h + 1e-12) and np.all(t_c + h <= knots[j + 1] + 1e-12)
+    r = ctrl.relative_degree
+    c, g, e = (np.asarray(x) for x in saturation.box_jets(ctrl, params, breaks, t_c, h))
+    n = g.shape[-1] - 1  # the time symbol is the last
+    s = np.linspace(-1.0, 1.0, 41)
+    jets = jax.jit(jax.vmap(jax.vmap(lambda t: ctrl.reference_jet(t, params)[: r + 1])))
+    pts = np.asarray(jets(jnp.asarray(t_c[:, None] + s[None, :] * h[:, None])))  # (boxes, 41, r + 1, m)
+    slack = np.sum(np.abs(g[..., :n]), axis=-1) + e  # the time's own term kept exactly
+    lin = c[:, None] + g[:, None, ..., n] * s[None, :, None, None]
+    assert np.all(np.isfinite(e)) and np.all(np.abs(pts - lin) <= slack[:, None] + 1e-12)
+    with pytest.raises(RuntimeError, match="across a breakpoint"):
+        saturation.box_pieces(breaks, np.array([0.25]), np.array([0.1]))
+    # unpinned, a box of 0.2 s across the knot at 0.25 s: its remainder 1.03 (measured 2026-12-07)
+    # against at most 0.0044 in the pinned boxes of up to 0.375 s
+    across = np.asarray(saturation.jet_boxes(ctrl, params, jnp.array([0.25]), jnp.array([0.1]))[2])
+    assert not np.all(np.isfinite(across)) or across.max() > 100 * e.max()
+
+
+def test_a_sampled_circle_has_the_circles_saturation_free_radius():
+    """On the spline through the sampled circle (its knots on the 48 boxes' edges: the same
+    boxes, each pinned to its piece) the proof is about the circle's and below both loops'
+    attained bounds."""
+    setting = _problem({"input_limit": LIMIT.tolist()}).setting("c")
+    kw = dict(t_final=T_FINAL, basis="full", n_boxes=48, rounds=1, iters=14, n_directions=8, pieces=False)
+    circle = C.saturation_free_radius(setting.ctrl, setting.params(), LIMIT, **kw)
+    sampled = C.saturation_free_radius(setting.ctrl, _sampled_circle(setting), LIMIT, **kw)
+    assert 0.0 < circle.lower_bound <= circle.upper_bound
+    # measured 2026-12-07: 0.16589 sampled, 0.16405 the circle (the polynomial's enclosure a
+    # little narrower than the sine's); unpinned, boxes across knots straddle two pieces
+    assert sampled.lower_bound == pytest.approx(circle.lower_bound, rel=0.03)
+    assert sampled.lower_bound <= (1 + 1e-3) * min(sampled.upper_bound, circle.upper_bound)
 
 
 def test_saturation_free_radius_refuses_bad_input():

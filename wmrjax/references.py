@@ -114,6 +114,30 @@ class Reference:
         f = getattr(self.path, "domain", None)
         return None if f is None else f(self.params)
 
+    def breakpoints(self):
+        """Times [s] ((N,) array, increasing) between which the path is one analytic piece (a
+        sampled path's sample times: its spline's knots), or None for a path analytic at every
+        time. An enclosure over a time box across a breakpoint straddles two pieces; over a box
+        inside ``[b_j, b_{j + 1}]`` it can use :meth:`piece` ``(j)`` instead."""
+        f = getattr(self.path, "breakpoints", None)
+        return None if f is None else f(self.params)
+
+    def piece(self, j) -> "Reference":
+        """The path's piece on ``[b_j, b_{j + 1}]`` (:meth:`breakpoints`), continued analytically
+        to every time: equal to this reference on that interval (at ``b_{j + 1}`` too: the spline's
+        derivatives that a law uses are continuous at its knots), a polynomial in t outside it.
+
+        Args:
+          j: the piece's index, 0 <= j <= N - 2 (an integer array: traced and vmapped too).
+
+        Raises:
+          ValueError: a path without breakpoints.
+        """
+        f = getattr(self.path, "piece", None)
+        if f is None:
+            raise ValueError(f"the path {self.name!r} has no pieces (Reference.breakpoints() is None)")
+        return dataclasses.replace(self, params=f(self.params, j), path=_path_polynomial)
+
     def with_heading_offset(self, offset) -> "Reference":
         """The same path with another constant heading offset [rad] (a crab angle)."""
         return dataclasses.replace(self, heading_offset=_as_array(offset))
@@ -486,6 +510,33 @@ def _path_spline_uniform_extrapolated(t, params):
 
 # a sampled path is defined by its data on [first sample, last sample]
 _path_spline.domain = _path_spline_uniform.domain = lambda params: (params["t"][..., 0], params["t"][..., -1])
+
+
+def _path_polynomial(t, params):
+    """One piece of a sampled path, ``sum_i c[i] (t - t0)^i``, at every time (:meth:`Reference.piece`)."""
+    c = jnp.asarray(params["c"])
+    u = t - params["t0"]
+    v = c[-1]
+    for i in range(c.shape[-2] - 2, -1, -1):
+        v = v * u + c[i]
+    return v
+
+
+def _spline_piece(params, j):
+    """The params of :func:`_path_polynomial` for piece ``j`` of a sampled path (its Taylor
+    coefficients at ``t[j]``: the pieces' own)."""
+    ts, pp = jnp.asarray(params["t"]), jnp.asarray(params["pp"])
+    return dict(
+        c=jax.lax.dynamic_index_in_dim(pp, j, axis=0, keepdims=False),
+        t0=jax.lax.dynamic_index_in_dim(ts, j, keepdims=False),
+    )
+
+
+# a sampled path's pieces join at its samples; past its ends (extrapolated) it is the extension,
+# which no piece describes (an enclosure there is not pinned)
+for _f in (_path_spline, _path_spline_uniform, _path_spline_extrapolated, _path_spline_uniform_extrapolated):
+    _f.breakpoints, _f.piece = (lambda params: params["t"]), _spline_piece
+del _f
 
 _SPLINE_PATHS = {  # (uniform, extrapolate) -> path
     (False, False): _path_spline,

@@ -80,11 +80,13 @@ from wmrjax.certify.interval import Interval
 from wmrjax.certify.lemma2 import check_dynamic, m1_closed_form
 from wmrjax.certify.saturation import (
     BOX_BLOCK,
+    box_jets,
     jet_boxes,
     placed_command,
     preconditioned_solve,
     reference_heading,
     rotated,
+    time_boxes,
     turned,
 )
 from wmrjax.controllers import Space, Task, place
@@ -459,16 +461,18 @@ class _Tube:
         period = float(mismatch.period)
         if period > 0.0:  # one box per controller period, the last reaching past T
             n_boxes = int(np.ceil(t_final / period - 1e-9))
-            width = period
-        else:
-            width = t_final / n_boxes
-        self.t_c = (np.arange(n_boxes) + 0.5) * width
-        self.h = np.full(n_boxes, 0.5 * width)
-        # a period's box is a sampled path's piece: enclosed over its interior (the jet is
-        # continuous, so the closure of that enclosure holds the ends), where the outward-rounded
-        # ends would read two pieces
-        h_jet = self.h * (1 - JET_INSET) if period > 0.0 else self.h
-        self.jets = fixed_blocks(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), (self.t_c, h_jet), BOX_BLOCK)
+            self.t_c = (np.arange(n_boxes) + 0.5) * period
+            self.h = np.full(n_boxes, 0.5 * period)
+            # a period's box is a sampled path's piece: enclosed over its interior (the jet is
+            # continuous, so the closure of that enclosure holds the ends), where the outward-rounded
+            # ends would read two pieces
+            self.jets = fixed_blocks(
+                lambda tc, hh: jet_boxes(ctrl, params, tc, hh), (self.t_c, self.h * (1 - JET_INSET)), BOX_BLOCK
+            )
+        else:  # cut at a sampled path's knots, each box's jet its own piece's (saturation.time_boxes)
+            self.t_c, self.h, breaks = time_boxes(params.reference, t_final, n_boxes)
+            self.jets = box_jets(ctrl, params, breaks, self.t_c, self.h)
+            n_boxes = self.t_c.size
         lim = np.asarray(mismatch.input_limit, float)
         lim = jnp.asarray(np.where(np.isfinite(lim), lim, np.finfo(float).max))
         ends = [np.append(np.asarray(mismatch.input_scale[k], float), mismatch.geometry_scale[k]) for k in (0, 1)]

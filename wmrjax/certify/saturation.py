@@ -13,7 +13,8 @@ reference's branch, and the plant's command is the law's input there: a known fu
 * [0, T] is covered by time boxes :math:`[t_c - h, t_c + h]`; in a box, :math:`t = t_c + h\tau`
   with :math:`\tau \in [-1, 1]` a symbol of an affine evaluation
   (:mod:`wmrjax.certify.affine`) of the reference's jet, and :math:`s = \rho\,\varepsilon`
-  with :math:`\varepsilon` in the unit ball;
+  with :math:`\varepsilon` in the unit ball; a sampled path's boxes are cut at its knots and
+  each encloses its own piece's polynomial (:func:`time_boxes`, :func:`jet_boxes`);
 * :math:`e^{At} = e^{At_c} e^{A h\tau}`, so :math:`\tilde\zeta = e^{At_c}P s` plus at most
   :math:`\|e^{At_c}\|_{row\,i}(e^{\|A\| h} - 1)\rho` per entry (an error term);
 * the command's affine enclosure over the box and the ball must lie within the limits; the
@@ -143,19 +144,70 @@ def _padded(P):
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def jet_boxes(ctrl, params, t_c, h):
-    """The reference jet ((r + 1, m)) over each time box, affine in the time symbol (the last of
-    n + 1 symbols: the n ball symbols of :func:`_box_fits` come first)."""
+def jet_boxes(ctrl, params, t_c, h, piece=None):
+    """The reference jet ((r + 1, m)) over each time box ``[t_c - h, t_c + h]``, affine in the
+    time symbol (the last of n + 1 symbols: the n ball symbols of :func:`_box_fits` come first).
+
+    ``piece`` ((B,) int, or None): each box's piece of a reference with breakpoints, whose own
+    polynomial is enclosed (:meth:`wmrjax.references.Reference.piece`): sound only for a box
+    inside its piece's interval (:func:`time_boxes` cuts them so). Across a knot the reference
+    itself straddles two pieces, and the hull of their coefficients and start times, correlated
+    in the jet, made its remainder unbounded (the car's 15 knots: a saturation-free radius 0)."""
     r, n = ctrl.relative_degree, ctrl.relative_degree * ctrl.m
 
-    def one(tc, hh):
+    def one(tc, hh, j):
         t = affine.symbols(tc, jnp.zeros(n + 1).at[n].set(hh))
+        p = params if j is None else params._replace(reference=params.reference.piece(j))
         # angles modulo 2 pi (a heading across +-pi stays one interval): the command is periodic
         # in them (checked by _check_periodic)
-        jet = lambda tt: ctrl.reference_jet(tt, params)[: r + 1]
+        jet = lambda tt: ctrl.reference_jet(tt, p)[: r + 1]
         return tuple(affine.enclose(jet, t, n_ball=n, angles_mod_2pi=True)[0])
 
-    return jax.vmap(one)(t_c, h)
+    return jax.vmap(one)(t_c, h, piece)
+
+
+def time_boxes(ref, t_final: float, n_boxes: int):
+    """``(t_c, h, breaks)``: ``n_boxes`` equal time boxes of ``[0, t_final]`` [s] (centres, half
+    widths), each cut at the reference's breakpoints inside it, and those breakpoints (None: a
+    reference without them, or a horizon past them, an extrapolated path's ends: its boxes are not
+    pinned to pieces)."""
+    edges = np.linspace(0.0, t_final, n_boxes + 1)
+    breaks = ref.breakpoints()
+    if breaks is not None:
+        breaks = np.asarray(breaks, float)
+        if breaks.ndim != 1 or breaks[0] > 0.0 or breaks[-1] < t_final:
+            breaks = None
+    if breaks is not None:
+        inner = breaks[(breaks > 0.0) & (breaks < t_final)]
+        near = np.abs(edges[:, None] - inner[None, :]).min(axis=1, initial=np.inf) < PIECE_SLACK * t_final
+        edges = np.union1d(edges[~near | (edges == 0.0) | (edges == t_final)], inner)  # no sliver boxes
+    return 0.5 * (edges[1:] + edges[:-1]), 0.5 * np.diff(edges), breaks
+
+
+# a box may pass its piece's ends by this much (relative to the horizon): the rounding of its centre
+# and half width; the times there are another piece's, each covered by that piece's box too
+PIECE_SLACK = 1e-12
+
+
+def box_pieces(breaks, t_c, h):
+    """Each box's piece (the one holding its centre), or None without ``breaks``; a RuntimeError
+    where a box is not inside its piece (the boxes must come from :func:`time_boxes` and halving)."""
+    if breaks is None:
+        return None
+    j = np.clip(np.searchsorted(breaks, t_c, side="right") - 1, 0, breaks.size - 2)
+    slack = PIECE_SLACK * max(1.0, float(breaks[-1] - breaks[0]))
+    if np.any(t_c - h < breaks[j] - slack) or np.any(t_c + h > breaks[j + 1] + slack):
+        raise RuntimeError("a time box lies across a breakpoint of the reference: its piece is not one")
+    return j
+
+
+def box_jets(ctrl, params, breaks, t_c, h) -> tuple:
+    """:func:`jet_boxes` over the boxes ``t_c`` +- ``h`` in blocks of :data:`BOX_BLOCK` (NumPy
+    arrays), each pinned to its piece (:func:`box_pieces`) where ``breaks`` is not None."""
+    j = box_pieces(breaks, t_c, h)
+    if j is None:
+        return fixed_blocks(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), (t_c, h), BOX_BLOCK)
+    return fixed_blocks(lambda tc, hh, jj: jet_boxes(ctrl, params, tc, hh, jj), (t_c, h, j), BOX_BLOCK)
 
 
 def turned(a, phi):
@@ -299,12 +351,15 @@ def _box_fits(ctrl, turn: bool, ball: bool, params, P, limit, cover, jc, jg, je,
     return (jax.vmap(one)(affine.Affine(jc, jg, je), t_c, growth, rho),)
 
 
-def _box_radii(ctrl, turn: bool, params, P, limit, t_c, h, *, rho_hi: float, iters: int, cover: Cover, rho_lo=None):
+def _box_radii(
+    ctrl, turn: bool, params, P, limit, breaks, t_c, h, *, rho_hi: float, iters: int, cover: Cover, rho_lo=None
+):
     """Bisection per box on rho in [rho_lo, rho_hi] (``rho_lo``, known to fit, default 0): the
     largest rho whose box fits over every piece of ``cover`` (``rho_lo`` if none above it). A box
     that fits at ``rho_hi`` is done in one test; only the others are bisected (a box's result does
-    not depend on the boxes evaluated beside it)."""
-    jets = fixed_blocks(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), (t_c, h), BOX_BLOCK)
+    not depend on the boxes evaluated beside it). ``breaks``: the reference's, as :func:`time_boxes`
+    gives them (the boxes' jets are their pieces')."""
+    jets = box_jets(ctrl, params, breaks, t_c, h)
     pieces = tuple(jnp.asarray(x) for x in cover[:3])
     program = lambda *a: _box_fits(ctrl, turn, cover.ball, params, P, limit, pieces, *a)
     block = BOX_BLOCK if cover.ball else PIECE_BLOCK
@@ -361,23 +416,25 @@ RAY_TIMES = 16
 """Times at which the rays are tried: t = 0 and the worst boxes' centres (:func:`_worst_times`)."""
 
 
-def compile_programs(ctrl, turn: bool, params, n_directions: int, covers=()) -> None:
+def compile_programs(ctrl, turn: bool, params, n_directions: int, covers=(), pinned: bool = False) -> None:
     """Compile the programs of :func:`saturation_free_radius` at once, each on a thread of its own
-    (XLA compiles them in parallel; the search then finds them compiled): the reference's boxes,
-    the fit over the whole ball and over each of ``covers`` (:class:`Cover`), and the rays."""
+    (XLA compiles them in parallel; the search then finds them compiled): the reference's boxes
+    (``pinned``: each to its piece, :func:`jet_boxes`), the fit over the whole ball and over each
+    of ``covers`` (:class:`Cover`), and the rays."""
     n, f = ctrl.relative_degree * ctrl.m, jnp.float64
     P, lim = jnp.zeros((n, n), f), jnp.zeros(ctrl.robot.n_input, f)
+    piece = lambda block: jnp.zeros(block, jnp.result_type(int)) if pinned else None
 
     def fit_job(cover: Cover, block: int):
         blk = jnp.zeros(block, f)
-        jets = jax.eval_shape(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), blk, blk)
+        jets = jax.eval_shape(lambda tc, hh: jet_boxes(ctrl, params, tc, hh, piece(block)), blk, blk)
         jets = [jnp.zeros(x.shape, x.dtype) for x in jets]
         pieces = tuple(jnp.asarray(x) for x in cover[:3])
         return lambda: _box_fits.lower(ctrl, turn, cover.ball, params, P, lim, pieces, *jets, blk, blk, blk).compile()
 
     blk = jnp.zeros(BOX_BLOCK, f)
     jobs = [
-        lambda: jet_boxes.lower(ctrl, params, blk, blk).compile(),
+        lambda: jet_boxes.lower(ctrl, params, blk, blk, piece(BOX_BLOCK)).compile(),
         fit_job(whole_ball(n), BOX_BLOCK),
         *[fit_job(c, PIECE_BLOCK) for c in covers],
         lambda: _ray_commands.lower(
@@ -389,20 +446,26 @@ def compile_programs(ctrl, turn: bool, params, n_directions: int, covers=()) -> 
             fut.result()
 
 
-def _attained(ctrl, params, P, limit, ts, rho_lo: float, n_dirs: int, seed: int):
-    """Smallest radius on a grid of rays (at the given times) whose command exceeds a limit."""
+def _attained(ctrl, params, P, limit, ts, rho_lo: float, rho_hi: float, n_dirs: int, seed: int):
+    """Smallest radius on a grid of rays (at the given times) whose command exceeds a limit: on
+    ``[rho_lo, 4 rho_lo]``, then, where none does there, on a geometric grid up to ``rho_hi`` (a
+    proof far below the attained radius: the car's full slice, 0.029 where no ray saturated
+    below 0.12)."""
     k = P.shape[1]
     d = np.random.default_rng(seed).normal(size=(n_dirs, k))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     d = np.concatenate([d, np.zeros((n_dirs, P.shape[0] - k))], axis=1)  # on the padded basis
     P = _padded(P)
-    radii = rho_lo * np.linspace(1.0, 4.0, RAY_RADII)
-    u = np.asarray(_ray_commands(ctrl, params, P, jnp.asarray(ts), jnp.asarray(d), jnp.asarray(radii)))
-    over = np.any(np.abs(u) > np.asarray(limit), axis=-1) | ~np.all(np.isfinite(u), axis=-1)
-    if not over.any():
-        return np.inf, None, None
-    it, id_, ir = np.unravel_index(np.argmin(np.where(over, radii[None, None, :], np.inf)), over.shape)
-    return float(radii[ir]), np.asarray(P) @ (radii[ir] * d[id_]), float(ts[it])
+    grids = [rho_lo * np.linspace(1.0, 4.0, RAY_RADII)]
+    if rho_hi > 4.0 * rho_lo:
+        grids.append(np.geomspace(4.0 * rho_lo, rho_hi, RAY_RADII + 1)[1:])
+    for radii in grids:  # one compiled program: RAY_RADII radii each
+        u = np.asarray(_ray_commands(ctrl, params, P, jnp.asarray(ts), jnp.asarray(d), jnp.asarray(radii)))
+        over = np.any(np.abs(u) > np.asarray(limit), axis=-1) | ~np.all(np.isfinite(u), axis=-1)
+        if over.any():
+            it, id_, ir = np.unravel_index(np.argmin(np.where(over, radii[None, None, :], np.inf)), over.shape)
+            return float(radii[ir]), np.asarray(P) @ (radii[ir] * d[id_]), float(ts[it])
+    return np.inf, None, None
 
 
 PIECE_ROUNDS = 24
@@ -506,11 +569,10 @@ def saturation_free_radius(
     _check_periodic(ctrl, params, t_final)
     turn = turns_alike(ctrl, params, t_final)
     cover = disc_cover(n) if pieces and P.shape[1] == 2 else None
-    compile_programs(ctrl, turn, params, n_directions, () if cover is None else (cover,))
+    t_c, h, breaks = time_boxes(params.reference, t_final, n_boxes)
+    compile_programs(ctrl, turn, params, n_directions, () if cover is None else (cover,), pinned=breaks is not None)
     lim = jnp.asarray(np.where(np.isfinite(limit), limit, np.finfo(float).max))
-    radii = functools.partial(_box_radii, ctrl, turn, params, Pn, lim, iters=iters)
-    t_c = (np.arange(n_boxes) + 0.5) * (t_final / n_boxes)
-    h = np.full(n_boxes, 0.5 * t_final / n_boxes)
+    radii = functools.partial(_box_radii, ctrl, turn, params, Pn, lim, breaks, iters=iters)
     rho = radii(t_c, h, cover=whole_ball(n), rho_hi=rho_max)
     for _ in range(rounds):
         worst = rho <= np.quantile(rho, 0.125)
@@ -522,7 +584,7 @@ def saturation_free_radius(
             np.concatenate([h[~worst], h2]),
             np.concatenate([rho[~worst], rho2]),
         )
-    attain = lambda ts, lo: _attained(ctrl, params, P, lim, ts, max(lo, 1e-9), n_directions, seed)
+    attain = lambda ts, lo: _attained(ctrl, params, P, lim, ts, max(lo, 1e-9), rho_max, n_directions, seed)
     up, err, t_up = attain(_worst_times(t_c, rho), float(rho.min()))
     if cover is not None:
         t_c, _, rho, (up, err, t_up) = _pieced(radii, attain, cover, t_c, h, rho, rho_max, (up, err, t_up))
