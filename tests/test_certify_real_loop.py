@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import json
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.integrate
@@ -19,6 +21,7 @@ import scipy.linalg
 from circle_loop import circle_problem
 
 import wmrjax.certify as C
+import wmrjax.references
 
 EPS = 0.01
 T_FINAL = 6.0
@@ -72,6 +75,26 @@ def test_exact_map_lower_bound_is_never_undercut_and_the_radius_is_attained(nomi
         # the worst error just outside the attained radius comes within eps (near its time)
         near = np.linspace(max(0.0, float(em.argmin) - 0.05), min(T_FINAL, float(em.argmin) + 0.05), 401)
         assert _min_velocity(setting, params, 1.001 * np.asarray(em.worst_error), near)[0] < EPS
+
+
+def test_the_reference_acceleration_bound_holds_everywhere_and_is_tight(nominal):
+    """The exact map's G (accel_bound) against the circle's closed form: the output point is the
+    centre (e = 0), zeta = (p, p'), so ||zeta''|| = R omega^2 sqrt(1 + omega^2) at every t; on the
+    spline through the circle sampled every 0.5 s (boxes cut at the knots), against 20001 sampled
+    times. Before 2026-12-07 G was twice a 4001-point grid's maximum (an estimate)."""
+    setting, params, _ = nominal
+    exact = RADIUS * OMEGA**2 * np.sqrt(1.0 + OMEGA**2)
+    g = C.exact_map.accel_bound(setting.ctrl, params, T_FINAL)
+    assert exact <= g <= 1.01 * exact  # measured 2026-12-07: 0.55943 against 0.55902
+    t = -0.25 + 0.5 * np.arange(15)
+    ref = wmrjax.references.from_samples(t, np.stack([_reference_jet(tt)[:2] for tt in t]))
+    sampled = params._replace(reference=ref)
+    r = setting.ctrl.relative_degree
+    zeta = lambda tt: setting.ctrl.reference_jet(tt, sampled)[:r].reshape(-1)
+    acc = jax.jit(jax.vmap(lambda tt: jnp.linalg.norm(jax.jacfwd(jax.jacfwd(zeta))(tt))))
+    top = float(np.max(acc(jnp.linspace(0.0, T_FINAL, 20001))))
+    g_s = C.exact_map.accel_bound(setting.ctrl, sampled, T_FINAL)
+    assert top <= g_s <= 1.05 * top and top == pytest.approx(exact, rel=1e-3)
 
 
 def test_without_a_plant_the_problem_certificate_is_the_exact_maps_proved_bound(nominal):

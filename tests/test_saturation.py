@@ -379,12 +379,12 @@ def test_a_sampled_paths_time_boxes_are_cut_at_its_knots_and_enclose_their_piece
     setting = _problem({"input_limit": LIMIT.tolist()}).setting("c")
     ctrl, params = setting.ctrl, _sampled_circle(setting)
     knots = np.asarray(params.reference.breakpoints())
-    t_c, h, breaks = saturation.time_boxes(params.reference, T_FINAL, 16)
+    t_c, h, breaks = wmrjax.references.time_boxes(params.reference, T_FINAL, 16)
     edges = np.union1d(t_c - h, t_c + h)
     inner = knots[(knots > 0) & (knots < T_FINAL)]
     assert inner.size == 12 and np.all(np.abs(edges[:, None] - inner).min(axis=0) < 1e-12)
     assert t_c.size == 16 + 12 - 4  # the knots at 0.75, 2.25, 3.75, 5.25 s fall on the equal boxes' edges
-    j = saturation.box_pieces(breaks, t_c, h)
+    j = wmrjax.references.box_pieces(breaks, t_c, h)
     assert np.all(knots[j] <= t_c - h + 1e-12) and np.all(t_c + h <= knots[j + 1] + 1e-12)
     r = ctrl.relative_degree
     c, g, e = (np.asarray(x) for x in saturation.box_jets(ctrl, params, breaks, t_c, h))
@@ -396,7 +396,7 @@ def test_a_sampled_paths_time_boxes_are_cut_at_its_knots_and_enclose_their_piece
     lin = c[:, None] + g[:, None, ..., n] * s[None, :, None, None]
     assert np.all(np.isfinite(e)) and np.all(np.abs(pts - lin) <= slack[:, None] + 1e-12)
     with pytest.raises(RuntimeError, match="across a breakpoint"):
-        saturation.box_pieces(breaks, np.array([0.25]), np.array([0.1]))
+        wmrjax.references.box_pieces(breaks, np.array([0.25]), np.array([0.1]))
     # unpinned, a box of 0.2 s across the knot at 0.25 s: its remainder 1.03 (measured 2026-12-07)
     # against at most 0.0044 in the pinned boxes of up to 0.375 s
     across = np.asarray(saturation.jet_boxes(ctrl, params, jnp.array([0.25]), jnp.array([0.1]))[2])

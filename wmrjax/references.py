@@ -544,6 +544,66 @@ _SPLINE_PATHS = {  # (uniform, extrapolate) -> path
     (False, True): _path_spline_extrapolated,
     (True, True): _path_spline_uniform_extrapolated,
 }
+
+
+def time_boxes(ref: Reference, t_final: float, n_boxes: int):
+    """Time boxes of ``[0, t_final]`` for an enclosure of the reference over time: ``n_boxes``
+    equal ones, each cut at the reference's breakpoints inside it (:meth:`Reference.breakpoints`),
+    so that every box lies in one piece (:func:`box_pieces`).
+
+    Args:
+      ref: the reference (unbatched).
+      t_final: the horizon [s].
+      n_boxes: equal boxes before the cut.
+
+    Returns:
+      ``(t_c, h, breaks)``: the boxes' centres and half-widths [s] ((B,) each) and the
+      breakpoints ((N,), or None: a reference without them, or a horizon past them (an
+      extrapolated path's ends), whose boxes are not cut).
+    """
+    edges = np.linspace(0.0, t_final, n_boxes + 1)
+    breaks = ref.breakpoints()
+    if breaks is not None:
+        breaks = np.asarray(breaks, float)
+        if breaks.ndim != 1 or breaks[0] > 0.0 or breaks[-1] < t_final:
+            breaks = None
+    if breaks is not None:
+        inner = breaks[(breaks > 0.0) & (breaks < t_final)]
+        near = np.abs(edges[:, None] - inner[None, :]).min(axis=1, initial=np.inf) < PIECE_SLACK * t_final
+        edges = np.union1d(edges[~near | (edges == 0.0) | (edges == t_final)], inner)  # no sliver boxes
+    return 0.5 * (edges[1:] + edges[:-1]), 0.5 * np.diff(edges), breaks
+
+
+# a box may pass its piece's ends by this much (relative to the horizon): the rounding of its centre
+# and half width; the times there are another piece's, each covered by that piece's box too
+PIECE_SLACK = 1e-12
+
+
+def box_pieces(breaks, t_c, h):
+    """Each time box's piece: the index j with the box inside ``[breaks[j], breaks[j + 1]]``, for
+    :meth:`Reference.piece`.
+
+    Args:
+      breaks: (N,) the reference's breakpoints (:func:`time_boxes`), or None.
+      t_c: (B,) the boxes' centres [s].
+      h: (B,) their half-widths [s].
+
+    Returns:
+      (B,) integer indices, or None without ``breaks``.
+
+    Raises:
+      RuntimeError: a box across a breakpoint (boxes must come from :func:`time_boxes`, or from
+        halving its boxes): an internal error.
+    """
+    if breaks is None:
+        return None
+    j = np.clip(np.searchsorted(breaks, t_c, side="right") - 1, 0, breaks.size - 2)
+    slack = PIECE_SLACK * max(1.0, float(breaks[-1] - breaks[0]))
+    if np.any(t_c - h < breaks[j] - slack) or np.any(t_c + h > breaks[j + 1] + slack):
+        raise RuntimeError("a time box lies across a breakpoint of the reference: its piece is not one")
+    return j
+
+
 # samples count as uniform when each lies within this fraction of a step of its place on the grid
 UNIFORM_TOLERANCE = 0.25
 

@@ -86,11 +86,11 @@ from wmrjax.certify.saturation import (
     preconditioned_solve,
     reference_heading,
     rotated,
-    time_boxes,
     turned,
 )
 from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.law import Level
+from wmrjax.references import time_boxes
 from wmrjax.robots import Geometry
 from wmrjax.simulate import fixed_blocks
 
@@ -469,7 +469,7 @@ class _Tube:
             self.jets = fixed_blocks(
                 lambda tc, hh: jet_boxes(ctrl, params, tc, hh), (self.t_c, self.h * (1 - JET_INSET)), BOX_BLOCK
             )
-        else:  # cut at a sampled path's knots, each box's jet its own piece's (saturation.time_boxes)
+        else:  # cut at a sampled path's knots, each box's jet its own piece's (wmrjax.references.time_boxes)
             self.t_c, self.h, breaks = time_boxes(params.reference, t_final, n_boxes)
             self.jets = box_jets(ctrl, params, breaks, self.t_c, self.h)
             n_boxes = self.t_c.size

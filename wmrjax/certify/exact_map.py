@@ -24,6 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from wmrjax import _math, linearize
+from wmrjax.certify import interval
+from wmrjax.certify.interval import Interval
 from wmrjax.certify.lemma2 import (
     TRANSITION_STEP,
     check_dynamic,
@@ -33,7 +35,7 @@ from wmrjax.certify.lemma2 import (
     transition_steps,
 )
 from wmrjax.controllers.dynamic import DynamicLinearization, DynamicParams
-from wmrjax.references import taylor
+from wmrjax.references import PIECE_SLACK, box_pieces, taylor, time_boxes
 from wmrjax.simulate import fixed_blocks
 
 
@@ -254,8 +256,7 @@ def linear_lower_bound(
     :math:`t_c`, and :func:`min_norm_to_ball` with the inflated margin bounds its norm from
     below. Boxes whose bound is below :math:`(1 - \mathrm{rtol})\bar\rho` are halved, for at
     most ``max_rounds`` rounds (reaching it leaves a wider, still valid, bound). G bounds
-    :math:`\|C\ddot\zeta_{ref}\|`: twice its maximum on a 4001-point grid, the one assumption
-    (as in :func:`curved_exact_map_radius`; it enters through the :math:`h^2` term only).
+    :math:`\|C\ddot\zeta_{ref}\|` over [0, T] (:func:`accel_bound`: proved, by intervals).
 
     Returns:
       ``min(rho_up, min over boxes)``: every initial error of the slice below it keeps
@@ -265,9 +266,7 @@ def linear_lower_bound(
         return rho_up
     rho = jnp.asarray(rho_up)
     program = lambda G: lambda tc, hh: _linear_boxes(ctrl, params, P, C, eps_a, rho, G, tc, hh)
-    # G from the boxes' own program, at zero width: its second output is ||C zeta_ref''|| there
-    tg = np.linspace(0.0, t_final, ACCEL_GRID)
-    G = jnp.asarray(2.0 * float(fixed_blocks(program(jnp.asarray(0.0)), (tg, np.zeros_like(tg)), BOX_BLOCK)[1].max()))
+    G = jnp.asarray(accel_bound(ctrl, params, t_final, C))
     h = np.full(n_t, 0.5 * t_final / n_t)
     t_c = (np.arange(n_t) + 0.5) * (t_final / n_t)
     closed = rho_up
@@ -284,9 +283,9 @@ def linear_lower_bound(
 
 @functools.partial(jax.jit, static_argnums=0)
 def _linear_boxes(ctrl, params, P, C, eps, rho_up, G, t_c, h):
-    r""":func:`linear_lower_bound`'s bound per time box (centre ``t_c``, half-width ``h``), and
-    :math:`\|C\ddot\zeta_{ref}(t_c)\|` (one Taylor expansion of the reference's outputs gives
-    :math:`\zeta_{ref}` and its two derivatives: no nested autodiff to compile)."""
+    r""":func:`linear_lower_bound`'s bound per time box (centre ``t_c``, half-width ``h``), as a
+    1-tuple (one Taylor expansion of the reference's outputs gives :math:`\zeta_{ref}` and its
+    derivative: no nested autodiff to compile)."""
     A = ctrl.error_matrix(params.gains)
     nA = _math.spectral_norm(A)
     r = ctrl.relative_degree
@@ -294,13 +293,13 @@ def _linear_boxes(ctrl, params, P, C, eps, rho_up, G, t_c, h):
     outputs = lambda s: ctrl.row.extension.outputs(ref.posture(s), g)
 
     def one(tc, hh):
-        jet = taylor(outputs, tc, r + 2)
-        z0, z1, z2 = (C @ jet[k : k + r].reshape(-1) for k in range(3))
+        jet = taylor(outputs, tc, r)
+        z0, z1 = (C @ jet[k : k + r].reshape(-1) for k in range(2))
         CE = C @ _math.expm_small(A * tc)
         move = hh * jnp.linalg.norm(z1) + 0.5 * hh**2 * G + _math.spectral_norm(CE) * jnp.expm1(nA * hh) * rho_up
-        return min_norm_to_ball(CE @ P, z0, eps + move)[0], jnp.linalg.norm(z2)
+        return min_norm_to_ball(CE @ P, z0, eps + move)[0]
 
-    return jax.vmap(one)(t_c, h)
+    return (jax.vmap(one)(t_c, h),)
 
 
 def _ball_problem(ctrl, params, P, C, t, Phi=None, n_phi=None):
@@ -440,7 +439,7 @@ def _split_in_four(t_lo, t_hi, p_lo, p_hi):
     )
 
 
-# points of the grid on which the reference's acceleration is maximised (G, the bound on it, is twice that maximum)
+# points of the grid on which the reference's m1 is checked (Lemma 2's arguments)
 ACCEL_GRID = 4001
 # Boxes are evaluated in blocks of this many, the last one padded: the branch and bound's rounds
 # have a different number of boxes each (236 to 16 652 on the figure-eight), and one program per
@@ -482,8 +481,7 @@ def curved_exact_map_radius(
     + \|e^{At_c}\|(e^{\|A\|h_t} - 1)\bar\rho`. So the problem at the centre with eps inflated
     by those terms bounds the whole box from below. Boxes whose bound reaches
     :math:`(1 - \mathrm{rtol})\bar\rho` are closed; the others are split in four. G bounds
-    :math:`\|\ddot\zeta_{ref}\|` on [0, T]: twice its maximum on a 4001-point grid (the one
-    assumption the bound rests on; it enters only through the :math:`h_t^2` term).
+    :math:`\|\ddot\zeta_{ref}\|` over [0, T] (:func:`accel_bound`: proved, by intervals).
 
     Args:
       ctrl: a (1,2) closed loop (any level).
@@ -510,7 +508,7 @@ def curved_exact_map_radius(
     tg = jnp.linspace(0.0, t_final, ACCEL_GRID)
     m1 = m1_closed_form(ctrl, params, tg)
     check_lemma2_args(t_final=t_final, eps=eps, m1=m1)
-    G = 2.0 * float(jnp.max(_zeta_ref_accel(ctrl, params, tg)))
+    G = accel_bound(ctrl, params, t_final)
     t_c, theta_c, ub0, found = _first_upper_bound(ctrl, params, P, eps_a, t_final, n_t, phi_width)
     if not np.isfinite(found[0]):
         raise ValueError("no initial error in this slice brings zeta within eps of the singular set over the horizon")
@@ -603,13 +601,61 @@ def _linear_m1(ctrl, params, C, ts):
     return jax.vmap(lambda t: jnp.linalg.norm(C @ ctrl.reference_jet(t, params)[:r].reshape(-1)))(ts)
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _zeta_ref_accel(ctrl, params, ts):
-    """||d^2 zeta_ref / dt^2|| on a grid (the reference's output jet differentiated twice)."""
+ACCEL_BOXES = 2048
+"""Equal time boxes over which :func:`accel_bound` encloses the reference's output acceleration
+(before the cut at a sampled path's knots)."""
+
+
+def accel_bound(ctrl, params, t_final: float, C=None) -> float:
+    r"""A proved bound G of :math:`\|C\ddot\zeta_{ref}(t)\|` at every t of [0, T] (the exact map's
+    lower bounds use it in the :math:`h^2` term of a time box's move).
+
+    The reference's output jet up to order r + 1 is enclosed in interval arithmetic
+    (:func:`wmrjax.certify.interval.enclose`, outward rounding) over :data:`ACCEL_BOXES` time
+    boxes cut at a sampled path's knots, each box its own piece's polynomial
+    (:func:`wmrjax.references.time_boxes`); G is the largest box's bound of the norm, rounded up.
+    Until 2026-12-07 G was twice the maximum on a 4001-point grid: an estimate, not a bound.
+
+    Args:
+      ctrl: the dynamic law.
+      params: its parameters.
+      t_final: the horizon T [s].
+      C: (k, r m) rows applied to :math:`\ddot\zeta_{ref}` (flat, rows of derivative order), or
+        None (the identity).
+
+    Returns:
+      G (inf where an enclosure is unbounded: the lower bound is then 0).
+    """
+    n = ctrl.relative_degree * ctrl.m
+    C = jnp.eye(n) if C is None else jnp.asarray(C)
+    t_c, h, breaks = time_boxes(params.reference, t_final, ACCEL_BOXES)
+    j = box_pieces(breaks, t_c, h)
+    # boxes widened by the rounding of their ends: adjacent ones overlap, so their union holds [0, T]
+    slack = PIECE_SLACK * max(1.0, t_final)
+    lo, hi = t_c - h - slack, t_c + h + slack
+    if j is None:
+        out = fixed_blocks(lambda a, b: _accel_boxes(ctrl, params, C, a, b), (lo, hi), BOX_BLOCK)
+    else:
+        out = fixed_blocks(lambda a, b, jj: _accel_boxes(ctrl, params, C, a, b, jj), (lo, hi, j), BOX_BLOCK)
+    g = float(np.max(out[0]))
+    return g * (1.0 + 1e-12) if np.isfinite(g) else np.inf
+
+
+def _accel_boxes(ctrl, params, C, lo, hi, piece=None):
+    """Per time box [lo, hi]: an upper bound of ||C zeta_ref''|| over it (interval enclosure), as a
+    1-tuple. Run eagerly, not compiled: the enclosure of the car's order-4 jet did not compile in
+    20 minutes (2026-12-07), and op by op over a block of boxes it takes seconds."""
     r = ctrl.relative_degree
-    zeta = lambda t: ctrl.reference_jet(t, params)[:r].reshape(-1)
-    acc = jax.vmap(lambda t: jax.jacfwd(jax.jacfwd(zeta))(t))(ts)
-    return jnp.linalg.norm(acc, axis=1)
+
+    def one(a, b, j):
+        p = params if j is None else params._replace(reference=params.reference.piece(j))
+        outputs = lambda s: ctrl.row.extension.outputs(p.reference.posture(s), p.geometry)  # reference_jet's
+        accel = lambda t: C @ taylor(outputs, t, r + 1)[2 : r + 2].reshape(-1)
+        box = interval.enclose(accel, Interval(a, b))
+        mag = jnp.maximum(jnp.abs(box.lo), jnp.abs(box.hi))
+        return jnp.sqrt(jnp.sum(mag * mag))
+
+    return (jax.vmap(one)(lo, hi, piece),)
 
 
 def _curved_rows(ctrl, params, t, phi):

@@ -14,7 +14,7 @@ reference's branch, and the plant's command is the law's input there: a known fu
   with :math:`\tau \in [-1, 1]` a symbol of an affine evaluation
   (:mod:`wmrjax.certify.affine`) of the reference's jet, and :math:`s = \rho\,\varepsilon`
   with :math:`\varepsilon` in the unit ball; a sampled path's boxes are cut at its knots and
-  each encloses its own piece's polynomial (:func:`time_boxes`, :func:`jet_boxes`);
+  each encloses its own piece's polynomial (:func:`wmrjax.references.time_boxes`, :func:`jet_boxes`);
 * :math:`e^{At} = e^{At_c} e^{A h\tau}`, so :math:`\tilde\zeta = e^{At_c}P s` plus at most
   :math:`\|e^{At_c}\|_{row\,i}(e^{\|A\| h} - 1)\rho` per entry (an error term);
 * the command's affine enclosure over the box and the ball must lie within the limits; the
@@ -49,6 +49,7 @@ from wmrjax.certify.exact_map import Slice, slice_basis
 from wmrjax.certify.lemma2 import check_dynamic
 from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.law import DET_FLOOR
+from wmrjax.references import box_pieces, time_boxes
 from wmrjax.simulate import fixed_blocks
 
 BOX_BLOCK = 256
@@ -150,7 +151,7 @@ def jet_boxes(ctrl, params, t_c, h, piece=None):
 
     ``piece`` ((B,) int, or None): each box's piece of a reference with breakpoints, whose own
     polynomial is enclosed (:meth:`wmrjax.references.Reference.piece`): sound only for a box
-    inside its piece's interval (:func:`time_boxes` cuts them so). Across a knot the reference
+    inside its piece's interval (:func:`wmrjax.references.time_boxes` cuts them so). Across a knot the reference
     itself straddles two pieces, and the hull of their coefficients and start times, correlated
     in the jet, made its remainder unbounded (the car's 15 knots: a saturation-free radius 0)."""
     r, n = ctrl.relative_degree, ctrl.relative_degree * ctrl.m
@@ -166,44 +167,9 @@ def jet_boxes(ctrl, params, t_c, h, piece=None):
     return jax.vmap(one)(t_c, h, piece)
 
 
-def time_boxes(ref, t_final: float, n_boxes: int):
-    """``(t_c, h, breaks)``: ``n_boxes`` equal time boxes of ``[0, t_final]`` [s] (centres, half
-    widths), each cut at the reference's breakpoints inside it, and those breakpoints (None: a
-    reference without them, or a horizon past them, an extrapolated path's ends: its boxes are not
-    pinned to pieces)."""
-    edges = np.linspace(0.0, t_final, n_boxes + 1)
-    breaks = ref.breakpoints()
-    if breaks is not None:
-        breaks = np.asarray(breaks, float)
-        if breaks.ndim != 1 or breaks[0] > 0.0 or breaks[-1] < t_final:
-            breaks = None
-    if breaks is not None:
-        inner = breaks[(breaks > 0.0) & (breaks < t_final)]
-        near = np.abs(edges[:, None] - inner[None, :]).min(axis=1, initial=np.inf) < PIECE_SLACK * t_final
-        edges = np.union1d(edges[~near | (edges == 0.0) | (edges == t_final)], inner)  # no sliver boxes
-    return 0.5 * (edges[1:] + edges[:-1]), 0.5 * np.diff(edges), breaks
-
-
-# a box may pass its piece's ends by this much (relative to the horizon): the rounding of its centre
-# and half width; the times there are another piece's, each covered by that piece's box too
-PIECE_SLACK = 1e-12
-
-
-def box_pieces(breaks, t_c, h):
-    """Each box's piece (the one holding its centre), or None without ``breaks``; a RuntimeError
-    where a box is not inside its piece (the boxes must come from :func:`time_boxes` and halving)."""
-    if breaks is None:
-        return None
-    j = np.clip(np.searchsorted(breaks, t_c, side="right") - 1, 0, breaks.size - 2)
-    slack = PIECE_SLACK * max(1.0, float(breaks[-1] - breaks[0]))
-    if np.any(t_c - h < breaks[j] - slack) or np.any(t_c + h > breaks[j + 1] + slack):
-        raise RuntimeError("a time box lies across a breakpoint of the reference: its piece is not one")
-    return j
-
-
 def box_jets(ctrl, params, breaks, t_c, h) -> tuple:
     """:func:`jet_boxes` over the boxes ``t_c`` +- ``h`` in blocks of :data:`BOX_BLOCK` (NumPy
-    arrays), each pinned to its piece (:func:`box_pieces`) where ``breaks`` is not None."""
+    arrays), each pinned to its piece (:func:`wmrjax.references.box_pieces`) where ``breaks`` is not None."""
     j = box_pieces(breaks, t_c, h)
     if j is None:
         return fixed_blocks(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), (t_c, h), BOX_BLOCK)
