@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import enum
 import functools
+import hashlib
 from typing import NamedTuple
 
 import jax
@@ -627,7 +628,34 @@ def accel_bound(ctrl, params, t_final: float, C=None) -> float:
       G (inf where an enclosure is unbounded: the lower bound is then 0).
     """
     n = ctrl.relative_degree * ctrl.m
-    C = jnp.eye(n) if C is None else jnp.asarray(C)
+    C = np.eye(n) if C is None else np.asarray(C, float)
+    # G depends on the reference and the geometry only: a tuner's steps and both slices reuse it
+    key = (ctrl, float(t_final), _digest((params.reference, params.geometry, C)))
+    if key not in _ACCEL_CACHE:
+        if len(_ACCEL_CACHE) >= ACCEL_CACHE_SIZE:
+            _ACCEL_CACHE.pop(next(iter(_ACCEL_CACHE)))
+        _ACCEL_CACHE[key] = _accel_bound(ctrl, params, t_final, jnp.asarray(C))
+    return _ACCEL_CACHE[key]
+
+
+ACCEL_CACHE_SIZE = 64
+"""Bounds :func:`accel_bound` keeps (the oldest dropped first)."""
+_ACCEL_CACHE: dict = {}
+
+
+def _digest(tree) -> tuple:
+    """A key of a pytree of concrete arrays: its structure and every leaf's dtype, shape and bytes."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    h = hashlib.sha256(str(treedef).encode())
+    for x in leaves:
+        a = np.asarray(x)
+        h.update(f"{a.dtype}{a.shape}".encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return (h.hexdigest(),)
+
+
+def _accel_bound(ctrl, params, t_final: float, C) -> float:
+    """:func:`accel_bound` computed."""
     t_c, h, breaks = time_boxes(params.reference, t_final, ACCEL_BOXES)
     j = box_pieces(breaks, t_c, h)
     # boxes widened by the rounding of their ends: adjacent ones overlap, so their union holds [0, T]
