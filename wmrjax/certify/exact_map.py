@@ -629,8 +629,10 @@ def accel_bound(ctrl, params, t_final: float, C=None) -> float:
     """
     n = ctrl.relative_degree * ctrl.m
     C = np.eye(n) if C is None else np.asarray(C, float)
-    # G depends on the reference and the geometry only: a tuner's steps and both slices reuse it
-    key = (ctrl, float(t_final), _digest((params.reference, params.geometry, C)))
+    # G depends on the reference and the geometry only: a tuner's steps and both slices reuse it.
+    # The path function itself is in the key (held, so its address is never another's)
+    ref = params.reference
+    key = (ctrl, float(t_final), ref.path, _digest((ref, params.geometry, C)))
     if key not in _ACCEL_CACHE:
         if len(_ACCEL_CACHE) >= ACCEL_CACHE_SIZE:
             _ACCEL_CACHE.pop(next(iter(_ACCEL_CACHE)))
