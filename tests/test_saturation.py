@@ -365,7 +365,7 @@ def test_the_pieces_raise_the_position_slices_proved_radius_to_within_their_gap_
 def _sampled_circle(setting):
     """The circle loop's params with its reference replaced by the quintic spline through the
     circle sampled every 0.5 s from -0.25 s (12 knots inside the horizon; the spline is within
-    about 1e-6 m of the circle)."""
+    5.4e-6 m of the circle on [0, 6] s, measured on 6001 times)."""
     params = setting.params()
     t = -0.25 + 0.5 * np.arange(15)
     xy = np.stack([_reference_jet(tt)[:2] for tt in t])

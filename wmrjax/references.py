@@ -429,10 +429,13 @@ def _horner(pp, ts, s, uniform: bool):
     ts, pp = jnp.asarray(ts), jnp.asarray(pp)  # params held as NumPy arrays (a problem's) index by tracers too
     j = _piece(ts, s, uniform)
     c = jax.lax.dynamic_index_in_dim(pp, j, axis=0, keepdims=False)  # (k + 1, 2)
-    u = s - ts[j]
-    k = pp.shape[-2] - 1  # the degree: static, from the pieces' shape
-    v = c[k]
-    for i in range(k - 1, -1, -1):
+    return _polynomial(c, s - ts[j])
+
+
+def _polynomial(c, u):
+    """``sum_i c[i] u^i`` by Horner's rule (``c``: (k + 1, ...), the degree static from its shape)."""
+    v = c[-1]
+    for i in range(c.shape[0] - 2, -1, -1):
         v = v * u + c[i]
     return v
 
@@ -514,12 +517,7 @@ _path_spline.domain = _path_spline_uniform.domain = lambda params: (params["t"][
 
 def _path_polynomial(t, params):
     """One piece of a sampled path, ``sum_i c[i] (t - t0)^i``, at every time (:meth:`Reference.piece`)."""
-    c = jnp.asarray(params["c"])
-    u = t - params["t0"]
-    v = c[-1]
-    for i in range(c.shape[-2] - 2, -1, -1):
-        v = v * u + c[i]
-    return v
+    return _polynomial(jnp.asarray(params["c"]), t - params["t0"])
 
 
 def _spline_piece(params, j):

@@ -645,7 +645,7 @@ ACCEL_CACHE_SIZE = 64
 _ACCEL_CACHE: dict = {}
 
 
-def _digest(tree) -> tuple:
+def _digest(tree) -> str:
     """A key of a pytree of concrete arrays: its structure and every leaf's dtype, shape and bytes."""
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     h = hashlib.sha256(str(treedef).encode())
@@ -653,7 +653,7 @@ def _digest(tree) -> tuple:
         a = np.asarray(x)
         h.update(f"{a.dtype}{a.shape}".encode())
         h.update(np.ascontiguousarray(a).tobytes())
-    return (h.hexdigest(),)
+    return h.hexdigest()
 
 
 def _accel_bound(ctrl, params, t_final: float, C) -> float:
@@ -663,10 +663,8 @@ def _accel_bound(ctrl, params, t_final: float, C) -> float:
     # boxes widened by the rounding of their ends: adjacent ones overlap, so their union holds [0, T]
     slack = PIECE_SLACK * max(1.0, t_final)
     lo, hi = t_c - h - slack, t_c + h + slack
-    if j is None:
-        out = fixed_blocks(lambda a, b: _accel_boxes(ctrl, params, C, a, b), (lo, hi), BOX_BLOCK)
-    else:
-        out = fixed_blocks(lambda a, b, jj: _accel_boxes(ctrl, params, C, a, b, jj), (lo, hi, j), BOX_BLOCK)
+    args = (lo, hi) if j is None else (lo, hi, j)
+    out = fixed_blocks(lambda *a: _accel_boxes(ctrl, params, C, *a), args, BOX_BLOCK)
     g = float(np.max(out[0]))
     return g * (1.0 + 1e-12) if np.isfinite(g) else np.inf
 

@@ -171,9 +171,8 @@ def box_jets(ctrl, params, breaks, t_c, h) -> tuple:
     """:func:`jet_boxes` over the boxes ``t_c`` +- ``h`` in blocks of :data:`BOX_BLOCK` (NumPy
     arrays), each pinned to its piece (:func:`wmrjax.references.box_pieces`) where ``breaks`` is not None."""
     j = box_pieces(breaks, t_c, h)
-    if j is None:
-        return fixed_blocks(lambda tc, hh: jet_boxes(ctrl, params, tc, hh), (t_c, h), BOX_BLOCK)
-    return fixed_blocks(lambda tc, hh, jj: jet_boxes(ctrl, params, tc, hh, jj), (t_c, h, j), BOX_BLOCK)
+    args = (t_c, h) if j is None else (t_c, h, j)
+    return fixed_blocks(lambda *a: jet_boxes(ctrl, params, *a), args, BOX_BLOCK)
 
 
 def turned(a, phi):
