@@ -544,9 +544,30 @@ _SPLINE_PATHS = {  # (uniform, extrapolate) -> path
 }
 
 
+def piece_breaks(ref: Reference, t_final: float):
+    """The breakpoints of ``ref`` that pin enclosures over ``[0, t_final]`` to its pieces
+    (:meth:`Reference.breakpoints`), or None: a reference without them, or a horizon past them
+    (an extrapolated path's ends, where no piece's polynomial is the path).
+
+    Args:
+      ref: the reference (unbatched).
+      t_final: the horizon [s].
+
+    Returns:
+      (N,) float breakpoints [s], or None.
+    """
+    breaks = ref.breakpoints()
+    if breaks is None:
+        return None
+    breaks = np.asarray(breaks, float)
+    if breaks.ndim != 1 or breaks[0] > 0.0 or breaks[-1] < t_final:
+        return None
+    return breaks
+
+
 def time_boxes(ref: Reference, t_final: float, n_boxes: int):
     """Time boxes of ``[0, t_final]`` for an enclosure of the reference over time: ``n_boxes``
-    equal ones, each cut at the reference's breakpoints inside it (:meth:`Reference.breakpoints`),
+    equal ones, each cut at the reference's breakpoints inside it (:func:`piece_breaks`),
     so that every box lies in one piece (:func:`box_pieces`).
 
     Args:
@@ -556,15 +577,10 @@ def time_boxes(ref: Reference, t_final: float, n_boxes: int):
 
     Returns:
       ``(t_c, h, breaks)``: the boxes' centres and half-widths [s] ((B,) each) and the
-      breakpoints ((N,), or None: a reference without them, or a horizon past them (an
-      extrapolated path's ends), whose boxes are not cut).
+      breakpoints ((N,), or None: :func:`piece_breaks`, whose boxes are not cut).
     """
     edges = np.linspace(0.0, t_final, n_boxes + 1)
-    breaks = ref.breakpoints()
-    if breaks is not None:
-        breaks = np.asarray(breaks, float)
-        if breaks.ndim != 1 or breaks[0] > 0.0 or breaks[-1] < t_final:
-            breaks = None
+    breaks = piece_breaks(ref, t_final)
     if breaks is not None:
         inner = breaks[(breaks > 0.0) & (breaks < t_final)]
         near = np.abs(edges[:, None] - inner[None, :]).min(axis=1, initial=np.inf) < PIECE_SLACK * t_final
@@ -577,29 +593,39 @@ def time_boxes(ref: Reference, t_final: float, n_boxes: int):
 PIECE_SLACK = 1e-12
 
 
-def box_pieces(breaks, t_c, h):
+def box_pieces(breaks, t_c, h, across: bool = False):
     """Each time box's piece: the index j with the box inside ``[breaks[j], breaks[j + 1]]``, for
     :meth:`Reference.piece`.
 
     Args:
-      breaks: (N,) the reference's breakpoints (:func:`time_boxes`), or None.
+      breaks: (N,) the reference's breakpoints (:func:`time_boxes`, :func:`piece_breaks`), or None.
       t_c: (B,) the boxes' centres [s].
       h: (B,) their half-widths [s].
+      across: return each box's first and last piece instead, ``(lo, hi)`` ((B,) each; equal for
+        a box inside one piece; -1 for a box past the breakpoints' ends), for boxes not cut at
+        the breakpoints (a controller's periods).
 
     Returns:
-      (B,) integer indices, or None without ``breaks``.
+      (B,) integer indices (``(lo, hi)`` with ``across``), or None without ``breaks``.
 
     Raises:
-      RuntimeError: a box across a breakpoint (boxes must come from :func:`time_boxes`, or from
-        halving its boxes): an internal error.
+      RuntimeError: a box across a breakpoint, unless ``across`` (boxes must come from
+        :func:`time_boxes`, or from halving its boxes): an internal error.
     """
     if breaks is None:
         return None
-    j = np.clip(np.searchsorted(breaks, t_c, side="right") - 1, 0, breaks.size - 2)
     slack = PIECE_SLACK * max(1.0, float(breaks[-1] - breaks[0]))
-    if np.any(t_c - h < breaks[j] - slack) or np.any(t_c + h > breaks[j + 1] + slack):
+    piece = lambda t, side: np.clip(np.searchsorted(breaks, t, side=side) - 1, 0, breaks.size - 2)
+    # an end within the slack of a breakpoint belongs to the piece on the box's side of it
+    lo, hi = piece(t_c - h + slack, "right"), piece(t_c + h - slack, "left")
+    hi = np.maximum(lo, hi)
+    # past the ends the reference is its extrapolation, no piece's polynomial
+    outside = (t_c - h < breaks[0] - slack) | (t_c + h > breaks[-1] + slack)
+    if across:
+        return np.where(outside, -1, lo), np.where(outside, -1, hi)
+    if np.any(hi > lo) or np.any(outside):
         raise RuntimeError("a time box lies across a breakpoint of the reference: its piece is not one")
-    return j
+    return lo
 
 
 # samples count as uniform when each lies within this fraction of a step of its place on the grid

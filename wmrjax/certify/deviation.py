@@ -81,7 +81,6 @@ from wmrjax.certify.lemma2 import check_dynamic, m1_closed_form
 from wmrjax.certify.saturation import (
     BOX_BLOCK,
     box_jets,
-    jet_boxes,
     placed_command,
     preconditioned_solve,
     reference_heading,
@@ -90,7 +89,7 @@ from wmrjax.certify.saturation import (
 )
 from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.law import Level
-from wmrjax.references import time_boxes
+from wmrjax.references import piece_breaks, time_boxes
 from wmrjax.robots import Geometry
 from wmrjax.simulate import fixed_blocks
 
@@ -106,8 +105,6 @@ the held one two of them) and run a few dozen times: XLA's optimizer would take 
 them for little gain (the continuous one on ``steered_21``: 165 s of its 260 s certification),
 and XLA:CPU's legacy elemental emitters compile them faster than its MLIR fusion emitters (as
 :data:`wmrjax.certify.saturation.SEARCH_COMPILE`)."""
-JET_INSET = 1e-9
-"""Relative inset of a controller period's box for the reference jet's enclosure (see :class:`_Tube`)."""
 TUBE_FACTOR = 1.25
 """R is set to this factor times the deviation bound it must contain (> 1: (iii) is strict)."""
 
@@ -463,12 +460,11 @@ class _Tube:
             n_boxes = int(np.ceil(t_final / period - 1e-9))
             self.t_c = (np.arange(n_boxes) + 0.5) * period
             self.h = np.full(n_boxes, 0.5 * period)
-            # a period's box is a sampled path's piece: enclosed over its interior (the jet is
-            # continuous, so the closure of that enclosure holds the ends), where the outward-rounded
-            # ends would read two pieces
-            self.jets = fixed_blocks(
-                lambda tc, hh: jet_boxes(ctrl, params, tc, hh), (self.t_c, self.h * (1 - JET_INSET)), BOX_BLOCK
-            )
+            # each period's box its piece's, the whole box (its ends' outward rounding would read the
+            # next piece: unpinned, the hull of two pieces); a period across a knot (a path sampled
+            # off the controller's grid) the reference's own enclosure
+            breaks = piece_breaks(params.reference, t_final)
+            self.jets = box_jets(ctrl, params, breaks, self.t_c, self.h, across=True)
         else:  # cut at a sampled path's knots, each box's jet its own piece's (wmrjax.references.time_boxes)
             self.t_c, self.h, breaks = time_boxes(params.reference, t_final, n_boxes)
             self.jets = box_jets(ctrl, params, breaks, self.t_c, self.h)

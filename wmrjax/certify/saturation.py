@@ -167,12 +167,39 @@ def jet_boxes(ctrl, params, t_c, h, piece=None):
     return jax.vmap(one)(t_c, h, piece)
 
 
-def box_jets(ctrl, params, breaks, t_c, h) -> tuple:
+def box_jets(ctrl, params, breaks, t_c, h, across: bool = False) -> tuple:
     """:func:`jet_boxes` over the boxes ``t_c`` +- ``h`` in blocks of :data:`BOX_BLOCK` (NumPy
-    arrays), each pinned to its piece (:func:`wmrjax.references.box_pieces`) where ``breaks`` is not None."""
-    j = box_pieces(breaks, t_c, h)
-    args = (t_c, h) if j is None else (t_c, h, j)
-    return fixed_blocks(lambda *a: jet_boxes(ctrl, params, *a), args, BOX_BLOCK)
+    arrays), each pinned to its piece (:func:`wmrjax.references.box_pieces`) where ``breaks`` is not
+    None. With ``across``, a box across breakpoints (a controller's period) is the hull of its
+    pieces' polynomials, each enclosed over the whole box: at every time of the box the reference
+    is one of them (a spline's pieces agree to its degree's order at a knot, so the hull is tight);
+    a box past the breakpoints' ends encloses the reference itself."""
+    program = lambda *a: jet_boxes(ctrl, params, *a)
+    if breaks is None:
+        return fixed_blocks(program, (t_c, h), BOX_BLOCK)
+    if not across:
+        return fixed_blocks(program, (t_c, h, box_pieces(breaks, t_c, h)), BOX_BLOCK)
+    lo, hi = box_pieces(breaks, t_c, h, across=True)
+    c, g, e = (np.array(x) for x in fixed_blocks(program, (t_c, h, np.maximum(lo, 0)), BOX_BLOCK))
+    for k in range(1, int(np.max(hi - lo)) + 1):
+        c2, g2, e2 = fixed_blocks(program, (t_c, h, np.maximum(np.minimum(lo + k, hi), 0)), BOX_BLOCK)
+        c, g, e = _hull(c, g, e, c2, g2, e2)
+    past = np.flatnonzero(lo < 0)
+    if past.size:
+        for x, y in zip((c, g, e), fixed_blocks(program, (t_c[past], h[past]), BOX_BLOCK)):
+            x[past] = y
+    return c, g, e
+
+
+def _hull(c1, g1, e1, c2, g2, e2):
+    """An affine form (centre, generators, error) holding both forms' values at every value of the
+    symbols (the mean's, with the halved differences as error), rounded outward."""
+    c, g = 0.5 * (c1 + c2), 0.5 * (g1 + g2)
+    spread = 0.5 * np.abs(c1 - c2) + 0.5 * np.sum(np.abs(g1 - g2), axis=-1)
+    e = np.maximum(e1, e2) + spread
+    # the mean's rounding (half an ulp of each entry) and the sum's: covered by a relative allowance
+    scale = np.abs(c1) + np.abs(c2) + np.sum(np.abs(g1) + np.abs(g2), axis=-1)
+    return c, g, np.nextafter(e + 1e-15 * scale + 1e-300, np.inf)
 
 
 def turned(a, phi):
