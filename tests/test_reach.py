@@ -19,6 +19,7 @@ import scipy.integrate
 from circle_loop import circle_problem
 
 import wmrjax.certify as C
+import wmrjax.references
 from wmrjax.certify import affine
 from wmrjax.problem import Problem
 from wmrjax.tune import certified as tune_certified
@@ -113,7 +114,8 @@ def test_the_reach_is_tight_on_a_small_ball_and_agrees_with_the_librarys_loop(re
     n_k = round(T_FINAL / PERIOD)
     branch = float(setting.ctrl.reference_branch(params))
     radii = jnp.asarray(np.full(C.reach.PER_ROUND, 1e-3))  # the search's program (its count of radii): compiled once
-    out = C.reach.reach_radii(loop, params, dist, branch, PERIOD, n_k, jnp.eye(4), radii, unc, EPS, 1e-9)
+    jets = C.reach.sample_jets(setting.ctrl, params, PERIOD, n_k)
+    out = C.reach.reach_radii(loop, params, dist, branch, PERIOD, n_k, jnp.eye(4), radii, unc, EPS, 1e-9, jets)
     out = jax.tree_util.tree_map(lambda v: v[0], out)
     assert bool(out.ok)
     e0 = np.array([1e-3, 0.0, 0.0, 0.0])
@@ -124,6 +126,32 @@ def test_the_reach_is_tight_on_a_small_ball_and_agrees_with_the_librarys_loop(re
     lib = C.real_loop_distances(quiet, params, errs)
     ref = [_sampled_run(e, np.zeros((n_k, 3))) for e in errs]
     np.testing.assert_allclose(lib, ref, rtol=2e-3)
+
+
+def test_the_references_jet_at_the_samples_is_enclosed_on_a_sampled_paths_knots():
+    """The reach's reference jets (sample_jets) hold the jet a run computes at every sample and,
+    at a sample on a spline knot, both pieces' values there, within 1e-9 of them."""
+    setting = _problem().setting("certification")
+    ctrl, base = setting.ctrl, setting.params()
+    ts = -1.0 + 0.5 * np.arange(14)  # the path's breakpoints (its samples) at 0, 0.5, ... s: every fifth sample
+    xy = np.asarray(jax.vmap(base.reference.posture)(jnp.asarray(ts)))[:, :2]
+    params = base._replace(reference=wmrjax.references.from_samples(ts, xy))
+    n_k = round(T_FINAL / PERIOD)
+    jets = C.reach.sample_jets(ctrl, params, PERIOD, n_k)
+    lo, hi = np.asarray(jets.lo), np.asarray(jets.hi)
+    t = np.arange(n_k) * PERIOD
+    run = np.asarray(jax.vmap(lambda tt: ctrl.reference_jet(tt, params))(jnp.asarray(t)))
+    assert lo.shape == run.shape == (n_k, ctrl.relative_degree + 1, 2)
+    assert np.all(lo <= run) and np.all(run <= hi) and np.all(hi - lo <= 1e-9 * (1.0 + np.abs(run)))
+    breaks = np.asarray(params.reference.breakpoints())
+    on = [k for k in range(n_k) if np.min(np.abs(breaks - t[k])) < 1e-12]
+    assert len(on) == 8  # 0, 0.5, ..., 3.5 s
+    for k in on:
+        j = int(np.argmin(np.abs(breaks - t[k])))
+        for piece in (j - 1, j):
+            p = params._replace(reference=params.reference.piece(piece))
+            v = np.asarray(ctrl.reference_jet(t[k], p))
+            assert np.all(lo[k] <= v) and np.all(v <= hi[k])
 
 
 def test_the_problem_certificate_of_a_digital_controller_is_the_held_reach(reach):

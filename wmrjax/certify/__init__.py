@@ -97,6 +97,7 @@ from wmrjax.certify.reach import (
     Uncertainty,
     held_reach,
     held_reach_radius,
+    sample_jets,
 )
 from wmrjax.certify.real_loop import (
     Feature,
@@ -183,6 +184,7 @@ __all__ = [
     "Uncertainty",
     "held_reach",
     "held_reach_radius",
+    "sample_jets",
     "SaturationFreeRadius",
     "saturation_free_radius",
     "WorstNoise",

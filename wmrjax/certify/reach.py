@@ -60,10 +60,13 @@ from wmrjax.certify import affine
 from wmrjax.certify import interval as iv
 from wmrjax.certify.exact_map import singular_rows
 from wmrjax.certify.interval import Interval
+from wmrjax.certify.saturation import BOX_BLOCK
 from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.plant import PlantParams
 from wmrjax.controllers.sampled import SampledLoop, SampledParams, SampledState
+from wmrjax.references import PIECE_SLACK, box_pieces, piece_breaks
 from wmrjax.robots import Geometry
+from wmrjax.simulate import fixed_blocks
 
 HISTORY_PER_STATE = 24
 """The zonotope's history generators per component of the loop's state."""
@@ -297,28 +300,67 @@ def _split(centre, gens, n: int):
     return affine.Affine(*(v[:n] for v in a)), affine.Affine(*(v[n:] for v in a))
 
 
-JET_ALLOWANCE = 2.0**-40
-"""Relative allowance on the reference's jet evaluated in floats at a sample (a run evaluates it
-at a time that may differ from k h by rounding)."""
+SAMPLE_TIME_ROUNDING = 2.0**-50
+"""Relative half-width of the time box around a sample's time :math:`kh` in which the
+reference's jet is enclosed: a run computes that time in floats (a product or a short sum, a
+few ulps of it, each 2^-53 relative)."""
 
 
-def _reference_jet(ctrl, law_params, t) -> Interval:
-    """The reference's jet at the sample time ``t``, evaluated in floats at the point (the interval
-    rules would straddle a sampled path's knot, on which the samples fall) and widened by
-    :data:`JET_ALLOWANCE` (with an absolute floor) to cover the run's rounding of ``t``."""
-    jet = ctrl.reference_jet(t, law_params)
-    pad = JET_ALLOWANCE * (1.0 + jnp.abs(jet))
-    return Interval(iv._down(jet - pad), iv._up(jet + pad))
+def sample_jets(ctrl, law_params, h: float, n_periods: int) -> Interval:
+    """The reference's jet at each sample time :math:`kh`, ``k < n_periods``, enclosed in interval
+    arithmetic over a box of :data:`SAMPLE_TIME_ROUNDING` around it (and a few times
+    :data:`wmrjax.references.PIECE_SLACK` of the horizon), pinned to its piece of a sampled path:
+    a sample on a knot, where a run may read either piece, is the hull of both.
+
+    Args:
+      ctrl: the dynamic law.
+      law_params: its parameters (the reference).
+      h: the controller period [s].
+      n_periods: samples.
+
+    Returns:
+      :class:`Interval` of shape (n_periods, r + 1, m).
+    """
+    t = np.arange(n_periods) * h
+    # wider than the slack by which a box may pass its piece's ends (PIECE_SLACK: the rounding of
+    # boxes that tile the horizon, whose neighbours cover it; these do not tile it)
+    half = SAMPLE_TIME_ROUNDING * np.maximum(t, h) + 4.0 * PIECE_SLACK * max(1.0, n_periods * h)
+    enclose = lambda *a: _jet_boxes(ctrl, law_params, *a)
+    breaks = piece_breaks(law_params.reference, float(t[-1] + half[-1]))
+    if breaks is None:
+        lo, hi = fixed_blocks(enclose, (t - half, t + half), BOX_BLOCK)
+        return Interval(jnp.asarray(lo), jnp.asarray(hi))
+    first, last = box_pieces(breaks, t, half, across=True)
+    lo, hi = (np.array(x) for x in fixed_blocks(enclose, (t - half, t + half, np.maximum(first, 0)), BOX_BLOCK))
+    for k in range(1, int(np.max(last - first)) + 1):
+        lo2, hi2 = fixed_blocks(enclose, (t - half, t + half, np.maximum(np.minimum(first + k, last), 0)), BOX_BLOCK)
+        lo, hi = np.minimum(lo, lo2), np.maximum(hi, hi2)
+    past = np.flatnonzero(first < 0)  # past the breakpoints' ends: the reference itself
+    if past.size:
+        lo[past], hi[past] = fixed_blocks(enclose, (t[past] - half[past], t[past] + half[past]), BOX_BLOCK)
+    return Interval(jnp.asarray(lo), jnp.asarray(hi))
 
 
-def _period(loop, law_params, unc, dist, lay: _Layout, h: float, eps, floor, s: _Carry) -> _Carry:
-    """One controller period of the reach (module docstring, (i)-(iv))."""
+def _jet_boxes(ctrl, law_params, lo, hi, piece=None):
+    """Per time box [lo, hi]: the reference's jet enclosed (interval arithmetic; ``piece``: each
+    box's piece's polynomial). Run eagerly, not compiled, as the exact map's G
+    (:func:`wmrjax.certify.exact_map.accel_bound`): compiled, the S-path's took 68 s (2026-12-08)."""
+
+    def one(a, b, j):
+        p = law_params if j is None else law_params._replace(reference=law_params.reference.piece(j))
+        return tuple(iv.enclose(lambda tt: ctrl.reference_jet(tt, p), Interval(a, b)))
+
+    return jax.vmap(one)(lo, hi, piece)
+
+
+def _period(loop, law_params, unc, dist, lay: _Layout, h: float, eps, floor, jets: Interval, s: _Carry) -> _Carry:
+    """One controller period of the reach (module docstring, (i)-(iv)); ``jets``: :func:`sample_jets`."""
     t = s.k * h
     x, c = _split(s.centre, s.gens, loop.n_plant)
     noise = affine.symbols(jnp.zeros(loop.robot.n_state), _column_block(unc.noise, lay, "noise"))
     s_in, sigma = _scales(unc, lay)
     forms = functools.partial(_period_forms, loop, law_params, unc)
-    jet = _reference_jet(loop.ctrl, law_params, t)
+    jet = Interval(jets.lo[s.k], jets.hi[s.k])
     (f1, f2, u, cc, rate, reg), ctx = affine.enclose(forms, t, jet, x, c, noise, s_in, sigma, n_ball=lay.n_ball)
     box = lambda a: affine.to_interval(a, ctx)
     held = (box(u), box(s_in), box(sigma))
@@ -367,7 +409,9 @@ def _initial(loop: SampledLoop, law_params, unc, lay: _Layout, branch: float, P,
 
 
 @functools.partial(jax.jit, static_argnums=(0, 2, 3, 4, 5))
-def held_reach(loop: SampledLoop, law_params, dist, branch: float, h: float, n_periods: int, P, rho, unc, eps, floor):
+def held_reach(
+    loop: SampledLoop, law_params, dist, branch: float, h: float, n_periods: int, P, rho, unc, eps, floor, jets
+):
     """The reach of ``loop`` from the initial output errors ``rho P b``, ``|b| <= 1``, over
     ``n_periods`` periods of ``h`` [s], for every plant of ``unc`` (:class:`Uncertainty`).
 
@@ -383,6 +427,7 @@ def held_reach(loop: SampledLoop, law_params, dist, branch: float, h: float, n_p
       unc: the plant's :class:`Uncertainty`.
       eps: the distance to keep.
       floor: the failure floor of the measured det K.
+      jets: the reference's jet at the samples (:func:`sample_jets`).
 
     Returns:
       :class:`HeldReach`.
@@ -393,18 +438,18 @@ def held_reach(loop: SampledLoop, law_params, dist, branch: float, h: float, n_p
     s0 = _Carry(
         jnp.asarray(0), centre, gens, jnp.zeros(()), jnp.asarray(True), jnp.asarray(-1), jnp.asarray(0), inf, -inf
     )
-    step = functools.partial(_period, loop, law_params, unc, dist, lay, h, eps, floor)
+    step = functools.partial(_period, loop, law_params, unc, dist, lay, h, eps, floor, jets)
     out = jax.lax.while_loop(lambda s: s.ok & (s.k < n_periods), step, s0)
     return HeldReach(out.ok, out.distance, out.failed_at, out.reason, out.width)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 2, 3, 4, 5))
 def reach_radii(
-    loop: SampledLoop, law_params, dist, branch: float, h: float, n_periods: int, P, radii, unc, eps, floor
+    loop: SampledLoop, law_params, dist, branch: float, h: float, n_periods: int, P, radii, unc, eps, floor, jets
 ):
     """:func:`held_reach` at each of ``radii`` ((k,)) side by side (one program per loop and count
     of radii: both slices of a problem share it)."""
-    one = lambda r: held_reach(loop, law_params, dist, branch, h, n_periods, P, r, unc, eps, floor)
+    one = lambda r: held_reach(loop, law_params, dist, branch, h, n_periods, P, r, unc, eps, floor, jets)
     return jax.vmap(one)(radii)
 
 
@@ -511,10 +556,11 @@ def held_reach_radius(
     h, periods = float(setting.control_period), setting.n_steps // setting.steps_per_sample
     branch = float(ctrl.reference_branch(params))
     uncs = uncertainties(setting, noise_multiple)
+    jets = sample_jets(ctrl, params, h, periods)
 
     def passes(radii):
         args = (loop, params, dist, branch, h, periods, Pn, jnp.asarray(radii))
-        outs = [reach_radii(*args, u, eps, margin_floor) for u in uncs]
+        outs = [reach_radii(*args, u, eps, margin_floor, jets) for u in uncs]
         ok = np.all([np.asarray(o.ok) for o in outs], axis=0)
         return ok, outs
 
