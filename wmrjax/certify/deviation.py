@@ -460,9 +460,10 @@ class _Tube:
             n_boxes = int(np.ceil(t_final / period - 1e-9))
             self.t_c = (np.arange(n_boxes) + 0.5) * period
             self.h = np.full(n_boxes, 0.5 * period)
-            # each period's box its piece's, the whole box (its ends' outward rounding would read the
-            # next piece: unpinned, the hull of two pieces); a period across a knot (a path sampled
-            # off the controller's grid) the reference's own enclosure
+            # each period pinned to its piece over the whole period (unpinned, its ends' outward
+            # rounding would read the next piece too, and the hull of two pieces' coefficients is
+            # unbounded); a period across a knot (a path sampled off the controller's grid) the hull
+            # of its pieces' polynomials
             breaks = piece_breaks(params.reference, t_final)
             self.jets = box_jets(ctrl, params, breaks, self.t_c, self.h, across=True)
         else:  # cut at a sampled path's knots, each box's jet its own piece's (wmrjax.references.time_boxes)

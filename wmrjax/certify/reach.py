@@ -23,7 +23,8 @@ the same at every period), :math:`\eta \in [-1, 1]^p` the history (a zonotope's 
 
 **One period.** (i) The sample: the law's command, rate and :math:`\det K` at the measured
 state :math:`X + n_k` (noise symbols of its own) are enclosed affinely, by the loop's own
-:meth:`~wmrjax.controllers.sampled.SampledLoop.sample`. (ii) The flow: with the input held, the
+:meth:`~wmrjax.controllers.sampled.SampledLoop.sample`, at the reference's jet enclosed before
+the reach (:func:`sample_jets`). (ii) The flow: with the input held, the
 plant's state is :math:`X(t_k + \tau) = X + \tau F + \tfrac{\tau^2}{2} F' F + R`,
 :math:`R \in [0, h^3/6]\,F''(B)` (Taylor's theorem with the Lagrange remainder, componentwise),
 where :math:`B` is an a-priori enclosure of the flow over the period: a box with
