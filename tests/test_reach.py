@@ -152,6 +152,10 @@ def test_the_references_jet_at_the_samples_is_enclosed_on_a_sampled_paths_knots(
             p = params._replace(reference=params.reference.piece(piece))
             v = np.asarray(ctrl.reference_jet(t[k], p))
             assert np.all(lo[k] <= v) and np.all(v <= hi[k])
+    # kept by value: the same reference gives the same enclosure, another reference its own
+    assert C.reach.sample_jets(ctrl, params, PERIOD, n_k) is jets
+    moved = params._replace(reference=wmrjax.references.from_samples(ts, xy + 0.1))
+    assert np.allclose(np.asarray(C.reach.sample_jets(ctrl, moved, PERIOD, n_k).lo)[:, 0], lo[:, 0] + 0.1, atol=1e-6)
 
 
 def test_the_problem_certificate_of_a_digital_controller_is_the_held_reach(reach):

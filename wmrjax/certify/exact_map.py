@@ -632,7 +632,7 @@ def accel_bound(ctrl, params, t_final: float, C=None) -> float:
     # G depends on the reference and the geometry only: a tuner's steps and both slices reuse it.
     # The path function itself is in the key (held, so its address is never another's)
     ref = params.reference
-    key = (ctrl, float(t_final), ref.path, _digest((ref, params.geometry, C)))
+    key = (ctrl, float(t_final), ref.path, value_digest((ref, params.geometry, C)))
     if key not in _ACCEL_CACHE:
         if len(_ACCEL_CACHE) >= ACCEL_CACHE_SIZE:
             _ACCEL_CACHE.pop(next(iter(_ACCEL_CACHE)))
@@ -645,8 +645,9 @@ ACCEL_CACHE_SIZE = 64
 _ACCEL_CACHE: dict = {}
 
 
-def _digest(tree) -> str:
-    """A key of a pytree of concrete arrays: its structure and every leaf's dtype, shape and bytes."""
+def value_digest(tree) -> str:
+    """A cache key of a pytree of concrete arrays: its structure and every leaf's dtype, shape and
+    bytes (the certificates' caches of what depends on the reference only)."""
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     h = hashlib.sha256(str(treedef).encode())
     for x in leaves:
