@@ -628,6 +628,37 @@ def box_pieces(breaks, t_c, h, across: bool = False):
     return lo
 
 
+def enclose_over_pieces(enclose, hull, breaks, t_c, h) -> tuple:
+    """Per time box not cut at the breakpoints (a controller's periods, its samples), the hull of
+    its pieces' enclosures over the whole box: at every time of the box the reference is one of
+    its pieces' polynomials (:func:`box_pieces` with ``across``); a box past the breakpoints' ends
+    the reference's own enclosure.
+
+    Args:
+      enclose: ``enclose(rows, piece)`` -> tuple of NumPy arrays (``len(rows)``, ...): the
+        enclosures over the boxes ``rows`` each pinned to ``piece`` ((len(rows),) ints), or with
+        ``piece`` None of the reference itself.
+      hull: ``hull(a, b)`` -> an enclosure holding both (tuples as ``enclose`` gives).
+      breaks: (N,) the reference's breakpoints (:func:`piece_breaks`).
+      t_c: (B,) the boxes' centres [s].
+      h: (B,) their half-widths [s].
+
+    Returns:
+      ``enclose``'s tuple over every box.
+    """
+    first, last = box_pieces(breaks, t_c, h, across=True)
+    out = [np.array(x) for x in enclose(np.arange(t_c.size), np.maximum(first, 0))]
+    for k in range(1, int(np.max(last - first)) + 1):  # only the boxes with a k-th further piece
+        rows = np.flatnonzero(last - first >= k)
+        for x, y in zip(out, hull(tuple(x[rows] for x in out), enclose(rows, first[rows] + k))):
+            x[rows] = y
+    past = np.flatnonzero(first < 0)
+    if past.size:
+        for x, y in zip(out, enclose(past, None)):
+            x[past] = y
+    return tuple(out)
+
+
 # samples count as uniform when each lies within this fraction of a step of its place on the grid
 UNIFORM_TOLERANCE = 0.25
 

@@ -65,7 +65,7 @@ from wmrjax.certify.saturation import BOX_BLOCK
 from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.plant import PlantParams
 from wmrjax.controllers.sampled import SampledLoop, SampledParams, SampledState
-from wmrjax.references import PIECE_SLACK, box_pieces, piece_breaks
+from wmrjax.references import PIECE_SLACK, enclose_over_pieces, piece_breaks
 from wmrjax.robots import Geometry
 from wmrjax.simulate import fixed_blocks
 
@@ -345,19 +345,14 @@ def _sample_jets(ctrl, law_params, h: float, n_periods: int) -> Interval:
     # wider than the slack by which a box may pass its piece's ends (PIECE_SLACK: the rounding of
     # boxes that tile the horizon, whose neighbours cover it; these do not tile it)
     half = SAMPLE_TIME_ROUNDING * np.maximum(t, h) + 4.0 * PIECE_SLACK * max(1.0, n_periods * h)
-    enclose = lambda *a: _jet_boxes(ctrl, law_params, *a)
+    boxes = lambda rows, j: (t[rows] - half[rows], t[rows] + half[rows]) + (() if j is None else (j,))
+    enclose = lambda rows, j: fixed_blocks(lambda *a: _jet_boxes(ctrl, law_params, *a), boxes(rows, j), BOX_BLOCK)
     breaks = piece_breaks(law_params.reference, float(t[-1] + half[-1]))
     if breaks is None:
-        lo, hi = fixed_blocks(enclose, (t - half, t + half), BOX_BLOCK)
-        return Interval(jnp.asarray(lo), jnp.asarray(hi))
-    first, last = box_pieces(breaks, t, half, across=True)
-    lo, hi = (np.array(x) for x in fixed_blocks(enclose, (t - half, t + half, np.maximum(first, 0)), BOX_BLOCK))
-    for k in range(1, int(np.max(last - first)) + 1):
-        lo2, hi2 = fixed_blocks(enclose, (t - half, t + half, np.maximum(np.minimum(first + k, last), 0)), BOX_BLOCK)
-        lo, hi = np.minimum(lo, lo2), np.maximum(hi, hi2)
-    past = np.flatnonzero(first < 0)  # past the breakpoints' ends: the reference itself
-    if past.size:
-        lo[past], hi[past] = fixed_blocks(enclose, (t[past] - half[past], t[past] + half[past]), BOX_BLOCK)
+        lo, hi = enclose(np.arange(n_periods), None)
+    else:
+        hull = lambda a, b: (np.minimum(a[0], b[0]), np.maximum(a[1], b[1]))
+        lo, hi = enclose_over_pieces(enclose, hull, breaks, t, half)
     return Interval(jnp.asarray(lo), jnp.asarray(hi))
 
 

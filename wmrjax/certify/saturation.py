@@ -49,7 +49,7 @@ from wmrjax.certify.exact_map import Slice, slice_basis
 from wmrjax.certify.lemma2 import check_dynamic
 from wmrjax.controllers import Space, Task, place
 from wmrjax.controllers.law import DET_FLOOR
-from wmrjax.references import box_pieces, time_boxes
+from wmrjax.references import box_pieces, enclose_over_pieces, time_boxes
 from wmrjax.simulate import fixed_blocks
 
 BOX_BLOCK = 256
@@ -179,16 +179,9 @@ def box_jets(ctrl, params, breaks, t_c, h, across: bool = False) -> tuple:
         return fixed_blocks(program, (t_c, h), BOX_BLOCK)
     if not across:
         return fixed_blocks(program, (t_c, h, box_pieces(breaks, t_c, h)), BOX_BLOCK)
-    lo, hi = box_pieces(breaks, t_c, h, across=True)
-    c, g, e = (np.array(x) for x in fixed_blocks(program, (t_c, h, np.maximum(lo, 0)), BOX_BLOCK))
-    for k in range(1, int(np.max(hi - lo)) + 1):
-        c2, g2, e2 = fixed_blocks(program, (t_c, h, np.maximum(np.minimum(lo + k, hi), 0)), BOX_BLOCK)
-        c, g, e = _hull(c, g, e, c2, g2, e2)
-    past = np.flatnonzero(lo < 0)
-    if past.size:
-        for x, y in zip((c, g, e), fixed_blocks(program, (t_c[past], h[past]), BOX_BLOCK)):
-            x[past] = y
-    return c, g, e
+    pinned = lambda rows, j: (t_c[rows], h[rows]) + (() if j is None else (j,))
+    enclose = lambda rows, j: fixed_blocks(program, pinned(rows, j), BOX_BLOCK)
+    return enclose_over_pieces(enclose, lambda a, b: _hull(*a, *b), breaks, t_c, h)
 
 
 def _hull(c1, g1, e1, c2, g2, e2):
